@@ -1,0 +1,42 @@
+# aerial_loc_env: every target creates its own virtual environment in .venv on a fresh machine.
+PYTHON ?= python3
+VENV   ?= .venv
+PY     := $(VENV)/bin/python
+PIP    := $(PY) -m pip
+# The CPU build of torch: pinned so that pip never pulls several GB of CUDA packages.
+TORCH  ?= torch==2.13.0
+
+.PHONY: venv run test bench pictures lint wheel clean
+
+$(VENV)/.installed: pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(PIP) install -q --upgrade pip
+	$(PIP) install -q "$(TORCH)"
+	$(PIP) install -q -e ".[test,rl,mavlink,plots]"
+	touch $@
+
+venv: $(VENV)/.installed
+
+## Quick start 1: install, then run the main job on the embedded default map.
+run: venv
+	$(VENV)/bin/aerial-loc bench
+
+## Quick start 2: install, then run the whole test suite.
+test: venv
+	$(PY) -m pytest -q
+
+bench: venv
+	$(PY) -m aerial_loc_env.perf
+
+pictures: venv
+	$(VENV)/bin/aerial-loc pictures --out docs/img
+
+lint: venv
+	$(VENV)/bin/ruff check aerial_loc_env tests
+
+wheel: venv
+	$(PIP) install -q build
+	$(PY) -m build --wheel --outdir dist
+
+clean:
+	rm -rf $(VENV) dist build .pytest_cache
