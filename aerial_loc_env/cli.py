@@ -1,0 +1,50 @@
+"""The ``aerial-loc`` command: each subcommand lives in its own module and parses its own arguments."""
+
+from __future__ import annotations
+
+import importlib
+import sys
+
+from .errors import AerialLocError
+
+# name -> (module with main(argv) -> int, one-line help)
+COMMANDS: dict[str, tuple[str, str]] = {
+    "bench": ("aerial_loc_env.benchmark.cli", "run an experiment grid (default: compare the main agents)"),
+    "pictures": ("aerial_loc_env.pictures", "write a map overview and camera frames with/without shadows"),
+    "train": ("aerial_loc_env.learning.cli", "train a learned policy from a recipe in agents/"),
+    "mavlink": ("aerial_loc_env.mavlink.cli", "stream an agent's estimates to a flight controller"),
+    "perf": ("aerial_loc_env.perf.__main__", "speed benchmarks on one core"),
+    "scenarios": ("aerial_loc_env.env.scenarios", "list the registered scenarios"),
+    "agents": ("aerial_loc_env.estimators.registry", "list the agent specs"),
+}
+
+
+def _usage() -> str:
+    lines = ["usage: aerial-loc <command> [options]", "", "commands:"]
+    lines += [f"  {name:10s} {help_}" for name, (_, help_) in COMMANDS.items()]
+    lines += ["", "aerial-loc <command> --help for a command's options"]
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if not argv or argv[0] in ("-h", "--help"):
+        print(_usage())
+        return 0
+    name, rest = argv[0], argv[1:]
+    if name not in COMMANDS:
+        print(f"aerial-loc: unknown command {name!r}\n\n{_usage()}", file=sys.stderr)
+        return 2
+    module = importlib.import_module(COMMANDS[name][0])
+    try:
+        return int(module.main(rest) or 0)
+    except AerialLocError as exc:
+        print(f"aerial-loc {name}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"aerial-loc {name}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())
