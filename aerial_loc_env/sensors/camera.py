@@ -1,0 +1,220 @@
+"""Nadir camera model: footprint geometry and the affine maps between camera, world and map pixels.
+
+Conventions (docs/ARCHITECTURE.md): camera column ``u`` grows to the vehicle's right, row ``v`` towards its
+tail, so the top of the image points along the heading; pixel centres sit at integers. The vehicle is below
+the image centre ``((W - 1) / 2, (H - 1) / 2)``. World ``x`` is east, ``y`` north, yaw counter-clockwise from
+east.
+
+Every transform here is an affine 2x3 matrix ``A`` with ``dst = A[:, :2] @ (u, v) + A[:, 2]``, vectorized
+over any batch of poses. ``camera_to_map`` is the paper's eq. (3), ``x_hat = s R(psi) x + T``: the
+measurement models of the estimators project their sample pixels with ``project_pixels`` rather than
+re-deriving it.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+from typing import NamedTuple, Protocol
+
+import numpy as np
+
+from ..config import rng
+from ..errors import ConfigError
+
+ArrayLike = float | np.ndarray
+
+#: 41.11 deg, exactly ``2 atan(0.375)``: 600 px cover 150 m at 200 m, i.e. 0.25 m/px (the paper's setup).
+DEFAULT_HFOV_DEG = math.degrees(2.0 * math.atan(0.375))
+
+
+class MapGrid(Protocol):
+    """What the camera needs of a map: its pixel size and height (``Orthomap`` satisfies this)."""
+
+    gsd_x_m: float
+    gsd_y_m: float
+
+    @property
+    def height_px(self) -> int: ...
+
+
+class Pose(NamedTuple):
+    """The camera pose: world position (metres), ENU yaw (rad, 0 = east) and altitude above ground (m)."""
+
+    x_m: float
+    y_m: float
+    yaw_rad: float
+    altitude_m: float
+
+
+@dataclass(frozen=True)
+class CameraModel:
+    """A gimbaled nadir pinhole camera with no distortion.
+
+    The default 41.11 deg (exactly ``2 atan(0.375)``) horizontal field of view gives a 150 m wide footprint
+    at 200 m, i.e. 0.25 m/px over 600 px: the paper's crop of its 0.25 m/px database. ``pixel_aspect``
+    (ground size of a pixel along ``v`` over along ``u``) is 1 for a real sensor; ``resized`` changes it
+    when an observation is resized to another aspect ratio, so that the footprint stays the same.
+    """
+
+    width_px: int = field(default=600, metadata=rng(1, 20000, doc="image width"))
+    height_px: int = field(default=400, metadata=rng(1, 20000, doc="image height"))
+    hfov_deg: float = field(default=DEFAULT_HFOV_DEG,
+                            metadata=rng(0.0, 170.0, lo_open=True, hi_open=True, doc="horizontal fov"))
+    pixel_aspect: float = field(default=1.0, metadata=rng(0.0, 100.0, lo_open=True, doc="v/u pixel size"))
+
+    def __post_init__(self) -> None:
+        self.validate("CameraModel")
+
+    def validate(self, where: str = "CameraModel") -> None:
+        """Reject sizes/angles that make the geometry meaningless (called by build_config too)."""
+        for name in ("width_px", "height_px"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or not 1 <= value <= 20000:
+                raise ConfigError(f"{where}: field '{name}' = {value!r} must be an integer in [1, 20000]")
+        if not (isinstance(self.hfov_deg, (int, float)) and 0.0 < self.hfov_deg < 170.0):
+            raise ConfigError(f"{where}: field 'hfov_deg' = {self.hfov_deg!r} must be in (0, 170) degrees")
+        if not (isinstance(self.pixel_aspect, (int, float)) and 0.0 < self.pixel_aspect <= 100.0):
+            raise ConfigError(f"{where}: field 'pixel_aspect' = {self.pixel_aspect!r} must be in (0, 100]")
+
+    # ------------------------------------------------------------------ geometry
+    @property
+    def center_px(self) -> tuple[float, float]:
+        """The image centre (u, v) in pixel-centre coordinates: the point straight below the camera."""
+        return (self.width_px - 1) / 2.0, (self.height_px - 1) / 2.0
+
+    def gsd_m(self, altitude_m: ArrayLike) -> ArrayLike:
+        """Ground size of one pixel along ``u`` (metres); along ``v`` it is ``pixel_aspect`` times this."""
+        alt = _positive_altitude(altitude_m)
+        gsd = 2.0 * alt * math.tan(math.radians(self.hfov_deg) / 2.0) / self.width_px
+        return float(gsd) if np.ndim(gsd) == 0 else gsd
+
+    def footprint_m(self, altitude_m: ArrayLike) -> tuple[ArrayLike, ArrayLike]:
+        """Ground footprint (across-track width, along-track length) in metres."""
+        gsd = self.gsd_m(altitude_m)
+        return gsd * self.width_px, gsd * self.pixel_aspect * self.height_px
+
+    def resized(self, width_px: int, height_px: int) -> CameraModel:
+        """The model of this camera's image resized to ``width_px x height_px``: same footprint."""
+        aspect = self.pixel_aspect * (self.height_px / height_px) * (width_px / self.width_px)
+        return replace(self, width_px=int(width_px), height_px=int(height_px), pixel_aspect=aspect)
+
+    def camera_to_world(self, x_m: ArrayLike, y_m: ArrayLike, yaw_rad: ArrayLike,
+                        altitude_m: ArrayLike) -> np.ndarray:
+        """Affine (..., 2, 3): camera pixel (u, v) -> world metres (x east, y north)."""
+        x, y, yaw, alt = np.broadcast_arrays(*(np.asarray(a, dtype=np.float64) for a in
+                                               (x_m, y_m, yaw_rad, altitude_m)))
+        gu = np.asarray(self.gsd_m(alt), dtype=np.float64)
+        gv = gu * self.pixel_aspect
+        c, s = np.cos(yaw), np.sin(yaw)
+        cu, cv = self.center_px
+        # right of the vehicle = (sin, -cos), forward = (cos, sin); v grows backwards.
+        a = np.empty(x.shape + (2, 3))
+        a[..., 0, 0] = gu * s
+        a[..., 0, 1] = -gv * c
+        a[..., 1, 0] = -gu * c
+        a[..., 1, 1] = -gv * s
+        a[..., 0, 2] = x - a[..., 0, 0] * cu - a[..., 0, 1] * cv
+        a[..., 1, 2] = y - a[..., 1, 0] * cu - a[..., 1, 1] * cv
+        return a
+
+    def footprint_corners_m(self, x_m: ArrayLike, y_m: ArrayLike, yaw_rad: ArrayLike,
+                            altitude_m: ArrayLike) -> np.ndarray:
+        """World coordinates (..., 4, 2) of the outer image corners: top-left, top-right, bottom-right,
+        bottom-left (top = ahead of the vehicle)."""
+        a = self.camera_to_world(x_m, y_m, yaw_rad, altitude_m)
+        return apply_affine(a, self.corners_px())
+
+    def corners_px(self) -> np.ndarray:
+        """The outer corners (4, 2) of the image in pixel-centre coordinates."""
+        w, h = self.width_px - 0.5, self.height_px - 0.5
+        return np.array([[-0.5, -0.5], [w, -0.5], [w, h], [-0.5, h]])
+
+    def scale_rotation(self, orthomap: MapGrid, yaw_rad: ArrayLike,
+                       altitude_m: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
+        """The ``s`` and ``R(psi)`` of eq. (3): camera pixel offsets -> map pixel offsets.
+
+        ``s`` (..., 2, 2) is the diagonal scale ``diag(gsd / map_gsd_x, gsd / map_gsd_y)`` (a scalar times the
+        identity for square pixels) and ``R`` (..., 2, 2) the rotation by the compass heading ``pi/2 - yaw``
+        (map rows grow south, camera rows grow towards the tail). ``s @ R @ diag(1, pixel_aspect)`` is the
+        linear part of ``camera_to_map``.
+        """
+        yaw, alt = np.broadcast_arrays(np.asarray(yaw_rad, np.float64), np.asarray(altitude_m, np.float64))
+        gu = np.asarray(self.gsd_m(alt), dtype=np.float64)
+        s = np.zeros(yaw.shape + (2, 2))
+        s[..., 0, 0] = gu / orthomap.gsd_x_m
+        s[..., 1, 1] = gu / orthomap.gsd_y_m
+        c, sn = np.cos(yaw), np.sin(yaw)
+        r = np.empty(yaw.shape + (2, 2))
+        r[..., 0, 0] = sn
+        r[..., 0, 1] = -c
+        r[..., 1, 0] = c
+        r[..., 1, 1] = sn
+        return s, r
+
+    def camera_to_map(self, orthomap: MapGrid, x_m: ArrayLike, y_m: ArrayLike, yaw_rad: ArrayLike,
+                      altitude_m: ArrayLike) -> np.ndarray:
+        """Affine (..., 2, 3): camera pixel (u, v) -> map pixel (u, v); eq. (3) ``s R(psi) x + T``."""
+        to_world = self.camera_to_world(x_m, y_m, yaw_rad, altitude_m)
+        return world_to_map_affine(orthomap) @ _homogeneous(to_world)
+
+    def map_to_camera(self, orthomap: MapGrid, x_m: ArrayLike, y_m: ArrayLike, yaw_rad: ArrayLike,
+                      altitude_m: ArrayLike) -> np.ndarray:
+        """Affine (..., 2, 3): map pixel -> camera pixel, the inverse of ``camera_to_map``."""
+        return invert_affine(self.camera_to_map(orthomap, x_m, y_m, yaw_rad, altitude_m))
+
+    def project_pixels(self, orthomap: MapGrid, uv: np.ndarray, x_m: ArrayLike, y_m: ArrayLike,
+                       yaw_rad: ArrayLike, altitude_m: ArrayLike) -> np.ndarray:
+        """Map pixels (N, K, 2) of the camera pixels ``uv`` (K, 2) for N poses (scalars broadcast to N=1)."""
+        uv = np.asarray(uv, dtype=np.float64)
+        if uv.ndim != 2 or uv.shape[1] != 2:
+            raise ValueError(f"project_pixels: uv must have shape (K, 2), got {uv.shape}")
+        a = self.camera_to_map(orthomap, x_m, y_m, yaw_rad, altitude_m).reshape(-1, 2, 3)
+        return apply_affine(a, uv)
+
+    def project_pose(self, orthomap: MapGrid, pose: Pose) -> np.ndarray:
+        """``camera_to_map`` (2, 3) for a single ``Pose``."""
+        return self.camera_to_map(orthomap, pose.x_m, pose.y_m, pose.yaw_rad, pose.altitude_m)
+
+
+# ---------------------------------------------------------------------- affine helpers
+def world_to_map_affine(orthomap: MapGrid) -> np.ndarray:
+    """Affine (2, 3): world metres -> map pixel (u, v), ``u = x/gsd_x - 0.5``, ``v = H - 0.5 - y/gsd_y``."""
+    return np.array([[1.0 / orthomap.gsd_x_m, 0.0, -0.5],
+                     [0.0, -1.0 / orthomap.gsd_y_m, orthomap.height_px - 0.5]])
+
+
+def apply_affine(a: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """Apply affines (..., 2, 3) to points (K, 2): returns (..., K, 2)."""
+    pts = np.asarray(pts, dtype=np.float64)
+    return np.einsum("...ij,kj->...ki", a[..., :2], pts) + a[..., None, :, 2]
+
+
+def invert_affine(a: np.ndarray) -> np.ndarray:
+    """Inverse of affines (..., 2, 3) (closed form, vectorized)."""
+    a = np.asarray(a, dtype=np.float64)
+    lin = a[..., :2]
+    det = lin[..., 0, 0] * lin[..., 1, 1] - lin[..., 0, 1] * lin[..., 1, 0]
+    inv = np.empty_like(a)
+    inv[..., 0, 0] = lin[..., 1, 1] / det
+    inv[..., 0, 1] = -lin[..., 0, 1] / det
+    inv[..., 1, 0] = -lin[..., 1, 0] / det
+    inv[..., 1, 1] = lin[..., 0, 0] / det
+    inv[..., :, 2] = -np.einsum("...ij,...j->...i", inv[..., :2], a[..., 2])
+    return inv
+
+
+def _homogeneous(a: np.ndarray) -> np.ndarray:
+    """(..., 2, 3) -> (..., 3, 3) with the row (0, 0, 1), so affines compose with ``@``."""
+    out = np.zeros(a.shape[:-2] + (3, 3))
+    out[..., :2, :] = a
+    out[..., 2, 2] = 1.0
+    return out
+
+
+def _positive_altitude(altitude_m: ArrayLike) -> np.ndarray | float:
+    alt = np.asarray(altitude_m, dtype=np.float64)
+    if not np.all(np.isfinite(alt)) or np.any(alt <= 0.0):
+        bad = alt[~(np.isfinite(alt) & (alt > 0))].ravel()[:3]
+        raise ConfigError(f"camera: altitude_m must be finite and > 0 m above ground, got {bad.tolist()}")
+    return alt
