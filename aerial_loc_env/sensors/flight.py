@@ -1,0 +1,246 @@
+"""Flight: constant-speed, constant-altitude tracks that stay over valid map, and the vehicle's noisy sensors.
+
+The motion model is the second reference's eq. (1) (Leung et al.): with forward speed ``v`` and yaw rate
+``omega`` held over a step ``dt``,
+
+    x += v dt cos(yaw + omega dt / 2);  y += v dt sin(yaw + omega dt / 2);  yaw += omega dt.
+
+The commanded yaw rate is piecewise constant: straight legs towards random waypoints joined by coordinated
+turns at ``turn_rate_deg_s``. The applied speed and yaw rate carry small process noise, the altitude a small
+jitter. Tracks are drawn by rejection sampling from the episode's generator until every pose keeps the camera
+footprint plus a margin over valid map (``FlyableRegion``); on a map too small for a full track the longest
+valid track found is used (never shorter than ``min_steps``), and a map too small for that is a ``MapError``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from ..config import rng
+from ..errors import MapError
+
+
+@dataclass(frozen=True)
+class FlightConfig:
+    """The [flight] section of a scenario. Defaults: the paper's simulation (Table 4, IV.A)."""
+
+    altitude_m: float = field(default=200.0, metadata=rng(1.0, 5000.0, doc="nominal altitude above ground"))
+    duration_s: float = field(default=60.0, metadata=rng(0.25, 3600.0, doc="episode length (track time)"))
+    speed_mps: float = field(default=2500.0 / 60.0, metadata=rng(0.0, 200.0, lo_open=True,
+                                                                   doc="ground speed (2.5 km in 60 s)"))
+    rate_hz: float = field(default=4.0, metadata=rng(0.1, 100.0, doc="camera rate"))
+    turn_rate_deg_s: float = field(default=10.0, metadata=rng(0.0, 90.0, lo_open=True,
+                                                               doc="yaw rate of coordinated turns"))
+    min_leg_m: float = field(default=300.0, metadata=rng(0.0, 1e5,
+                                                             doc="preferred distance to a new waypoint"))
+    speed_noise_mps: float = field(default=0.2, metadata=rng(0.0, 10.0, doc="process noise of the speed"))
+    yaw_rate_noise_deg_s: float = field(default=0.5, metadata=rng(0.0, 30.0,
+                                                                     doc="process noise of the yaw rate"))
+    altitude_noise_m: float = field(default=0.5, metadata=rng(0.0, 50.0, doc="altitude jitter (1 sigma)"))
+    margin_m: float = field(default=45.0, metadata=rng(0.0, 1e4, doc="clearance beyond the footprint "
+                                                                     "(room for particles: 3 x 15 m)"))
+    min_steps: int = field(default=8, metadata=rng(1, 100000, doc="shortest acceptable track (steps)"))
+    max_tries: int = field(default=40, metadata=rng(1, 10000, doc="rejection-sampling attempts"))
+
+    @property
+    def dt_s(self) -> float:
+        return 1.0 / self.rate_hz
+
+    @property
+    def steps(self) -> int:
+        """Number of env steps (scored frames) of a full-length track."""
+        return max(1, int(round(self.duration_s * self.rate_hz)))
+
+
+@dataclass(frozen=True)
+class Track:
+    """A true trajectory: ``n`` poses at the camera rate; ``speed_mps[i]``/``yaw_rate_radps[i]`` are the true
+    values applied over the step ending at pose ``i`` (index 0: the commanded values at the start)."""
+
+    t_s: np.ndarray
+    x_m: np.ndarray
+    y_m: np.ndarray
+    yaw_rad: np.ndarray
+    altitude_m: np.ndarray
+    speed_mps: np.ndarray
+    yaw_rate_radps: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.x_m.shape[0])
+
+    @property
+    def length_m(self) -> float:
+        return float(np.sum(np.hypot(np.diff(self.x_m), np.diff(self.y_m))))
+
+    def bounds_m(self) -> tuple[float, float, float, float]:
+        """(x_min, y_min, x_max, y_max) of the vehicle positions."""
+        return (float(self.x_m.min()), float(self.y_m.min()), float(self.x_m.max()), float(self.y_m.max()))
+
+
+def wrap_angle(a: np.ndarray | float) -> np.ndarray | float:
+    """Wrap radians to [-pi, pi)."""
+    return (np.asarray(a) + math.pi) % (2.0 * math.pi) - math.pi
+
+
+def footprint_radius_m(footprint_w_m: float, footprint_h_m: float) -> float:
+    """Half-diagonal of a footprint: the clearance that keeps it inside whatever the yaw."""
+    return 0.5 * math.hypot(footprint_w_m, footprint_h_m)
+
+
+class FlyableRegion:
+    """Where the vehicle may be: points whose disc of radius ``clearance_m`` lies inside the map and off
+    no-data. Built once per map and clearance on a coarse grid (``cell_m``), conservative by half a cell
+    diagonal, with one distance transform."""
+
+    def __init__(self, width_m: float, height_m: float, clearance_m: float, *,
+                 nodata: np.ndarray | None = None, cell_m: float | None = None, name: str = "map") -> None:
+        self.width_m, self.height_m, self.clearance_m = float(width_m), float(height_m), float(clearance_m)
+        cell = cell_m or max(1.0, min(width_m, height_m) / 400.0, clearance_m / 20.0)
+        nx, ny = max(1, int(math.ceil(width_m / cell))), max(1, int(math.ceil(height_m / cell)))
+        self.cell_x_m, self.cell_y_m = width_m / nx, height_m / ny
+        invalid = np.zeros((ny, nx), dtype=bool)
+        if nodata is not None:
+            invalid = _block_any(np.asarray(nodata, dtype=bool), ny, nx)
+        # Pad with one invalid ring: the map edge counts as no-data. Rows of the grid go south -> north.
+        free = np.zeros((ny + 2, nx + 2), dtype=np.uint8)
+        free[1:-1, 1:-1] = ~invalid[::-1]
+        dist_cells = cv2.distanceTransform(free, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)[1:-1, 1:-1]
+        cell_min = min(self.cell_x_m, self.cell_y_m)
+        # distance between cell centres -> distance to the nearest invalid point: minus half a cell,
+        # and any point of this cell is within half a diagonal of its centre.
+        dist_m = dist_cells * cell_min - 0.5 * cell_min - 0.5 * math.hypot(self.cell_x_m, self.cell_y_m)
+        self.ok = dist_m >= clearance_m            # (ny, nx), row 0 = southernmost
+        self.name = name
+        self._cells = np.flatnonzero(self.ok)
+
+    @property
+    def area_m2(self) -> float:
+        return float(self._cells.size * self.cell_x_m * self.cell_y_m)
+
+    def contains(self, x_m: np.ndarray | float, y_m: np.ndarray | float) -> np.ndarray:
+        """True where (x, y) is flyable; vectorized."""
+        x, y = np.asarray(x_m, dtype=np.float64), np.asarray(y_m, dtype=np.float64)
+        i = np.floor(y / self.cell_y_m).astype(np.int64)
+        j = np.floor(x / self.cell_x_m).astype(np.int64)
+        inside = (i >= 0) & (j >= 0) & (i < self.ok.shape[0]) & (j < self.ok.shape[1])
+        out = np.zeros(np.broadcast(x, y).shape, dtype=bool)
+        out[inside] = self.ok[i[inside], j[inside]]
+        return out
+
+    def sample(self, rng: np.random.Generator, n: int = 1) -> np.ndarray:
+        """``n`` uniform points (n, 2) of the region."""
+        if self._cells.size == 0:
+            raise self.too_small_error()
+        idx = self._cells[rng.integers(0, self._cells.size, size=n)]
+        i, j = np.divmod(idx, self.ok.shape[1])
+        u = rng.random((n, 2))
+        return np.stack([(j + u[:, 0]) * self.cell_x_m, (i + u[:, 1]) * self.cell_y_m], axis=1)
+
+    def too_small_error(self, detail: str = "") -> MapError:
+        return MapError(
+            f"{self.name}: map too small for any track: the camera footprint plus margin needs "
+            f"{self.clearance_m:.0f} m of valid map around the vehicle, but the map is "
+            f"{self.width_m:.0f} x {self.height_m:.0f} m (flyable area {self.area_m2:.0f} m2){detail}; "
+            "use a larger map, a lower flight.altitude_m, a smaller flight.margin_m, "
+            "or a slower flight.speed_mps")
+
+
+def _block_any(mask: np.ndarray, ny: int, nx: int) -> np.ndarray:
+    """(ny, nx) grid (map rows north -> south), True where any pixel overlapping the cell is True."""
+    if not mask.any():
+        return np.zeros((ny, nx), dtype=bool)
+    area = cv2.resize(mask.astype(np.float32), (nx, ny), interpolation=cv2.INTER_AREA)
+    return area > 1e-6
+
+
+def sample_track(config: FlightConfig, region: FlyableRegion, rng: np.random.Generator) -> Track:
+    """Draw a track that stays in ``region`` (see the module doc); deterministic given ``rng``."""
+    best: Track | None = None
+    for _ in range(config.max_tries):
+        track = _fly(config, region, rng)
+        if best is None or len(track) > len(best):
+            best = track
+        if len(track) == config.steps + 1:
+            break
+    assert best is not None
+    if len(best) - 1 < config.min_steps:
+        raise region.too_small_error(
+            f" (longest track found in {config.max_tries} tries: {len(best) - 1} steps, "
+            f"flight.min_steps = {config.min_steps})")
+    return best
+
+
+def _fly(config: FlightConfig, region: FlyableRegion, rng: np.random.Generator) -> Track:
+    """One attempt: fly waypoint legs until the full duration or until the next pose leaves the region."""
+    n = config.steps + 1
+    dt = config.dt_s
+    turn = math.radians(config.turn_rate_deg_s)
+    yaw_noise = math.radians(config.yaw_rate_noise_deg_s)
+    start = region.sample(rng)[0]
+    waypoint = _next_waypoint(region, rng, start, config.min_leg_m)
+    yaw = math.atan2(waypoint[1] - start[1], waypoint[0] - start[0])
+    # noise drawn as a bank up front: the same rng draws whatever the track's fate.
+    speed_noise = rng.normal(0.0, config.speed_noise_mps, n)
+    rate_noise = rng.normal(0.0, yaw_noise, n)
+    alt = config.altitude_m + rng.normal(0.0, config.altitude_noise_m, n)
+    xs, ys, yaws = np.empty(n), np.empty(n), np.empty(n)
+    speeds, rates = np.empty(n), np.empty(n)
+    x, y = float(start[0]), float(start[1])
+    xs[0], ys[0], yaws[0], speeds[0], rates[0] = x, y, yaw, config.speed_mps, 0.0
+    reach = max(config.speed_mps * dt * 2.0, config.speed_mps / max(turn, 1e-9) * 0.5)
+    count = 1
+    for i in range(1, n):
+        if math.hypot(waypoint[0] - x, waypoint[1] - y) < reach:
+            waypoint = _next_waypoint(region, rng, (x, y), config.min_leg_m)
+        err = float(wrap_angle(math.atan2(waypoint[1] - y, waypoint[0] - x) - yaw))
+        cmd = max(-turn, min(turn, err / dt))
+        v = max(0.0, config.speed_mps + speed_noise[i])
+        w = cmd + rate_noise[i]
+        half = yaw + 0.5 * w * dt
+        x, y = x + v * dt * math.cos(half), y + v * dt * math.sin(half)
+        yaw = float(wrap_angle(yaw + w * dt))
+        if not region.contains(x, y):
+            break
+        xs[i], ys[i], yaws[i], speeds[i], rates[i] = x, y, yaw, v, w
+        count = i + 1
+    m = count
+    return Track(t_s=np.arange(m) * dt, x_m=xs[:m].copy(), y_m=ys[:m].copy(), yaw_rad=yaws[:m].copy(),
+                 altitude_m=alt[:m].copy(), speed_mps=speeds[:m].copy(), yaw_rate_radps=rates[:m].copy())
+
+
+def _next_waypoint(region: FlyableRegion, rng: np.random.Generator, here, min_leg_m: float) -> np.ndarray:
+    """A random flyable point, preferably at least ``min_leg_m`` away (the farthest of a few candidates)."""
+    cand = region.sample(rng, 8)
+    d = np.hypot(cand[:, 0] - here[0], cand[:, 1] - here[1])
+    far = np.flatnonzero(d >= min_leg_m)
+    return cand[far[0]] if far.size else cand[int(np.argmax(d))]
+
+
+@dataclass(frozen=True)
+class Measurements:
+    """What the vehicle's own sensors report at each pose of a track (float32, ready for observations)."""
+
+    odometry: np.ndarray     # (n, 2) [forward speed m/s, yaw rate rad/s] over the step ending at each pose
+    yaw_rad: np.ndarray      # (n,) heading, wrapped to [-pi, pi)
+    altitude_m: np.ndarray   # (n,) altitude above ground, >= 0
+
+
+def measure(track: Track, rng: np.random.Generator, *, speed_std_mps: float, yaw_rate_std_radps: float,
+            heading_std_rad: float, altitude_std_m: float) -> Measurements:
+    """Noisy odometry, heading and altitude for every pose (one vectorized draw per episode).
+
+    At pose 0 the odometry is the commanded values, noise-free (nothing has been flown yet).
+    """
+    n = len(track)
+    odo = np.stack([track.speed_mps + rng.normal(0.0, speed_std_mps, n),
+                    track.yaw_rate_radps + rng.normal(0.0, yaw_rate_std_radps, n)], axis=1)
+    odo[0] = (track.speed_mps[0], track.yaw_rate_radps[0])
+    yaw = wrap_angle(track.yaw_rad + rng.normal(0.0, heading_std_rad, n))
+    alt = np.maximum(track.altitude_m + rng.normal(0.0, altitude_std_m, n), 0.0)
+    return Measurements(odometry=odo.astype(np.float32),
+                        yaw_rad=np.clip(yaw, -math.pi, math.pi).astype(np.float32),
+                        altitude_m=alt.astype(np.float32))
