@@ -101,7 +101,7 @@ def build_config(cls: type[T], mapping: Mapping[str, Any] | None = None, *, wher
         )
     hints = typing.get_type_hints(cls)
     values: dict[str, Any] = {}
-    for name, f in fields.items():
+    for name in fields:
         if name in mapping:
             values[name] = _coerce(name, mapping[name], hints.get(name, Any), where)
         elif base is not None:

@@ -1,0 +1,60 @@
+"""The benchmark's pure parts: metrics, the resumable store, grid specs."""
+
+import json
+
+import numpy as np
+import pytest
+
+from aerial_loc_env.benchmark.grid import grid_from_dict, load_grid
+from aerial_loc_env.benchmark.metrics import MetricConfig, time_to_convergence, trial_metrics
+from aerial_loc_env.benchmark.store import TrialStore, trial_key
+from aerial_loc_env.errors import ConfigError
+
+
+def test_time_to_convergence_is_first_time_error_stays_below():
+    t = np.arange(6) * 0.25
+    e = np.array([30.0, 5.0, 12.0, 4.0, 3.0, 2.0])
+    assert time_to_convergence(e, t, 10.0) == pytest.approx(0.75)
+    assert np.isnan(time_to_convergence(np.array([1.0, 20.0]), t[:2], 10.0))
+    assert time_to_convergence(np.array([1.0, 2.0]), t[:2], 10.0) == 0.0
+
+
+def test_trial_metrics_values():
+    e = np.array([3.0, 4.0, 0.0, 0.0])
+    m = trial_metrics(e, np.arange(4.0), np.full(4, 1e-3), MetricConfig(converge_threshold_m=5, diverge_threshold_m=1))
+    assert m["rmse_m"] == pytest.approx(np.sqrt(25 / 4))
+    assert m["mean_error_m"] == pytest.approx(7 / 4)
+    assert m["final_error_m"] == 0.0 and not m["diverged"] and m["converged"]
+    assert m["step_time_median_ms"] == pytest.approx(1.0)
+
+
+def test_store_append_is_durable_and_skips_torn_lines(tmp_path):
+    store = TrialStore(tmp_path / "run")
+    store.append({"key": "a", "rmse_m": 1.0, "nan": float("nan")})
+    with open(store.path, "a") as fh:  # a run killed mid-write leaves a torn line
+        fh.write('{"key": "b", "rmse')
+    store.append({"key": "c", "rmse_m": 2.0})
+    rows = store.rows()
+    assert [r["key"] for r in rows] == ["a", "c"]
+    assert rows[0]["nan"] is None
+    assert '{"key": "b", "rmse' in store.path.read_text()  # nothing on disk is removed
+
+
+def test_trial_key_depends_on_every_part():
+    a, s = {"name": "x", "params": {"K": 70}}, {"id": "S", "overrides": {}}
+    assert trial_key(a, s, 1) == trial_key(json.loads(json.dumps(a)), s, 1)
+    assert trial_key(a, s, 1) != trial_key(a, s, 2)
+    assert trial_key(a, s, 1) != trial_key({"name": "x", "params": {"K": 10}}, s, 1)
+
+
+def test_grid_sweep_expands_and_rejects_unknown_keys():
+    g = grid_from_dict({"agents": [{"name": "mcl", "sweep": {"num_pairs": [10, 30]}}],
+                        "scenarios": ["S-v0"], "seeds": {"start": 3, "count": 2}})
+    assert [a.params for a in g.agents] == [{"num_pairs": 10}, {"num_pairs": 30}]
+    assert g.seeds == (3, 4) and g.trials() == 4
+    with pytest.raises(ConfigError, match="unknown key"):
+        grid_from_dict({"agents": [], "scenarios": [], "seeds": [1], "colour": 1})
+    with pytest.raises(ConfigError, match="seeds"):
+        grid_from_dict({"agents": ["a"], "scenarios": ["s"], "seeds": []})
+    with pytest.raises(ConfigError, match="not found"):
+        load_grid("no-such-experiment")
