@@ -1,0 +1,158 @@
+"""Reconstructed camera images ("virtual" views of the database) at many poses, with one ``cv2.remap``.
+
+The dense measurement models (SSD, NCC, MI), abBRIEF and the edge model compare the camera image with the
+database patch each particle would see (Choi & Park, II.B "reconstructed camera image"). Doing that with one
+OpenCV warp per particle is a Python loop of N calls; here the N patches are sampled in ONE ``cv2.remap`` over
+stacked coordinate maps of shape (N * h, w).
+
+Geometry is not re-derived: the per-particle affine camera pixel -> map pixel is ``CameraModel.camera_to_map``
+(eq. (3), ``s R(psi) x + T``). It is composed with two fixed affines (reduced camera grid -> full camera pixels,
+full map pixels -> the pixels of an anti-aliased, downsampled copy of the database), and, because an affine map
+of a regular grid is separable, the (N, h, w) coordinates are built with two broadcast additions.
+
+Anti-aliasing: the camera image is reduced with ``cv2.INTER_AREA`` (a box filter) and the database is
+downsampled once at reset with ``INTER_AREA`` by the map-pixels-per-patch-pixel factor at the nominal altitude,
+so both sides are low-passed alike before the comparison.
+
+Out-of-map samples and the database's no-data pixels come out as NaN (float32 images); ``sample`` returns a
+per-particle validity flag so that the models give such particles the worst likelihood, never NaN.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from ..errors import ConfigError
+
+#: cv2.remap refuses maps with more rows than this (SHRT_MAX); larger particle sets are sampled in chunks.
+_MAX_REMAP_ROWS = 32000
+
+
+def reduce_image(image: np.ndarray, width_px: int, height_px: int) -> np.ndarray:
+    """Box-filter ``image`` down (or up) to ``width_px x height_px`` (``cv2.INTER_AREA``), as float32."""
+    img = np.asarray(image)
+    if img.shape[1] == width_px and img.shape[0] == height_px:
+        return img.astype(np.float32, copy=False)
+    return cv2.resize(img.astype(np.float32, copy=False), (int(width_px), int(height_px)),
+                      interpolation=cv2.INTER_AREA)
+
+
+def to_gray(rgb: np.ndarray) -> np.ndarray:
+    """Luma (ITU-R 601, as ``cv2.COLOR_RGB2GRAY``) of an (H, W, 3) RGB image, float32 in [0, 255]."""
+    arr = np.asarray(rgb)
+    if arr.ndim != 3 or arr.shape[2] != 3:
+        raise ConfigError(f"to_gray: expected an (H, W, 3) RGB image, got shape {arr.shape}")
+    return cv2.cvtColor(np.ascontiguousarray(arr), cv2.COLOR_RGB2GRAY).astype(np.float32)
+
+
+@dataclass(frozen=True)
+class PatchGeometry:
+    """The reduced sampling grid: ``width_px x height_px`` samples spread over the whole camera frame."""
+
+    width_px: int
+    height_px: int
+
+    def __post_init__(self) -> None:
+        for name in ("width_px", "height_px"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not 2 <= v <= 4000:
+                raise ConfigError(f"patch geometry: '{name}' = {v!r} must be an integer in [2, 4000]")
+
+    @property
+    def n_pixels(self) -> int:
+        return int(self.width_px * self.height_px)
+
+
+class PatchSampler:
+    """Samples database patches (the reconstructed camera images) for many poses at once.
+
+    ``image`` is the database layer to sample: (H, W) or (H, W, C<=4), any dtype, already in the model's
+    representation (gray, CIELab a/b, edge orientation ...); ``nodata`` (H, W) bool marks pixels to treat as
+    missing. ``downsample`` (default: automatic) is the map-pixel size of one sample of the stored level.
+    """
+
+    def __init__(self, orthomap, camera, geometry: PatchGeometry, image: np.ndarray, altitude_m: float, *,
+                 nodata: np.ndarray | None = None, downsample: float | None = None) -> None:
+        img = np.asarray(image)
+        if img.shape[:2] != (orthomap.height_px, orthomap.width_px):
+            raise ConfigError(f"PatchSampler: database layer shape {img.shape[:2]} differs from the map's "
+                              f"({orthomap.height_px}, {orthomap.width_px})")
+        if img.ndim == 3 and img.shape[2] > 4:
+            raise ConfigError(f"PatchSampler: at most 4 channels can be sampled at once, got {img.shape[2]}")
+        self.orthomap = orthomap
+        self.camera = camera
+        self.geometry = geometry
+        if downsample is None:
+            # map pixels per patch sample at the nominal altitude (the box filter of reduce_image on the camera)
+            step_m = camera.gsd_m(altitude_m) * camera.width_px / geometry.width_px
+            downsample = max(1.0, step_m / max(orthomap.gsd_x_m, orthomap.gsd_y_m))
+        level = img.astype(np.float32)
+        if nodata is not None and np.any(nodata):
+            level = level.copy()
+            level[np.asarray(nodata, dtype=bool)] = np.nan
+        h, w = img.shape[:2]
+        lw, lh = max(2, int(round(w / downsample))), max(2, int(round(h / downsample)))
+        if (lw, lh) != (w, h):
+            level = cv2.resize(level, (lw, lh), interpolation=cv2.INTER_AREA)
+        self.level = np.ascontiguousarray(level)
+        self.has_nan = bool(np.isnan(self.level).any())
+        self.level_size = (lw, lh)
+        # full map pixel -> level pixel (pixel centres at integers on both)
+        fx, fy = w / lw, h / lh
+        self._to_level = np.array([[1.0 / fx, 0.0, 0.5 / fx - 0.5],
+                                   [0.0, 1.0 / fy, 0.5 / fy - 0.5],
+                                   [0.0, 0.0, 1.0]])
+        # reduced camera grid -> full camera pixel
+        sx, sy = camera.width_px / geometry.width_px, camera.height_px / geometry.height_px
+        self._from_grid = np.array([[sx, 0.0, 0.5 * sx - 0.5],
+                                    [0.0, sy, 0.5 * sy - 0.5],
+                                    [0.0, 0.0, 1.0]])
+        self._cols = np.arange(geometry.width_px, dtype=np.float32)
+        self._rows = np.arange(geometry.height_px, dtype=np.float32)
+
+    def grid_to_level(self, states: np.ndarray, altitude_m: float) -> np.ndarray:
+        """Affines (N, 2, 3): reduced-grid pixel -> stored-level pixel, from ``camera_to_map`` (eq. (3))."""
+        states = _check_states(states)
+        a = self.camera.camera_to_map(self.orthomap, states[:, 0], states[:, 1], states[:, 2], altitude_m)
+        a3 = np.zeros((len(states), 3, 3))
+        a3[:, :2] = a.reshape(-1, 2, 3)
+        a3[:, 2, 2] = 1.0
+        return (self._to_level @ a3 @ self._from_grid)[:, :2]
+
+    def sample(self, states: np.ndarray, altitude_m: float) -> tuple[np.ndarray, np.ndarray]:
+        """Patches (N, h, w[, C]) float32 and validity (N,) bool (footprint inside the map, no no-data)."""
+        e = self.grid_to_level(states, altitude_m).astype(np.float32)
+        n = e.shape[0]
+        gh, gw = self.geometry.height_px, self.geometry.width_px
+        mx = np.empty((n, gh, gw), np.float32)
+        my = np.empty((n, gh, gw), np.float32)
+        np.add((e[:, 0, 0, None] * self._cols)[:, None, :],
+               (e[:, 0, 1, None] * self._rows + e[:, 0, 2, None])[:, :, None], out=mx)
+        np.add((e[:, 1, 0, None] * self._cols)[:, None, :],
+               (e[:, 1, 1, None] * self._rows + e[:, 1, 2, None])[:, :, None], out=my)
+        chans = () if self.level.ndim == 2 else (self.level.shape[2],)
+        out = np.empty((n, gh, gw) + chans, np.float32)
+        per = max(1, _MAX_REMAP_ROWS // gh)
+        for start in range(0, n, per):  # one remap for N <= 32000 / h particles (800 at h = 40)
+            stop = min(n, start + per)
+            res = cv2.remap(self.level, mx[start:stop].reshape(-1, gw), my[start:stop].reshape(-1, gw),
+                            cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=float("nan"))
+            out[start:stop] = res.reshape((stop - start, gh, gw) + chans)
+        # an affine image of the grid has its extremes at the grid corners
+        lw, lh = self.level_size
+        cu = np.stack([mx[:, 0, 0], mx[:, 0, -1], mx[:, -1, 0], mx[:, -1, -1]], axis=1)
+        cv = np.stack([my[:, 0, 0], my[:, 0, -1], my[:, -1, 0], my[:, -1, -1]], axis=1)
+        valid = ((cu.min(1) >= 0) & (cu.max(1) <= lw - 1) & (cv.min(1) >= 0) & (cv.max(1) <= lh - 1))
+        if self.has_nan:
+            valid &= ~np.isnan(out.reshape(n, -1)).any(axis=1)
+        return out, valid
+
+
+def _check_states(states: np.ndarray) -> np.ndarray:
+    s = np.asarray(states, dtype=np.float64)
+    if s.ndim != 2 or s.shape[1] != 3:
+        raise ConfigError(f"measurement model: states must have shape (N, 3) = [x_m, y_m, yaw_rad], got {s.shape}")
+    return s

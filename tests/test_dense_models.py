@@ -1,0 +1,201 @@
+"""Dense measurement models (SSD, NCC, MI) and the vectorized patch reconstruction they share.
+
+The scene helpers at the top (a small textured map, a briefing stand-in, a shadow-free frame rendered by the
+camera's own eq. (3) affine) are reused by the abBRIEF, edge and baseline tests.
+"""
+
+from __future__ import annotations
+
+import math
+from types import SimpleNamespace
+
+import cv2
+import numpy as np
+import pytest
+
+from aerial_loc_env.config import build_config
+from aerial_loc_env.errors import ConfigError
+from aerial_loc_env.estimators.mcl.dense import (
+    DenseConfig,
+    MIModel,
+    NCCModel,
+    SSDModel,
+    entropy,
+    msd,
+    mutual_information,
+    ncc,
+)
+from aerial_loc_env.estimators.patches import PatchGeometry, PatchSampler, to_gray
+from aerial_loc_env.sensors.camera import CameraModel
+
+ALT_M = 100.0
+GSD_M = 0.5
+#: 120 x 80 px over 60 m x 40 m at 100 m: 0.5 m/px like the map
+CAMERA = CameraModel(width_px=120, height_px=80, hfov_deg=math.degrees(2 * math.atan(0.3)))
+
+
+def textured_map(size_px: int = 400, seed: int = 0, buildings: int = 25) -> SimpleNamespace:
+    """An Orthomap stand-in: smooth multi-scale texture plus bright rectangular roofs (RGB uint8)."""
+    g = np.random.default_rng(seed)
+    img = np.zeros((size_px, size_px), np.float32)
+    for sigma, amp in ((12.0, 60.0), (4.0, 35.0), (1.5, 15.0)):
+        img += amp * cv2.GaussianBlur(g.standard_normal((size_px, size_px)).astype(np.float32), (0, 0), sigma) \
+            * sigma
+    img = 110 + img / (img.std() + 1e-6) * 30
+    for _ in range(buildings):
+        x0, y0 = g.integers(0, size_px - 40, 2)
+        w, h = g.integers(12, 40, 2)
+        img[y0:y0 + h, x0:x0 + w] = g.uniform(170, 230)
+    gray = np.clip(img, 0, 255)
+    rgb = np.stack([gray, gray * 0.95 + 5, gray * 0.85 + 10], axis=-1).clip(0, 255).astype(np.uint8)
+    return orthomap_standin(rgb)
+
+
+def orthomap_standin(rgb: np.ndarray, gsd_m: float = GSD_M, nodata: np.ndarray | None = None) -> SimpleNamespace:
+    h, w = rgb.shape[:2]
+    return SimpleNamespace(rgb=rgb, gsd_x_m=gsd_m, gsd_y_m=gsd_m, width_px=w, height_px=h, nodata=nodata,
+                           dsm_m=None, width_m=w * gsd_m, height_m=h * gsd_m, name="synthetic")
+
+
+def briefing_standin(orthomap, camera: CameraModel = CAMERA, altitude_m: float = ALT_M,
+                     mean_xy_m: tuple[float, float] | None = None, std_xy_m: float = 5.0) -> SimpleNamespace:
+    """The Briefing fields the estimators read (docs/ARCHITECTURE.md)."""
+    prior = SimpleNamespace(kind="gaussian", mean_xy_m=mean_xy_m or (orthomap.width_m / 2, orthomap.height_m / 2),
+                            std_xy_m=std_xy_m)
+    noise = SimpleNamespace(speed_std_mps=0.1, yaw_rate_std_radps=math.radians(5), heading_std_rad=0.02,
+                            altitude_std_m=1.0)
+    return SimpleNamespace(orthomap=orthomap, camera=camera, prior=prior, dt_s=0.25, altitude_m=altitude_m,
+                           odometry_noise=noise, scenario_id="test")
+
+
+def render_frame(orthomap, x_m: float, y_m: float, yaw_rad: float, camera: CameraModel = CAMERA,
+                 altitude_m: float = ALT_M, rgb: np.ndarray | None = None) -> np.ndarray:
+    """A shadow-free camera frame: the map warped by the camera's eq. (3) affine (camera pixel -> map pixel)."""
+    a = camera.camera_to_map(orthomap, x_m, y_m, yaw_rad, altitude_m)
+    src = orthomap.rgb if rgb is None else rgb
+    return cv2.warpAffine(src, a.astype(np.float64), (camera.width_px, camera.height_px),
+                          flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REFLECT)
+
+
+def observation(image: np.ndarray, yaw_rad: float = 0.0, altitude_m: float = ALT_M) -> dict:
+    return {"image": image, "odometry": np.zeros(2, np.float32), "yaw": np.array([yaw_rad], np.float32),
+            "altitude": np.array([altitude_m], np.float32)}
+
+
+def offset_grid(x_m: float, y_m: float, yaw_rad: float, step_m: float = 2.0, n: int = 4,
+                yaws_rad: tuple[float, ...] = (-0.15, 0.0, 0.15)) -> np.ndarray:
+    """States (M, 3) around a pose; row 0 is the pose itself."""
+    d = np.arange(-n, n + 1) * step_m
+    dx, dy, dyaw = np.meshgrid(d, d, np.asarray(yaws_rad), indexing="ij")
+    states = np.stack([x_m + dx.ravel(), y_m + dy.ravel(), yaw_rad + dyaw.ravel()], axis=1)
+    centre = np.flatnonzero((dx.ravel() == 0) & (dy.ravel() == 0) & (dyaw.ravel() == 0))[0]
+    return np.concatenate([states[centre:centre + 1], np.delete(states, centre, axis=0)])
+
+
+# ---------------------------------------------------------------------- similarity functions
+def test_mi_of_an_image_with_itself_is_its_entropy_and_drops_for_an_unrelated_image():
+    g = np.random.default_rng(1)
+    img = cv2.GaussianBlur(g.uniform(0, 255, (100, 100)).astype(np.float32), (0, 0), 2.0)
+    img = (img - img.min()) / (img.max() - img.min()) * 255
+    other = g.uniform(0, 255, img.shape).astype(np.float32)
+    bins = 16
+    h = entropy(img, bins)
+    mi = mutual_information(np.stack([img.ravel(), other.ravel()]), img.ravel(), bins)
+    assert mi[0] == pytest.approx(h, rel=1e-9)
+    # independent images: the plug-in MI estimate is only its small-sample bias ~ (B-1)^2 / (2 K) nats
+    assert 0.0 <= mi[1] < 4 * (bins - 1) ** 2 / (2 * img.size)
+    assert mi[1] < 0.1 * h
+
+
+def test_mi_matches_a_histogram2d_reference():
+    g = np.random.default_rng(2)
+    a = g.uniform(0, 255, 500)
+    b = np.clip(a + g.normal(0, 40, a.size), 0, 255)
+    joint, _, _ = np.histogram2d(b, a, bins=8, range=[[0, 256], [0, 256]])
+    p = joint / joint.sum()
+    px, py = p.sum(1, keepdims=True), p.sum(0, keepdims=True)
+    nz = p > 0
+    expected = float((p[nz] * np.log(p[nz] / (px @ py)[nz])).sum())
+    assert mutual_information(b[None], a, 8)[0] == pytest.approx(expected, rel=1e-9)
+
+
+def test_ncc_is_invariant_to_gain_and_offset_and_ssd_is_not():
+    g = np.random.default_rng(3)
+    ref = g.uniform(0, 255, 300)
+    patch = ref + g.normal(0, 20, ref.size)
+    rows = np.stack([patch, 0.4 * patch + 30.0, 1.7 * patch - 50.0])
+    values = ncc(rows, ref)
+    assert values[1] == pytest.approx(values[0], abs=1e-6)
+    assert values[2] == pytest.approx(values[0], abs=1e-6)
+    assert ncc(-rows[:1], ref)[0] == pytest.approx(-values[0], abs=1e-6)
+    assert ncc(np.full((1, ref.size), 7.0), ref)[0] == 0.0
+    assert not np.isclose(msd(rows[1:2], ref)[0], msd(rows[:1], ref)[0])
+
+
+def test_msd_matches_the_direct_formula():
+    g = np.random.default_rng(4)
+    rows, ref = g.uniform(0, 255, (5, 64)), g.uniform(0, 255, 64)
+    assert msd(rows, ref) == pytest.approx(((rows - ref) ** 2).mean(axis=1), rel=1e-4)
+
+
+# ---------------------------------------------------------------------- patch reconstruction
+def test_patch_sampler_reproduces_the_reduced_camera_frame_at_the_true_pose():
+    m = textured_map()
+    x, y, yaw = 100.0, 95.0, 0.7
+    frame = render_frame(m, x, y, yaw)
+    geo = PatchGeometry(60, 40)
+    sampler = PatchSampler(m, CAMERA, geo, to_gray(m.rgb), ALT_M)
+    patches, valid = sampler.sample(np.array([[x, y, yaw], [x + 10, y, yaw]]), ALT_M)
+    ref = cv2.resize(to_gray(frame), (60, 40), interpolation=cv2.INTER_AREA)
+    assert valid.all()
+    err_true = np.abs(patches[0] - ref).mean()
+    err_off = np.abs(patches[1] - ref).mean()
+    assert err_true < 0.25 * err_off
+
+
+def test_out_of_map_and_nodata_particles_are_flagged_not_nan():
+    m = textured_map(200)
+    nodata = np.zeros((200, 200), bool)
+    nodata[:, :20] = True
+    m = orthomap_standin(m.rgb, nodata=nodata)
+    sampler = PatchSampler(m, CAMERA, PatchGeometry(30, 20), to_gray(m.rgb), ALT_M)
+    states = np.array([[50.0, 50.0, 0.0], [5.0, 50.0, 0.0], [-100.0, 50.0, 0.0], [25.0, 50.0, 0.0]])
+    _, valid = sampler.sample(states, ALT_M)
+    assert valid.tolist() == [True, False, False, False]   # the last one's footprint covers the no-data strip
+    model = SSDModel(DenseConfig(patch_width_px=30, patch_height_px=20))
+    model.reset(briefing_standin(m), np.random.default_rng(0))
+    prep = model.prepare(observation(render_frame(m, 50.0, 50.0, 0.0)), np.random.default_rng(0))
+    ll = model.log_likelihood(prep, states, ALT_M)
+    assert np.all(np.isfinite(ll)) and ll[0] > ll[1:].max()
+
+
+# ---------------------------------------------------------------------- models
+@pytest.mark.parametrize("cls", [SSDModel, NCCModel, MIModel])
+def test_dense_models_peak_at_the_true_pose_on_a_shadow_free_frame(cls):
+    m = textured_map()
+    model = cls()
+    model.reset(briefing_standin(m), np.random.default_rng(0))
+    for x, y, yaw in ((100.0, 100.0, 0.3), (80.0, 120.0, -2.0)):
+        prep = model.prepare(observation(render_frame(m, x, y, yaw), yaw), np.random.default_rng(0))
+        states = offset_grid(x, y, yaw)
+        ll = model.log_likelihood(prep, states, ALT_M)
+        assert ll.shape == (len(states),) and ll.dtype == np.float64
+        assert int(np.argmax(ll)) == 0, (cls.__name__, states[np.argmax(ll)])
+
+
+def test_dense_config_rejects_bad_values():
+    with pytest.raises(ConfigError, match="patch_width_px"):
+        build_config(DenseConfig, {"patch_width_px": 1})
+    with pytest.raises(ConfigError, match="sigma"):
+        build_config(DenseConfig, {"sigma": 0.0})
+    with pytest.raises(ConfigError, match="unknown key"):
+        build_config(DenseConfig, {"patch_size": 3})
+
+
+def test_models_refuse_to_run_before_reset_and_a_wrong_image_size():
+    model = NCCModel()
+    with pytest.raises(ConfigError, match="reset"):
+        model.prepare(observation(np.zeros((80, 120, 3), np.uint8)), np.random.default_rng(0))
+    model.reset(briefing_standin(textured_map(200)), np.random.default_rng(0))
+    with pytest.raises(ConfigError, match="differs"):
+        model.prepare(observation(np.zeros((40, 120, 3), np.uint8)), np.random.default_rng(0))
