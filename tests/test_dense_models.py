@@ -158,7 +158,7 @@ def test_out_of_map_and_nodata_particles_are_flagged_not_nan():
     nodata = np.zeros((200, 200), bool)
     nodata[:, :20] = True
     m = orthomap_standin(m.rgb, nodata=nodata)
-    sampler = PatchSampler(m, CAMERA, PatchGeometry(30, 20), to_gray(m.rgb), ALT_M)
+    sampler = PatchSampler(m, CAMERA, PatchGeometry(30, 20), to_gray(m.rgb), ALT_M, nodata=m.nodata)
     states = np.array([[50.0, 50.0, 0.0], [5.0, 50.0, 0.0], [-100.0, 50.0, 0.0], [25.0, 50.0, 0.0]])
     _, valid = sampler.sample(states, ALT_M)
     assert valid.tolist() == [True, False, False, False]   # the last one's footprint covers the no-data strip

@@ -90,13 +90,16 @@ class PatchSampler:
             step_m = camera.gsd_m(altitude_m) * camera.width_px / geometry.width_px
             downsample = max(1.0, step_m / max(orthomap.gsd_x_m, orthomap.gsd_y_m))
         level = img.astype(np.float32)
-        if nodata is not None and np.any(nodata):
-            level = level.copy()
-            level[np.asarray(nodata, dtype=bool)] = np.nan
         h, w = img.shape[:2]
         lw, lh = max(2, int(round(w / downsample))), max(2, int(round(h / downsample)))
         if (lw, lh) != (w, h):
             level = cv2.resize(level, (lw, lh), interpolation=cv2.INTER_AREA)
+        if nodata is not None and np.any(nodata):
+            # INTER_AREA does not propagate NaN: mark every level pixel that averages any no-data pixel
+            bad = np.asarray(nodata, dtype=np.float32)
+            if (lw, lh) != (w, h):
+                bad = cv2.resize(bad, (lw, lh), interpolation=cv2.INTER_AREA)
+            level[bad > 0] = np.nan                 # (all channels; level is a copy of the layer)
         self.level = np.ascontiguousarray(level)
         self.has_nan = bool(np.isnan(self.level).any())
         self.level_size = (lw, lh)
