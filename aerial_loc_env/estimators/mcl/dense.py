@@ -36,8 +36,9 @@ def msd(patches: np.ndarray, ref: np.ndarray) -> np.ndarray:
     p = np.asarray(patches, dtype=np.float32)
     r = np.asarray(ref, dtype=np.float32)
     k = r.size
-    # sum (p - r)^2 = sum p^2 - 2 p.r + sum r^2: two BLAS-like reductions instead of an (N, K) temporary
-    s = np.einsum("nk,nk->n", p, p, dtype=np.float64) - 2.0 * (p @ r).astype(np.float64) + float(r @ r)
+    # sum (p - r)^2 = sum p^2 - 2 p.r + sum r^2 without an (N, K) temporary; einsum, not BLAS (one core)
+    s = (np.einsum("nk,nk->n", p, p).astype(np.float64)
+         - 2.0 * np.einsum("nk,k->n", p, r).astype(np.float64) + float(r @ r))
     return np.maximum(s, 0.0) / k
 
 
@@ -53,9 +54,9 @@ def ncc(patches: np.ndarray, ref: np.ndarray) -> np.ndarray:
     rn = float(np.sqrt(rc @ rc))
     if rn < 1e-9:
         return np.zeros(p.shape[0])
-    dot = (p @ (rc / rn).astype(np.float32)).astype(np.float64)      # sum p * r~ (r~ zero-mean, unit norm)
-    s1 = p.sum(axis=1, dtype=np.float64)
-    s2 = np.einsum("nk,nk->n", p, p, dtype=np.float64)
+    dot = np.einsum("nk,k->n", p, (rc / rn).astype(np.float32)).astype(np.float64)  # p . r~ (no BLAS threads)
+    s1 = p.sum(axis=1).astype(np.float64)
+    s2 = np.einsum("nk,nk->n", p, p).astype(np.float64)
     var = np.maximum(s2 - s1 * s1 / k, 0.0)                           # sum (p - mean p)^2
     out = np.zeros(p.shape[0])
     ok = var > 1e-6 * k

@@ -1,0 +1,81 @@
+"""Speed of the comparison measurement models and baselines: one MCL step (prepare the 600 x 400 frame, score
+N = 700 particles) on a 2000 x 2000 px, 0.25 m/px synthetic map with the paper's camera at 200 m.
+
+Targets (issue 5): SSD and NCC at 60 x 40 patches <= 5 ms per step; MI <= 15 ms.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from types import SimpleNamespace
+
+import cv2
+import numpy as np
+
+from . import Benchmark
+
+_N = 700
+_ALT_M = 200.0
+
+
+def _scene(seed: int = 0) -> tuple[SimpleNamespace, dict, np.ndarray]:
+    """A textured map (briefing-like namespace), one observation and N particle states around the truth."""
+    from ..sensors.camera import CameraModel
+
+    g = np.random.default_rng(seed)
+    size = 2000
+    img = np.zeros((size, size), np.float32)
+    for sigma in (24.0, 6.0, 2.0):
+        img += cv2.GaussianBlur(g.standard_normal((size, size)).astype(np.float32), (0, 0), sigma) * sigma
+    img = np.clip(120 + img / img.std() * 35, 0, 255)
+    rgb = np.repeat(img[..., None], 3, axis=2).astype(np.uint8)
+    gsd = 0.25
+    orthomap = SimpleNamespace(rgb=rgb, gsd_x_m=gsd, gsd_y_m=gsd, width_px=size, height_px=size, nodata=None,
+                               dsm_m=None, width_m=size * gsd, height_m=size * gsd, name="perf")
+    camera = CameraModel()
+    briefing = SimpleNamespace(orthomap=orthomap, camera=camera, altitude_m=_ALT_M, dt_s=0.25,
+                               prior=SimpleNamespace(kind="gaussian", mean_xy_m=(250.0, 250.0), std_xy_m=15.0),
+                               odometry_noise=None, scenario_id="perf")
+    x, y, yaw = 250.0, 250.0, 0.4
+    a = camera.camera_to_map(orthomap, x, y, yaw, _ALT_M)
+    frame = cv2.warpAffine(rgb, a, (camera.width_px, camera.height_px), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
+    obs = {"image": frame, "odometry": np.zeros(2, np.float32), "yaw": np.array([yaw], np.float32),
+           "altitude": np.array([_ALT_M], np.float32)}
+    states = np.column_stack([x + g.normal(0, 15, _N), y + g.normal(0, 15, _N), yaw + g.normal(0, 0.05, _N)])
+    return briefing, obs, states
+
+
+def _model_step(name: str, **params) -> Callable[[], Callable[[], object]]:
+    def setup() -> Callable[[], object]:
+        from ..estimators.mcl.measurement import MODELS
+
+        briefing, obs, states = _scene()
+        model = MODELS[name](params, f"perf {name}")
+        model.reset(briefing, np.random.default_rng(0))
+        g = np.random.default_rng(1)
+
+        def step() -> object:
+            return model.log_likelihood(model.prepare(obs, g), states, _ALT_M)
+
+        return step
+
+    return setup
+
+
+def _import_models() -> None:
+    import importlib
+
+    for module in ("dense", "abbrief", "edges"):
+        try:
+            importlib.import_module(f"aerial_loc_env.estimators.mcl.{module}")
+        except ImportError:  # pragma: no cover - a model not written yet
+            pass
+
+
+_import_models()
+
+BENCHMARKS = [
+    Benchmark("MCL step SSD 60x40, N=700", _model_step("ssd"), target_s=0.005, unit="step"),
+    Benchmark("MCL step NCC 60x40, N=700", _model_step("ncc"), target_s=0.005, unit="step"),
+    Benchmark("MCL step MI 60x40 16 bins, N=700", _model_step("mi"), target_s=0.015, unit="step"),
+]
