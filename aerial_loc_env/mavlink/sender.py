@@ -1,0 +1,335 @@
+"""The MAVLink sender: a thread that streams the latest fix at a steady rate, as a vision companion computer.
+
+Why a thread with absolute deadlines: ArduPilot declares a MAVLink GPS unhealthy after ~245 ms without
+GPS_INPUT, and the EKFs dislike jittery external-navigation timing, so the send rate must not depend on how
+long the simulator or the estimator take. The sender emits whatever fix the slot holds, ageing it.
+"""
+
+from __future__ import annotations
+
+import collections
+import hashlib
+import math
+import re
+import threading
+import time
+from dataclasses import dataclass, field
+
+from pymavlink.dialects.v20 import common as mavlink2
+
+from ..config import build_config, rng
+from ..errors import ConfigError
+from . import messages as msgs
+from .fix import FixPolicy, FixQuality, FixSlot, GeoOrigin, PoseFix, SlotItem, assess
+from .link import Endpoint, Link, parse_connection
+from .timebase import MonotonicClock, Schedule, signing_timestamp
+
+ARDUPILOT_GPS_TIMEOUT_S = 0.245   # AP_GPS marks a MAVLink GPS unhealthy after gaps longer than this
+MIN_GPS_INPUT_RATE_HZ = 5.0
+
+
+@dataclass(frozen=True)
+class SenderConfig:
+    """What to send, where, how often, and as whom."""
+
+    connect: str = "udpout:127.0.0.1:14550"
+    messages: tuple[str, ...] = ("gps_input",)
+    rate_hz: float = field(default=10.0, metadata=rng(0.0, 200.0, lo_open=True))
+    heartbeat_hz: float = field(default=1.0, metadata=rng(0.0, 50.0, lo_open=True))
+    system_id: int = field(default=1, metadata=rng(1, 255))
+    component_id: int = field(default=mavlink2.MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY, metadata=rng(1, 255))
+    target_system: int = field(default=0, metadata=rng(0, 255))      # origin/requests target; 0: all
+    gps_id: int = field(default=0, metadata=rng(0, 255))             # GPS_INPUT.gps_id = the GPS instance
+    gps_yaw: bool = False                                            # fill GPS_INPUT.yaw from the estimate
+    odometry_frames: str = field(default="local_frd", metadata=rng(choices=tuple(msgs.ODOMETRY_FRAMES)))
+    origin_period_s: float = field(default=5.0, metadata=rng(0.1, 3600.0))
+    signing_key: str = field(default="", repr=False)                 # 64 hex digits or a passphrase (sha256)
+    signing_link_id: int = field(default=0, metadata=rng(0, 255))
+    reconnect_s: float = field(default=1.0, metadata=rng(0.05, 60.0))
+    baud: int = field(default=57600, metadata=rng(1, 10_000_000))
+    request_vehicle_hz: float = field(default=0.0, metadata=rng(0.0, 50.0))  # >0: request vehicle state
+    allow_slow_gps: bool = False                                      # permit GPS_INPUT below 5 Hz (replay)
+
+    def validate(self, where: str) -> None:
+        bad = [m for m in self.messages if m not in msgs.MESSAGE_KINDS]
+        if bad or not self.messages:
+            raise ConfigError(f"{where}: field 'messages' = {list(self.messages)!r}: choose one or more of "
+                              f"{', '.join(msgs.MESSAGE_KINDS)}")
+        if "gps_input" in self.messages and self.rate_hz < MIN_GPS_INPUT_RATE_HZ and not self.allow_slow_gps:
+            raise ConfigError(
+                f"{where}: field 'rate_hz' = {self.rate_hz} is below {MIN_GPS_INPUT_RATE_HZ} Hz: ArduPilot "
+                f"marks a MAVLink GPS unhealthy after {ARDUPILOT_GPS_TIMEOUT_S * 1000:.0f} ms without "
+                "GPS_INPUT; raise the rate (or set allow_slow_gps)")
+        parse_connection(self.connect, baud=self.baud, field=f"{where}: field 'connect'")
+        signing_secret(self.signing_key, where)
+
+    @property
+    def endpoint(self) -> Endpoint:
+        return parse_connection(self.connect, baud=self.baud)
+
+
+def signing_secret(key: str, where: str = "signing_key") -> bytes | None:
+    """32-byte secret from 64 hex digits, or sha256 of a passphrase (MAVProxy's ``signing setup``)."""
+    if not key:
+        return None
+    if not isinstance(key, str):
+        raise ConfigError(f"{where}: field 'signing_key' must be a string (64 hex digits or a passphrase)")
+    if re.fullmatch(r"[0-9a-fA-F]{64}", key):
+        return bytes.fromhex(key)
+    return hashlib.sha256(key.encode("utf-8")).digest()
+
+
+@dataclass(frozen=True)
+class VehicleState:
+    """The autopilot's own estimate (GLOBAL_POSITION_INT / ATTITUDE), for follow mode."""
+
+    lat_deg: float
+    lon_deg: float
+    alt_amsl_m: float
+    rel_alt_m: float
+    vel_ned_mps: tuple[float, float, float]
+    heading_rad: float          # MAVLink yaw (CW from north); from ATTITUDE when available, else hdg
+    received_mono_s: float
+    system_id: int
+
+
+@dataclass(frozen=True)
+class SenderStats:
+    """A snapshot of what the sender did; ``tick_intervals_s`` are the last intervals between main ticks."""
+
+    sent: dict[str, int]
+    dropped: int
+    skipped_ticks: int
+    link_up: bool
+    reconnects: int
+    last_error: str | None
+    quality: FixQuality | None
+    fix_age_s: float | None
+    fix_seq: int | None
+    reset_counter: int
+    tick_intervals_s: tuple[float, ...]
+    running: bool
+
+    @property
+    def rate_hz(self) -> float:
+        n = len(self.tick_intervals_s)
+        return n / sum(self.tick_intervals_s) if n else 0.0
+
+    @property
+    def jitter_s(self) -> float:
+        """Standard deviation of the tick intervals."""
+        n = len(self.tick_intervals_s)
+        if n < 2:
+            return 0.0
+        mean = sum(self.tick_intervals_s) / n
+        return math.sqrt(sum((t - mean) ** 2 for t in self.tick_intervals_s) / (n - 1))
+
+
+class _LinkFile:
+    """The file object pymavlink's encoder writes to: counts frames the link could not take."""
+
+    def __init__(self, link: Link) -> None:
+        self.link = link
+        self.dropped = 0
+
+    def write(self, buf: bytes) -> None:
+        if not self.link.write(bytes(buf)):
+            self.dropped += 1
+
+
+class MavlinkSender:
+    """Streams the latest :class:`PoseFix` as GPS_INPUT / VISION_POSITION_ESTIMATE / ODOMETRY at ``rate_hz``.
+
+    Use as a context manager (``with MavlinkSender(cfg, origin=...) as s: s.publish(fix)``) or start()/stop().
+    """
+
+    def __init__(self, config: SenderConfig | None = None, *, policy: FixPolicy | None = None,
+                 origin: GeoOrigin | None = None, slot: FixSlot | None = None, **overrides) -> None:
+        config = config or SenderConfig()
+        if overrides:
+            config = build_config(SenderConfig, overrides, where="MavlinkSender overrides", base=config)
+        else:
+            config.validate("SenderConfig")
+        self.config = config
+        self.policy = policy or FixPolicy()
+        self.origin = origin
+        self.slot = slot or FixSlot(self.policy.jump_threshold_m)
+        self.link = Link(config.endpoint, reconnect_s=config.reconnect_s)
+        self._file = _LinkFile(self.link)
+        self._mav = mavlink2.MAVLink(self._file, srcSystem=config.system_id, srcComponent=config.component_id)
+        self._parser = mavlink2.MAVLink(None)
+        self._parser.robust_parsing = True
+        secret = signing_secret(config.signing_key)
+        if secret is not None:
+            self._mav.signing.secret_key = secret
+            self._mav.signing.link_id = config.signing_link_id
+            self._mav.signing.sign_outgoing = True
+        self.clock = MonotonicClock()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._lock = threading.Lock()
+        self._sent: collections.Counter[str] = collections.Counter()
+        self._intervals: collections.deque[float] = collections.deque(maxlen=600)
+        self._last_tick_s: float | None = None
+        self._quality: FixQuality | None = None
+        self._item: SlotItem | None = None
+        self._age_s: float | None = None
+        self._vehicle: VehicleState | None = None
+        self._attitude_heading: float | None = None
+        self._skipped = 0
+        self.error: BaseException | None = None
+
+    # -- lifecycle -------------------------------------------------------------------------------------------
+    def start(self) -> MavlinkSender:
+        """Open the link (errors raise here, in the caller's thread) and start the sender thread."""
+        if self._thread is not None:
+            raise RuntimeError("MavlinkSender already started")
+        self.link.open()
+        self._thread = threading.Thread(target=self._run, name="mavlink-sender", daemon=True)
+        self._thread.start()
+        return self
+
+    def stop(self, timeout_s: float = 2.0) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout_s)
+        self.link.close()
+
+    def __enter__(self) -> MavlinkSender:
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+    @property
+    def running(self) -> bool:
+        return self._thread is not None and self._thread.is_alive()
+
+    def publish(self, fix: PoseFix) -> SlotItem:
+        """Hand a new estimate to the sender (any thread, any rate)."""
+        return self.slot.put(fix)
+
+    def vehicle(self) -> VehicleState | None:
+        """The autopilot's latest GLOBAL_POSITION_INT (+ ATTITUDE yaw), or None if none was received."""
+        with self._lock:
+            return self._vehicle
+
+    def stats(self) -> SenderStats:
+        with self._lock:
+            item = self._item
+            return SenderStats(
+                sent=dict(self._sent), dropped=self._file.dropped, skipped_ticks=self._skipped,
+                link_up=self.link.up, reconnects=self.link.reconnects, last_error=self.link.last_error,
+                quality=self._quality, fix_age_s=self._age_s, fix_seq=None if item is None else item.seq,
+                reset_counter=0 if item is None else item.reset_counter,
+                tick_intervals_s=tuple(self._intervals), running=self.running,
+            )
+
+    # -- the loop --------------------------------------------------------------------------------------------
+    def _run(self) -> None:
+        try:
+            self._loop()
+        except Exception as exc:  # surfaced through .error and stats().running, never a stray traceback
+            self.error = exc
+
+    def _loop(self) -> None:
+        cfg = self.config
+        t0 = time.monotonic()
+        main = Schedule(cfg.rate_hz, t0)
+        beat = Schedule(cfg.heartbeat_hz, t0)
+        origin = Schedule(1.0 / cfg.origin_period_s, t0) if self.origin is not None else None
+        request = Schedule(0.5, t0) if cfg.request_vehicle_hz > 0 else None
+        while not self._stop.is_set():
+            now = time.monotonic()
+            if beat.due(now):
+                self._send("heartbeat", msgs.heartbeat())
+                beat.advance(now)
+            if origin is not None and origin.due(now):
+                self._send("set_gps_global_origin", msgs.set_gps_global_origin(
+                    self.origin, self.clock.unix_us(now), cfg.target_system))
+                origin.advance(now)
+            if request is not None and request.due(now):
+                self._request_vehicle_streams()
+                request.advance(now)
+            if main.due(now):
+                self._tick(now)
+                main.advance(now)
+                with self._lock:
+                    self._skipped = main.skipped
+            self._receive()
+            schedules = [s for s in (main, beat, origin, request) if s is not None]
+            wait = min(s.deadline_s for s in schedules) - time.monotonic()
+            if wait > 0:
+                self._stop.wait(wait)
+
+    def _tick(self, now: float) -> None:
+        with self._lock:
+            if self._last_tick_s is not None:
+                self._intervals.append(now - self._last_tick_s)
+            self._last_tick_s = now
+        item = self.slot.get()
+        if item is None:
+            return  # nothing estimated yet: heartbeats only
+        age = now - item.received_mono_s
+        quality = assess(item.fix, age, self.policy)
+        with self._lock:
+            self._item, self._age_s, self._quality = item, age, quality
+        unix_s = self.clock.unix_s(now)
+        usec = int(unix_s * 1e6)
+        cfg = self.config
+        fix = item.fix
+        for kind in cfg.messages:
+            if kind == "gps_input":
+                self._send(kind, msgs.gps_input(fix, quality, unix_s, gps_id=cfg.gps_id,
+                                                send_yaw=cfg.gps_yaw))
+            elif kind == "vision_position_estimate" and quality.usable:
+                self._send(kind, msgs.vision_position_estimate(fix, quality, usec, item.reset_counter))
+            elif kind == "odometry":
+                self._send(kind, msgs.odometry(fix, quality, usec, item.reset_counter, cfg.odometry_frames))
+
+    def _send(self, kind: str, message) -> None:
+        signing = self._mav.signing
+        if signing.sign_outgoing:  # keep signing timestamps >= real time (receivers reject stale streams)
+            signing.timestamp = max(signing.timestamp, signing_timestamp(self.clock.unix_s()))
+        self._mav.send(message)
+        with self._lock:
+            self._sent[kind] += 1
+
+    def _request_vehicle_streams(self) -> None:
+        """Ask for GLOBAL_POSITION_INT and ATTITUDE (MAV_CMD_SET_MESSAGE_INTERVAL) until they come."""
+        vehicle = self.vehicle()
+        if vehicle is not None and time.monotonic() - vehicle.received_mono_s < 2.0:
+            return
+        interval_us = 1e6 / self.config.request_vehicle_hz
+        for msg_id in (mavlink2.MAVLINK_MSG_ID_GLOBAL_POSITION_INT, mavlink2.MAVLINK_MSG_ID_ATTITUDE):
+            self._send("command_long", mavlink2.MAVLink_command_long_message(
+                self.config.target_system, 1, mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL, 0,
+                float(msg_id), interval_us, 0, 0, 0, 0, 0))
+
+    def _receive(self) -> None:
+        data = self.link.read()
+        if not data:
+            return
+        try:
+            received = self._parser.parse_buffer(data) or []
+        except mavlink2.MAVError:
+            return
+        now = time.monotonic()
+        for m in received:
+            name = m.get_type()
+            if name == "ATTITUDE":
+                self._attitude_heading = float(m.yaw)
+            elif name == "GLOBAL_POSITION_INT":
+                heading = self._attitude_heading
+                if heading is None:
+                    heading = math.radians(m.hdg / 100.0) if m.hdg != 65535 else 0.0
+                state = VehicleState(
+                    lat_deg=m.lat / 1e7, lon_deg=m.lon / 1e7, alt_amsl_m=m.alt / 1000.0,
+                    rel_alt_m=m.relative_alt / 1000.0, vel_ned_mps=(m.vx / 100.0, m.vy / 100.0, m.vz / 100.0),
+                    heading_rad=msgs.wrap_pi(heading), received_mono_s=now, system_id=m.get_srcSystem())
+                with self._lock:
+                    self._vehicle = state
+
+
+__all__ = ["MavlinkSender", "SenderConfig", "SenderStats", "VehicleState", "PoseFix", "GeoOrigin",
+           "FixPolicy", "signing_secret"]

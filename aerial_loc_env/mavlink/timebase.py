@@ -1,0 +1,87 @@
+"""Clocks for the bridge: GPS week time, a monotonic wall clock, and a drift-free periodic schedule.
+
+Why its own module: GPS_INPUT carries GPS time (week, ms of week) while every other message wants a timestamp
+that never jumps backwards; both come from one monotonic anchor so an NTP step cannot disturb the stream.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+GPS_EPOCH_UNIX_S = 315_964_800  # 1980-01-06T00:00:00Z as a Unix time
+GPS_LEAP_SECONDS = 18            # GPS - UTC since 2017-01-01 (no leap second announced since)
+SECONDS_PER_WEEK = 7 * 86_400
+SIGNING_EPOCH_UNIX_S = 1_420_070_400  # 2015-01-01T00:00:00Z: origin of MAVLink 2 signing timestamps (10 us)
+
+
+def gps_week_ms(unix_s: float, leap_s: int = GPS_LEAP_SECONDS) -> tuple[int, int]:
+    """(GPS week, milliseconds of week) of a UTC Unix time; GPS time runs ``leap_s`` ahead of UTC."""
+    gps_s = unix_s - GPS_EPOCH_UNIX_S + leap_s
+    if gps_s < 0:
+        raise ValueError(f"unix time {unix_s!r} is before the GPS epoch 1980-01-06")
+    week, rem_s = divmod(gps_s, SECONDS_PER_WEEK)
+    ms = int(math.floor(rem_s * 1000.0 + 1e-6))
+    if ms >= SECONDS_PER_WEEK * 1000:  # rounding at the very end of a week
+        week, ms = week + 1, 0
+    return int(week), ms
+
+
+def gps_to_unix_s(week: int, ms_of_week: int, leap_s: int = GPS_LEAP_SECONDS) -> float:
+    """Inverse of :func:`gps_week_ms` (to the millisecond)."""
+    return GPS_EPOCH_UNIX_S + week * SECONDS_PER_WEEK + ms_of_week / 1000.0 - leap_s
+
+
+def signing_timestamp(unix_s: float) -> int:
+    """MAVLink 2 signing timestamp: 10-microsecond units since 2015-01-01 UTC."""
+    return int((unix_s - SIGNING_EPOCH_UNIX_S) * 100_000)
+
+
+@dataclass
+class MonotonicClock:
+    """Unix time that advances with ``time.monotonic`` from one anchor, so it never steps backwards."""
+
+    monotonic: Callable[[], float] = time.monotonic
+    anchor_unix_s: float = field(default_factory=time.time)
+    anchor_mono_s: float = field(default=math.nan)
+
+    def __post_init__(self) -> None:
+        if math.isnan(self.anchor_mono_s):
+            self.anchor_mono_s = self.monotonic()
+
+    def unix_s(self, mono_s: float | None = None) -> float:
+        """Unix time of monotonic instant ``mono_s`` (now if None)."""
+        mono = self.monotonic() if mono_s is None else mono_s
+        return self.anchor_unix_s + (mono - self.anchor_mono_s)
+
+    def unix_us(self, mono_s: float | None = None) -> int:
+        return int(self.unix_s(mono_s) * 1e6)
+
+
+class Schedule:
+    """Absolute deadlines ``t0 + k / rate``: no drift accumulates, late ticks are skipped, never bunched."""
+
+    def __init__(self, rate_hz: float, start_s: float) -> None:
+        if not rate_hz > 0:
+            raise ValueError(f"rate_hz must be > 0, got {rate_hz!r}")
+        self.period_s = 1.0 / rate_hz
+        self.start_s = start_s
+        self.index = 0
+        self.skipped = 0
+
+    @property
+    def deadline_s(self) -> float:
+        return self.start_s + self.index * self.period_s
+
+    def due(self, now_s: float) -> bool:
+        return now_s >= self.deadline_s
+
+    def advance(self, now_s: float) -> None:
+        """Move to the next deadline after ``now_s``; ticks missed by more than a period count as skipped."""
+        self.index += 1
+        behind = int((now_s - self.deadline_s) // self.period_s) + 1 if now_s >= self.deadline_s else 0
+        if behind > 0:
+            self.skipped += behind
+            self.index += behind
