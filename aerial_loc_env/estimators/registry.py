@@ -164,9 +164,17 @@ def build_agent(spec: AgentSpec, **overrides: Any) -> Agent:
     """Instantiate ``spec`` with ``overrides`` on top of its [params] (validated by the class's Params)."""
     cls = resolve_class(spec.class_ref, where=spec.where)
     where = spec.where + (f" + overrides {sorted(overrides)}" if overrides else "")
-    agent = cls.from_params({**spec.params, **overrides}, where=where)
+    agent = cls.from_params(merge_params(spec.params, overrides), where=where)
     agent.name = spec.name
     return agent
+
+
+def merge_params(base: Mapping[str, Any], overrides: Mapping[str, Any]) -> dict[str, Any]:
+    """``overrides`` on top of ``base``; nested tables (e.g. ``measurement_params``) are merged key by key."""
+    out = dict(base)
+    for k, v in overrides.items():
+        out[k] = merge_params(out[k], v) if isinstance(v, Mapping) and isinstance(out.get(k), Mapping) else v
+    return out
 
 
 def make_agent(name: str | Path | type[Agent], **overrides: Any) -> Agent:

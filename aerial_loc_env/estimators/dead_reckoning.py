@@ -1,0 +1,53 @@
+"""Dead reckoning: the odometry alone from the prior mean, the floor every estimator must beat.
+
+It integrates the same motion model as the MCL (mid-step heading = mean of the two measured headings) without
+noise, and grows the covariance by the odometry noise per step on top of the prior's, so that its reported
+uncertainty is honest. With a uniform prior it stays at the map centre ("lost" by its covariance).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from ..errors import ConfigError
+from .mcl.motion import mid_heading
+from .protocol import Agent, Estimate, parse_observation, prior_estimate
+
+if TYPE_CHECKING:
+    from ..env.briefing import Briefing
+
+
+class DeadReckoningAgent(Agent):
+    """Integrates the measured speed and heading from the prior's mean."""
+
+    def reset(self, briefing: Briefing, *, seed: int | None = None) -> Estimate:
+        self.briefing = briefing
+        est = prior_estimate(briefing, status="dead_reckoning")
+        self.xy = np.array([est.x_m, est.y_m])
+        self.cov = np.asarray(est.cov_xy_m2, dtype=float)
+        self.prev_yaw: float | None = None
+        self.t = 0
+        return est
+
+    def step(self, observation: Mapping[str, np.ndarray], info: Mapping[str, Any] | None = None) -> Estimate:
+        if not hasattr(self, "briefing"):
+            raise ConfigError("DeadReckoningAgent.step called before reset(briefing, seed=...)")
+        obs = parse_observation(observation)
+        dt = self.briefing.dt_s
+        if self.t > 0:  # the first observation is taken at the start pose
+            psi = mid_heading(self.prev_yaw, obs.yaw_rad, obs.yaw_rate_radps, dt)
+            d = obs.speed_mps * dt
+            c, s = np.cos(psi), np.sin(psi)
+            self.xy += d * np.array([c, s])
+            noise = self.briefing.odometry_noise
+            along = (noise.speed_std_mps * dt) ** 2
+            across = (d * noise.heading_std_rad / np.sqrt(2.0)) ** 2
+            rot = np.array([[c, -s], [s, c]])
+            self.cov = self.cov + rot @ np.diag([along, across]) @ rot.T
+        self.prev_yaw = obs.yaw_rad
+        self.t += 1
+        return Estimate(float(self.xy[0]), float(self.xy[1]), yaw_rad=obs.yaw_rad, cov_xy_m2=self.cov.copy(),
+                        status="dead_reckoning")

@@ -1,0 +1,244 @@
+"""The paper's intensity-pair measurement models: conventional (eq. 2-5), shadow restoration (III.B) and
+shadow-aware information allocation (eq. 6-9, Table 3).
+
+Per frame (``prepare``): K random pixel pairs ``p_i = (x_i1, x_i2)`` on the camera image; for each of the c
+channels the bit ``tau_ij = [I_j(x_i1) > I_j(x_i2)]`` (eq. 2). Per particle (``log_likelihood``): the pair points
+are mapped into the database at the particle's pose by eq. (3) (``CameraModel.project_pixels``, not
+re-derived), the database bits ``tau_hat_ij`` computed alike, and the similarity is the XNOR count (eq. 4)
+
+    xi = 1 / (n) * sum_i sum_j XNOR(tau_ij, tau_hat_ij),   n = (number of pairs used) * c.
+
+Shadow handling (``shadow``):
+
+- ``"ignore"``: the conventional model, all K pairs;
+- ``"restore"``: shadows detected in the camera image are restored (histogram equalization as in the paper,
+  or gain matching) before the camera bits are taken; all K pairs;
+- ``"drop"``: the paper's proposal. The ``lc`` pairs with exactly one point in shadow are dropped (pairs with
+  both points in shadow are kept: both intensities changed alike), the similarity is taken over the K - lc kept
+  pairs (eq. 6), and the activation ``sigma_m(K, lc) = 1 - 1 / (1 + exp(-a (lc - K/2)))`` (eq. 8), with
+  ``a = activation_gain / K`` so that it is one curve of the shadowed fraction lc/K whatever K (as the paper
+  says of its slope), allocates the frame's importance.
+
+From similarity to likelihood (eq. 5 leaves it open; ``likelihood``):
+
+- ``"binomial"`` (default): treat the n bits as independent, each agreeing with probability p at the true pose
+  and 1/2 at an unrelated one. The likelihood of m = n xi agreements is p^m (1 - p)^(n - m), so
+  ``log L = kappa * n * xi + const`` with ``kappa = log(p / (1 - p))``. Neighbouring bits are correlated, so
+  ``kappa`` is best read as a tempering constant (default 0.5 ~ p = 0.62). A frame with fewer usable bits (many
+  dropped pairs) automatically pulls the filter less.
+- ``"gaussian"``: the paper's ``xi ~ N(mu, sigma)``: ``log L = -(xi - mu)^2 / (2 sigma^2)``, mu = 1 (ideal match).
+- ``"linear"``: eq. (9) literally, ``w = xi * sigma_m``: ``log L = log xi``.
+
+Activation (``activation``, used with ``shadow = "drop"``):
+
+- ``"multiply"``: the paper literally, ``w = L * sigma_m`` (``log L + log sigma_m``). Since lc comes from the
+  camera image, sigma_m is the same for every particle and cancels when the weights are normalized: with
+  resampling every step, this is exactly the "drop" model without activation;
+- ``"temper"``: the variant in which the activation carries information: ``log w = sigma_m * log L``, so a
+  heavily shadowed frame (sigma_m -> 0) flattens the weights and moves the filter less;
+- ``"none"``: no activation.
+
+Points that fall outside the database or on no-data count as half an agreement (no information).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+import cv2
+import numpy as np
+
+from ...config import build_config, rng
+from ...errors import ConfigError
+from ..protocol import parse_observation
+from ..shadow_detection import ShadowDetector, ShadowDetectorConfig, oracle_mask, restoration_lut
+from .measurement import MeasurementModel, register_model
+
+if TYPE_CHECKING:
+    from ...env.briefing import Briefing
+
+#: ITU-R 601 luma weights of cv2.COLOR_RGB2GRAY, for single-channel (c = 1) comparisons
+_LUMA = np.array([0.299, 0.587, 0.114], dtype=np.float32)
+
+
+@dataclass(frozen=True)
+class IntensityPairsConfig:
+    n_pairs: int = field(default=70, metadata=rng(1, 100000, doc="K, random pixel pairs per frame"))
+    channels: int = field(default=3, metadata=rng(choices=(1, 3), doc="c: 1 = luma, 3 = RGB"))
+    shadow: str = field(default="ignore", metadata=rng(choices=("ignore", "restore", "drop")))
+    detector: str = field(default="image", metadata=rng(choices=("image", "oracle"),
+                                                         doc="image = from the frame; oracle = ground truth"))
+    detector_params: dict = field(default_factory=dict)   # -> ShadowDetectorConfig
+    restoration: str = field(default="gain", metadata=rng(choices=("equalize", "gain")))
+    likelihood: str = field(default="binomial", metadata=rng(choices=("binomial", "gaussian", "linear")))
+    kappa: float = field(default=0.5, metadata=rng(0.0, 50.0, lo_open=True, doc="binomial: log-odds per bit"))
+    mu: float = field(default=1.0, metadata=rng(0.0, 1.0, doc="gaussian: similarity at the true pose"))
+    sigma: float = field(default=0.1, metadata=rng(0.0, 10.0, lo_open=True, doc="gaussian: spread of xi"))
+    activation: str = field(default="none", metadata=rng(choices=("none", "multiply", "temper")))
+    activation_gain: float = field(default=10.0, metadata=rng(0.0, 1000.0, doc="a = activation_gain / K"))
+
+    def validate(self, where: str) -> None:
+        if self.activation != "none" and self.shadow != "drop":
+            raise ConfigError(f"{where}: activation = {self.activation!r} needs shadow = 'drop' (it is a "
+                              "function of the dropped pairs lc)")
+        if self.detector == "oracle" and self.shadow == "ignore":
+            raise ConfigError(f"{where}: detector = 'oracle' is meaningless with shadow = 'ignore'")
+        build_config(ShadowDetectorConfig, self.detector_params, where=f"{where}: detector_params")
+
+
+def activation(K: int | np.ndarray, lc: int | np.ndarray, a: float | np.ndarray) -> np.ndarray | float:
+    """Eq. (8): ``sigma_m(K, lc) = 1 - 1 / (1 + exp(-a (lc - K / 2)))``, in (0, 1), 1/2 at lc = K/2."""
+    z = -np.asarray(a, dtype=np.float64) * (np.asarray(lc, dtype=np.float64) - np.asarray(K) / 2.0)
+    out = 1.0 - 1.0 / (1.0 + np.exp(z))
+    return float(out) if np.ndim(out) == 0 else out
+
+
+def xnor_similarity(cam_bits: np.ndarray, db_bits: np.ndarray, keep: np.ndarray | None = None,
+                    valid: np.ndarray | None = None) -> np.ndarray:
+    """Eq. (4)/(6): fraction of agreeing bits.
+
+    ``cam_bits`` (K, c) bool; ``db_bits`` (N, K, c) bool; ``keep`` (K,) bool selects the pairs used (eq. 6);
+    ``valid`` (N, K) bool marks database pairs with data (an invalid pair counts as half an agreement).
+    Returns (N,) in [0, 1]; 1/2 when no pair is kept.
+    """
+    agree = (db_bits == cam_bits[None]).sum(axis=2, dtype=np.float32)          # (N, K) agreements of c
+    c = cam_bits.shape[1]
+    if valid is not None:
+        agree = np.where(valid, agree, np.float32(0.5 * c))
+    if keep is not None:
+        n_kept = int(np.count_nonzero(keep))
+        if n_kept == 0:
+            return np.full(db_bits.shape[0], 0.5)
+        return agree[:, keep].sum(axis=1, dtype=np.float64) / (n_kept * c)
+    return agree.sum(axis=1, dtype=np.float64) / (cam_bits.shape[0] * c)
+
+
+@dataclass(frozen=True)
+class PreparedPairs:
+    """What one frame leaves for all particles."""
+
+    uv: np.ndarray           # (2K, 2) camera pixels: first K = x_i1, last K = x_i2
+    cam_bits: np.ndarray     # (K, c) bool
+    keep: np.ndarray | None  # (K,) bool for shadow = "drop", else None
+    log_scale: float         # multiplies log L (tempering by the activation; 1 otherwise)
+    log_offset: float        # added to log L (the literal multiplied activation; 0 otherwise)
+
+
+class IntensityPairsModel(MeasurementModel):
+    """Binary intensity-pair descriptor with XNOR similarity, optionally shadow-restoring or shadow-aware."""
+
+    Config = IntensityPairsConfig
+
+    def __init__(self, config: IntensityPairsConfig | None = None) -> None:
+        super().__init__(config or IntensityPairsConfig())
+        cfg: IntensityPairsConfig = self.config
+        self.uses_ground_truth = cfg.detector == "oracle"
+        self.detector = ShadowDetector(build_config(ShadowDetectorConfig, cfg.detector_params,
+                                                    where="intensity pairs: detector_params"))
+        self._db: np.ndarray | None = None
+
+    # ---------------------------------------------------------------- per map
+    def reset(self, briefing: Briefing, rng: np.random.Generator) -> None:
+        m = briefing.orthomap
+        self.orthomap, self.camera = m, briefing.camera
+        rgb = np.asarray(m.rgb)
+        if rgb.ndim != 3 or rgb.shape[2] != 3:
+            raise ConfigError(f"{m.name}: the database must be (H, W, 3) RGB, got shape {rgb.shape}")
+        self._H, self._W = rgb.shape[:2]
+        if self.config.channels == 1:
+            self._db = cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2GRAY).reshape(-1, 1)
+        else:
+            self._db = rgb.reshape(-1, 3)
+        self._nodata = None if m.nodata is None else np.asarray(m.nodata, dtype=bool).reshape(-1)
+
+    # ---------------------------------------------------------------- per frame
+    def prepare(self, observation: Mapping[str, np.ndarray], rng: np.random.Generator,
+                info: Mapping[str, Any] | None = None) -> PreparedPairs:
+        cfg: IntensityPairsConfig = self.config
+        obs = parse_observation(observation)
+        img = obs.image
+        H, W = img.shape[:2]
+        K = cfg.n_pairs
+        u = rng.integers(0, W, 2 * K)
+        v = rng.integers(0, H, 2 * K)
+        vals = img[v, u].astype(np.float32)                                   # (2K, 3)
+        stats: dict[str, Any] = {"K": K}
+        mask_pts = None
+        if cfg.shadow != "ignore":
+            if cfg.detector == "oracle":
+                smask = oracle_mask(info, (H, W))
+                small = None
+            else:
+                small = self.detector.reduce(img)
+                smask = self.detector.detect(img, small=small)
+            mask_pts = smask.at(u, v)                                          # (2K,) bool
+            stats["shadow_fraction"] = smask.fraction
+            if cfg.shadow == "restore" and mask_pts.any():
+                if small is None:
+                    small = self.detector.reduce(img)
+                    sm = cv2.resize(smask.mask.astype(np.uint8), small.shape[1::-1],
+                                    interpolation=cv2.INTER_NEAREST).astype(bool)
+                else:
+                    sm = smask.mask
+                lut = restoration_lut(small, sm, cfg.restoration)              # (3, 256)
+                ch = np.arange(3)
+                restored = lut[ch[None, :], img[v, u].astype(np.int64)]       # (2K, 3)
+                vals = np.where(mask_pts[:, None], restored, vals)
+        if cfg.channels == 1:
+            vals = vals @ _LUMA[:, None]
+        cam_bits = vals[:K] > vals[K:]                                        # (K, c) eq. (2)
+        keep, log_scale, log_offset = None, 1.0, 0.0
+        if cfg.shadow == "drop":
+            one_in_shadow = mask_pts[:K] ^ mask_pts[K:]
+            keep = ~one_in_shadow
+            lc = int(np.count_nonzero(one_in_shadow))
+            act = activation(K, lc, cfg.activation_gain / K)
+            stats.update(shadow_pairs=lc, kept_pairs=K - lc, activation=act)
+            if cfg.activation == "multiply":
+                log_offset = math.log(max(act, 1e-300))
+            elif cfg.activation == "temper":
+                log_scale = act
+        elif mask_pts is not None:
+            stats["shadow_pairs"] = int(np.count_nonzero(mask_pts[:K] ^ mask_pts[K:]))
+        self.last_stats = stats
+        uv = np.stack([u, v], axis=1).astype(np.float64)
+        return PreparedPairs(uv, cam_bits, keep, log_scale, log_offset)
+
+    # ---------------------------------------------------------------- per particle (vectorized)
+    def similarity(self, prepared: PreparedPairs, states: np.ndarray, altitude_m: float) -> np.ndarray:
+        """xi (N,) of eq. (4) (or eq. (6) with dropped pairs) for every particle."""
+        if self._db is None:
+            raise ConfigError("intensity pairs: call reset(briefing, rng) before scoring particles")
+        K = prepared.cam_bits.shape[0]
+        pts = self.camera.project_pixels(self.orthomap, prepared.uv, states[:, 0], states[:, 1],
+                                         states[:, 2], altitude_m)                      # (N, 2K, 2) eq. (3)
+        col = np.rint(pts[..., 0]).astype(np.int64)
+        row = np.rint(pts[..., 1]).astype(np.int64)
+        inside = (col >= 0) & (col < self._W) & (row >= 0) & (row < self._H)
+        flat = np.clip(row, 0, self._H - 1) * self._W + np.clip(col, 0, self._W - 1)
+        db = self._db[flat]                                                             # (N, 2K, c)
+        db_bits = db[:, :K] > db[:, K:]                                                 # (N, K, c)
+        valid = inside if self._nodata is None else inside & ~self._nodata[flat]
+        valid_pairs = valid[:, :K] & valid[:, K:]
+        return xnor_similarity(prepared.cam_bits, db_bits, prepared.keep,
+                               None if valid_pairs.all() else valid_pairs)
+
+    def log_likelihood(self, prepared: PreparedPairs, states: np.ndarray, altitude_m: float) -> np.ndarray:
+        cfg: IntensityPairsConfig = self.config
+        xi = self.similarity(prepared, states, altitude_m)
+        n_pairs = prepared.cam_bits.shape[0] if prepared.keep is None else int(np.count_nonzero(prepared.keep))
+        if cfg.likelihood == "binomial":
+            log_l = cfg.kappa * (n_pairs * prepared.cam_bits.shape[1]) * xi
+        elif cfg.likelihood == "gaussian":
+            log_l = -0.5 * ((xi - cfg.mu) / cfg.sigma) ** 2
+        else:
+            log_l = np.log(np.maximum(xi, 1e-12))
+        return prepared.log_scale * log_l + prepared.log_offset
+
+
+register_model("intensity_pairs", IntensityPairsModel)
+register_model("intensity_pairs_restoration", IntensityPairsModel, shadow="restore")
+register_model("intensity_pairs_shadow_aware", IntensityPairsModel, shadow="drop", activation="multiply")

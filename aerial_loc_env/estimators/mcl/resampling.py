@@ -1,0 +1,102 @@
+"""Resampling schemes as plain functions ``(W, M, rng) -> indices`` (the ``particles`` library's style).
+
+``W`` are normalized weights (N,), ``M`` the number of draws; every scheme is unbiased: the expected number of
+copies of particle n is ``M * W[n]``. They differ in variance: multinomial (the primary paper) is the noisiest;
+residual, stratified and systematic reduce it; low-variance (Thrun et al., the second reference) is
+systematic resampling written as one comb of M teeth. All are O(N + M) via cumulative sums and
+``searchsorted``; the ESS helpers decide *when* to resample.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+
+from ...errors import ConfigError
+
+Resampler = Callable[[np.ndarray, int, np.random.Generator], np.ndarray]
+
+
+def _cdf(W: np.ndarray) -> np.ndarray:
+    cdf = np.cumsum(W)
+    cdf[-1] = 1.0  # guard against round-off so that searchsorted never returns N
+    return cdf
+
+
+def inverse_cdf(su: np.ndarray, W: np.ndarray) -> np.ndarray:
+    """Indices ``n`` with ``cdf[n-1] <= su < cdf[n]`` for sorted uniforms ``su`` in [0, 1)."""
+    return np.minimum(np.searchsorted(_cdf(W), su, side="right"), W.shape[0] - 1)
+
+
+def multinomial(W: np.ndarray, M: int, rng: np.random.Generator) -> np.ndarray:
+    """M independent draws from the categorical distribution W (Choi & Park, Fig. 11)."""
+    return inverse_cdf(np.sort(rng.random(M)), W)
+
+
+def stratified(W: np.ndarray, M: int, rng: np.random.Generator) -> np.ndarray:
+    """One uniform in each of the M strata [m/M, (m+1)/M)."""
+    return inverse_cdf((np.arange(M) + rng.random(M)) / M, W)
+
+
+def systematic(W: np.ndarray, M: int, rng: np.random.Generator) -> np.ndarray:
+    """One shared uniform offset for the M strata: the lowest-variance of the comb schemes."""
+    return inverse_cdf((np.arange(M) + rng.random()) / M, W)
+
+
+def low_variance(W: np.ndarray, M: int, rng: np.random.Generator) -> np.ndarray:
+    """Thrun, Burgard & Fox's low-variance sampler (the second reference): r ~ U[0, 1/M), teeth r + m/M.
+
+    Mathematically the systematic scheme; kept under its own name because the reference uses it.
+    """
+    r = rng.uniform(0.0, 1.0 / M)
+    return inverse_cdf(r + np.arange(M) / M, W)
+
+
+def residual(W: np.ndarray, M: int, rng: np.random.Generator) -> np.ndarray:
+    """floor(M W) deterministic copies, the remaining draws multinomial on the residual weights."""
+    N = W.shape[0]
+    counts = np.floor(M * W).astype(np.int64)
+    rest = M - int(counts.sum())
+    idx = np.repeat(np.arange(N), counts)
+    if rest > 0:
+        r = M * W - counts
+        r = r / r.sum()
+        idx = np.concatenate([idx, multinomial(r, rest, rng)])
+    return idx
+
+
+SCHEMES: dict[str, Resampler] = {
+    "multinomial": multinomial,
+    "systematic": systematic,
+    "stratified": stratified,
+    "residual": residual,
+    "low_variance": low_variance,
+}
+
+
+def get_scheme(name: str, where: str = "resampling") -> Resampler:
+    if name not in SCHEMES:
+        raise ConfigError(f"{where}: unknown resampling scheme {name!r}; use one of {', '.join(SCHEMES)}")
+    return SCHEMES[name]
+
+
+def normalize_log_weights(log_w: np.ndarray) -> tuple[np.ndarray, float]:
+    """Normalized weights W and log of the mean unnormalized weight (log-sum-exp, never overflows).
+
+    Non-finite log-weights (-inf for impossible particles, NaN never expected) count as weight 0; if every
+    weight is 0 the result is uniform and the log-mean is -inf, which the core treats as a collapse.
+    """
+    lw = np.where(np.isfinite(log_w), log_w, -np.inf)
+    m = float(np.max(lw))
+    if not np.isfinite(m):
+        n = lw.shape[0]
+        return np.full(n, 1.0 / n), -np.inf
+    w = np.exp(lw - m)
+    s = float(w.sum())
+    return w / s, m + float(np.log(s / lw.shape[0]))
+
+
+def ess(W: np.ndarray) -> float:
+    """Effective sample size 1 / sum(W^2) of normalized weights, in [1, N]."""
+    return float(1.0 / np.dot(W, W))

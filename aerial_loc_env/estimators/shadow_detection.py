@@ -1,0 +1,195 @@
+"""Shadow detection from the camera image alone, shadow restoration, and detector quality (III.B of the paper).
+
+Detector: a per-pixel shadow index on a reduced copy of the frame, an Otsu threshold, morphology:
+
+- ``"c3_luminance"`` (default): the mean of the colour-invariant ``c3 = arctan(B / max(R, G))`` (Gevers &
+  Smeulders; shadows are lit by the bluish sky only, so their ``c3`` rises) scaled to [0, 1] and the darkness
+  ``1 - L / 255`` (shadows are dark);
+- ``"c3"``: the colour invariant alone; ``"luminance"``: the darkness alone;
+- ``"tsai"``: Tsai's (2006) ratio ``(H + 1) / (I + 1)`` of hue and intensity (HSV) scaled to [0, 1].
+
+Otsu always splits an image in two, so a frame without shadows would still get a "shadow" class; the split is
+kept only if the shadow class is clearly darker than the rest (mean luminance ratio ``<= max_luminance_ratio``).
+Small specks are removed by an opening, holes closed by a closing (kernels in reduced pixels).
+
+Restoration maps shadow pixels by a per-channel look-up table (so it costs nothing per sample point):
+``"equalize"`` (the paper: histogram equalization of the shadow region; known to over-restore) and ``"gain"``
+(better: multiply each channel by the ratio of the lit to the shadow mean, the inverse of the multiplicative
+darkening of a cast shadow).
+
+The ``oracle`` detector reads the simulator's ground-truth mask from ``info["shadow_mask"]``, for ablations
+only. ``mask_quality`` scores a detected mask against the ground truth (IoU, precision, recall).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import cv2
+import numpy as np
+
+from ..config import rng
+from ..errors import ConfigError
+
+INDICES = ("c3_luminance", "c3", "luminance", "tsai")
+RESTORATIONS = ("equalize", "gain")
+INFO_KEY = "shadow_mask"
+
+
+@dataclass(frozen=True)
+class ShadowDetectorConfig:
+    index: str = field(default="c3_luminance", metadata=rng(choices=INDICES, doc="per-pixel shadow index"))
+    scale: float = field(default=0.25, metadata=rng(0.02, 1.0, doc="working resolution / frame resolution"))
+    open_px: int = field(default=1, metadata=rng(0, 50, doc="opening radius (reduced px), removes specks"))
+    close_px: int = field(default=1, metadata=rng(0, 50, doc="closing radius (reduced px), fills holes"))
+    max_luminance_ratio: float = field(default=0.7, metadata=rng(0.0, 1.0, doc="shadow/lit mean luminance "
+                                                                                  "above which: no shadow"))
+
+
+@dataclass(frozen=True)
+class ShadowMask:
+    """A shadow mask at a reduced resolution, with lookups in full-frame pixel coordinates."""
+
+    mask: np.ndarray                 # (h, w) bool, True = shadow
+    frame_shape: tuple[int, int]     # (H, W) of the camera frame
+
+    def at(self, u_px: np.ndarray, v_px: np.ndarray) -> np.ndarray:
+        """Mask values at integer frame pixels (any shape)."""
+        h, w = self.mask.shape
+        H, W = self.frame_shape
+        i = np.minimum((np.asarray(v_px) * h) // H, h - 1)
+        j = np.minimum((np.asarray(u_px) * w) // W, w - 1)
+        return self.mask[i, j]
+
+    def full(self) -> np.ndarray:
+        """The mask at the frame's resolution (nearest neighbour)."""
+        H, W = self.frame_shape
+        if self.mask.shape == (H, W):
+            return self.mask
+        return cv2.resize(self.mask.astype(np.uint8), (W, H), interpolation=cv2.INTER_NEAREST).astype(bool)
+
+    @property
+    def fraction(self) -> float:
+        return float(self.mask.mean())
+
+
+def _disc(radius: int) -> np.ndarray:
+    return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
+
+
+def shadow_index(small_rgb: np.ndarray, index: str) -> tuple[np.ndarray, np.ndarray]:
+    """(index in [0, 1], luminance in [0, 255]) as float32 images of an RGB uint8 image."""
+    f = small_rgb.astype(np.float32)
+    lum = cv2.cvtColor(small_rgb, cv2.COLOR_RGB2GRAY).astype(np.float32)
+    if index == "luminance":
+        return 1.0 - lum / 255.0, lum
+    if index == "tsai":
+        hsv = cv2.cvtColor(small_rgb, cv2.COLOR_RGB2HSV).astype(np.float32)   # H in [0, 180), V in [0, 255]
+        ratio = (hsv[..., 0] / 180.0 * 255.0 + 1.0) / (hsv[..., 2] + 1.0)
+        return ratio / (1.0 + ratio), lum
+    c3 = np.arctan2(f[..., 2], np.maximum(np.maximum(f[..., 0], f[..., 1]), 1.0)) * np.float32(2.0 / np.pi)
+    if index == "c3":
+        return c3, lum
+    return 0.5 * (c3 + 1.0 - lum / 255.0), lum
+
+
+class ShadowDetector:
+    """Detects shadows in a camera frame (RGB uint8) from the image alone."""
+
+    def __init__(self, config: ShadowDetectorConfig | None = None) -> None:
+        self.config = config or ShadowDetectorConfig()
+        c = self.config
+        self._open = _disc(c.open_px) if c.open_px > 0 else None
+        self._close = _disc(c.close_px) if c.close_px > 0 else None
+
+    def reduce(self, image: np.ndarray) -> np.ndarray:
+        s = self.config.scale
+        if s >= 1.0:
+            return np.ascontiguousarray(image)
+        H, W = image.shape[:2]
+        return cv2.resize(image, (max(1, round(W * s)), max(1, round(H * s))), interpolation=cv2.INTER_AREA)
+
+    def detect(self, image: np.ndarray, small: np.ndarray | None = None) -> ShadowMask:
+        """The shadow mask of ``image``; ``small`` may pass an already reduced copy."""
+        img = np.asarray(image)
+        if img.ndim != 3 or img.shape[2] != 3 or img.dtype != np.uint8:
+            raise ConfigError(f"shadow detector: expected an (H, W, 3) uint8 RGB frame, got {img.shape} {img.dtype}")
+        small = self.reduce(img) if small is None else small
+        idx, lum = shadow_index(small, self.config.index)
+        idx8 = np.clip(idx * 255.0, 0, 255).astype(np.uint8)
+        _, binary = cv2.threshold(idx8, 0, 1, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
+        mask = binary.astype(bool)
+        n_in = int(mask.sum())
+        if n_in == 0 or n_in == mask.size:
+            return ShadowMask(np.zeros(mask.shape, bool), img.shape[:2])
+        ratio = float(lum[mask].mean()) / max(float(lum[~mask].mean()), 1e-6)
+        if ratio > self.config.max_luminance_ratio:
+            return ShadowMask(np.zeros(mask.shape, bool), img.shape[:2])
+        if self._open is not None:
+            binary = cv2.morphologyEx(binary, cv2.MORPH_OPEN, self._open)
+        if self._close is not None:
+            binary = cv2.morphologyEx(binary, cv2.MORPH_CLOSE, self._close)
+        return ShadowMask(binary.astype(bool), img.shape[:2])
+
+
+def oracle_mask(info: Mapping[str, Any] | None, frame_shape: tuple[int, int]) -> ShadowMask:
+    """The simulator's ground-truth shadow mask from ``info['shadow_mask']`` (ablations only)."""
+    if info is None or INFO_KEY not in info:
+        raise ConfigError(f"shadow detector 'oracle' needs info[{INFO_KEY!r}] from the env (the ground-truth "
+                          "mask); the runner passes info only to agents with uses_ground_truth = True")
+    m = np.asarray(info[INFO_KEY]).astype(bool)
+    if m.shape != tuple(frame_shape):
+        raise ConfigError(f"info[{INFO_KEY!r}] has shape {m.shape}, the frame is {tuple(frame_shape)}")
+    return ShadowMask(m, tuple(frame_shape))
+
+
+def restoration_lut(small_rgb: np.ndarray, mask: np.ndarray, method: str) -> np.ndarray:
+    """(3, 256) float32 per-channel map of shadow-pixel intensities to restored ones (identity if no shadow)."""
+    if method not in RESTORATIONS:
+        raise ConfigError(f"restoration: unknown method {method!r}; use one of {RESTORATIONS}")
+    lut = np.tile(np.arange(256, dtype=np.float32), (3, 1))
+    if not mask.any() or mask.all():
+        return lut
+    shadow = small_rgb[mask].astype(np.float32)          # (n, 3)
+    lit = small_rgb[~mask].astype(np.float32)
+    for ch in range(3):
+        if method == "equalize":
+            hist = np.bincount(shadow[:, ch].astype(np.int64), minlength=256).astype(np.float64)
+            cdf = np.cumsum(hist) / hist.sum()
+            lut[ch] = np.round(255.0 * cdf).astype(np.float32)
+        else:
+            gain = float(lit[:, ch].mean()) / max(float(shadow[:, ch].mean()), 1.0)
+            lut[ch] = np.clip(lut[ch] * gain, 0.0, 255.0)
+    return lut
+
+
+def restore(image: np.ndarray, mask: ShadowMask, method: str, small: np.ndarray | None = None) -> np.ndarray:
+    """The frame with its shadow pixels restored (uint8); for pictures and checks. The MCL model applies the
+    same look-up table at its sample points only."""
+    small = small if small is not None else cv2.resize(image, mask.mask.shape[::-1], interpolation=cv2.INTER_AREA)
+    lut = restoration_lut(small, mask.mask, method)
+    full = mask.full()
+    out = image.copy()
+    for ch in range(3):
+        out[..., ch][full] = np.round(lut[ch][image[..., ch][full]]).astype(np.uint8)
+    return out
+
+
+def mask_quality(predicted: np.ndarray, truth: np.ndarray) -> dict[str, float]:
+    """IoU, precision and recall of a predicted boolean mask against the ground truth (same shape).
+
+    Conventions for empty sets: IoU = 1 when both are empty; precision = 1 with no predicted pixel; recall = 1
+    with no true shadow pixel.
+    """
+    p, t = np.asarray(predicted, bool), np.asarray(truth, bool)
+    if p.shape != t.shape:
+        raise ConfigError(f"mask_quality: predicted mask {p.shape} and truth {t.shape} differ in shape")
+    tp = int(np.count_nonzero(p & t))
+    n_p, n_t = int(np.count_nonzero(p)), int(np.count_nonzero(t))
+    union = n_p + n_t - tp
+    return {"iou": tp / union if union else 1.0,
+            "precision": tp / n_p if n_p else 1.0,
+            "recall": tp / n_t if n_t else 1.0,
+            "fraction_true": n_t / t.size, "fraction_predicted": n_p / p.size}
