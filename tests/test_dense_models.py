@@ -47,8 +47,11 @@ def textured_map(size_px: int = 400, seed: int = 0, buildings: int = 25) -> Simp
         w, h = g.integers(12, 40, 2)
         img[y0:y0 + h, x0:x0 + w] = g.uniform(170, 230)
     gray = np.clip(img, 0, 255)
-    rgb = np.stack([gray, gray * 0.95 + 5, gray * 0.85 + 10], axis=-1).clip(0, 255).astype(np.uint8)
-    return orthomap_standin(rgb)
+    # independent smooth colour fields (roofs, lawns, asphalt differ in hue, not only in brightness)
+    tint = [cv2.GaussianBlur(g.standard_normal((size_px, size_px)).astype(np.float32), (0, 0), 6.0) for _ in "rb"]
+    tint = [t / (t.std() + 1e-6) * 25 for t in tint]
+    rgb = np.stack([gray + tint[0], gray - 0.5 * (tint[0] + tint[1]), gray + tint[1]], axis=-1)
+    return orthomap_standin(rgb.clip(0, 255).astype(np.uint8))
 
 
 def orthomap_standin(rgb: np.ndarray, gsd_m: float = GSD_M, nodata: np.ndarray | None = None) -> SimpleNamespace:

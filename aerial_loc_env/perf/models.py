@@ -78,4 +78,5 @@ BENCHMARKS = [
     Benchmark("MCL step SSD 60x40, N=700", _model_step("ssd"), target_s=0.005, unit="step"),
     Benchmark("MCL step NCC 60x40, N=700", _model_step("ncc"), target_s=0.005, unit="step"),
     Benchmark("MCL step MI 60x40 16 bins, N=700", _model_step("mi"), target_s=0.015, unit="step"),
+    Benchmark("MCL step abBRIEF 60x40 12x64x2 bits, N=700", _model_step("abbrief"), unit="step"),
 ]
