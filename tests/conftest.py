@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -25,3 +27,40 @@ def shared_data() -> Path:
         pytest.skip(f"real imagery not available: {SHARED_DATA} lacks {', '.join(missing)} "
                     "(the tiles live beside the project, never in it)")
     return SHARED_DATA
+
+
+def vincenty_m(lat1, lon1, lat2, lon2) -> float:
+    """Vincenty's inverse formula on WGS84 (independent of the library; iterates to 1e-13 rad)."""
+    a, f = 6378137.0, 1 / 298.257223563
+    b = a * (1 - f)
+    L = math.radians(lon2 - lon1)
+    U1, U2 = math.atan((1 - f) * math.tan(math.radians(lat1))), math.atan((1 - f) * math.tan(math.radians(lat2)))
+    sinU1, cosU1, sinU2, cosU2 = math.sin(U1), math.cos(U1), math.sin(U2), math.cos(U2)
+    lam = L
+    for _ in range(200):
+        sl, cl = math.sin(lam), math.cos(lam)
+        sin_s = math.hypot(cosU2 * sl, cosU1 * sinU2 - sinU1 * cosU2 * cl)
+        if sin_s == 0:
+            return 0.0
+        cos_s = sinU1 * sinU2 + cosU1 * cosU2 * cl
+        sigma = math.atan2(sin_s, cos_s)
+        sin_a = cosU1 * cosU2 * sl / sin_s
+        cos2a = 1 - sin_a**2
+        cos2sm = cos_s - 2 * sinU1 * sinU2 / cos2a if cos2a else 0.0
+        C = f / 16 * cos2a * (4 + f * (4 - 3 * cos2a))
+        prev = lam
+        lam = L + (1 - C) * f * sin_a * (sigma + C * sin_s * (cos2sm + C * cos_s * (-1 + 2 * cos2sm**2)))
+        if abs(lam - prev) < 1e-13:
+            break
+    u2 = cos2a * (a * a - b * b) / (b * b)
+    A = 1 + u2 / 16384 * (4096 + u2 * (-768 + u2 * (320 - 175 * u2)))
+    B = u2 / 1024 * (256 + u2 * (-128 + u2 * (74 - 47 * u2)))
+    ds = B * sin_s * (cos2sm + B / 4 * (cos_s * (-1 + 2 * cos2sm**2)
+                                        - B / 6 * cos2sm * (-3 + 4 * sin_s**2) * (-3 + 4 * cos2sm**2)))
+    return b * A * (sigma - ds)
+
+
+@pytest.fixture(name="vincenty_m", scope="session")
+def vincenty_fixture() -> Callable[[float, float, float, float], float]:
+    """Geodesic distance in metres between two WGS84 (lat, lon) points (Vincenty; independent of the library)."""
+    return vincenty_m

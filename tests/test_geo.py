@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 import sys
+from collections.abc import Callable
 
 import numpy as np
 import pytest
@@ -25,37 +26,6 @@ from aerial_loc_env.world.geo import (
     georeference_from_dict,
     mercator_scale_factor,
 )
-
-
-def vincenty_m(lat1, lon1, lat2, lon2) -> float:
-    """Vincenty's inverse formula on WGS84 (independent of the library; iterates to 1e-13 rad)."""
-    a, f = 6378137.0, 1 / 298.257223563
-    b = a * (1 - f)
-    L = math.radians(lon2 - lon1)
-    U1, U2 = math.atan((1 - f) * math.tan(math.radians(lat1))), math.atan((1 - f) * math.tan(math.radians(lat2)))
-    sinU1, cosU1, sinU2, cosU2 = math.sin(U1), math.cos(U1), math.sin(U2), math.cos(U2)
-    lam = L
-    for _ in range(200):
-        sl, cl = math.sin(lam), math.cos(lam)
-        sin_s = math.hypot(cosU2 * sl, cosU1 * sinU2 - sinU1 * cosU2 * cl)
-        if sin_s == 0:
-            return 0.0
-        cos_s = sinU1 * sinU2 + cosU1 * cosU2 * cl
-        sigma = math.atan2(sin_s, cos_s)
-        sin_a = cosU1 * cosU2 * sl / sin_s
-        cos2a = 1 - sin_a**2
-        cos2sm = cos_s - 2 * sinU1 * sinU2 / cos2a if cos2a else 0.0
-        C = f / 16 * cos2a * (4 + f * (4 - 3 * cos2a))
-        prev = lam
-        lam = L + (1 - C) * f * sin_a * (sigma + C * sin_s * (cos2sm + C * cos_s * (-1 + 2 * cos2sm**2)))
-        if abs(lam - prev) < 1e-13:
-            break
-    u2 = cos2a * (a * a - b * b) / (b * b)
-    A = 1 + u2 / 16384 * (4096 + u2 * (-768 + u2 * (320 - 175 * u2)))
-    B = u2 / 1024 * (256 + u2 * (-128 + u2 * (74 - 47 * u2)))
-    ds = B * sin_s * (cos2sm + B / 4 * (cos_s * (-1 + 2 * cos2sm**2)
-                                        - B / 6 * cos2sm * (-3 + 4 * sin_s**2) * (-3 + 4 * cos2sm**2)))
-    return b * A * (sigma - ds)
 
 
 def all_georefs() -> list[Georeference]:
@@ -119,7 +89,7 @@ def test_shifted_is_a_crop(g: Georeference):
 
 
 @pytest.mark.parametrize("g", all_georefs(), ids=GEOREF_IDS)
-def test_ground_gsd_matches_geodesic(g: Georeference):
+def test_ground_gsd_matches_geodesic(g: Georeference, vincenty_m: Callable[..., float]):
     """ground_gsd_m (closed form for the projections) agrees with the Vincenty length of a 100-pixel step."""
     u, v = 700.0, 400.0
     gx, gy = g.ground_gsd_m(u, v)
@@ -132,7 +102,7 @@ def test_ground_gsd_matches_geodesic(g: Georeference):
 
 
 @pytest.mark.parametrize("lat0", [0.0, 14.6, 39.17, -62.0])
-def test_local_tangent_distances_match_vincenty_over_km(lat0: float):
+def test_local_tangent_distances_match_vincenty_over_km(lat0: float, vincenty_m: Callable[..., float]):
     g = LocalTangentGeoref(lat0, 25.0, 0.5, 0.5, 0.0, 0.0)
     rng = np.random.default_rng(abs(int(lat0 * 10)) + 100)
     u, v = rng.uniform(-2000, 2000, (40, 2)), rng.uniform(-2000, 2000, (40, 2))  # points within ~1.4 km
