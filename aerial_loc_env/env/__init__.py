@@ -1,0 +1,13 @@
+"""Layer 3: the Gymnasium environment, the agent briefing, the scenario specs and wrappers.
+
+``import aerial_loc_env`` registers every scenario of ``envs/`` (``AerialLoc/<Name>-v0``); then
+``gym.make("AerialLoc/PaperShadows-v0", altitude_m=150)``. ``world_to_action`` / ``action_to_world`` convert
+metres <-> the normalized action; ``env.unwrapped.briefing`` is what an estimator may know.
+"""
+
+from .aerial_loc_env import AerialLocEnv, InvalidActionError, action_to_world, world_to_action
+from .briefing import Briefing, OdometryNoise, Prior
+from .scenarios import Scenario, load_scenario, register_all, scenario_spec_dict
+
+__all__ = ["AerialLocEnv", "Briefing", "InvalidActionError", "OdometryNoise", "Prior", "Scenario",
+           "action_to_world", "load_scenario", "register_all", "scenario_spec_dict", "world_to_action"]

@@ -1,0 +1,412 @@
+"""``AerialLocEnv``: image-based absolute localization of a drone over an orthomap, as a Gymnasium env.
+
+One episode is one flight (``sensors.flight``): a track over valid map drawn from the episode seed, a nadir
+camera frame per step rendered with shadows the database lacks, and the vehicle's noisy odometry, heading and
+altitude. The agent answers each observation with its position estimate.
+
+Time line: ``reset`` returns the frame taken at pose 0; ``step(action)`` scores ``action`` as the estimate of
+the pose where the *last returned* frame was taken, then returns the next frame. A track of ``n`` steps has
+``n + 1`` poses; the last frame ends the episode (``truncated``) and is not scored.
+
+Spaces (docs/ARCHITECTURE.md, "Environment <-> agent contract"):
+
+- observation ``Dict``: ``image`` uint8 (H, W, 3) (the top of the image points along the heading);
+  ``odometry`` float32 ``[forward_speed_mps, yaw_rate_radps]`` measured over the last step;
+  ``yaw`` float32 measured heading (ENU, rad); ``altitude`` float32 measured altitude above ground (m).
+  Bounds are finite (speed +-``ODOMETRY_SPEED_MAX_MPS``, yaw rate +-``ODOMETRY_YAW_RATE_MAX_RADPS``,
+  altitude ``[0, ALTITUDE_MAX_M]``; measurements are clipped to them) so that both checkers stay silent.
+- action ``Box(-1, 1, (2,), float32)``: the position estimate normalized over the map extent,
+  ``a = 2 * (x_m / width_m, y_m / height_m) - 1`` (``world_to_action`` / ``action_to_world``). Wrong shapes or
+  dtypes, NaN/inf and values outside [-1, 1] raise ``InvalidActionError``.
+- reward: ``-position_error_m / reward.scale_m`` (horizontal error of the action).
+- termination: a documented failure, the error above ``episode.failure_error_m`` for ``episode.failure_steps``
+  consecutive steps (off by default); truncation: the end of the track.
+
+``info`` (ground truth, for scoring, reports and oracles; agents must not read it): ``true_pose``
+(x_m, y_m, yaw_rad, altitude_m) of the returned frame, ``time_s``, ``step``, ``prior``, ``shadow_fraction`` of
+the returned frame, ``sun_azimuth_deg``, ``sun_elevation_deg``, ``shadow_strength``; after a step also
+``position_error_m`` and ``estimate_xy_m`` of the scored action; with ``observation.info_shadow_mask`` the
+frame's ground-truth ``shadow_mask`` (H, W) bool. What an estimator may use is ``env.unwrapped.briefing``.
+
+``render_mode="rgb_array"``: a north-up overview around the vehicle with the camera frame (and its shadows) in
+its footprint, the true track so far (green), the estimates (red), the prior (cyan) and the points an agent
+hands to ``set_overlay`` (e.g. particles, magenta).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from typing import Any
+
+import cv2
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+
+from ..errors import AerialLocError, MapError
+from ..sensors.camera import CameraModel, Pose, apply_affine, world_to_map_affine
+from ..sensors.flight import FlyableRegion, Measurements, Track, footprint_radius_m, measure, sample_track
+from .briefing import Briefing, Prior
+from .scenarios import Scenario, load_scenario
+
+ODOMETRY_SPEED_MAX_MPS = 500.0
+ODOMETRY_YAW_RATE_MAX_RADPS = 20.0
+ALTITUDE_MAX_M = 20000.0
+OVERVIEW_PX = 512
+
+
+class InvalidActionError(AerialLocError, ValueError):
+    """An action that is not a finite float (2,) estimate in [-1, 1]."""
+
+
+# ------------------------------------------------------------------------------------ action <-> world
+def world_to_action(orthomap: Any, x_m: Any, y_m: Any) -> np.ndarray:
+    """Metres -> normalized action ``2 * (x / width_m, y / height_m) - 1`` (float32, last axis 2)."""
+    x = np.asarray(x_m, dtype=np.float64)
+    y = np.asarray(y_m, dtype=np.float64)
+    a = np.stack([2.0 * x / orthomap.width_m - 1.0, 2.0 * y / orthomap.height_m - 1.0], axis=-1)
+    return a.astype(np.float32)
+
+
+def action_to_world(orthomap: Any, action: Any) -> tuple[Any, Any]:
+    """Normalized action (..., 2) -> metres ``(x_m, y_m)``; the inverse of ``world_to_action``."""
+    a = np.asarray(action, dtype=np.float64)
+    x = (a[..., 0] + 1.0) * 0.5 * orthomap.width_m
+    y = (a[..., 1] + 1.0) * 0.5 * orthomap.height_m
+    return (float(x), float(y)) if a.ndim == 1 else (x, y)
+
+
+# ------------------------------------------------------------------------------------ per-process caches
+_MAPS: dict[tuple, Any] = {}
+_REGIONS: dict[tuple, FlyableRegion] = {}
+
+
+def load_map(scenario: Scenario) -> Any:
+    """The scenario's orthomap, loaded once per process (city bundles are memory-mapped and shared)."""
+    cfg = scenario.map
+    if cfg.kind == "city":
+        from ..config import config_to_dict
+        from ..world.city import default_city
+
+        key = ("city", repr(sorted(config_to_dict(scenario.city).items())))
+        if key not in _MAPS:
+            _MAPS[key] = default_city(scenario.city)
+        return _MAPS[key]
+    from pathlib import Path
+
+    from ..world.io import load_orthomap
+
+    path = Path(cfg.path).expanduser()
+    if not path.exists():
+        raise MapError(f"{scenario.id}: map.path '{cfg.path}' does not exist (resolved to {path.resolve()}); "
+                       "give an existing PNG/TIFF/GeoTIFF file or bundle folder")
+    key = ("file", str(path.resolve()), cfg.gsd_m, cfg.crs)
+    if key not in _MAPS:
+        kwargs: dict[str, Any] = {}
+        if cfg.gsd_m is not None:
+            kwargs["gsd_m"] = cfg.gsd_m
+        if cfg.crs is not None:
+            kwargs["crs"] = cfg.crs
+        _MAPS[key] = load_orthomap(path, **kwargs)
+    return _MAPS[key]
+
+
+def _dsm_max(orthomap: Any) -> float:
+    """The tallest height of a map's DSM (once per map: it bounds how far shadows reach)."""
+    key = ("dsm_max", id(orthomap))
+    if key not in _MAPS:
+        _MAPS[key] = float(np.max(orthomap.dsm_m))
+    return _MAPS[key]
+
+
+class AerialLocEnv(gym.Env):
+    """See the module docstring. Build with ``gym.make("AerialLoc/<Name>-v0", **overrides)``."""
+
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 4}
+
+    def __init__(self, scenario: str | Scenario = "AerialLoc/Small-v0", render_mode: str | None = None,
+                 **overrides: Any) -> None:
+        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
+            raise AerialLocError(f"render_mode {render_mode!r} is not supported; use None or 'rgb_array'")
+        self._init_args = (scenario, render_mode, dict(overrides))
+        self.scenario = scenario if isinstance(scenario, Scenario) else load_scenario(scenario, overrides)
+        sc = self.scenario
+        self.render_mode = render_mode
+        self.metadata = {**self.metadata, "render_fps": sc.flight.rate_hz}
+        self.orthomap = load_map(sc)
+        sensor: CameraModel = sc.camera
+        obs = sc.observation
+        w = obs.width_px or sensor.width_px
+        h = obs.height_px or sensor.height_px
+        self.camera = sensor if (w, h) == (sensor.width_px, sensor.height_px) else sensor.resized(w, h)
+        self._build_renderer()
+        fw, fh = self.camera.footprint_m(sc.flight.altitude_m + 3.0 * sc.flight.altitude_noise_m)
+        clearance = footprint_radius_m(fw, fh) + sc.flight.margin_m
+        key = (id(self.orthomap), round(clearance, 3))
+        if key not in _REGIONS:
+            _REGIONS[key] = FlyableRegion(self.orthomap.width_m, self.orthomap.height_m, clearance,
+                                          nodata=self.orthomap.nodata, name=f"{sc.id} map '{self.orthomap.name}'")
+        self.region = _REGIONS[key]
+        if self.region.area_m2 <= 0.0:
+            raise self.region.too_small_error()
+        self.observation_space = spaces.Dict({
+            "image": spaces.Box(0, 255, (h, w, 3), dtype=np.uint8),
+            "odometry": spaces.Box(np.float32([-ODOMETRY_SPEED_MAX_MPS, -ODOMETRY_YAW_RATE_MAX_RADPS]),
+                                   np.float32([ODOMETRY_SPEED_MAX_MPS, ODOMETRY_YAW_RATE_MAX_RADPS]),
+                                   dtype=np.float32),
+            "yaw": spaces.Box(np.float32([-math.pi]), np.float32([math.pi]), dtype=np.float32),
+            "altitude": spaces.Box(np.float32([0.0]), np.float32([ALTITUDE_MAX_M]), dtype=np.float32),
+        })
+        self.action_space = spaces.Box(-1.0, 1.0, (2,), dtype=np.float32)
+        self.briefing: Briefing | None = None
+        self._overlay: dict[str, np.ndarray] = {}
+        self._track: Track | None = None
+
+    # ------------------------------------------------------------------ construction helpers
+    def _build_renderer(self) -> None:
+        from ..sensors.render import CameraRenderer
+
+        self._renderer = CameraRenderer(self.orthomap, self.camera, self.scenario.photometry, strict=True)
+
+    def __getstate__(self) -> dict:
+        state = self.__dict__.copy()
+        state.pop("_renderer", None)
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        self._build_renderer()
+        if self._track is not None:
+            self._renderer.reset(np.random.default_rng(self._noise_seed))
+
+    # ------------------------------------------------------------------ episode
+    def reset(self, *, seed: int | None = None, options: Mapping[str, Any] | None = None):
+        super().reset(seed=seed)
+        if options:
+            raise AerialLocError(f"{self.scenario.id}: reset options {sorted(options)} are not supported; "
+                                 "configure the scenario with gym.make overrides instead")
+        sc, rng = self.scenario, self.np_random
+        self._track = sample_track(sc.flight, self.region, rng)
+        on = sc.odometry
+        self._meas: Measurements = measure(
+            self._track, rng, speed_std_mps=on.speed_std_mps, yaw_rate_std_radps=on.yaw_rate_std_radps,
+            heading_std_rad=on.heading_std_rad, altitude_std_m=on.altitude_std_m)
+        self._sun = sc.shadows.draw_sun(rng)
+        self._strength = sc.shadows.draw_strength(rng)
+        self._occlusion = self._episode_occlusion(rng)
+        self._noise_seed = int(rng.integers(0, 2**63 - 1))
+        self._renderer.reset(np.random.default_rng(self._noise_seed))
+        if sc.episode.start == "tracking":
+            std = sc.episode.prior_std_m
+            mean = (self._track.x_m[0] + rng.normal(0.0, std), self._track.y_m[0] + rng.normal(0.0, std))
+            self._prior = Prior("gaussian", (float(mean[0]), float(mean[1])), float(std))
+        else:
+            self._prior = Prior("uniform")
+        self.briefing = Briefing(orthomap=self.orthomap, camera=self.camera, prior=self._prior,
+                                 dt_s=sc.flight.dt_s, altitude_m=sc.flight.altitude_m,
+                                 odometry_noise=sc.odometry, scenario_id=sc.id)
+        self._i = 0
+        self._bad_steps = 0
+        self._estimates: list[tuple[float, float]] = []
+        self._overlay = {}
+        obs, info = self._observe(0)
+        return obs, info
+
+    def _episode_occlusion(self, rng: np.random.Generator) -> list | None:
+        """The episode's occluders for the renderer: cast shadows (a ``ShadowGrid``) and/or a ``CloudField``.
+
+        Cast shadows are computed only over the track's bounding box plus the footprint (and the casters up to
+        one shadow length towards the sun); the rest of the map-wide grid stays zero and is never read, since
+        every footprint stays inside the box. Clouds drift with time; the renderer samples them per frame.
+        """
+        sc, om = self.scenario, self.orthomap
+        cfg = sc.shadows
+        if cfg.strength_range[1] <= 0.0:
+            return None
+        sources: list = []
+        if sc.map.use_dsm and om.dsm_m is not None:
+            sources.append(self._cast_shadows())
+        clouds = cfg.draw_clouds(rng, om.width_m, om.height_m)
+        if clouds is not None:
+            sources.append(clouds)
+        return sources or None
+
+    def _cast_shadows(self) -> Any:
+        from ..world.shadows import ShadowGrid, sun_occlusion
+
+        om, cfg, sun = self.orthomap, self.scenario.shadows, self._sun
+        f = int(cfg.downsample)
+        x0, y0, x1, y1 = self._track.bounds_m()
+        fw, fh = self.camera.footprint_m(float(self._track.altitude_m.max()))
+        pad = footprint_radius_m(fw, fh) + 2.0 * max(om.gsd_x_m, om.gsd_y_m) * f
+        # the box in map pixels, on multiples of the grid factor so that its grid is the map's grid
+        u0 = max(0, int((x0 - pad) / om.gsd_x_m) // f * f)
+        u1 = min(om.width_px, -(-int(math.ceil((x1 + pad) / om.gsd_x_m)) // f) * f)
+        v0 = max(0, int(om.height_px - (y1 + pad) / om.gsd_y_m) // f * f)
+        v1 = min(om.height_px, -(-int(math.ceil(om.height_px - (y0 - pad) / om.gsd_y_m)) // f) * f)
+        # casters up to one shadow length towards the sun may shade the box (rows grow south)
+        reach_m = sun.shadow_length_m(_dsm_max(om))
+        tx, ty = sun.towards_sun_en
+        du, dv = tx * reach_m / om.gsd_x_m, -ty * reach_m / om.gsd_y_m
+        cu0 = max(0, int(u0 + min(0.0, du)) // f * f)
+        cu1 = min(om.width_px, int(math.ceil(u1 + max(0.0, du))))
+        cv0 = max(0, int(v0 + min(0.0, dv)) // f * f)
+        cv1 = min(om.height_px, int(math.ceil(v1 + max(0.0, dv))))
+        grid = sun_occlusion(np.asarray(om.dsm_m[cv0:cv1, cu0:cu1]), om.gsd_x_m, om.gsd_y_m, sun,
+                             downsample=f, penumbra_scale=cfg.penumbra_scale, antialias_px=cfg.antialias_px)
+        gi0, gj0 = (v0 - cv0) // f, (u0 - cu0) // f
+        hb, wb = -(-(v1 - v0) // f), -(-(u1 - u0) // f)
+        field = np.zeros((-(-om.height_px // f), -(-om.width_px // f)), dtype=np.float32)
+        field[v0 // f:v0 // f + hb, u0 // f:u0 // f + wb] = grid.data[gi0:gi0 + hb, gj0:gj0 + wb]
+        return ShadowGrid(field, grid.gsd_x_m, grid.gsd_y_m, f)
+
+    def _pose(self, i: int) -> Pose:
+        t = self._track
+        return Pose(float(t.x_m[i]), float(t.y_m[i]), float(t.yaw_rad[i]), float(t.altitude_m[i]))
+
+    def _observe(self, i: int) -> tuple[dict, dict]:
+        pose = self._pose(i)
+        sc = self.scenario
+        shading = {"strength": self._strength, **sc.shadows.shading_kwargs()}
+        frame = self._renderer.render(pose, self.np_random, self._occlusion, shading,
+                                      t_s=float(self._track.t_s[i]), speed_mps=float(self._track.speed_mps[i]))
+        self._frame = frame
+        m = self._meas
+        obs = {
+            "image": frame.image,
+            "odometry": np.clip(m.odometry[i], self.observation_space["odometry"].low,
+                                self.observation_space["odometry"].high),
+            "yaw": m.yaw_rad[i:i + 1].copy(),
+            "altitude": np.minimum(m.altitude_m[i:i + 1], np.float32(ALTITUDE_MAX_M)),
+        }
+        info: dict[str, Any] = {
+            "true_pose": np.array(pose, dtype=np.float64),
+            "time_s": float(self._track.t_s[i]),
+            "step": i,
+            "prior": self._prior,
+            "shadow_fraction": float(frame.shadow_fraction),
+            "sun_azimuth_deg": float(self._sun.azimuth_deg),
+            "sun_elevation_deg": float(self._sun.elevation_deg),
+            "shadow_strength": float(self._strength) if self._occlusion is not None else 0.0,
+        }
+        if sc.observation.info_shadow_mask:
+            info["shadow_mask"] = frame.shadow_mask
+        return obs, info
+
+    def _check_action(self, action: Any) -> np.ndarray:
+        if self._track is None:
+            raise AerialLocError(f"{self.scenario.id}: call reset() before step()")
+        a = np.asarray(action)
+        if a.shape != (2,):
+            raise InvalidActionError(f"{self.scenario.id}: action must have shape (2,) (the normalized x, y "
+                                     f"estimate), got shape {a.shape}")
+        if not np.issubdtype(a.dtype, np.floating):
+            raise InvalidActionError(f"{self.scenario.id}: action must be a float array (float32), got dtype "
+                                     f"{a.dtype}; convert positions with aerial_loc_env.env.world_to_action")
+        if not np.all(np.isfinite(a)):
+            raise InvalidActionError(f"{self.scenario.id}: action {a.tolist()} has NaN/inf; an estimate must "
+                                     "be finite")
+        if np.any(np.abs(a) > 1.0 + 1e-5):
+            raise InvalidActionError(f"{self.scenario.id}: action {a.tolist()} is outside [-1, 1] (the map "
+                                     "extent); clip it or convert metres with world_to_action")
+        return np.clip(a.astype(np.float64), -1.0, 1.0)
+
+    def step(self, action: Any):
+        a = self._check_action(action)
+        if self._i >= len(self._track) - 1:
+            raise AerialLocError(f"{self.scenario.id}: the episode is over; call reset()")
+        sc = self.scenario
+        x, y = action_to_world(self.orthomap, a)
+        tx, ty = float(self._track.x_m[self._i]), float(self._track.y_m[self._i])
+        err = math.hypot(x - tx, y - ty)
+        self._estimates.append((x, y))
+        reward = -err / sc.reward.scale_m
+        fail = sc.episode.failure_error_m
+        self._bad_steps = self._bad_steps + 1 if (fail > 0.0 and err > fail) else 0
+        terminated = fail > 0.0 and self._bad_steps >= sc.episode.failure_steps
+        self._i += 1
+        truncated = self._i >= len(self._track) - 1
+        obs, info = self._observe(self._i)
+        info["position_error_m"] = err
+        info["estimate_xy_m"] = np.array([x, y])
+        if terminated:
+            info["failure"] = (f"position error above {fail:g} m for {sc.episode.failure_steps} "
+                               "consecutive steps")
+        return obs, float(reward), bool(terminated), bool(truncated and not terminated), info
+
+    # ------------------------------------------------------------------ rendering
+    def set_overlay(self, points_xy_m: Any = None, weights: Any = None) -> None:
+        """Points (N, 2+) in world metres (e.g. particles) drawn by ``render``; ``weights`` (N,) scale
+        their brightness. Call with no argument to clear. Purely visual."""
+        self._overlay = {}
+        if points_xy_m is not None:
+            pts = np.asarray(points_xy_m, dtype=np.float64)
+            if pts.ndim != 2 or pts.shape[1] < 2:
+                raise AerialLocError(f"set_overlay: points_xy_m must be (N, 2) metres, got shape {pts.shape}")
+            self._overlay["points"] = pts[:, :2]
+            if weights is not None:
+                w = np.asarray(weights, dtype=np.float64).ravel()
+                if w.shape[0] != pts.shape[0]:
+                    raise AerialLocError(f"set_overlay: {w.shape[0]} weights for {pts.shape[0]} points")
+                self._overlay["weights"] = w
+
+    def render(self) -> np.ndarray | None:
+        if self.render_mode is None:
+            gym.logger.warn("render() called without render_mode; use gym.make(id, render_mode='rgb_array')")
+            return None
+        if self._track is None:
+            return np.zeros((OVERVIEW_PX, OVERVIEW_PX, 3), dtype=np.uint8)
+        return self._overview()
+
+    def _overview(self) -> np.ndarray:
+        om, n = self.orthomap, OVERVIEW_PX
+        pose = self._pose(self._i)
+        fw, fh = self.camera.footprint_m(pose.altitude_m)
+        side = min(max(4.0 * footprint_radius_m(fw, fh), 100.0), max(om.width_m, om.height_m))
+        cx = min(max(pose.x_m, side / 2), max(om.width_m - side / 2, side / 2))
+        cy = min(max(pose.y_m, side / 2), max(om.height_m - side / 2, side / 2))
+        s = side / n                                   # metres per overview pixel
+        view_to_world = np.array([[s, 0.0, cx - side / 2 + 0.5 * s], [0.0, -s, cy + side / 2 - 0.5 * s]])
+        to_map = world_to_map_affine(om)
+        view_to_map = to_map[:, :2] @ view_to_world
+        view_to_map[:, 2] += to_map[:, 2]
+        level = self._renderer.pyramid_level(view_to_map)
+        img = cv2.warpAffine(self._renderer.map_level(level), view_to_map / (1 << level), (n, n),
+                             flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_CONSTANT)
+        world_to_view = np.array([[1 / s, 0.0, -(cx - side / 2) / s - 0.5],
+                                  [0.0, -1 / s, (cy + side / 2) / s - 0.5]])
+        # the camera frame (with its shadows) pasted into its footprint
+        cam_to_world = self.camera.camera_to_world(*pose)
+        cam_to_view = world_to_view[:, :2] @ cam_to_world
+        cam_to_view[:, 2] += world_to_view[:, 2]
+        frame = cv2.warpAffine(self._frame.image, cam_to_view, (n, n), flags=cv2.INTER_LINEAR,
+                               borderMode=cv2.BORDER_CONSTANT)
+        inside = cv2.warpAffine(np.full(self._frame.image.shape[:2], 255, np.uint8), cam_to_view, (n, n),
+                                flags=cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT) > 0
+        img[inside] = frame[inside]
+
+        def px(xy: np.ndarray) -> np.ndarray:
+            return np.round(apply_affine(world_to_view, np.atleast_2d(xy)) * 16).astype(np.int32)
+
+        corners = self.camera.footprint_corners_m(*pose)
+        cv2.polylines(img, [px(corners)], True, (255, 220, 0), 2, cv2.LINE_AA, shift=4)
+        if "points" in self._overlay:
+            pts = px(self._overlay["points"])
+            w = self._overlay.get("weights")
+            bright = np.ones(len(pts)) if w is None else 0.3 + 0.7 * w / max(float(w.max()), 1e-12)
+            for (u, v), b in zip(pts, bright, strict=True):
+                cv2.circle(img, (int(u), int(v)), 2 * 16, (int(255 * b), 0, int(255 * b)), -1, cv2.LINE_AA, shift=4)
+        if self._prior.kind == "gaussian":
+            c = px(np.array(self._prior.mean_xy_m))[0]
+            cv2.circle(img, (int(c[0]), int(c[1])), int(16 * self._prior.std_xy_m / s), (0, 255, 255), 1,
+                       cv2.LINE_AA, shift=4)
+        track_xy = np.stack([self._track.x_m[:self._i + 1], self._track.y_m[:self._i + 1]], axis=1)
+        cv2.polylines(img, [px(track_xy)], False, (0, 255, 0), 2, cv2.LINE_AA, shift=4)
+        if self._estimates:
+            est = px(np.array(self._estimates))
+            cv2.polylines(img, [est], False, (255, 0, 0), 1, cv2.LINE_AA, shift=4)
+            cv2.circle(img, (int(est[-1][0]), int(est[-1][1])), 4 * 16, (255, 0, 0), -1, cv2.LINE_AA, shift=4)
+        cv2.putText(img, f"t={self._track.t_s[self._i]:5.2f}s  {side:.0f} m", (6, n - 8),
+                    cv2.FONT_HERSHEY_SIMPLEX, 0.45, (255, 255, 255), 1, cv2.LINE_AA)
+        return img

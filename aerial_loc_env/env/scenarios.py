@@ -1,0 +1,286 @@
+"""Scenarios: one TOML spec per registered Gymnasium id, read at ``import aerial_loc_env``.
+
+A spec (``envs/<name>.toml``) has a top-level ``id`` (``AerialLoc/<Name>-v0``) and ``description``, and sections
+that map to frozen dataclasses through ``aerial_loc_env.config.build_config``:
+
+======================  =====================================================================
+``[map]``               ``MapConfig``: ``kind = "city"`` (the procedural city, see ``[city]``) or ``"file"``
+                        (``path`` to a PNG/TIFF/GeoTIFF/bundle, optional ``gsd_m``, ``crs``); ``use_dsm``
+``[city]``              the procedural city's config (``aerial_loc_env.world.city``)
+``[flight]``            ``aerial_loc_env.sensors.flight.FlightConfig``
+``[camera]``            ``aerial_loc_env.sensors.camera.CameraModel`` (the sensor)
+``[odometry]``          ``aerial_loc_env.env.briefing.OdometryNoise``
+``[shadows]``           ``aerial_loc_env.world.shadows.ShadowConfig``
+``[photometry]``        ``aerial_loc_env.sensors.render.Photometry`` (exposure, noise, vignetting, blur)
+``[observation]``       ``ObservationConfig``: the observation image size (the camera image resized)
+``[episode]``           ``EpisodeConfig``: start mode, prior, failure rule
+``[reward]``            ``RewardConfig``
+======================  =====================================================================
+
+Overrides (``gym.make(id, **overrides)`` or ``AerialLocEnv(scenario, **overrides)``), validated like the file:
+
+- a section dict: ``gym.make(id, flight={"altitude_m": 150, "duration_s": 20})``;
+- a dotted key: ``gym.make(id, **{"flight.altitude_m": 150})``;
+- a bare field name that exists in exactly one section: ``gym.make(id, altitude_m=150)``
+  (an ambiguous name such as ``width_px`` is an error naming the sections to choose from).
+
+Unknown keys and out-of-range values raise ``ConfigError`` naming the key, the spec, and the allowed values.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import importlib
+import sys
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from functools import cache
+from pathlib import Path
+from typing import Any
+
+from ..config import build_config, check_value, config_to_dict, rng
+from ..errors import ConfigError
+from ..paths import spec_dir
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib
+
+ENTRY_POINT = "aerial_loc_env.env.aerial_loc_env:AerialLocEnv"
+NAMESPACE = "AerialLoc"
+
+
+@dataclass(frozen=True)
+class MapConfig:
+    """Which map the vehicle flies over: the procedural city or a file (``path`` required)."""
+
+    kind: str = field(default="city", metadata=rng(choices=("city", "file")))
+    path: str | None = None
+    gsd_m: float | None = None          # metres per pixel, for files without a georeference; (0, 1000]
+    crs: str | None = None
+    use_dsm: bool = True   # cast shadows from the map's height model (when it has one)
+
+    def validate(self, where: str) -> None:
+        if self.kind == "file" and not self.path:
+            raise ConfigError(f"{where}: map.kind = 'file' needs map.path, the map file to fly over "
+                              "(PNG/TIFF/GeoTIFF or a bundle); e.g. gym.make(id, path='tile.tif')")
+        if self.gsd_m is not None:
+            check_value("gsd_m", self.gsd_m, rng(0.0, 1000.0, lo_open=True), where)
+        if self.kind == "city" and self.path:
+            raise ConfigError(f"{where}: map.path is only used with map.kind = 'file'")
+
+
+@dataclass(frozen=True)
+class ObservationConfig:
+    """The observation image size (the camera image resized: same footprint, other pixel count); unset
+    dimensions keep the camera's. ``info_shadow_mask`` adds the ground-truth shadow mask to ``info``."""
+
+    width_px: int | None = None      # [4, 4096]; None keeps the camera's
+    height_px: int | None = None     # [4, 4096]; None keeps the camera's
+    info_shadow_mask: bool = False
+
+    def validate(self, where: str) -> None:
+        for name in ("width_px", "height_px"):
+            if getattr(self, name) is not None:
+                check_value(name, getattr(self, name), rng(4, 4096), where)
+
+
+@dataclass(frozen=True)
+class EpisodeConfig:
+    """Start mode and failure rule.
+
+    ``start = "tracking"``: the prior is Gaussian, its mean drawn around the truth with ``prior_std_m`` per
+    axis (the paper: 15 m). ``"global"``: no prior, uniform over the map (the second reference).
+    The episode terminates (failure) when the estimate is off by more than ``failure_error_m`` for
+    ``failure_steps`` consecutive steps; ``failure_error_m = 0`` disables that (the episode always runs to the
+    end of the track, then truncates).
+    """
+
+    start: str = field(default="tracking", metadata=rng(choices=("tracking", "global")))
+    prior_std_m: float = field(default=15.0, metadata=rng(0.0, 1e4, lo_open=True))
+    failure_error_m: float = field(default=0.0, metadata=rng(0.0, 1e6))
+    failure_steps: int = field(default=1, metadata=rng(1, 100000))
+
+
+@dataclass(frozen=True)
+class RewardConfig:
+    """``reward = -position_error_m / scale_m`` each step (0 is perfect; 1 per ``scale_m`` metres off)."""
+
+    scale_m: float = field(default=100.0, metadata=rng(0.0, 1e6, lo_open=True))
+
+
+def _lazy(module: str, name: str):
+    return lambda: getattr(importlib.import_module(module, __package__), name)
+
+
+# section -> a callable returning its config class (lazy: the world/sensors layers load on first use)
+SECTIONS: dict[str, Any] = {
+    "map": lambda: MapConfig,
+    "city": _lazy("..world.city", "CityConfig"),
+    "flight": _lazy("..sensors.flight", "FlightConfig"),
+    "camera": _lazy("..sensors.camera", "CameraModel"),
+    "odometry": _lazy(".briefing", "OdometryNoise"),
+    "shadows": _lazy("..world.shadows", "ShadowConfig"),
+    "photometry": _lazy("..sensors.render", "Photometry"),
+    "observation": lambda: ObservationConfig,
+    "episode": lambda: EpisodeConfig,
+    "reward": lambda: RewardConfig,
+}
+TOP_KEYS = ("id", "description")
+
+
+@dataclass(frozen=True)
+class Scenario:
+    """A fully validated scenario: its id, the spec it came from, and one config object per section."""
+
+    id: str
+    description: str
+    source: str
+    sections: Mapping[str, Any]
+
+    def __getattr__(self, name: str) -> Any:
+        sections = self.__dict__.get("sections", {})
+        if name in sections:
+            return sections[name]
+        raise AttributeError(name)
+
+    def to_dict(self) -> dict:
+        """The spec as a plain dict (TOML-able); ``build_scenario`` turns it back into this scenario."""
+        out: dict[str, Any] = {"id": self.id, "description": self.description}
+        for name, cfg in self.sections.items():
+            out[name] = {k: v for k, v in config_to_dict(cfg).items() if v is not None}
+        return out
+
+
+def _section_fields(name: str) -> set[str]:
+    return {f.name for f in dataclasses.fields(SECTIONS[name]()) if f.init}
+
+
+def split_overrides(overrides: Mapping[str, Any], where: str = "gym.make overrides") -> dict[str, dict]:
+    """Turn the three override forms (section dict, dotted key, unique bare field) into section dicts."""
+    out: dict[str, dict] = {}
+    for key, value in overrides.items():
+        if key in SECTIONS and isinstance(value, Mapping):
+            out.setdefault(key, {}).update(value)
+            continue
+        if "." in key:
+            section, _, name = key.partition(".")
+            if section not in SECTIONS:
+                raise ConfigError(f"{where}: unknown section {section!r} in {key!r}; "
+                                  f"sections: {', '.join(SECTIONS)}")
+            out.setdefault(section, {})[name] = value
+            continue
+        owners = [s for s in SECTIONS if key in _section_fields(s)]
+        if not owners:
+            raise ConfigError(
+                f"{where}: unknown key {key!r}; use a field of a section (e.g. altitude_m, duration_s), "
+                f"a dotted key like 'flight.altitude_m', or a section dict; sections: {', '.join(SECTIONS)}")
+        if len(owners) > 1:
+            raise ConfigError(f"{where}: key {key!r} is ambiguous (it is in sections {', '.join(owners)}); "
+                              f"use a dotted key such as '{owners[0]}.{key}' or a section dict")
+        out.setdefault(owners[0], {})[key] = value
+    return out
+
+
+def build_scenario(spec: Mapping[str, Any], overrides: Mapping[str, Any] | None = None, *,
+                   where: str = "scenario") -> Scenario:
+    """Validate a spec dict (as read from TOML) plus overrides into a ``Scenario``."""
+    unknown = sorted(set(spec) - set(SECTIONS) - set(TOP_KEYS))
+    if unknown:
+        raise ConfigError(f"{where}: unknown key(s) {', '.join(map(repr, unknown))}; "
+                          f"allowed: {', '.join(TOP_KEYS + tuple(SECTIONS))}")
+    sid = spec.get("id")
+    if not isinstance(sid, str) or not sid.startswith(f"{NAMESPACE}/") or not sid.endswith("-v0"):
+        raise ConfigError(f"{where}: 'id' = {sid!r} must look like '{NAMESPACE}/<Name>-v0'")
+    extra = split_overrides(overrides or {}, where=f"{sid} overrides")
+    sections = {}
+    for name, cls_fn in SECTIONS.items():
+        table = spec.get(name, {})
+        if not isinstance(table, Mapping):
+            raise ConfigError(f"{where}: [{name}] must be a table, got {table!r}")
+        base = build_config(cls_fn(), table, where=f"{where} [{name}]")
+        sections[name] = build_config(cls_fn(), extra.get(name), where=f"{sid} overrides [{name}]", base=base) \
+            if name in extra else base
+    return Scenario(id=sid, description=str(spec.get("description", "")), source=where, sections=sections)
+
+
+def _read(path: Path) -> dict:
+    try:
+        with open(path, "rb") as fh:
+            return tomllib.load(fh)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path}: not valid TOML: {exc}") from exc
+
+
+@cache
+def specs() -> dict[str, tuple[Path, dict]]:
+    """Registered id -> (spec file, raw spec), read once from ``spec_dir('envs')``."""
+    out: dict[str, tuple[Path, dict]] = {}
+    for path in sorted(spec_dir("envs").glob("*.toml")):
+        raw = _read(path)
+        sid = raw.get("id")
+        if sid in out:
+            raise ConfigError(f"{path}: id {sid!r} is already used by {out[sid][0]}")
+        out[str(sid)] = (path, raw)
+    return out
+
+
+def resolve(scenario: str) -> tuple[Path, dict]:
+    """Find a spec by full id (``AerialLoc/Small-v0``), short name (``Small``) or file stem (``small``)."""
+    table = specs()
+    if scenario in table:
+        return table[scenario]
+    for sid, (path, raw) in table.items():
+        short = sid.split("/", 1)[1].rsplit("-v", 1)[0]
+        if scenario in (short, path.stem):
+            return path, raw
+    raise ConfigError(f"unknown scenario {scenario!r}; registered: {', '.join(table)} "
+                      "(`aerial-loc scenarios` lists them)")
+
+
+def load_scenario(scenario: str, overrides: Mapping[str, Any] | None = None) -> Scenario:
+    """The validated scenario ``scenario`` (id, short name or spec stem) with ``overrides``."""
+    path, raw = resolve(scenario)
+    return build_scenario(raw, overrides, where=str(path))
+
+
+def register_all() -> list[str]:
+    """Register every spec with Gymnasium (idempotent); returns the ids."""
+    import gymnasium as gym
+
+    ids = []
+    for sid, (path, _raw) in specs().items():
+        if not isinstance(sid, str) or not sid.startswith(f"{NAMESPACE}/"):
+            raise ConfigError(f"{path}: 'id' = {sid!r} must look like '{NAMESPACE}/<Name>-v0'")
+        if sid not in gym.registry:
+            gym.register(id=sid, entry_point=ENTRY_POINT, kwargs={"scenario": sid},
+                         disable_env_checker=False)
+        ids.append(sid)
+    return ids
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``aerial-loc scenarios``: list the registered ids (``--show ID`` prints one validated spec)."""
+    parser = argparse.ArgumentParser(prog="aerial-loc scenarios", description="list the registered scenarios")
+    parser.add_argument("--show", metavar="ID", help="print the full validated spec of one scenario")
+    args = parser.parse_args(argv)
+    if args.show:
+        sc = load_scenario(args.show)
+        for key in TOP_KEYS:
+            print(f"{key} = {getattr(sc, key)!r}")
+        for name, table in sc.to_dict().items():
+            if isinstance(table, dict):
+                print(f"\n[{name}]")
+                for k, v in table.items():
+                    print(f"{k} = {v!r}")
+        return 0
+    for sid, (_path, raw) in specs().items():
+        print(f"{sid:36s} {raw.get('description', '')}")
+    return 0
+
+
+def scenario_spec_dict(scenario: str, **overrides: Any) -> dict:
+    """The fully resolved spec of ``scenario`` with ``overrides`` (saved beside trained models and reports)."""
+    return load_scenario(scenario, overrides).to_dict()
