@@ -340,14 +340,15 @@ def sun_occlusion(dsm_m: np.ndarray, gsd_x_m: float, gsd_y_m: float, sun: Sun, *
                   penumbra_scale: float = 1.0, antialias_px: float = 0.7) -> ShadowGrid:
     """Soft cast shadows: float32 field in [0, 1], the fraction of the solar disc hidden (1 = full umbra).
 
-    Approximation (first order in the sun's angular radius rho = 0.265 deg * penumbra_scale): the sweep gives,
-    per pixel, the height margin e = horizon - h(p) of the highest shadow line and the horizontal distance D to
-    the occluder that cast it; the horizon then stands delta = e * cos(el)**2 / D radians above the sun's centre,
-    and the hidden fraction is the area of the disc below that line. This yields the physical penumbra along
-    the sun direction, D * 2 rho / (sin(el) cos(el)) metres on flat ground, widening with the shadow length. The
-    lateral edges (parallel to the sun azimuth, physically D * 2 rho / cos(el) wide, i.e. narrower) are softened
-    by a Gaussian blur of ``antialias_px`` grid pixels, which also removes the staircase of the digital lines.
-    ``penumbra_scale`` > 1 widens penumbrae (haze, camera blur); 0 gives the hard mask (before the blur).
+    Approximation (first order in the sun's angular radius rho = 0.265 deg * penumbra_scale): a sweep for the
+    lowest limb of the disc (elevation el - rho) gives, per pixel, the height margin e of the highest shadow line
+    and the horizontal distance D to the occluder that cast it; that occluder stands e * cos(el - rho)**2 / D
+    radians above the limb, and the hidden fraction is the area of the disc below that horizon. This yields the
+    physical penumbra along the sun direction, D * 2 rho / (sin(el) cos(el)) metres on flat ground, widening
+    with the shadow length. The lateral edges (parallel to the sun azimuth; physically D * 2 rho / cos(el) wide,
+    narrower) are softened by a Gaussian blur of ``antialias_px`` grid pixels, which also removes the staircase
+    of the digital lines. ``penumbra_scale`` > 1 widens penumbrae (haze, camera blur); 0 gives the hard mask
+    (before the blur).
     Returns the field on the (possibly coarser) grid; `upsample` brings it back to map pixels.
     """
     factor = _check_factor(downsample, "sun_occlusion")
@@ -360,13 +361,19 @@ def sun_occlusion(dsm_m: np.ndarray, gsd_x_m: float, gsd_y_m: float, sun: Sun, *
     coarse = _max_pool(dsm, factor) if factor > 1 else dsm
     if sun.elevation_deg >= 90.0:
         return ShadowGrid(np.zeros(coarse.shape, np.float32), gx, gy, factor)
-    geo = _ray_geometry(gx, gy, sun)
+    el = math.radians(sun.elevation_deg)
+    rho = math.radians(SUN_ANGULAR_DIAMETER_DEG / 2.0) * penumbra_scale
+    # sweep for the lowest limb of the disc: then the occluder that sets the margin is one that hides some of
+    # the disc (a nearby bump with a larger height margin but a lower angle cannot win over it)
+    el_low = max(el - rho, 0.5 * el)
+    low = Sun(sun.azimuth_deg, math.degrees(el_low))
+    geo = _ray_geometry(gx, gy, low)
     margin, dist = _sweep(_to_major(coarse.astype(np.float32, copy=False), geo.major_axis), geo, soft=True)
-    if penumbra_scale > 0:
-        rho = math.radians(SUN_ANGULAR_DIAMETER_DEG / 2.0) * penumbra_scale
-        cos2 = math.cos(math.radians(sun.elevation_deg)) ** 2
-        margin *= np.float32(cos2 / rho)
+    if rho > 0:
+        # horizon angle above the centre of the disc, in disc radii: (e cos^2(el_low) / D - (el - el_low)) / rho
+        margin *= np.float32(math.cos(el_low) ** 2 / rho)
         np.divide(margin, dist, out=margin)
+        margin -= np.float32((el - el_low) / rho)
         occ = _disc_fraction(margin).astype(np.float32, copy=False)
     else:
         occ = (margin > 0).astype(np.float32)
@@ -479,21 +486,22 @@ def bake_shadows(rgb: np.ndarray, dsm_m: np.ndarray, gsd_x_m: float, gsd_y_m: fl
 class CloudField:
     """Drifting cloud shadows on a coarse periodic world grid (for imagery without a height model).
 
-    Band-limited noise (a sum of Gaussian spectra at ``scale_m``, /2, /4: large shapes with ragged edges) made
-    periodic by construction (FFT), thresholded at the quantile that gives ``cover`` and smoothed over
-    ``softness`` standard deviations, so the covered fraction (occlusion >= 0.5) equals ``cover`` up to one grid
-    cell. The field moves with ``drift_mps`` (east, north): occlusion_t(x, y) = occlusion_0(x - vx t, y - vy t).
+    Band-limited noise (Gaussian spectra at ``scale_m``, /2, /4: large shapes with ragged edges) made periodic by
+    construction (FFT), thresholded at the quantile that gives ``cover``, with a smoothstep ramp about ``edge_m``
+    wide across the edges (a cloud 1-2 km up has a 9-19 m penumbra, and its own edges are diffuse), so the
+    covered fraction (occlusion >= 0.5) equals ``cover`` up to one grid cell. The field moves with
+    ``drift_mps`` (east, north): occlusion_t(x, y) = occlusion_0(x - vx t, y - vy t).
     Grid pixel (i, j) has its centre at world x = (j + 0.5) cell_m, y = (rows - 0.5 - i) cell_m (north up, like a
     map) and the grid wraps around with a period of at least the extent and 4 * scale_m.
     """
 
     def __init__(self, rng: np.random.Generator, extent_x_m: float, extent_y_m: float, *, cover: float = 0.4,
-                 scale_m: float = 150.0, drift_mps: tuple[float, float] = (3.0, 1.0), softness: float = 0.25,
+                 scale_m: float = 150.0, drift_mps: tuple[float, float] = (3.0, 1.0), edge_m: float = 20.0,
                  cell_m: float = 2.0):
         where = "CloudField"
         for name, v, lo, hi in (("extent_x_m", extent_x_m, 0.0, 1e6), ("extent_y_m", extent_y_m, 0.0, 1e6),
                                 ("scale_m", scale_m, 0.0, 1e5), ("cell_m", cell_m, 0.0, 1e3),
-                                ("softness", softness, 0.0, 10.0)):
+                                ("edge_m", edge_m, 0.0, 1e4)):
             if not (math.isfinite(v) and lo < v <= hi):
                 raise ConfigError(f"{where}: {name} = {v!r} must be in ({lo}, {hi}]")
         if not (math.isfinite(cover) and 0.0 <= cover <= 1.0):
@@ -512,7 +520,7 @@ class CloudField:
         k2 = kx * kx + ky * ky
         spectrum = np.zeros_like(k2)
         for octave in range(3):
-            s = scale_m / 2.0 ** octave / (2.0 * math.pi)       # spatial sigma of the octave's kernel
+            s = scale_m / 2.0 ** octave / 4.0                   # spatial sigma of the octave's kernel
             spectrum += 0.5 ** octave * np.exp(-2.0 * math.pi ** 2 * s * s * k2)
         spectrum[0, 0] = 0.0
         f = np.fft.irfft2(np.fft.rfft2(noise) * spectrum, s=(ny, nx))
@@ -523,7 +531,9 @@ class CloudField:
             occ = np.ones_like(f)
         else:
             thr = float(np.quantile(f, 1.0 - cover))
-            x = np.clip((f - thr) / softness + 0.5, 0.0, 1.0)
+            gy, gx = np.gradient(f, cell_m)
+            ramp = edge_m * max(float(np.median(np.hypot(gx, gy))), 1e-12)   # field units across edge_m
+            x = np.clip((f - thr) / ramp + 0.5, 0.0, 1.0)
             occ = x * x * (3.0 - 2.0 * x)                        # smoothstep: soft cloud edges
         self.grid = occ.astype(np.float32)
 
@@ -541,7 +551,8 @@ class CloudField:
 
     def occlusion_image(self, t_s: float, image_to_world: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
         """Occlusion (h, w) float32 seen through an affine ``image_to_world`` (2x3: image (u, v, 1) -> world
-        metres), e.g. a camera footprint (CameraModel.camera_to_world) or a map's pixel grid. One cv2.remap."""
+        metres), e.g. a camera footprint (CameraModel.camera_to_world) or a map's pixel grid. One cv2.warpAffine
+        with BORDER_WRAP."""
         m = np.asarray(image_to_world, dtype=np.float64)
         if m.shape != (2, 3) or not np.isfinite(m).all():
             raise ConfigError(f"CloudField.occlusion_image: image_to_world must be a finite 2x3 affine, got {m.shape}")
@@ -549,13 +560,11 @@ class CloudField:
         a = self._world_to_grid(float(t_s))
         full = a[:, :2] @ m
         full[:, 2] += a[:, 2]
-        u = np.arange(w, dtype=np.float32)[None, :]
-        v = np.arange(h, dtype=np.float32)[:, None]
         ny, nx = self.grid.shape
-        # wrap in float64 then sample with BORDER_WRAP for the one-cell seam
-        mapx = np.mod(full[0, 0] * u + (full[0, 1] * v + full[0, 2]), nx).astype(np.float32)
-        mapy = np.mod(full[1, 0] * u + (full[1, 1] * v + full[1, 2]), ny).astype(np.float32)
-        return cv2.remap(self.grid, mapx, mapy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
+        full[0, 2] %= nx          # the grid is periodic: keep the offsets small for OpenCV's fixed-point maths
+        full[1, 2] %= ny
+        return cv2.warpAffine(self.grid, full, (w, h), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                              borderMode=cv2.BORDER_WRAP)
 
     def occlusion_at(self, t_s: float, x_m: np.ndarray, y_m: np.ndarray) -> np.ndarray:
         """Occlusion at world points (any matching shapes), bilinear on the periodic grid."""
@@ -599,7 +608,7 @@ class ShadowConfig:
     bake_into_map: bool = False          # database carries shadows of another sun (time-of-day mismatch)
     cloud_cover: float = field(default=0.0, metadata=rng_meta(0.0, 1.0, doc="0 disables clouds"))
     cloud_scale_m: float = field(default=150.0, metadata=rng_meta(5.0, 1e5))
-    cloud_softness: float = field(default=0.25, metadata=rng_meta(0.0, 10.0, lo_open=True))
+    cloud_edge_m: float = field(default=20.0, metadata=rng_meta(0.0, 1e4, lo_open=True))
     cloud_speed_range_mps: tuple[float, float] = field(default=(2.0, 8.0), metadata=rng_meta(0.0, 100.0))
     cloud_cell_m: float = field(default=2.0, metadata=rng_meta(0.0, 1e3, lo_open=True))
 
@@ -629,7 +638,7 @@ class ShadowConfig:
         heading = 2.0 * math.pi * rng.random()
         return CloudField(rng, extent_x_m, extent_y_m, cover=self.cloud_cover, scale_m=self.cloud_scale_m,
                           drift_mps=(speed * math.cos(heading), speed * math.sin(heading)),
-                          softness=self.cloud_softness, cell_m=self.cloud_cell_m)
+                          edge_m=self.cloud_edge_m, cell_m=self.cloud_cell_m)
 
     def shading_kwargs(self) -> dict:
         """Keyword arguments of apply_shading / bake_shadows taken from this config."""
