@@ -1,0 +1,91 @@
+"""From the env's estimates (world ENU metres, ARCHITECTURE.md) to the sender's :class:`PoseFix`.
+
+Why separate from the sender: the sender knows nothing of maps or agents. This layer owns the georeference
+(``orthomap.world_to_latlon`` or any callable), the local origin, the altitude reference, and the velocity
+that GPS_INPUT must always carry (estimators give positions; the velocity is their smoothed difference).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from .fix import STATUSES, GeoOrigin, PoseFix
+
+WorldToLatLon = Callable[[float, float], tuple[float, float]]
+
+
+class EstimateBridge:
+    """Converts estimates into fixes: lat/lon from the map georeference, ENU about ``origin_xy_m``, velocity.
+
+    ``ground_amsl_m`` is the terrain height of the map (the env's altitude is above ground); the local frame's
+    origin is on the ground at ``origin_xy_m``, so ``up_m`` is the altitude above ground.
+    """
+
+    def __init__(self, world_to_latlon: WorldToLatLon, origin_xy_m: tuple[float, float], *,
+                 ground_amsl_m: float = 0.0, default_std_m: float = 10.0, v_std_m: float = 0.5,
+                 velocity_tau_s: float = 1.0) -> None:
+        self._to_latlon = world_to_latlon
+        self.origin_xy_m = (float(origin_xy_m[0]), float(origin_xy_m[1]))
+        self.ground_amsl_m = float(ground_amsl_m)
+        self.default_std_m = default_std_m
+        self.v_std_m = v_std_m
+        self.velocity_tau_s = velocity_tau_s
+        lat, lon = self._latlon(*self.origin_xy_m)
+        self.origin = GeoOrigin(lat, lon, self.ground_amsl_m)
+        self._prev: tuple[float, float, float] | None = None   # (time_s, x_m, y_m)
+        self._vel = (0.0, 0.0)
+
+    @classmethod
+    def from_orthomap(cls, orthomap: Any, origin_xy_m: tuple[float, float] | None = None,
+                      **kwargs: Any) -> EstimateBridge:
+        """Use the map's georeference; the origin defaults to the map centre."""
+        if origin_xy_m is None:
+            origin_xy_m = (orthomap.width_m / 2.0, orthomap.height_m / 2.0)
+        return cls(orthomap.world_to_latlon, origin_xy_m, **kwargs)
+
+    def _latlon(self, x_m: float, y_m: float) -> tuple[float, float]:
+        lat, lon = self._to_latlon(x_m, y_m)
+        return float(np.asarray(lat).reshape(-1)[0]), float(np.asarray(lon).reshape(-1)[0])
+
+    def reset(self) -> None:
+        self._prev, self._vel = None, (0.0, 0.0)
+
+    def fix(self, estimate: Any, *, time_s: float, altitude_m: float,
+            yaw_fallback_rad: float | None = None) -> PoseFix:
+        """PoseFix of an ``Estimate`` (x_m, y_m, yaw_rad, cov_xy_m2, status) at ``time_s`` and height AGL."""
+        x, y = float(estimate.x_m), float(estimate.y_m)
+        status = getattr(estimate, "status", "ok")
+        if status not in STATUSES:
+            status = "degraded"
+        cov = getattr(estimate, "cov_xy_m2", None)
+        if cov is None:
+            cov_en = (self.default_std_m ** 2, 0.0, self.default_std_m ** 2)
+        else:
+            c = np.asarray(cov, dtype=np.float64).reshape(2, 2)
+            cov_en = (float(c[0, 0]), float(0.5 * (c[0, 1] + c[1, 0])), float(c[1, 1]))
+        if self._prev is not None and time_s > self._prev[0] and status != "lost":
+            dt = time_s - self._prev[0]
+            alpha = dt / (self.velocity_tau_s + dt)
+            raw = ((x - self._prev[1]) / dt, (y - self._prev[2]) / dt)
+            self._vel = tuple(v + alpha * (r - v) for v, r in zip(self._vel, raw, strict=True))
+            dt_eff = self.velocity_tau_s + dt
+        else:
+            dt_eff = self.velocity_tau_s
+        if status != "lost":
+            self._prev = (time_s, x, y)
+        lat, lon = self._latlon(x, y)
+        yaw = getattr(estimate, "yaw_rad", None)
+        if yaw is None:
+            yaw = yaw_fallback_rad
+        h_std = math.sqrt(cov_en[0] + cov_en[2])
+        return PoseFix(
+            time_s=float(time_s), lat_deg=lat, lon_deg=lon, alt_amsl_m=self.ground_amsl_m + float(altitude_m),
+            east_m=x - self.origin_xy_m[0], north_m=y - self.origin_xy_m[1], up_m=float(altitude_m),
+            vel_enu_mps=(self._vel[0], self._vel[1], 0.0), yaw_rad=None if yaw is None else float(yaw),
+            cov_en_m2=cov_en, v_std_m=self.v_std_m,
+            speed_std_mps=max(0.2, math.sqrt(2.0) * h_std / max(dt_eff, 0.1)),
+            status=status)
