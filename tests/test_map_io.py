@@ -1,0 +1,280 @@
+"""load_orthomap: GeoTIFF tags, world files, conversions, no-data, bad inputs, and the two real tiles."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import tifffile
+
+from aerial_loc_env.errors import MapError
+from aerial_loc_env.world.geo import AffineGeoref, LocalTangentGeoref, WorldMercatorGeoref, mercator_scale_factor
+from aerial_loc_env.world.io import border_connected, load_orthomap
+
+H, W = 40, 50
+# ModelPixelScale / ModelTiepoint of a valencia-like EPSG:3395 tile
+SX, SY, X0, Y0 = 0.1, 0.1, -46189.5, 4719172.2
+
+
+def geokeys(epsg: int, *, point: bool = False, geographic: bool = False) -> tuple[int, ...]:
+    """A minimal GeoKey directory: model type, raster type, projected/geographic EPSG code."""
+    keys = [(1024, 0, 1, 2 if geographic else 1), (1025, 0, 1, 2 if point else 1),
+            (2048 if geographic else 3072, 0, 1, epsg)]
+    return tuple([1, 1, 0, len(keys)] + [x for k in keys for x in k])
+
+
+def write_geotiff(path: Path, img: np.ndarray, *, epsg: int = 3395, point: bool = False,
+                  transformation: bool = False, nodata: str | None = None, geographic: bool = False,
+                  scale=(SX, SY), tie=(X0, Y0)) -> Path:
+    keys = geokeys(epsg, point=point, geographic=geographic)
+    tags = [(34735, "H", len(keys), keys, True)]
+    if transformation:
+        m = (scale[0], 0.0, 0.0, tie[0], 0.0, -scale[1], 0.0, tie[1], 0, 0, 0, 0, 0, 0, 0, 1)
+        tags.append((34264, "d", 16, m, True))
+    else:
+        tags += [(33550, "d", 3, (scale[0], scale[1], 0.0), True),
+                 (33922, "d", 6, (0.0, 0.0, 0.0, tie[0], tie[1], 0.0), True)]
+    if nodata is not None:
+        tags.append((42113, "s", 0, nodata, True))
+    tifffile.imwrite(path, img, extratags=tags, photometric="rgb" if img.ndim == 3 and img.shape[2] >= 3
+                     else "minisblack")
+    return path
+
+
+def texture(seed: int = 0, shape=(H, W, 3), lo: int = 30) -> np.ndarray:
+    return np.random.default_rng(seed).integers(lo, 256, shape, dtype=np.uint8)
+
+
+def write_png(path: Path, rgb: np.ndarray) -> Path:
+    img = rgb[..., ::-1] if rgb.ndim == 3 and rgb.shape[2] in (3, 4) else rgb
+    if rgb.ndim == 3 and rgb.shape[2] == 4:
+        img = rgb[..., [2, 1, 0, 3]]
+    assert cv2.imwrite(str(path), np.ascontiguousarray(img))
+    return path
+
+
+def test_geotiff_pixel_is_area(tmp_path):
+    img = texture()
+    om = load_orthomap(write_geotiff(tmp_path / "a.tif", img))
+    assert isinstance(om.georef, WorldMercatorGeoref)
+    assert np.array_equal(om.rgb, img) and om.nodata is None and om.name == "a"
+    x, y = om.georef.pixel_to_xy(-0.5, -0.5)      # the tie point is the outer corner of pixel (0, 0)
+    assert (float(x), float(y)) == pytest.approx((X0, Y0), abs=1e-9)
+    lat_c, _ = om.georef.pixel_to_latlon((W - 1) / 2, (H - 1) / 2)
+    k = float(mercator_scale_factor(lat_c))
+    assert om.gsd_x_m == pytest.approx(SX / k, rel=1e-9) and om.gsd_y_m == pytest.approx(SY / k, rel=1e-9)
+    assert "PixelIsArea" in om.source and "EPSG:3395" in om.source
+
+
+def test_geotiff_pixel_is_point_and_model_transformation(tmp_path):
+    img = texture()
+    area = load_orthomap(write_geotiff(tmp_path / "area.tif", img))
+    point = load_orthomap(write_geotiff(tmp_path / "point.tif", img, point=True))
+    x, y = point.georef.pixel_to_xy(0.0, 0.0)     # PixelIsPoint: the tie point is the centre of pixel (0, 0)
+    assert (float(x), float(y)) == pytest.approx((X0, Y0), abs=1e-9)
+    xa, ya = area.georef.pixel_to_xy(0.0, 0.0)
+    assert float(xa - x) == pytest.approx(SX / 2) and float(y - ya) == pytest.approx(SY / 2)
+    trans = load_orthomap(write_geotiff(tmp_path / "m.tif", img, transformation=True))
+    assert trans.georef == area.georef
+    trans_pt = load_orthomap(write_geotiff(tmp_path / "mp.tif", img, transformation=True, point=True))
+    assert trans_pt.georef == point.georef
+
+
+def test_geotiff_geographic_and_crs_rules(tmp_path):
+    img = texture()
+    f = write_geotiff(tmp_path / "g.tif", img, epsg=4326, geographic=True, scale=(1e-6, 1e-6), tie=(-0.42, 39.17))
+    om = load_orthomap(f)
+    lat, lon = om.georef.pixel_to_latlon(-0.5, -0.5)
+    assert (float(lat), float(lon)) == pytest.approx((39.17, -0.42), abs=1e-12)
+    m_per_deg_lat = math.pi / 180 * 6335439.327 / (1 - 0.00669438 * math.sin(math.radians(39.17)) ** 2) ** 1.5
+    assert om.gsd_y_m == pytest.approx(1e-6 * m_per_deg_lat, rel=1e-3)
+    with pytest.raises(MapError, match=r"g\.tif: the GeoTIFF says EPSG:4326 but crs='EPSG:3395'"):
+        load_orthomap(f, crs="EPSG:3395")
+    nokey = write_geotiff(tmp_path / "nokey.tif", img, epsg=32767)
+    with pytest.raises(MapError, match=r"nokey\.tif: the GeoTIFF has no EPSG code"):
+        load_orthomap(nokey)
+    assert load_orthomap(nokey, crs="EPSG:3395").georef == load_orthomap(write_geotiff(tmp_path / "x.tif", img)).georef
+
+
+def test_world_file_png(tmp_path):
+    rgb = texture(1)
+    png = write_png(tmp_path / "m.png", rgb)
+    # world file: A D B E C F with (C, F) the centre of the top-left pixel
+    (tmp_path / "m.pgw").write_text(f"{SX}\n0\n0\n{-SY}\n{X0 + SX / 2}\n{Y0 - SY / 2}\n")
+    with pytest.raises(MapError, match=r"m\.png: world file m\.pgw has no CRS; pass crs="):
+        load_orthomap(png)
+    om = load_orthomap(png, crs="EPSG:3395")
+    assert np.array_equal(om.rgb, rgb)
+    ref = load_orthomap(write_geotiff(tmp_path / "ref.tif", rgb))
+    assert om.georef == ref.georef                       # same place as the PixelIsArea GeoTIFF
+    # an explicit world file wins over a sidecar; .wld also found
+    (tmp_path / "other.txt").write_text(f"{SX}\n0\n0\n{-SY}\n{X0 + 100}\n{Y0}\n")
+    om2 = load_orthomap(png, crs=3395, world_file=tmp_path / "other.txt")
+    assert float(om2.georef.pixel_to_xy(0, 0)[0]) == pytest.approx(X0 + 100)
+    (tmp_path / "m.pgw").unlink()
+    (tmp_path / "m.wld").write_text("0.5 0 0 -0.5 1000 2000")
+    assert load_orthomap(png, crs="EPSG:3857").georef.pixel_to_crs == (0.5, 0.0, 1000.0, 0.0, -0.5, 2000.0)
+
+
+def test_bad_world_files(tmp_path):
+    png = write_png(tmp_path / "m.png", texture())
+    (tmp_path / "m.pgw").write_text("0.1 0 0 -0.1 5")
+    with pytest.raises(MapError, match=r"m\.pgw: a world file has 6 numbers"):
+        load_orthomap(png, crs="EPSG:3395")
+    (tmp_path / "m.pgw").write_text("0.1 0.02 0 -0.1 5 6")
+    with pytest.raises(MapError, match=r"m\.png: .*rotated"):
+        load_orthomap(png, crs="EPSG:3395")
+    (tmp_path / "m.pgw").write_text("a b c d e f")
+    with pytest.raises(MapError, match=r"m\.pgw"):
+        load_orthomap(png, crs="EPSG:3395")
+    with pytest.raises(MapError, match=r"does not exist"):
+        load_orthomap(png, crs="EPSG:3395", world_file=tmp_path / "none.pgw")
+
+
+def test_no_georeference_needs_gsd(tmp_path):
+    png = write_png(tmp_path / "plain.png", texture())
+    with pytest.raises(MapError, match=r"plain\.png: no georeference .* no gsd_m"):
+        load_orthomap(png)
+    om = load_orthomap(png, gsd_m=(0.2, 0.3), origin_latlon_deg=(14.6, 121.0))
+    assert isinstance(om.georef, LocalTangentGeoref) and (om.gsd_x_m, om.gsd_y_m) == (0.2, 0.3)
+    lat, lon = om.world_to_latlon(om.width_m / 2, om.height_m / 2)
+    assert (float(lat), float(lon)) == pytest.approx((14.6, 121.0), abs=1e-12)
+    with pytest.raises(MapError, match="gsd_m must be > 0"):
+        load_orthomap(png, gsd_m=-1.0)
+    tif = write_geotiff(tmp_path / "g.tif", texture())
+    with pytest.raises(MapError, match=r"g\.tif: gsd_m=0\.2 disagrees"):
+        load_orthomap(tif, gsd_m=0.2)
+    assert load_orthomap(tif, gsd_m=0.0776).gsd_x_m == pytest.approx(0.0776, rel=0.01)
+
+
+def test_grey_rgba_and_16_bit_conversions(tmp_path):
+    grey = texture(2, (H, W))
+    om = load_orthomap(write_png(tmp_path / "grey.png", grey), gsd_m=0.1)
+    assert om.rgb.shape == (H, W, 3) and all(np.array_equal(om.rgb[..., i], grey) for i in range(3))
+    rgba = np.concatenate([texture(3), np.full((H, W, 1), 255, np.uint8)], axis=2)
+    rgba[10:20, 5:9, 3] = 0
+    om = load_orthomap(write_png(tmp_path / "rgba.png", rgba), gsd_m=0.1)
+    assert np.array_equal(om.rgb, rgba[..., :3])
+    assert om.nodata is not None and om.nodata.sum() == 40 and om.nodata[10:20, 5:9].all()
+    img16 = np.random.default_rng(4).integers(1000, 4001, (H, W, 3), dtype=np.uint16)
+    img16[0, 0] = (1000, 1000, 1000)
+    img16[1, 1] = (4000, 4000, 4000)
+    om = load_orthomap(write_geotiff(tmp_path / "deep.tif", img16))
+    expect = np.rint((img16.astype(np.float64) - 1000) * 255 / 3000).astype(np.uint8)
+    assert np.abs(om.rgb.astype(int) - expect).max() <= 1
+    assert om.rgb[0, 0].tolist() == [0, 0, 0] and om.rgb[1, 1].tolist() == [255, 255, 255]
+    assert "scaled linearly from [1000, 4000]" in om.source
+
+
+@pytest.mark.parametrize(("kind", "expect"), [
+    ("float", r"found dtype float32 with 3 channel"),
+    ("two", r"found dtype uint8 with 2 channel"),
+    ("five", r"found dtype uint8 with 5 channel"),
+    ("int16", r"found dtype int16"),
+    ("bilevel", r"1-bit"),
+])
+def test_unsupported_rasters_are_rejected(tmp_path, kind, expect):
+    f = tmp_path / f"bad_{kind}.tif"
+    data = {"float": np.zeros((H, W, 3), np.float32), "two": np.zeros((H, W, 2), np.uint8),
+            "five": np.zeros((H, W, 5), np.uint8), "int16": np.zeros((H, W), np.int16),
+            "bilevel": np.zeros((H, W), bool)}[kind]
+    tifffile.imwrite(f, data, photometric="minisblack", planarconfig="contig")
+    with pytest.raises(MapError, match=rf"bad_{kind}\.tif: .*{expect}") as err:
+        load_orthomap(f, gsd_m=0.1)
+    assert "supported:" in str(err.value)
+
+
+def test_missing_and_unreadable_files(tmp_path):
+    with pytest.raises(MapError, match=r"nothere\.png: no such map file"):
+        load_orthomap(tmp_path / "nothere.png", gsd_m=0.1)
+    junk = tmp_path / "junk.jpg"
+    junk.write_bytes(b"not an image at all")
+    with pytest.raises(MapError, match=r"junk\.jpg: not a readable image"):
+        load_orthomap(junk, gsd_m=0.1)
+    broken = tmp_path / "broken.tif"
+    broken.write_bytes(b"II*\x00" + b"\xff" * 20)
+    with pytest.raises(MapError, match=r"broken\.tif: unreadable TIFF"):
+        load_orthomap(broken, gsd_m=0.1)
+
+
+def test_border_connected_black_is_nodata_but_black_roof_is_not(tmp_path):
+    img = texture(5)
+    yy, xx = np.mgrid[:H, :W]
+    wedge = xx + yy < 15                     # top-left black wedge, like the real tiles
+    img[wedge] = 0
+    img[20:26, 30:36] = 0                    # a black roof in the middle
+    img[-1, -1] = (0, 0, 7)                  # nearly black corner pixel: data unless nodata_black_max >= 7
+    om = load_orthomap(write_geotiff(tmp_path / "w.tif", img))
+    assert np.array_equal(om.nodata, wedge)
+    assert om.valid_mask()[20:26, 30:36].all()
+    assert load_orthomap(tmp_path / "w.tif", nodata_black_max=7).nodata[-1, -1]
+    assert load_orthomap(tmp_path / "w.tif", nodata=None).nodata is None
+    np.testing.assert_array_equal(border_connected(np.zeros((3, 3), bool)), np.zeros((3, 3), bool))
+
+
+def test_gdal_nodata_tag_and_explicit_value(tmp_path):
+    img = texture(6)
+    img[5:9, 20:30] = 7
+    img[0:3, 0:3] = 0                              # black at the border is data when the tag says 7
+    om = load_orthomap(write_geotiff(tmp_path / "n.tif", img, nodata="7"))
+    assert om.nodata.sum() == 40 and om.nodata[5:9, 20:30].all()
+    om = load_orthomap(write_geotiff(tmp_path / "v.tif", img), nodata=7)
+    assert om.nodata.sum() == 40
+    with pytest.raises(MapError, match="nodata='bogus'"):
+        load_orthomap(tmp_path / "v.tif", nodata="bogus")
+    img[:] = 0
+    with pytest.raises(MapError, match=r"all\.tif: every pixel is no-data"):
+        load_orthomap(write_geotiff(tmp_path / "all.tif", img))
+
+
+def test_dsm_and_class_layers(tmp_path):
+    tif = write_geotiff(tmp_path / "m.tif", texture())
+    dsm = np.random.default_rng(7).uniform(0, 20, (H, W)).astype(np.float32)
+    dsm[3, 4] = np.nan
+    tifffile.imwrite(tmp_path / "dsm.tif", dsm)
+    classes = np.random.default_rng(8).integers(0, 10, (H, W), dtype=np.uint8)
+    cv2.imwrite(str(tmp_path / "cls.png"), classes)
+    om = load_orthomap(tif, dsm=tmp_path / "dsm.tif", classes=tmp_path / "cls.png")
+    assert om.dsm_m.dtype == np.float32 and om.dsm_m[3, 4] == 0.0 and om.nodata[3, 4] and om.nodata.sum() == 1
+    good = np.isfinite(dsm)
+    assert np.array_equal(om.dsm_m[good], dsm[good]) and np.array_equal(om.classes, classes)
+    tifffile.imwrite(tmp_path / "small.tif", dsm[:10])
+    with pytest.raises(MapError, match=r"m\.tif: the DSM \(.*small\.tif\) has shape \(10, 50\), the image has"):
+        load_orthomap(tif, dsm=tmp_path / "small.tif")
+    with pytest.raises(MapError, match=r"m\.tif: the class map .* dtype int64"):
+        load_orthomap(tif, classes=classes.astype(np.int64))
+    with pytest.raises(MapError, match=r"m\.tif: dsm file .*nope\.tif does not exist"):
+        load_orthomap(tif, dsm=tmp_path / "nope.tif")
+
+
+def test_bundle_directories_load(tmp_path):
+    om = load_orthomap(write_geotiff(tmp_path / "m.tif", texture()))
+    path = om.save_bundle(tmp_path / "m.alm")
+    back = load_orthomap(path)
+    assert back.georef == om.georef and np.array_equal(back.rgb, om.rgb) and isinstance(back.rgb, np.memmap)
+    with pytest.raises(MapError, match="carries its own"):
+        load_orthomap(path, gsd_m=0.1)
+
+
+@pytest.mark.parametrize(("tile", "gsd_m", "lat", "lon", "nodata"), [
+    ("manila_pasig_river.tif", 0.097, 14.596, 120.982, 0.18),
+    ("valencia_orchard.tif", 0.078, 39.170, -0.414, 0.25),
+])
+def test_real_tiles(shared_data, tile, gsd_m, lat, lon, nodata):
+    """README figures: ground scale to 2 digits, centre to 3 decimals of a degree, no-data to ~1 %."""
+    om = load_orthomap(shared_data / tile)
+    assert isinstance(om.georef, WorldMercatorGeoref) and (om.width_px, om.height_px) == (2048, 2048)
+    sx, _, _, _, e, _ = om.georef.pixel_to_crs
+    c_lat, c_lon = om.world_to_latlon(om.width_m / 2, om.height_m / 2)
+    assert float(c_lat) == pytest.approx(lat, abs=6e-4) and float(c_lon) == pytest.approx(lon, abs=6e-4)
+    # ground = projected x cos(lat) on the sphere; the ellipsoid differs by < e^2 sin^2(lat) / 2 ~ 0.14 %
+    assert om.gsd_x_m == pytest.approx(sx * math.cos(math.radians(float(c_lat))), rel=2e-3)
+    assert om.gsd_y_m == pytest.approx(-e * math.cos(math.radians(float(c_lat))), rel=2e-3)
+    assert om.gsd_x_m == pytest.approx(gsd_m, abs=6e-4) and om.gsd_y_m == pytest.approx(gsd_m, abs=6e-4)
+    assert om.nodata_fraction() == pytest.approx(nodata, abs=0.01)
+    assert om.nodata[1024, 1024] == False  # noqa: E712 - the middle of the mosaic is data
+    assert om.nodata[0, 0] if "manila" in tile else om.nodata.any()
+    assert isinstance(om.georef, AffineGeoref)
