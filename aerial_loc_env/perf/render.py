@@ -1,0 +1,78 @@
+"""Camera rendering speed: one 600 x 400 frame with cast shadows and sensor noise (target 2.5 ms, one core)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import cv2
+import numpy as np
+
+from . import Benchmark
+
+_MAP_PX = 3072
+_GSD_M = 0.25
+
+
+def _scene(seed: int = 0):
+    """A 768 m synthetic scene: textured ground, box buildings 5-30 m tall, soft cast shadows (sun 40 deg)."""
+    from types import SimpleNamespace
+
+    from ..world.shadows import Sun, sun_occlusion
+
+    rng = np.random.default_rng(seed)
+    rgb = cv2.resize(rng.integers(40, 220, (384, 384, 3), dtype=np.uint8), (_MAP_PX, _MAP_PX),
+                     interpolation=cv2.INTER_CUBIC)
+    dsm = np.zeros((_MAP_PX, _MAP_PX), np.float32)
+    for _ in range(700):
+        u, v = rng.integers(0, _MAP_PX - 80, 2)
+        w, h = rng.integers(20, 80, 2)
+        dsm[v:v + h, u:u + w] = rng.uniform(5.0, 30.0)
+        rgb[v:v + h, u:u + w] = rng.integers(60, 200, 3)
+    grid = sun_occlusion(dsm, _GSD_M, _GSD_M, Sun(azimuth_deg=200.0, elevation_deg=40.0), downsample=2)
+    orthomap = SimpleNamespace(rgb=rgb, gsd_x_m=_GSD_M, gsd_y_m=_GSD_M, height_px=_MAP_PX, width_px=_MAP_PX,
+                               nodata=None, name="bench-scene")
+    return orthomap, grid
+
+
+def _render_setup(altitude_m: float, shadows: bool) -> Callable[[], Callable[[], object]]:
+    def setup() -> Callable[[], object]:
+        from ..sensors.camera import Pose
+        from ..sensors.render import CameraRenderer
+
+        orthomap, grid = _scene()
+        renderer = CameraRenderer(orthomap)
+        rng = np.random.default_rng(1)
+        poses = [Pose(x, y, yaw, altitude_m) for x, y, yaw in zip(rng.uniform(170, 598, 64),
+                                                                    rng.uniform(170, 598, 64),
+                                                                    rng.uniform(-np.pi, np.pi, 64), strict=True)]
+        state = {"i": 0}
+        occlusion = grid if shadows else None
+        shading = {"strength": 0.9}
+
+        def run() -> object:
+            state["i"] = (state["i"] + 1) % len(poses)
+            return renderer.render(poses[state["i"]], rng, occlusion, shading, speed_mps=12.0)
+
+        return run
+
+    return setup
+
+
+def _patch_setup() -> Callable[[], object]:
+    from ..sensors.camera import Pose
+    from ..sensors.render import CameraRenderer
+
+    renderer = CameraRenderer(_scene()[0])
+    pose = Pose(384.0, 384.0, 0.7, 200.0)
+    return lambda: renderer.database_patch(pose)
+
+
+BENCHMARKS = [
+    Benchmark("render 600x400 + cast shadows + noise (200 m)", _render_setup(200.0, True), target_s=2.5e-3,
+              unit="frame", repeats=200),
+    Benchmark("render 600x400 + noise, no shadows (200 m)", _render_setup(200.0, False), unit="frame",
+              repeats=200),
+    Benchmark("render 600x400 + cast shadows + noise (350 m, pyramid level 1)", _render_setup(350.0, True),
+              target_s=2.5e-3, unit="frame", repeats=200),
+    Benchmark("database patch 600x400 (200 m)", _patch_setup, unit="patch", repeats=200),
+]
