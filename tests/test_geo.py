@@ -211,7 +211,7 @@ def test_affine_corner_and_centre_conventions():
     x, y = g.pixel_to_xy(0.0, 0.0)                 # its centre
     assert (float(x), float(y)) == (1000.25, 1999.875)
     assert g.pixel_to_crs == (0.5, 0.0, 1000.25, 0.0, -0.25, 1999.875)   # the world-file numbers
-    assert isinstance(georeference_from_dict(g.to_dict()), WorldMercatorGeoref) is False
+    assert type(georeference_from_dict(g.to_dict())) is AffineGeoref   # built generic, stays generic
     assert g.is_north_up() and not AffineGeoref((0.5, 0.01, 0, 0, -0.5, 0), "EPSG:3395").is_north_up()
 
 
@@ -248,3 +248,13 @@ def test_missing_pyproj_is_a_clear_error(monkeypatch):
     monkeypatch.setitem(sys.modules, "pyproj", None)     # makes `import pyproj` raise ImportError
     with pytest.raises(MissingExtraError, match=r"aerial-loc-env\[geo\]"):
         AffineGeoref.north_up("EPSG:2056", 2600000.0, 1200000.0, 0.1, 0.1)
+
+
+def test_fixed_crs_classes_from_gdal():
+    gt = (-46189.54, 0.1, 0.0, 4719172.21, 0.0, -0.1)
+    g = WorldMercatorGeoref.from_gdal(gt)
+    assert isinstance(g, WorldMercatorGeoref) and g.crs == "EPSG:3395"
+    assert g.pixel_to_crs == AffineGeoref.from_gdal(gt, 3395).pixel_to_crs
+    assert WebMercatorGeoref.from_gdal(gt).crs == "EPSG:3857"
+    with pytest.raises(MapError, match="WebMercatorGeoref: crs must be EPSG:3857"):
+        WebMercatorGeoref.from_gdal(gt, "EPSG:3395")

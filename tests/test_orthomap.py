@@ -220,3 +220,24 @@ def test_landcover_palette():
     assert img.shape == (2, 2, 3) and img.dtype == np.uint8
     assert img[0, 0].tolist() == [0, 0, 0] and img[0, 1].tolist() != img[1, 0].tolist()
     assert len({tuple(c) for c in img.reshape(-1, 3).tolist()}) == 4
+
+
+def test_concurrent_writer_race_is_a_clear_error(tmp_path, monkeypatch):
+    """Two processes caching the same bundle: the loser gets a MapError, the winner's bundle stays whole."""
+    import aerial_loc_env.world.orthomap as om_mod
+
+    real_replace = om_mod.os.replace
+    state = {"raced": False}
+
+    def racing_replace(src, dst):
+        if not state["raced"]:
+            state["raced"] = True
+            make_map(seed=9).save_bundle(dst)      # the other process finishes first
+        return real_replace(src, dst)
+
+    monkeypatch.setattr(om_mod.os, "replace", racing_replace)
+    with pytest.raises(MapError, match="written meanwhile by another process"):
+        make_map().save_bundle(tmp_path / "race.alm")
+    monkeypatch.undo()
+    assert np.array_equal(Orthomap.load_bundle(tmp_path / "race.alm").rgb, make_map(seed=9).rgb)
+    assert [p.name for p in tmp_path.iterdir()] == ["race.alm"]

@@ -511,37 +511,34 @@ class AffineGeoref(Georeference):
 
 
 @dataclass(frozen=True)
-class WorldMercatorGeoref(AffineGeoref):
+class _FixedCrsGeoref(AffineGeoref):
+    """An AffineGeoref whose subclass fixes the CRS (the default of its ``crs`` field)."""
+
+    def __post_init__(self) -> None:
+        want = type(self).__dataclass_fields__["crs"].default
+        if normalize_crs(self.crs) != want:
+            raise MapError(f"{type(self).__name__}: crs must be {want}, got {self.crs!r}; use AffineGeoref")
+        super().__post_init__()
+
+    @classmethod
+    def from_gdal(cls, geotransform, crs: str | int | None = None) -> AffineGeoref:
+        return super().from_gdal(geotransform, cls.__dataclass_fields__["crs"].default if crs is None else crs)
+
+
+@dataclass(frozen=True)
+class WorldMercatorGeoref(_FixedCrsGeoref):
     """AffineGeoref in EPSG:3395 (the real GeoTIFF tiles)."""
 
     kind: ClassVar[str] = "world_mercator"
     crs: str = "EPSG:3395"
 
-    def __post_init__(self) -> None:
-        if normalize_crs(self.crs) != "EPSG:3395":
-            raise MapError(f"WorldMercatorGeoref: crs must be EPSG:3395, got {self.crs!r}; use AffineGeoref")
-        super().__post_init__()
-
-    @classmethod
-    def from_gdal(cls, geotransform, crs: str | int = "EPSG:3395") -> WorldMercatorGeoref:
-        return super().from_gdal(geotransform, crs)   # type: ignore[return-value]
-
 
 @dataclass(frozen=True)
-class WebMercatorGeoref(AffineGeoref):
+class WebMercatorGeoref(_FixedCrsGeoref):
     """AffineGeoref in EPSG:3857 (web map tiles)."""
 
     kind: ClassVar[str] = "web_mercator"
     crs: str = "EPSG:3857"
-
-    def __post_init__(self) -> None:
-        if normalize_crs(self.crs) != "EPSG:3857":
-            raise MapError(f"WebMercatorGeoref: crs must be EPSG:3857, got {self.crs!r}; use AffineGeoref")
-        super().__post_init__()
-
-    @classmethod
-    def from_gdal(cls, geotransform, crs: str | int = "EPSG:3857") -> WebMercatorGeoref:
-        return super().from_gdal(geotransform, crs)   # type: ignore[return-value]
 
 
 def georef_for_crs(pixel_to_crs, crs: str | int) -> AffineGeoref:

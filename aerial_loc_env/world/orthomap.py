@@ -203,7 +203,13 @@ class Orthomap:
                 os.replace(tmp, path)
                 shutil.rmtree(old, ignore_errors=True)
             else:
-                os.replace(tmp, path)
+                try:
+                    os.replace(tmp, path)
+                except OSError as exc:
+                    if not path.exists():
+                        raise
+                    raise MapError(f"{path}: written meanwhile by another process; load it with "
+                                   "Orthomap.load_bundle, or pass overwrite=True") from exc
         except BaseException:
             shutil.rmtree(tmp, ignore_errors=True)
             raise
