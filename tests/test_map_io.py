@@ -278,3 +278,18 @@ def test_real_tiles(shared_data, tile, gsd_m, lat, lon, nodata):
     assert om.nodata[1024, 1024] == False  # noqa: E712 - the middle of the mosaic is data
     assert om.nodata[0, 0] if "manila" in tile else om.nodata.any()
     assert isinstance(om.georef, AffineGeoref)
+
+
+def test_planar_grey_tiff_and_jpeg_world_file(tmp_path):
+    img = texture(10)
+    tifffile.imwrite(tmp_path / "planar.tif", np.moveaxis(img, -1, 0), photometric="rgb", planarconfig="separate")
+    assert np.array_equal(load_orthomap(tmp_path / "planar.tif", gsd_m=0.1).rgb, img)
+    grey = texture(11, (H, W))
+    tifffile.imwrite(tmp_path / "grey.tif", grey, photometric="minisblack")
+    assert np.array_equal(load_orthomap(tmp_path / "grey.tif", gsd_m=0.1).rgb[..., 1], grey)
+    smooth = cv2.GaussianBlur(img, (0, 0), 3)
+    assert cv2.imwrite(str(tmp_path / "photo.jpg"), smooth[..., ::-1], [cv2.IMWRITE_JPEG_QUALITY, 98])
+    (tmp_path / "photo.jgw").write_text(f"{SX}\n0\n0\n{-SY}\n{X0 + SX / 2}\n{Y0 - SY / 2}\n")
+    om = load_orthomap(tmp_path / "photo.jpg", crs="EPSG:3395")
+    assert np.abs(om.rgb.astype(int) - smooth).mean() < 3            # RGB order kept (JPEG is lossy)
+    assert om.georef == load_orthomap(write_geotiff(tmp_path / "ref.tif", img)).georef
