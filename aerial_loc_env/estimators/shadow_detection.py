@@ -109,7 +109,8 @@ class ShadowDetector:
         if s >= 1.0:
             return np.ascontiguousarray(image)
         H, W = image.shape[:2]
-        return cv2.resize(image, (max(1, round(W * s)), max(1, round(H * s))), interpolation=cv2.INTER_AREA)
+        # bilinear, not area: 7x faster, and shadows are large compared with the 1/scale pixels it skips
+        return cv2.resize(image, (max(1, round(W * s)), max(1, round(H * s))), interpolation=cv2.INTER_LINEAR)
 
     def detect(self, image: np.ndarray, small: np.ndarray | None = None) -> ShadowMask:
         """The shadow mask of ``image``; ``small`` may pass an already reduced copy."""

@@ -97,23 +97,29 @@ def activation(K: int | np.ndarray, lc: int | np.ndarray, a: float | np.ndarray)
 
 
 def xnor_similarity(cam_bits: np.ndarray, db_bits: np.ndarray, keep: np.ndarray | None = None,
-                    valid: np.ndarray | None = None) -> np.ndarray:
+                    valid: np.ndarray | None = None, channels: int | None = None) -> np.ndarray:
     """Eq. (4)/(6): fraction of agreeing bits.
 
-    ``cam_bits`` (K, c) bool; ``db_bits`` (N, K, c) bool; ``keep`` (K,) bool selects the pairs used (eq. 6);
+    ``cam_bits`` (K, C) bool; ``db_bits`` (N, K, C) bool; ``keep`` (K,) bool selects the pairs used (eq. 6);
     ``valid`` (N, K) bool marks database pairs with data (an invalid pair counts as half an agreement).
+    ``channels`` (default C): the first ``channels`` are real, the others padding that agrees by construction
+    (the alpha byte of a packed RGBA word: comparing whole 4-byte pixels is 15x faster than strided RGB).
     Returns (N,) in [0, 1]; 1/2 when no pair is kept.
     """
-    agree = (db_bits == cam_bits[None]).sum(axis=2, dtype=np.float32)          # (N, K) agreements of c
-    c = cam_bits.shape[1]
-    if valid is not None:
-        agree = np.where(valid, agree, np.float32(0.5 * c))
     if keep is not None:
-        n_kept = int(np.count_nonzero(keep))
-        if n_kept == 0:
+        if not keep.any():
             return np.full(db_bits.shape[0], 0.5)
-        return agree[:, keep].sum(axis=1, dtype=np.float64) / (n_kept * c)
-    return agree.sum(axis=1, dtype=np.float64) / (cam_bits.shape[0] * c)
+        cam_bits, db_bits = cam_bits[keep], db_bits[:, keep]
+        valid = None if valid is None else valid[:, keep]
+    n, k, c_all = db_bits.shape
+    c = c_all if channels is None else channels
+    agree = (db_bits == cam_bits[None])
+    if valid is None:
+        total = agree.reshape(n, k * c_all).view(np.uint8).sum(axis=1, dtype=np.int64) - k * (c_all - c)
+        return total / (k * c)
+    counts = agree.view(np.uint8).sum(axis=2, dtype=np.float64) - (c_all - c)   # (N, K) agreements of c
+    counts = np.where(valid, counts, 0.5 * c)
+    return counts.sum(axis=1) / (k * c)
 
 
 @dataclass(frozen=True)
@@ -142,17 +148,21 @@ class IntensityPairsModel(MeasurementModel):
 
     # ---------------------------------------------------------------- per map
     def reset(self, briefing: Briefing, rng: np.random.Generator) -> None:
+        """Keep the database as one gatherable word per pixel: RGB packed in a uint32 (read back as 4 bytes,
+        so one 1-D gather fetches all channels), or the luma byte for c = 1."""
         m = briefing.orthomap
         self.orthomap, self.camera = m, briefing.camera
         rgb = np.asarray(m.rgb)
-        if rgb.ndim != 3 or rgb.shape[2] != 3:
-            raise ConfigError(f"{m.name}: the database must be (H, W, 3) RGB, got shape {rgb.shape}")
+        if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
+            raise ConfigError(f"{m.name}: the database must be (H, W, 3) uint8 RGB, got {rgb.shape} {rgb.dtype}")
         self._H, self._W = rgb.shape[:2]
         if self.config.channels == 1:
-            self._db = cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2GRAY).reshape(-1, 1)
+            self._db = cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2GRAY).reshape(-1)
         else:
-            self._db = rgb.reshape(-1, 3)
-        self._nodata = None if m.nodata is None else np.asarray(m.nodata, dtype=bool).reshape(-1)
+            rgba = cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2RGBA)
+            self._db = rgba.reshape(-1).view(np.uint32)
+        self._nodata = None if m.nodata is None or not np.any(m.nodata) else \
+            np.asarray(m.nodata, dtype=bool).reshape(-1)
 
     # ---------------------------------------------------------------- per frame
     def prepare(self, observation: Mapping[str, np.ndarray], rng: np.random.Generator,
@@ -208,23 +218,54 @@ class IntensityPairsModel(MeasurementModel):
         return PreparedPairs(uv, cam_bits, keep, log_scale, log_offset)
 
     # ---------------------------------------------------------------- per particle (vectorized)
+    def map_pixels(self, uv: np.ndarray, states: np.ndarray, altitude_m: float,
+                   offset_px: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+        """Map pixel columns and rows (N, P) (plus ``offset_px``) of the camera pixels ``uv`` (P, 2) at every
+        particle's pose.
+
+        The affines are eq. (3) from ``CameraModel.camera_to_map``; they are applied here as ONE (2N, 3) x (3, P)
+        matrix product, several times faster than a generic einsum at N x P = 10^5.
+        """
+        a = self.camera.camera_to_map(self.orthomap, states[:, 0], states[:, 1], states[:, 2], altitude_m)
+        n = a.shape[0]
+        uvh = np.empty((3, uv.shape[0]))
+        uvh[:2] = uv.T
+        uvh[2] = 1.0
+        a2 = np.ascontiguousarray(a.transpose(1, 0, 2)).reshape(2 * n, 3)
+        a2[:, 2] += offset_px
+        pts = a2 @ uvh                                                                 # (2N, P)
+        return pts[:n], pts[n:]
+
     def similarity(self, prepared: PreparedPairs, states: np.ndarray, altitude_m: float) -> np.ndarray:
-        """xi (N,) of eq. (4) (or eq. (6) with dropped pairs) for every particle."""
+        """xi (N,) of eq. (4) (or eq. (6) over the kept pairs) for every particle."""
         if self._db is None:
             raise ConfigError("intensity pairs: call reset(briefing, rng) before scoring particles")
-        K = prepared.cam_bits.shape[0]
-        pts = self.camera.project_pixels(self.orthomap, prepared.uv, states[:, 0], states[:, 1],
-                                         states[:, 2], altitude_m)                      # (N, 2K, 2) eq. (3)
-        col = np.rint(pts[..., 0]).astype(np.int64)
-        row = np.rint(pts[..., 1]).astype(np.int64)
-        inside = (col >= 0) & (col < self._W) & (row >= 0) & (row < self._H)
-        flat = np.clip(row, 0, self._H - 1) * self._W + np.clip(col, 0, self._W - 1)
-        db = self._db[flat]                                                             # (N, 2K, c)
-        db_bits = db[:, :K] > db[:, K:]                                                 # (N, K, c)
-        valid = inside if self._nodata is None else inside & ~self._nodata[flat]
-        valid_pairs = valid[:, :K] & valid[:, K:]
-        return xnor_similarity(prepared.cam_bits, db_bits, prepared.keep,
-                               None if valid_pairs.all() else valid_pairs)
+        cam_bits = prepared.cam_bits if prepared.keep is None else prepared.cam_bits[prepared.keep]
+        K, c = cam_bits.shape
+        if K == 0:
+            return np.full(states.shape[0], 0.5)
+        uv = prepared.uv if prepared.keep is None else prepared.uv[np.concatenate([prepared.keep] * 2)]
+        col, row = self.map_pixels(uv, states, altitude_m, offset_px=0.5)  # (N, 2K); +0.5: floor = round
+        W, H = self._W, self._H
+        inside = None
+        if col.min() < 0 or row.min() < 0 or col.max() >= W or row.max() >= H:
+            inside = (col >= 0) & (col < W) & (row >= 0) & (row < H)
+            np.clip(col, 0, W - 1, out=col)
+            np.clip(row, 0, H - 1, out=row)
+        flat = row.astype(np.intp) * W + col.astype(np.intp)                            # nearest pixel
+        db = self._db[flat]                                                             # (N, 2K) words
+        if c == 3:  # RGBA bytes of the packed words; alpha (255 vs 255) never "greater", like the padding
+            db8 = db.view(np.uint8).reshape(db.shape[0], 2 * K, 4)
+            db_bits = db8[:, :K] > db8[:, K:]                                            # (N, K, 4)
+            cam_bits = np.concatenate([cam_bits, np.zeros((K, 1), bool)], axis=1)
+        else:
+            db_bits = (db[:, :K] > db[:, K:])[..., None]
+        valid = inside
+        if self._nodata is not None:
+            ok = ~self._nodata[flat]
+            valid = ok if valid is None else valid & ok
+        valid_pairs = None if valid is None else valid[:, :K] & valid[:, K:]
+        return xnor_similarity(cam_bits, db_bits, None, valid_pairs, channels=c)
 
     def log_likelihood(self, prepared: PreparedPairs, states: np.ndarray, altitude_m: float) -> np.ndarray:
         cfg: IntensityPairsConfig = self.config
