@@ -27,21 +27,21 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ..config import build_config, config_to_dict, rng as crange
+from ..config import build_config, config_to_dict
+from ..config import rng as crange
 from ..errors import MapError
 from ..paths import cache_dir
 from .city_content import Filler, choose_use, paint_scene
 from .city_layout import build_layout
-from .city_paint import Canvas, Material
+from .city_paint import Canvas
 from .city_roads import paint_roads
 from .geo import LocalTangentGeoref
+from .landcover import LandCover
 from .orthomap import Orthomap
 
 #: Bump whenever the generator's output changes for a given config: it is part of the cache key.
 GENERATOR_VERSION = 1
 
-#: Documented height ranges (metres above ground) per land-cover class of the city's dsm_m layer.
-HEIGHT_RANGES_M = {"building": (3.0, 60.0), "tree": (5.0, 20.0), "car": (1.5, 1.5)}
 
 
 @dataclass(frozen=True)
@@ -83,6 +83,17 @@ class CityConfig:
     def cache_key(self) -> str:
         blob = json.dumps({"generator": GENERATOR_VERSION, **config_to_dict(self)}, sort_keys=True)
         return hashlib.sha256(blob.encode()).hexdigest()[:20]
+
+
+def height_ranges_m(config: CityConfig | None = None) -> dict[LandCover, tuple[float, float]]:
+    """Documented dsm_m range (metres above ground) per land-cover class; classes not listed are at 0 m.
+
+    Buildings stand 3 m up to ``max_building_height_m`` (ridges and rooftop units included), tree canopies
+    5-20 m (rim to crown), cars 1.5 m, parcel walls 1.2 m.
+    """
+    hmax = (config if config is not None else CityConfig()).max_building_height_m
+    return {LandCover.BUILDING: (3.0, hmax), LandCover.ROOF_EQUIPMENT: (3.0, hmax), LandCover.TREE: (5.0, 20.0),
+            LandCover.CAR: (1.5, 1.5), LandCover.WALL: (1.2, 1.2)}
 
 
 def small_city_config(seed: int = 0, **overrides) -> CityConfig:
@@ -189,5 +200,5 @@ def default_city(config: CityConfig | None = None) -> Orthomap:
     return Orthomap.load_bundle(path, mmap=True)
 
 
-__all__ = ["CityConfig", "GENERATOR_VERSION", "HEIGHT_RANGES_M", "Material", "city_cache_path", "default_city",
-           "generate_city", "small_city_config"]
+__all__ = ["CityConfig", "GENERATOR_VERSION", "city_cache_path", "default_city",
+           "generate_city", "height_ranges_m", "small_city_config"]

@@ -19,7 +19,8 @@ from .city_paint import NEUTRAL_SHADE, Canvas, Material
 ROOF_TILE_COLOURS = np.array([(168, 78, 58), (128, 52, 44), (72, 98, 138), (84, 120, 92), (108, 108, 114),
                               (122, 88, 68), (176, 110, 62), (60, 70, 82)], np.int32)
 ROOF_FLAT_COLOURS = np.array([(178, 176, 170), (150, 150, 146), (196, 192, 184), (132, 130, 126),
-                              (96, 150, 112), (84, 136, 150), (170, 160, 140), (120, 124, 130)], np.int32)
+                              (112, 146, 118), (110, 138, 146), (170, 160, 140), (120, 124, 130),
+                              (186, 180, 168), (160, 158, 154), (142, 136, 128)], np.int32)
 ROOF_METAL_COLOURS = np.array([(168, 172, 176), (92, 132, 166), (198, 200, 202), (150, 86, 70),
                                (104, 150, 144), (206, 200, 184)], np.int32)
 CAR_COLOURS = np.array([(232, 232, 232), (226, 228, 230), (30, 30, 34), (150, 152, 156), (96, 98, 104),
@@ -77,6 +78,7 @@ class Building:
     height_m: float
     units: list[tuple[np.ndarray, float]] = field(default_factory=list)   # rooftop units (poly, extra h)
     courtyard: np.ndarray | None = None
+    cap_m: float = 60.0                                     # nothing of it (ridges, units) rises above this
 
 
 @dataclass
@@ -131,7 +133,7 @@ class Filler:
     def tree(self, p: np.ndarray, r_m: float | None = None) -> None:
         r = self.rng
         rad = float(r_m if r_m is not None else r.uniform(2.0, 5.5))
-        h = float(np.clip(2.2 * rad + r.normal(2.0, 1.5), 5.0, 20.0))
+        h = float(np.clip(2.2 * rad + r.normal(2.0, 1.5), 6.0, 20.0))
         if self.layout.is_free(p[None, :]):
             self.scene.trees.append((float(p[0]), float(p[1]), rad, h, int(r.integers(len(TREE_COLOURS)))))
 
@@ -169,7 +171,7 @@ class Filler:
         if not self.layout.is_free(np.vstack([outline, centre[None, :]])):
             return False
         wings = [(centre + u * du + v * dv, u, wa_, wb_) for du, dv, wa_, wb_ in spec if wa_ > 2 and wb_ > 2]
-        bld = Building(wings, style, colour, height_m)
+        bld = Building(wings, style, colour, height_m, cap_m=self.hmax)
         if shape == "court":
             bld.courtyard = orect(centre, u, a - 2 * min(wa, a * 0.3), b - 2 * min(wb, b * 0.3))
         for _ in range(units):
@@ -192,13 +194,16 @@ class Filler:
         v = np.array([-u[1], u[0]])
         n_bays = int((a - 2.0) // 2.5)
         n_rows = int((b - 2.0) // 16.0)
-        if n_bays < 1 or n_rows < 1:
+        single = n_rows == 0 and b >= 11.5               # one row of bays along a 6 m aisle
+        if n_bays < 1 or (n_rows < 1 and not single):
             return
         occ = min(1.0, occupancy * self.cd)
         x0 = -n_bays * 2.5 / 2
-        for row in range(n_rows):
+        for row in range(max(n_rows, 1)):
             yc = -b / 2 + 1.0 + 8.0 + row * 16.0        # aisle centre of this double row
-            for side in (-1.0, 1.0):
+            if single:
+                yc = -b / 2 + 0.5 + 3.0
+            for side in ((1.0,) if single else (-1.0, 1.0)):
                 y_in, y_out = yc + side * 3.0, yc + side * 8.0
                 xs = x0 + 2.5 * np.arange(n_bays + 1)
                 for x in xs:
@@ -279,7 +284,7 @@ class Filler:
                 continue
             col = _jitter(r, ROOF_FLAT_COLOURS[r.integers(len(ROOF_FLAT_COLOURS))], 14)
             style = "green" if r.random() < 0.08 else "flat"
-            shape = str(r.choice(["rect", "rect", "L", "T", "U"]))
+            shape = str(r.choice(["rect", "rect", "rect", "rect", "L", "L", "T", "U"]))
             self.building(c, u, ba, bb, style, col, self.height(9.0, 16.0 + 20.0 * z, 4.0 + 6 * z), shape,
                           units=int(r.integers(1, 6)))
             if r.random() < 0.5 * self.td:
@@ -319,8 +324,8 @@ class Filler:
         au = rotate(u, ang)
         av = np.array([-au[1], au[0]])
         depth = r.uniform(12.0, 16.0)
-        pitch = r.uniform(36.0, 50.0)
-        length = r.uniform(40.0, 80.0)
+        pitch = r.uniform(30.0, 42.0)
+        length = r.uniform(45.0, 85.0)
         n_rows = max(1, int((b - 10) // pitch))
         n_cols = max(1, int((a - 10) // (length + 12)))
         col = _jitter(r, np.array([200, 198, 192]), 10)
@@ -329,7 +334,7 @@ class Filler:
             for j in range(n_cols):
                 bc = c + av * ((i - (n_rows - 1) / 2) * pitch) + au * ((j - (n_cols - 1) / 2) * (length + 12))
                 if r.random() < 0.7:
-                    self.parking(bc + av * (pitch / 2), au, length, min(16.5, pitch - depth - 4), 0.75)
+                    self.parking(bc + av * (pitch / 2), au, length, min(16.5, pitch - depth - 3), 0.75)
                 if r.random() > 0.95 * self.bd:
                     continue
                 self.building(bc, au, length * r.uniform(0.85, 1.0), depth, roof, _jitter(r, np.array(col), 6),
@@ -486,7 +491,7 @@ def paint_trees(canvas: Canvas, trees: list[tuple[float, float, float, float, in
     light = np.array([-0.22, -0.22])
     for x, y, rad, h, k in trees:
         p = np.array([x, y])
-        canvas.disc(p, rad, TREE_COLOURS[k], Material.TREE, 0.8 * h, 96)
+        canvas.disc(p, rad, TREE_COLOURS[k], Material.TREE, max(0.85 * h, 5.0), 96)
         canvas.height_disc(p, 0.6 * rad, h)
         for ang in (0.7, 2.6, 4.4):
             canvas.shade_disc(p + rad * 0.45 * np.array([np.cos(ang + x), np.sin(ang + x)]), 0.42 * rad, 118)
@@ -505,6 +510,15 @@ def paint_building(canvas: Canvas, b: Building) -> None:
     canvas.fill(rects, col, mat, h)
     if b.style in ("flat", "green"):
         canvas.shade_lines([np.vstack([r, r[:1]]) for r in rects], 150, 0.5)
+        joints = []
+        for c, u, a, bb in b.wings:
+            long_u, L, W = (u, a, bb) if a >= bb else (np.array([-u[1], u[0]]), bb, a)
+            n = np.array([-long_u[1], long_u[0]])
+            if L > 28:
+                k = int(L // 14)
+                for s in np.linspace(-L / 2, L / 2, k + 1)[1:-1]:
+                    joints.append(np.stack([c + long_u * s - n * W / 2, c + long_u * s + n * W / 2]))
+        canvas.shade_lines(joints, 142, 0.3)
     elif b.style == "metal":
         lines = []
         for c, u, a, bb in b.wings:
@@ -539,8 +553,8 @@ def paint_building(canvas: Canvas, b: Building) -> None:
                     for o in np.arange(-W / 2 + 0.6, W / 2, 0.9) if abs(o) > 0.3]
             canvas.shade_lines(rows, 118)
             canvas.shade_lines([np.stack([c - ru * L / 2, c + ru * L / 2])], 168, 0.3)
-            cv_ridge = orect(c, ru, L, W / 3)
-            canvas.dsm_fill([cv_ridge], h + 0.15 * W)
+            cv_ridge = orect(c, ru, L - 1.0, W / 3 - 0.5)   # kept inside the wing despite rounding
+            canvas.dsm_fill([cv_ridge], min(h + 0.15 * W, b.cap_m))
     if b.courtyard is not None:
         canvas.fill([b.courtyard], (150, 146, 138), Material.PLAZA, 0.0)
     for k, (poly, extra) in enumerate(b.units):

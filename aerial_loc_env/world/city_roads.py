@@ -9,6 +9,9 @@ from .city_layout import Layout, Road
 from .city_paint import Canvas, Material
 
 WHITE = (232, 232, 228)
+_RING = np.stack([np.cos(np.arange(8) * np.pi / 4), np.sin(np.arange(8) * np.pi / 4)], axis=1)
+_TALL = np.array([Material.ROOF_FLAT, Material.ROOF_TILE, Material.ROOF_METAL, Material.ROOF_GREEN,
+                  Material.ROOF_UNIT, Material.TREE, Material.WATER])
 YELLOW = (226, 182, 52)
 
 
@@ -162,10 +165,13 @@ def paint_roads(canvas: Canvas, layout: Layout, filler: Filler, rng: np.random.G
         for t in np.arange(max(t0, 4.0), L - max(t1, 4.0), spacing):
             for s in (-1.0, 1.0):
                 p = p0 + d * t + n * s * (r.width_m / 2 + r.sidewalk_m * 0.5)
-                u, v = canvas.px(p) // 4
-                if 0 <= v < canvas.height_px and 0 <= u < canvas.width_px and \
-                        canvas.material[v, u] == Material.SIDEWALK:
-                    rad = float(rng.uniform(1.8, 3.2))
-                    trees.append((float(p[0]), float(p[1]), rad, float(rng.uniform(6.0, 11.0)),
+                rad = float(rng.uniform(1.8, 3.2))
+                ring = p + rad * _RING
+                uv = np.rint(np.vstack([p, ring]) / canvas.gsd_m - 0.5).astype(np.int64)
+                if (uv < 0).any() or (uv[:, 0] >= canvas.width_px).any() or (uv[:, 1] >= canvas.height_px).any():
+                    continue
+                mats = canvas.material[uv[:, 1], uv[:, 0]]
+                if mats[0] == Material.SIDEWALK and not np.isin(mats, _TALL).any():
+                    trees.append((float(p[0]), float(p[1]), rad, float(rng.uniform(6.5, 11.0)),
                                   int(rng.integers(6))))
     paint_trees(canvas, trees)

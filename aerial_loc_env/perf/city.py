@@ -1,0 +1,28 @@
+"""Speed of the procedural city: uncached generation of the default map, and the cached (memory-mapped) load."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+from . import Benchmark
+
+
+def _generate() -> Callable[[], object]:
+    from ..world.city import CityConfig, generate_city
+
+    cfg = CityConfig()
+    return lambda: generate_city(cfg)
+
+
+def _cached() -> Callable[[], object]:
+    from ..world.city import default_city
+
+    default_city()          # make sure the bundle exists (generated once, outside the timing)
+    return default_city
+
+
+BENCHMARKS = [
+    Benchmark("city: generate default map 4800x5600 px (uncached)", _generate, target_s=5.0, unit="map",
+              repeats=3),
+    Benchmark("city: default_city() cached load (memory-mapped)", _cached, target_s=0.5, unit="map", repeats=10),
+]
