@@ -125,6 +125,7 @@ def test_local_tangent_origin_and_axes():
 
 
 def test_local_tangent_rejects_bad_fields():
+    assert LocalTangentGeoref(np.float32(45.0), np.int64(7), 1.0, 1.0).origin_lat_deg == 45.0   # numpy scalars ok
     with pytest.raises(MapError, match="origin_lat_deg"):
         LocalTangentGeoref(95.0, 0.0, 1.0, 1.0)
     with pytest.raises(MapError, match="gsd_x_m"):

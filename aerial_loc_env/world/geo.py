@@ -360,7 +360,8 @@ class LocalTangentGeoref(Georeference):
     def __post_init__(self) -> None:
         for name in ("origin_lat_deg", "origin_lon_deg", "gsd_x_m", "gsd_y_m", "origin_u_px", "origin_v_px"):
             val = getattr(self, name)
-            if isinstance(val, bool) or not isinstance(val, (int, float)) or not math.isfinite(val):
+            if isinstance(val, bool) or not isinstance(val, (int, float, np.integer, np.floating)) \
+                    or not math.isfinite(val):
                 raise MapError(f"LocalTangentGeoref: '{name}' must be a finite number, got {val!r}")
             object.__setattr__(self, name, float(val))
         if not -89.0 <= self.origin_lat_deg <= 89.0:

@@ -68,9 +68,9 @@ def load_orthomap(path: str | os.PathLike, *, gsd_m: float | tuple[float, float]
     """
     path = Path(path)
     if path.is_dir():
-        if any(x is not None for x in (gsd_m, crs, world_file, dsm, classes)):
-            raise MapError(f"{path}: a bundle carries its own scale, georeference and layers; "
-                           "load it without gsd_m/crs/world_file/dsm/classes")
+        if any(x is not None for x in (gsd_m, crs, world_file, dsm, classes, name)) or nodata != "auto":
+            raise MapError(f"{path}: a bundle carries its own name, scale, georeference and layers; "
+                           "load it without gsd_m/crs/world_file/dsm/classes/name/nodata")
         return Orthomap.load_bundle(path, mmap=mmap)
     if not path.is_file():
         raise MapError(f"{path}: no such map file or bundle directory")
