@@ -1,0 +1,214 @@
+"""``aerial-loc pictures``: look at what the agents see before trusting any number.
+
+Writes, into ``--out``:
+
+- ``overview.png``: the map (downscaled) with a sample track, numbered camera footprints and the heading;
+- ``overview_shadows.png``: the same with the episode's shadows (cast shadows from the height model, or
+  drifting cloud shadows on maps without one);
+- ``frame_NN_database.png`` / ``frame_NN_camera.png``: the shadow-free database patch and the camera frame
+  (shadows, exposure, noise, vignetting) at a few poses of the track;
+- ``frame_NN_pair.png``: database | camera | ground-truth shadow mask, side by side and labelled;
+- ``contact_sheet.png``: all the pairs stacked.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from .errors import AerialLocError, ConfigError
+from .sensors.camera import CameraModel, Pose
+from .sensors.render import CameraRenderer, Frame, Photometry
+
+_OVERVIEW_MAX_PX = 1600
+_TRACK_RGB = (255, 40, 40)
+_FOOTPRINT_RGB = (255, 230, 0)
+
+
+def _parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog="aerial-loc pictures", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--out", required=True, help="output folder (created if missing)")
+    ap.add_argument("--map", help="an orthomap (GeoTIFF, image with world file, or .alm bundle); "
+                                  "default: the procedural default city")
+    ap.add_argument("--seed", type=int, default=0, help="seed of the track, sun, clouds and sensor noise")
+    ap.add_argument("--altitude", type=float, default=200.0, help="flight altitude above ground, metres")
+    ap.add_argument("--frames", type=int, default=4, help="number of camera frames along the track (1-12)")
+    return ap
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+    try:
+        written = write_pictures(Path(args.out), map_path=args.map, seed=args.seed, altitude_m=args.altitude,
+                                 n_frames=args.frames)
+    except AerialLocError as exc:
+        print(f"aerial-loc pictures: {exc}", file=sys.stderr)
+        return 2
+    for path in written:
+        print(path)
+    return 0
+
+
+def write_pictures(out: Path, *, map_path: str | None = None, seed: int = 0, altitude_m: float = 200.0,
+                   n_frames: int = 4, orthomap=None) -> list[Path]:
+    """Render the pictures (see the module doc) and return the written paths."""
+    from .sensors.flight import FlightConfig, FlyableRegion, footprint_radius_m, sample_track
+    from .world.shadows import ShadowConfig, apply_shading, sun_occlusion, upsample
+
+    if not 1 <= n_frames <= 12:
+        raise ConfigError(f"pictures: --frames = {n_frames} must be in [1, 12]")
+    if not (math.isfinite(altitude_m) and 1.0 <= altitude_m <= 5000.0):
+        raise ConfigError(f"pictures: --altitude = {altitude_m} must be in [1, 5000] metres")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ConfigError(f"pictures: cannot create the output folder {out}: {exc.strerror}") from exc
+    if orthomap is None:
+        orthomap = _load_map(map_path)
+    rng = np.random.default_rng(seed)
+    camera = CameraModel()
+    flight = FlightConfig(altitude_m=altitude_m, duration_s=60.0)
+    radius = footprint_radius_m(*camera.footprint_m(altitude_m))
+    region = FlyableRegion(orthomap.width_m, orthomap.height_m, radius + 5.0, nodata=orthomap.nodata,
+                           name=orthomap.name)
+    track = sample_track(flight, region, rng)
+
+    shadow_cfg = ShadowConfig(cloud_cover=0.0 if orthomap.dsm_m is not None else 0.35)
+    sun = shadow_cfg.draw_sun(rng)
+    shading = {"strength": shadow_cfg.draw_strength(rng), **shadow_cfg.shading_kwargs()}
+    if orthomap.dsm_m is not None:
+        occlusion = sun_occlusion(orthomap.dsm_m, orthomap.gsd_x_m, orthomap.gsd_y_m, sun,
+                                  downsample=shadow_cfg.downsample)
+        shadow_note = f"sun az {sun.azimuth_deg:.0f} deg, el {sun.elevation_deg:.0f} deg"
+    else:
+        occlusion = shadow_cfg.draw_clouds(rng, orthomap.width_m, orthomap.height_m)
+        shadow_note = f"cloud shadows, cover {shadow_cfg.cloud_cover:.0%}"
+    renderer = CameraRenderer(orthomap, camera, Photometry(), noise_seed=rng)
+
+    picks = np.linspace(0, len(track) - 1, n_frames + 2)[1:-1].round().astype(int)
+    poses = [Pose(float(track.x_m[i]), float(track.y_m[i]), float(track.yaw_rad[i]),
+                  float(track.altitude_m[i])) for i in picks]
+    written: list[Path] = []
+
+    # ---- overviews
+    scale = min(1.0, _OVERVIEW_MAX_PX / max(orthomap.width_px, orthomap.height_px))
+    size = (max(1, round(orthomap.width_px * scale)), max(1, round(orthomap.height_px * scale)))
+    small = cv2.resize(np.asarray(orthomap.rgb), size, interpolation=cv2.INTER_AREA)
+    if orthomap.dsm_m is not None:
+        occ_small = cv2.resize(upsample(occlusion, (orthomap.height_px, orthomap.width_px)), size,
+                               interpolation=cv2.INTER_AREA)
+    else:
+        to_world = np.array([[orthomap.width_m / size[0], 0.0, 0.5 * orthomap.width_m / size[0]],
+                             [0.0, -orthomap.height_m / size[1], orthomap.height_m * (1 - 0.5 / size[1])]])
+        occ_small = occlusion.occlusion_image(0.0, to_world, (size[1], size[0]))
+    shaded_small = apply_shading(small, occ_small, shading["strength"], **shadow_cfg.shading_kwargs())
+    for name, base, note in (("overview.png", small, "database"), ("overview_shadows.png", shaded_small,
+                                                                     shadow_note)):
+        img = _draw_track(base.copy(), orthomap, scale, track, poses, camera)
+        img = _with_header(img, f"{orthomap.name}: {orthomap.width_m:.0f} x {orthomap.height_m:.0f} m, {note}; "
+                                f"track {track.length_m:.0f} m at {altitude_m:.0f} m (red, dot = start); "
+                                "camera footprints (yellow, arrow = heading)")
+        written.append(_save(out / name, img))
+
+    # ---- frames
+    pairs = []
+    for k, (pose, i) in enumerate(zip(poses, picks, strict=True)):
+        database = renderer.database_patch(pose, strict=True)
+        frame = renderer.render(pose, rng, occlusion, shading, t_s=float(track.t_s[i]),
+                                speed_mps=float(track.speed_mps[i]), strict=True)
+        written.append(_save(out / f"frame_{k:02d}_database.png", database))
+        written.append(_save(out / f"frame_{k:02d}_camera.png", frame.image))
+        pair = _pair(k, database, frame)
+        written.append(_save(out / f"frame_{k:02d}_pair.png", pair))
+        pairs.append(pair)
+    gap = np.full((8, pairs[0].shape[1], 3), 255, np.uint8)
+    sheet = np.concatenate([x for p in pairs for x in (p, gap)][:-1], axis=0)
+    written.append(_save(out / "contact_sheet.png", sheet))
+    return written
+
+
+def _load_map(map_path: str | None):
+    if map_path is None:
+        from .world.city import default_city
+
+        return default_city()
+    from .world.io import load_orthomap
+
+    if not Path(map_path).exists():
+        raise ConfigError(f"pictures: --map {map_path} does not exist")
+    return load_orthomap(map_path)
+
+
+def _world_to_small(orthomap, scale: float, xy: np.ndarray) -> np.ndarray:
+    """World metres (..., 2) -> overview pixel coordinates for cv2 drawing (pixel centres at integers)."""
+    u = (xy[..., 0] / orthomap.gsd_x_m) * scale - 0.5
+    v = (orthomap.height_px - xy[..., 1] / orthomap.gsd_y_m) * scale - 0.5
+    return np.stack([u, v], axis=-1)
+
+
+def _draw_track(img: np.ndarray, orthomap, scale: float, track, poses: list[Pose],
+                camera: CameraModel) -> np.ndarray:
+    shift = 4  # sub-pixel drawing: coordinates in 1/16 px
+
+    def to_int(p: np.ndarray) -> np.ndarray:
+        return np.rint(p * (1 << shift)).astype(np.int32)
+
+    thick = max(1, round(img.shape[1] / 800))
+    line = _world_to_small(orthomap, scale, np.stack([track.x_m, track.y_m], axis=-1))
+    cv2.polylines(img, [to_int(line)], False, _TRACK_RGB, thick, cv2.LINE_AA, shift)
+    start = _world_to_small(orthomap, scale, np.array([track.x_m[0], track.y_m[0]]))
+    cv2.circle(img, tuple(int(c) for c in to_int(start)), 5 * thick << shift, _TRACK_RGB, -1, cv2.LINE_AA, shift)
+    for k, pose in enumerate(poses):
+        corners = camera.footprint_corners_m(*pose)
+        poly = _world_to_small(orthomap, scale, corners)
+        cv2.polylines(img, [to_int(poly)], True, _FOOTPRINT_RGB, thick, cv2.LINE_AA, shift)
+        top_mid = _world_to_small(orthomap, scale, corners[:2].mean(axis=0))   # the edge ahead of the vehicle
+        centre = _world_to_small(orthomap, scale, np.array(pose[:2]))
+        cv2.arrowedLine(img, tuple(int(c) for c in to_int(centre)), tuple(int(c) for c in to_int(top_mid)),
+                        _FOOTPRINT_RGB, thick, cv2.LINE_AA, shift, 0.25)
+        org = poly.min(axis=0) + np.array([2.0, -4.0])
+        _text(img, str(k), (int(org[0]), int(max(org[1], 12))), 0.6 * thick, _FOOTPRINT_RGB)
+    return img
+
+
+def _pair(k: int, database: np.ndarray, frame: Frame) -> np.ndarray:
+    mask = np.where(frame.shadow_mask[..., None], np.uint8(70), np.uint8(235)).repeat(3, axis=2)
+    gap = np.full((database.shape[0], 6, 3), 255, np.uint8)
+    row = np.concatenate([database, gap, frame.image, gap, mask], axis=1)
+    head = np.full((28, row.shape[1], 3), 255, np.uint8)
+    w = database.shape[1] + gap.shape[1]
+    p = frame.pose
+    _text(head, f"{k}: database patch", (6, 20), 0.55, (0, 0, 0))
+    _text(head, f"camera: x {p.x_m:.0f} m, y {p.y_m:.0f} m, yaw {math.degrees(p.yaw_rad):.0f} deg, "
+                f"alt {p.altitude_m:.0f} m", (w + 6, 20), 0.55, (0, 0, 0))
+    _text(head, f"true shadow mask ({frame.shadow_fraction:.0%} of the frame)", (2 * w + 6, 20), 0.55, (0, 0, 0))
+    return np.concatenate([head, row], axis=0)
+
+
+def _text(img: np.ndarray, text: str, org: tuple[int, int], scale: float, rgb: tuple[int, int, int]) -> None:
+    """Text with a contrasting outline, readable on any background."""
+    outline = (0, 0, 0) if sum(rgb) > 380 else (255, 255, 255)
+    thick = max(1, round(scale * 1.6))
+    cv2.putText(img, text, org, cv2.FONT_HERSHEY_SIMPLEX, scale, outline, thick + 2, cv2.LINE_AA)
+    cv2.putText(img, text, org, cv2.FONT_HERSHEY_SIMPLEX, scale, rgb, thick, cv2.LINE_AA)
+
+
+def _with_header(img: np.ndarray, text: str) -> np.ndarray:
+    """The image under a white banner carrying ``text`` (never drawn over the map itself)."""
+    scale = float(np.clip(img.shape[1] / 1900, 0.4, 0.8))
+    (_, h), _ = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, scale, 1)
+    head = np.full((h + 16, img.shape[1], 3), 255, np.uint8)
+    cv2.putText(head, text, (8, h + 8), cv2.FONT_HERSHEY_SIMPLEX, scale, (0, 0, 0), 1, cv2.LINE_AA)
+    return np.concatenate([head, img], axis=0)
+
+
+def _save(path: Path, rgb: np.ndarray) -> Path:
+    if not cv2.imwrite(str(path), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)):
+        raise ConfigError(f"pictures: could not write {path} (check the folder is writable)")
+    return path
