@@ -238,6 +238,31 @@ def test_penumbra_width_grows_with_occluder_distance_as_the_solar_disc_predicts(
     assert widths[1] > 2.0 * widths[0]
 
 
+def test_azimuth_strips_give_lateral_penumbrae_growing_with_distance():
+    el, gsd, scale, h_m = 30.0, 0.25, 8.0, 30.0
+    rho = math.radians(SUN_ANGULAR_DIAMETER_DEG / 2.0) * scale
+    dsm = np.zeros((300, 60), np.float32)
+    dsm[280:290, 20:40] = h_m                    # a block, sun in the south: lateral edges run north-south
+    sun = Sun(180.0, el)
+
+    def lateral_width(occ, dist_m):
+        row = 280 - int(round(dist_m / gsd))
+        prof = occ[row, :30]
+        return float(((prof > 0.01) & (prof < 0.99)).sum()) * gsd
+
+    one = sun_occlusion(dsm, gsd, gsd, sun, penumbra_scale=scale, antialias_px=0.0).data
+    five = sun_occlusion(dsm, gsd, gsd, sun, penumbra_scale=scale, antialias_px=0.0, azimuth_samples=5).data
+    assert lateral_width(one, 20.0) == 0.0        # one sweep: hard lateral edges (the blur softens them)
+    near, far = lateral_width(five, 5.0), lateral_width(five, 20.0)
+    assert far > near
+    # the 5 strips span 4/5 of the disc's width: 0.8 * 2 rho D / cos(el), up to a pixel
+    full = 2.0 * rho * 20.0 / math.cos(math.radians(el))
+    assert abs(far - 0.8 * full) <= gsd
+    # away from the lateral edges the strips reproduce the disc profile of the tip (rectangles vs disc)
+    np.testing.assert_allclose(five[:270, 30], one[:270, 30], atol=0.05)
+    assert five[270, 30] == pytest.approx(1.0) and five[270, 50] == 0.0
+
+
 # -------------------------------------------------------------------------------------------- shading
 
 

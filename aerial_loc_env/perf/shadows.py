@@ -33,11 +33,11 @@ def _cast(azimuth_deg: float, downsample: int):
     return lambda: cast_shadows(dsm, GSD_M, GSD_M, sun, downsample=downsample)
 
 
-def _soft(downsample: int):
+def _soft(downsample: int, azimuth_samples: int = 1):
     from aerial_loc_env.world.shadows import Sun, sun_occlusion
 
     dsm, sun = synthetic_dsm(), Sun(160.0, 35.0)
-    return lambda: sun_occlusion(dsm, GSD_M, GSD_M, sun, downsample=downsample)
+    return lambda: sun_occlusion(dsm, GSD_M, GSD_M, sun, downsample=downsample, azimuth_samples=azimuth_samples)
 
 
 def _shading():
@@ -68,6 +68,8 @@ BENCHMARKS = [
               target_s=0.25, unit="map", repeats=5),
     Benchmark("shadows: soft occlusion 4800x5600, downsample 2", lambda: _soft(2), unit="map", repeats=5),
     Benchmark("shadows: soft occlusion 4800x5600, full res", lambda: _soft(1), unit="map", repeats=3),
+    Benchmark("shadows: soft occlusion 4800x5600, downsample 2, 3 azimuth strips", lambda: _soft(2, 3),
+              unit="map", repeats=3),
     Benchmark("shadows: apply_shading 600x400x3 uint8", _shading, target_s=0.6e-3, unit="frm", repeats=300),
     Benchmark("shadows: cloud occlusion in a 600x400 footprint", _clouds, target_s=1e-3, unit="frm",
               repeats=300),

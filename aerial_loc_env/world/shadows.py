@@ -336,20 +336,34 @@ def _disc_fraction(x: np.ndarray) -> np.ndarray:
     return out
 
 
+def _angle_above(coarse: np.ndarray, gx: float, gy: float, azimuth_deg: float, el_rad: float) -> np.ndarray:
+    """Per pixel, how far (radians, first order) the highest occluder towards ``azimuth_deg`` stands above the
+    elevation ``el_rad``: e * cos(el)**2 / D from the sweep's height margin e and occluder distance D. Pixels
+    with no occluder get -inf. Returned in map orientation, float32."""
+    geo = _ray_geometry(gx, gy, Sun(azimuth_deg % 360.0, math.degrees(el_rad)))
+    margin, dist = _sweep(_to_major(coarse, geo.major_axis), geo, soft=True)
+    margin *= np.float32(math.cos(el_rad) ** 2)
+    np.divide(margin, dist, out=margin)
+    return _from_major(margin, geo.major_axis)
+
+
 def sun_occlusion(dsm_m: np.ndarray, gsd_x_m: float, gsd_y_m: float, sun: Sun, *, downsample: int = 1,
-                  penumbra_scale: float = 1.0, antialias_px: float = 0.7) -> ShadowGrid:
+                  penumbra_scale: float = 1.0, antialias_px: float = 0.7, azimuth_samples: int = 1) -> ShadowGrid:
     """Soft cast shadows: float32 field in [0, 1], the fraction of the solar disc hidden (1 = full umbra).
 
     Approximation (first order in the sun's angular radius rho = 0.265 deg * penumbra_scale): a sweep for the
     lowest limb of the disc (elevation el - rho) gives, per pixel, the height margin e of the highest shadow line
     and the horizontal distance D to the occluder that cast it; that occluder stands e * cos(el - rho)**2 / D
-    radians above the limb, and the hidden fraction is the area of the disc below that horizon. This yields the
-    physical penumbra along the sun direction, D * 2 rho / (sin(el) cos(el)) metres on flat ground, widening
-    with the shadow length. The lateral edges (parallel to the sun azimuth; physically D * 2 rho / cos(el) wide,
-    narrower) are softened by a Gaussian blur of ``antialias_px`` grid pixels, which also removes the staircase
-    of the digital lines. ``penumbra_scale`` > 1 widens penumbrae (haze, camera blur); 0 gives the hard mask
-    (before the blur).
-    Returns the field on the (possibly coarser) grid; `upsample` brings it back to map pixels.
+    radians above the limb (sweeping for the limb, not the centre, makes the occluder that wins the running max
+    one that actually hides part of the disc), and the hidden fraction is the area of the disc below that
+    horizon. This yields the physical penumbra along the sun direction, D * 2 rho / (sin(el) cos(el)) metres on
+    flat ground, widening with the shadow length. The lateral edges (parallel to the sun azimuth; physically
+    D * 2 rho / cos(el) wide, narrower) are, by default, softened by a Gaussian blur of ``antialias_px`` grid
+    pixels only, which also removes the staircase of the digital lines. ``azimuth_samples`` = n > 1 integrates
+    the disc over n vertical strips instead (one sweep per strip, at the strip's azimuth, so also the lateral
+    penumbrae grow with D; n times the cost). ``penumbra_scale`` > 1 widens penumbrae (haze, camera blur);
+    0 gives the hard mask (before the blur). Returns the field on the (possibly coarser) grid; `upsample` brings
+    it back to map pixels.
     """
     factor = _check_factor(downsample, "sun_occlusion")
     dsm = _check_inputs(dsm_m, gsd_x_m, gsd_y_m, sun, "sun_occlusion")
@@ -357,27 +371,37 @@ def sun_occlusion(dsm_m: np.ndarray, gsd_x_m: float, gsd_y_m: float, sun: Sun, *
         raise ConfigError(f"sun_occlusion: penumbra_scale = {penumbra_scale!r} must be in [0, 100]")
     if not (math.isfinite(antialias_px) and 0.0 <= antialias_px <= 50.0):
         raise ConfigError(f"sun_occlusion: antialias_px = {antialias_px!r} must be in [0, 50]")
+    if isinstance(azimuth_samples, bool) or not isinstance(azimuth_samples, (int, np.integer)) \
+            or not 1 <= azimuth_samples <= 15:
+        raise ConfigError(f"sun_occlusion: azimuth_samples = {azimuth_samples!r} must be an integer in [1, 15]")
     gx, gy = float(gsd_x_m) * factor, float(gsd_y_m) * factor
-    coarse = _max_pool(dsm, factor) if factor > 1 else dsm
+    coarse = (_max_pool(dsm, factor) if factor > 1 else dsm).astype(np.float32, copy=False)
     if sun.elevation_deg >= 90.0:
         return ShadowGrid(np.zeros(coarse.shape, np.float32), gx, gy, factor)
     el = math.radians(sun.elevation_deg)
     rho = math.radians(SUN_ANGULAR_DIAMETER_DEG / 2.0) * penumbra_scale
-    # sweep for the lowest limb of the disc: then the occluder that sets the margin is one that hides some of
-    # the disc (a nearby bump with a larger height margin but a lower angle cannot win over it)
-    el_low = max(el - rho, 0.5 * el)
-    low = Sun(sun.azimuth_deg, math.degrees(el_low))
-    geo = _ray_geometry(gx, gy, low)
-    margin, dist = _sweep(_to_major(coarse.astype(np.float32, copy=False), geo.major_axis), geo, soft=True)
-    if rho > 0:
-        # horizon angle above the centre of the disc, in disc radii: (e cos^2(el_low) / D - (el - el_low)) / rho
-        margin *= np.float32(math.cos(el_low) ** 2 / rho)
-        np.divide(margin, dist, out=margin)
-        margin -= np.float32((el - el_low) / rho)
-        occ = _disc_fraction(margin).astype(np.float32, copy=False)
+    if rho == 0.0:
+        occ = (_angle_above(coarse, gx, gy, sun.azimuth_deg, el) > 0).astype(np.float32)
+    elif azimuth_samples == 1:
+        el_low = max(el - rho, 0.5 * el)
+        x = _angle_above(coarse, gx, gy, sun.azimuth_deg, el_low)
+        x -= np.float32(el - el_low)           # horizon above the disc centre ...
+        x *= np.float32(1.0 / rho)             # ... in disc radii
+        occ = _disc_fraction(x).astype(np.float32, copy=False)
     else:
-        occ = (margin > 0).astype(np.float32)
-    occ = _from_major(occ, geo.major_axis)
+        # vertical strips of the disc: centre offset u (radii), half-height c, area weight ~ c
+        n = int(azimuth_samples)
+        us = -1.0 + (2.0 * np.arange(n) + 1.0) / n
+        cs = np.sqrt(1.0 - us * us)
+        occ = np.zeros(coarse.shape, np.float32)
+        for u, c in zip(us, cs, strict=True):
+            el_low = max(el - c * rho, 0.5 * el)
+            az = sun.azimuth_deg + math.degrees(u * rho / math.cos(el))
+            x = _angle_above(coarse, gx, gy, az, el_low)
+            x -= np.float32(el - c * rho - el_low)     # horizon above the strip's bottom ...
+            x *= np.float32(1.0 / (2.0 * c * rho))     # ... as a fraction of the strip's height
+            np.clip(x, 0.0, 1.0, out=x)
+            occ += np.float32(c / cs.sum()) * x
     if antialias_px > 0:
         occ = cv2.GaussianBlur(occ, (0, 0), antialias_px, borderType=cv2.BORDER_REPLICATE)
     return ShadowGrid(occ, gx, gy, factor)
@@ -467,15 +491,15 @@ def combine_occlusion(*fields: np.ndarray) -> np.ndarray:
 
 def bake_shadows(rgb: np.ndarray, dsm_m: np.ndarray, gsd_x_m: float, gsd_y_m: float, sun: Sun, strength: float,
                  *, downsample: int = 1, penumbra_scale: float = 1.0, antialias_px: float = 0.7,
-                 shadow_ratio: float = 0.35, sky_tint_rgb: tuple[float, float, float] = (0.55, 0.65, 0.85),
-                 gamma: float = 2.2) -> np.ndarray:
+                 azimuth_samples: int = 1, shadow_ratio: float = 0.35,
+                 sky_tint_rgb: tuple[float, float, float] = (0.55, 0.65, 0.85), gamma: float = 2.2) -> np.ndarray:
     """A copy of the map image with the shadows of ``sun`` (time-of-day mismatch: a database taken at another
     hour than the flight). Same occlusion and shading as the camera frames."""
     img = np.asarray(rgb)
     if img.ndim != 3 or img.shape[:2] != np.shape(dsm_m):
         raise MapError(f"bake_shadows: rgb shape {img.shape} does not match dsm_m shape {np.shape(dsm_m)}")
     grid = sun_occlusion(dsm_m, gsd_x_m, gsd_y_m, sun, downsample=downsample, penumbra_scale=penumbra_scale,
-                         antialias_px=antialias_px)
+                         antialias_px=antialias_px, azimuth_samples=azimuth_samples)
     occ = upsample(grid, img.shape[:2])
     return apply_shading(img, occ, strength, shadow_ratio=shadow_ratio, sky_tint_rgb=sky_tint_rgb, gamma=gamma)
 
@@ -604,6 +628,7 @@ class ShadowConfig:
     gamma: float = field(default=2.2, metadata=rng_meta(1.0, 3.0))
     penumbra_scale: float = field(default=1.0, metadata=rng_meta(0.0, 100.0))
     antialias_px: float = field(default=0.7, metadata=rng_meta(0.0, 50.0))
+    penumbra_azimuth_samples: int = field(default=1, metadata=rng_meta(1, 15, doc="n sweeps: lateral penumbrae"))
     downsample: int = field(default=2, metadata=rng_meta(1, 64))
     bake_into_map: bool = False          # database carries shadows of another sun (time-of-day mismatch)
     cloud_cover: float = field(default=0.0, metadata=rng_meta(0.0, 1.0, doc="0 disables clouds"))
