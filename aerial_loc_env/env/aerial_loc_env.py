@@ -298,12 +298,12 @@ class AerialLocEnv(gym.Env):
         if self._track is None:
             raise AerialLocError(f"{self.scenario.id}: call reset() before step()")
         a = np.asarray(action)
-        if a.shape != (2,):
-            raise InvalidActionError(f"{self.scenario.id}: action must have shape (2,) (the normalized x, y "
-                                     f"estimate), got shape {a.shape}")
         if not np.issubdtype(a.dtype, np.floating):
             raise InvalidActionError(f"{self.scenario.id}: action must be a float array (float32), got dtype "
                                      f"{a.dtype}; convert positions with aerial_loc_env.env.world_to_action")
+        if a.shape != (2,):
+            raise InvalidActionError(f"{self.scenario.id}: action must have shape (2,) (the normalized x, y "
+                                     f"estimate), got shape {a.shape}")
         if not np.all(np.isfinite(a)):
             raise InvalidActionError(f"{self.scenario.id}: action {a.tolist()} has NaN/inf; an estimate must "
                                      "be finite")
@@ -374,6 +374,7 @@ class AerialLocEnv(gym.Env):
         level = self._renderer.pyramid_level(view_to_map)
         img = cv2.warpAffine(self._renderer.map_level(level), view_to_map / (1 << level), (n, n),
                              flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_CONSTANT)
+        img = np.ascontiguousarray(img[..., :3])       # the renderer may keep an RGBA copy of the map
         world_to_view = np.array([[1 / s, 0.0, -(cx - side / 2) / s - 0.5],
                                   [0.0, -1 / s, (cy + side / 2) / s - 0.5]])
         # the camera frame (with its shadows) pasted into its footprint

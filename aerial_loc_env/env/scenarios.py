@@ -200,9 +200,12 @@ def build_scenario(spec: Mapping[str, Any], overrides: Mapping[str, Any] | None 
         table = spec.get(name, {})
         if not isinstance(table, Mapping):
             raise ConfigError(f"{where}: [{name}] must be a table, got {table!r}")
-        base = build_config(cls_fn(), table, where=f"{where} [{name}]")
-        sections[name] = build_config(cls_fn(), extra.get(name), where=f"{sid} overrides [{name}]", base=base) \
-            if name in extra else base
+        if name in extra:
+            table = {**table, **extra[name]}
+            label = f"{sid} [{name}] (spec {where} + overrides {sorted(extra[name])})"
+        else:
+            label = f"{where} [{name}]"
+        sections[name] = build_config(cls_fn(), table, where=label)
     return Scenario(id=sid, description=str(spec.get("description", "")), source=where, sections=sections)
 
 

@@ -1,0 +1,107 @@
+"""Scenario specs: one per registered id, found at import, overrides validated with clear errors."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import pytest
+
+import aerial_loc_env  # noqa: F401  (registers the scenarios)
+from aerial_loc_env.env.scenarios import (
+    build_scenario,
+    load_scenario,
+    main,
+    scenario_spec_dict,
+    specs,
+    split_overrides,
+)
+from aerial_loc_env.errors import ConfigError, MapError
+from aerial_loc_env.paths import spec_dir
+
+REQUIRED = ("PaperShadows", "PaperNoShadows", "GlobalLocalization", "CloudShadows", "MavicPro", "RealMap", "Small")
+
+
+def test_every_spec_file_is_registered_and_required_ids_exist():
+    files = sorted(spec_dir("envs").glob("*.toml"))
+    ids = [sid for sid in gym.registry if sid.startswith("AerialLoc/")]
+    assert len(files) == len(specs()) == len(ids)
+    for name in REQUIRED:
+        assert f"AerialLoc/{name}-v0" in ids
+
+
+@pytest.mark.parametrize("sid", [s for s in specs() if s != "AerialLoc/RealMap-v0"])
+def test_specs_validate_and_round_trip(sid):
+    sc = load_scenario(sid)
+    again = build_scenario(sc.to_dict(), where="round trip")
+    assert again.sections == sc.sections
+
+
+def test_paper_defaults_follow_table_4():
+    sc = load_scenario("AerialLoc/PaperShadows-v0")
+    assert sc.flight.altitude_m == 200.0 and sc.flight.duration_s == 60.0 and sc.flight.rate_hz == 4.0
+    assert sc.flight.speed_mps * sc.flight.duration_s == pytest.approx(2500.0, rel=1e-3)
+    assert (sc.camera.width_px, sc.camera.height_px) == (600, 400)
+    assert (sc.city.width_m, sc.city.height_m, sc.city.gsd_m) == (1200.0, 1400.0, 0.25)
+    assert sc.episode.start == "tracking" and sc.episode.prior_std_m == 15.0
+    mavic = load_scenario("MavicPro")
+    assert mavic.camera.hfov_deg == 78.8 and mavic.flight.altitude_m == 100.0
+    assert load_scenario("global_localization").episode.start == "global"
+
+
+def test_three_override_forms_agree():
+    a = load_scenario("Small", {"altitude_m": 80.0})
+    b = load_scenario("Small", {"flight.altitude_m": 80.0})
+    c = load_scenario("Small", {"flight": {"altitude_m": 80.0}})
+    assert a.flight == b.flight == c.flight
+    assert a.flight.altitude_m == 80.0
+    assert a.flight.duration_s == load_scenario("Small").flight.duration_s  # the rest of the spec is kept
+
+
+@pytest.mark.parametrize("overrides, match", [
+    ({"altitude": 80.0}, "unknown key 'altitude'"),
+    ({"flight": {"altitud_m": 80.0}}, "unknown key.*altitud_m.*allowed keys"),
+    ({"weather.rain": 1.0}, "unknown section 'weather'"),
+    ({"width_px": 64}, "ambiguous.*camera.*observation"),
+    ({"altitude_m": -1.0}, "altitude_m.*out of range"),
+    ({"rate_hz": float("nan")}, "rate_hz.*finite"),
+    ({"start": "teleport"}, "start.*not allowed"),
+    ({"observation": {"width_px": 2}}, "width_px.*out of range"),
+    ({"duration_s": "long"}, "duration_s.*must be a number"),
+])
+def test_bad_overrides_are_clear_errors(overrides, match):
+    with pytest.raises(ConfigError, match=match):
+        load_scenario("AerialLoc/Small-v0", overrides)
+
+
+def test_gym_make_validates_overrides():
+    with pytest.raises(ConfigError, match="unknown key 'bogus'"):
+        gym.make("AerialLoc/Small-v0", bogus=1)
+    with pytest.raises(ConfigError, match="out of range"):
+        gym.make("AerialLoc/Small-v0", speed_mps=1e6)
+
+
+def test_real_map_needs_an_existing_path(tmp_path):
+    with pytest.raises(ConfigError, match="map.path"):
+        gym.make("AerialLoc/RealMap-v0")
+    with pytest.raises(MapError, match="does not exist"):
+        gym.make("AerialLoc/RealMap-v0", path=str(tmp_path / "nowhere.tif"))
+
+
+def test_unknown_scenario_lists_the_registered_ones():
+    with pytest.raises(ConfigError, match="AerialLoc/Small-v0"):
+        load_scenario("NoSuchScenario")
+
+
+def test_split_overrides_and_spec_dict():
+    assert split_overrides({"flight.altitude_m": 1.0, "camera": {"hfov_deg": 50.0}}) == {
+        "flight": {"altitude_m": 1.0}, "camera": {"hfov_deg": 50.0}}
+    d = scenario_spec_dict("Small", altitude_m=90.0)
+    assert d["id"] == "AerialLoc/Small-v0" and d["flight"]["altitude_m"] == 90.0
+
+
+def test_cli_lists_ids(capsys):
+    assert main([]) == 0
+    out = capsys.readouterr().out
+    for name in REQUIRED:
+        assert f"AerialLoc/{name}-v0" in out
+    assert main(["--show", "Small"]) == 0
+    assert "[flight]" in capsys.readouterr().out
