@@ -141,6 +141,13 @@ def test_bundle_round_trip_mmap_and_pickle(tmp_path):
     assert len(blob) < 1000 < om.rgb.nbytes                # the path, not the layers
     again = pickle.loads(blob)
     assert np.array_equal(again.dsm_m, om.dsm_m) and isinstance(again.rgb, np.memmap)
+    # a crop of a crop of a memory map also pickles as (bundle, window)
+    crop = back.crop(5, 6, 40, 30).crop(2, 3, 20, 10, name="small")
+    blob = pickle.dumps(crop)
+    assert len(blob) < 1000
+    again = pickle.loads(blob)
+    assert again.name == "small" and np.array_equal(again.rgb, om.rgb[9:19, 7:27])
+    assert again.georef == crop.georef
     # in-memory maps pickle their data
     mem = Orthomap.load_bundle(path, mmap=False)
     assert not isinstance(mem.rgb, np.memmap) and mem.bundle_path is None

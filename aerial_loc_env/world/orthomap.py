@@ -50,7 +50,8 @@ class Orthomap:
     classes: np.ndarray | None = None
     name: str = "map"
     source: str | None = None
-    _bundle: tuple[str, str] | None = field(default=None, init=False, repr=False)   # (path, bundle_id)
+    # memory-mapped maps: (bundle path, bundle_id, crop window (u0, v0, w, h) or None, name) for cheap pickling
+    _bundle: tuple | None = field(default=None, init=False, repr=False)
 
     def __post_init__(self) -> None:
         where = f"Orthomap '{self.name}'"
@@ -165,9 +166,14 @@ class Orthomap:
         def cut(a: np.ndarray | None) -> np.ndarray | None:
             return None if a is None else a[sl]
 
-        return Orthomap(self.rgb[sl], self.gsd_x_m, self.gsd_y_m, self.georef.shifted(u0, v0),
-                        cut(self.dsm_m), cut(self.nodata), cut(self.classes), name or f"{self.name}_crop",
-                        self.source)
+        out = Orthomap(self.rgb[sl], self.gsd_x_m, self.gsd_y_m, self.georef.shifted(u0, v0),
+                       cut(self.dsm_m), cut(self.nodata), cut(self.classes), name or f"{self.name}_crop",
+                       self.source)
+        if self._bundle is not None:   # a crop of a memory map still pickles as (bundle, window)
+            path, bundle_id, win, _ = self._bundle
+            pu, pv = (0, 0) if win is None else win[:2]
+            object.__setattr__(out, "_bundle", (path, bundle_id, (pu + u0, pv + v0, w, h), out.name))
+        return out
 
     # --- bundles ----------------------------------------------------------------------------------------------
 
@@ -241,7 +247,7 @@ class Orthomap:
         except MapError as exc:
             raise MapError(f"{path}: {exc}") from exc
         if mmap:
-            object.__setattr__(om, "_bundle", (str(path), meta["bundle_id"]))
+            object.__setattr__(om, "_bundle", (str(path), meta["bundle_id"], None, om.name))
         return om
 
     @property
@@ -276,8 +282,8 @@ def read_bundle_meta(path: str | os.PathLike) -> dict:
     return meta
 
 
-def _unpickle_bundle(path: str, bundle_id: str) -> Orthomap:
+def _unpickle_bundle(path: str, bundle_id: str, window: tuple[int, int, int, int] | None, name: str) -> Orthomap:
     om = Orthomap.load_bundle(path, mmap=True)
     if om._bundle is None or om._bundle[1] != bundle_id:
         raise MapError(f"{path}: the bundle was replaced after this map was pickled (bundle_id changed)")
-    return om
+    return om if window is None else om.crop(*window, name=name)
