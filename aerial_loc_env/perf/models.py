@@ -79,4 +79,5 @@ BENCHMARKS = [
     Benchmark("MCL step NCC 60x40, N=700", _model_step("ncc"), target_s=0.005, unit="step"),
     Benchmark("MCL step MI 60x40 16 bins, N=700", _model_step("mi"), target_s=0.015, unit="step"),
     Benchmark("MCL step abBRIEF 60x40 12x64x2 bits, N=700", _model_step("abbrief"), unit="step"),
+    Benchmark("MCL step edges 6x4 cells (incl. camera features), N=700", _model_step("edges"), unit="step"),
 ]
