@@ -399,3 +399,17 @@ def test_shadow_config_ranges_and_draws():
     with pytest.raises(ConfigError, match="elevation"):
         sun_from_ranges(rng, (0, 360), (40, 30))
     assert set(cfg.shading_kwargs()) == {"shadow_ratio", "sky_tint_rgb", "gamma"}
+
+
+def test_database_sun_bakes_shadows_of_another_hour():
+    dsm = np.zeros((60, 70), np.float32)
+    dsm[30:40, 30:40] = 8.0
+    img = np.full((60, 70, 3), 150, np.uint8)
+    assert build_config(ShadowConfig, {}).database_image(img, dsm, 0.25, 0.25) is img
+    cfg = build_config(ShadowConfig, {"database_sun_deg": [90.0, 40.0], "downsample": 1})
+    baked = cfg.database_image(img, dsm, 0.25, 0.25)
+    np.testing.assert_array_equal(baked, bake_shadows(img, dsm, 0.25, 0.25, Sun(90.0, 40.0), 1.0))
+    with pytest.raises(MapError, match="height model"):
+        cfg.database_image(img, None, 0.25, 0.25)
+    with pytest.raises(ConfigError, match="database_sun_deg"):
+        build_config(ShadowConfig, {"database_sun_deg": [90.0, 0.0]}, where="envs/x.toml")

@@ -630,7 +630,9 @@ class ShadowConfig:
     antialias_px: float = field(default=0.7, metadata=rng_meta(0.0, 50.0))
     penumbra_azimuth_samples: int = field(default=1, metadata=rng_meta(1, 15, doc="n sweeps: lateral penumbrae"))
     downsample: int = field(default=2, metadata=rng_meta(1, 64))
-    bake_into_map: bool = False          # database carries shadows of another sun (time-of-day mismatch)
+    # time-of-day mismatch: the database carries the shadows of this (azimuth, elevation) sun; None = shadow-free
+    database_sun_deg: tuple[float, float] | None = None
+    database_strength: float = field(default=1.0, metadata=rng_meta(0.0, 1.0))
     cloud_cover: float = field(default=0.0, metadata=rng_meta(0.0, 1.0, doc="0 disables clouds"))
     cloud_scale_m: float = field(default=150.0, metadata=rng_meta(5.0, 1e5))
     cloud_edge_m: float = field(default=20.0, metadata=rng_meta(0.0, 1e4, lo_open=True))
@@ -646,6 +648,12 @@ class ShadowConfig:
             raise ConfigError(f"{where}: sun ranges must be (lo, hi) pairs")
         if len(self.sky_tint_rgb) != 3:
             raise ConfigError(f"{where}: field 'sky_tint_rgb' must have three values (R, G, B)")
+        if self.database_sun_deg is not None:
+            try:
+                Sun(*self.database_sun_deg)
+            except (ConfigError, TypeError) as exc:
+                raise ConfigError(f"{where}: field 'database_sun_deg' = {self.database_sun_deg!r} must be "
+                                  f"[azimuth in [0, 360), elevation in (0, 90]] or absent ({exc})") from None
 
     def draw_sun(self, rng: np.random.Generator) -> Sun:
         return sun_from_ranges(rng, self.sun_azimuth_range_deg, self.sun_elevation_range_deg)
@@ -664,6 +672,19 @@ class ShadowConfig:
         return CloudField(rng, extent_x_m, extent_y_m, cover=self.cloud_cover, scale_m=self.cloud_scale_m,
                           drift_mps=(speed * math.cos(heading), speed * math.sin(heading)),
                           edge_m=self.cloud_edge_m, cell_m=self.cloud_cell_m)
+
+    def database_image(self, rgb: np.ndarray, dsm_m: np.ndarray | None, gsd_x_m: float,
+                       gsd_y_m: float) -> np.ndarray:
+        """The database image: ``rgb`` itself, or a copy with the shadows of ``database_sun_deg`` baked in."""
+        if self.database_sun_deg is None:
+            return rgb
+        if dsm_m is None:
+            raise MapError("ShadowConfig.database_sun_deg needs a map with a height model (dsm_m); this map has "
+                           "none: remove database_sun_deg or use a map with a DSM")
+        return bake_shadows(rgb, dsm_m, gsd_x_m, gsd_y_m, Sun(*self.database_sun_deg), self.database_strength,
+                            downsample=self.downsample, penumbra_scale=self.penumbra_scale,
+                            antialias_px=self.antialias_px, azimuth_samples=self.penumbra_azimuth_samples,
+                            **self.shading_kwargs())
 
     def shading_kwargs(self) -> dict:
         """Keyword arguments of apply_shading / bake_shadows taken from this config."""
