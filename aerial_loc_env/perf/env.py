@@ -1,0 +1,56 @@
+"""Env speed: steps per second on one core, resets included (one call = one whole episode).
+
+Targets (issue 3): the paper's 600 x 400 camera with cast shadows >= 300 steps/s; the small learned-policy
+observation (64 x 64) >= 2000 steps/s. Each call resets with a new seed (track, sun, shadows over the track's
+region, noise bank) and steps to the end of the track, so the per-step figure amortizes the reset.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+
+from . import Benchmark
+
+
+def _episode_setup(scenario: str, **overrides) -> Callable[[], Callable[[], object]]:
+    def setup() -> Callable[[], object]:
+        import aerial_loc_env  # noqa: F401  (registers the scenarios)
+        from aerial_loc_env.env import AerialLocEnv
+
+        env = AerialLocEnv(scenario, **overrides)
+        action = np.zeros(2, np.float32)
+        seeds = iter(range(10**9))
+
+        def episode() -> int:
+            env.reset(seed=next(seeds))
+            n = 0
+            while True:
+                _, _, term, trunc, _ = env.step(action)
+                n += 1
+                if term or trunc:
+                    return n
+
+        return episode
+
+    return setup
+
+
+def _steps(scenario: str) -> int:
+    from aerial_loc_env.env.scenarios import load_scenario
+
+    return load_scenario(scenario).flight.steps
+
+
+BENCHMARKS = [
+    Benchmark(name="env episode PaperShadows 600x400 + cast shadows (per step)",
+              setup=_episode_setup("AerialLoc/PaperShadows-v0"), target_s=1 / 300, unit="step", repeats=5,
+              per_call_items=_steps("AerialLoc/PaperShadows-v0")),
+    Benchmark(name="env episode Small 64x64 + cast shadows (per step)",
+              setup=_episode_setup("AerialLoc/Small-v0"), target_s=1 / 2000, unit="step", repeats=20,
+              per_call_items=_steps("AerialLoc/Small-v0")),
+    Benchmark(name="env episode CloudShadows 600x400 (per step)",
+              setup=_episode_setup("AerialLoc/CloudShadows-v0"), target_s=None, unit="step", repeats=5,
+              per_call_items=_steps("AerialLoc/CloudShadows-v0")),
+]
