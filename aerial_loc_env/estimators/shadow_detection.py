@@ -9,7 +9,9 @@ Detector: a per-pixel shadow index on a reduced copy of the frame, an Otsu thres
 - ``"tsai"``: Tsai's (2006) ratio ``(H + 1) / (I + 1)`` of hue and intensity (HSV) scaled to [0, 1].
 
 Otsu always splits an image in two, so a frame without shadows would still get a "shadow" class; the split is
-kept only if the shadow class is clearly darker than the rest (mean luminance ratio ``<= max_luminance_ratio``).
+kept only if the shadow class is clearly darker than the rest (mean luminance ratio ``<= max_luminance_ratio``)
+and, for the c3 indices, bluer (mean normalized c3 higher by ``>= min_blue_shift``): sky light is blue, so a
+dark but neutral or green region (asphalt, trees) is not taken for a shadow.
 Small specks are removed by an opening, holes closed by a closing (kernels in reduced pixels).
 
 Restoration maps shadow pixels by a per-channel look-up table (so it costs nothing per sample point):
@@ -44,8 +46,10 @@ class ShadowDetectorConfig:
     scale: float = field(default=0.25, metadata=rng(0.02, 1.0, doc="working resolution / frame resolution"))
     open_px: int = field(default=1, metadata=rng(0, 50, doc="opening radius (reduced px), removes specks"))
     close_px: int = field(default=1, metadata=rng(0, 50, doc="closing radius (reduced px), fills holes"))
-    max_luminance_ratio: float = field(default=0.7, metadata=rng(0.0, 1.0, doc="shadow/lit mean luminance "
+    max_luminance_ratio: float = field(default=0.8, metadata=rng(0.0, 1.0, doc="shadow/lit mean luminance "
                                                                                   "above which: no shadow"))
+    min_blue_shift: float = field(default=0.01, metadata=rng(-1.0, 1.0, doc="c3 indices: shadow minus lit mean "
+                                                                             "c3 below which: no shadow"))
 
 
 @dataclass(frozen=True)
@@ -79,20 +83,25 @@ def _disc(radius: int) -> np.ndarray:
     return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
 
 
-def shadow_index(small_rgb: np.ndarray, index: str) -> tuple[np.ndarray, np.ndarray]:
-    """(index in [0, 1], luminance in [0, 255]) as float32 images of an RGB uint8 image."""
-    f = small_rgb.astype(np.float32)
+def c3_invariant(rgb: np.ndarray) -> np.ndarray:
+    """``arctan(B / max(R, G))`` scaled to [0, 1] (float32)."""
+    f = rgb.astype(np.float32)
+    return np.arctan2(f[..., 2], np.maximum(np.maximum(f[..., 0], f[..., 1]), 1.0)) * np.float32(2.0 / np.pi)
+
+
+def shadow_index(small_rgb: np.ndarray, index: str) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """(index in [0, 1], luminance in [0, 255], c3 or None) as float32 images of an RGB uint8 image."""
     lum = cv2.cvtColor(small_rgb, cv2.COLOR_RGB2GRAY).astype(np.float32)
     if index == "luminance":
-        return 1.0 - lum / 255.0, lum
+        return 1.0 - lum / 255.0, lum, None
     if index == "tsai":
         hsv = cv2.cvtColor(small_rgb, cv2.COLOR_RGB2HSV).astype(np.float32)   # H in [0, 180), V in [0, 255]
         ratio = (hsv[..., 0] / 180.0 * 255.0 + 1.0) / (hsv[..., 2] + 1.0)
-        return ratio / (1.0 + ratio), lum
-    c3 = np.arctan2(f[..., 2], np.maximum(np.maximum(f[..., 0], f[..., 1]), 1.0)) * np.float32(2.0 / np.pi)
+        return ratio / (1.0 + ratio), lum, None
+    c3 = c3_invariant(small_rgb)
     if index == "c3":
-        return c3, lum
-    return 0.5 * (c3 + 1.0 - lum / 255.0), lum
+        return c3, lum, c3
+    return 0.5 * (c3 + 1.0 - lum / 255.0), lum, c3
 
 
 class ShadowDetector:
@@ -118,7 +127,7 @@ class ShadowDetector:
         if img.ndim != 3 or img.shape[2] != 3 or img.dtype != np.uint8:
             raise ConfigError(f"shadow detector: expected an (H, W, 3) uint8 RGB frame, got {img.shape} {img.dtype}")
         small = self.reduce(img) if small is None else small
-        idx, lum = shadow_index(small, self.config.index)
+        idx, lum, c3 = shadow_index(small, self.config.index)
         idx8 = np.clip(idx * 255.0, 0, 255).astype(np.uint8)
         _, binary = cv2.threshold(idx8, 0, 1, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
         mask = binary.astype(bool)
@@ -126,7 +135,8 @@ class ShadowDetector:
         if n_in == 0 or n_in == mask.size:
             return ShadowMask(np.zeros(mask.shape, bool), img.shape[:2])
         ratio = float(lum[mask].mean()) / max(float(lum[~mask].mean()), 1e-6)
-        if ratio > self.config.max_luminance_ratio:
+        bluer = c3 is None or float(c3[mask].mean()) - float(c3[~mask].mean()) >= self.config.min_blue_shift
+        if ratio > self.config.max_luminance_ratio or not bluer:
             return ShadowMask(np.zeros(mask.shape, bool), img.shape[:2])
         if self._open is not None:
             binary = cv2.morphologyEx(binary, cv2.MORPH_OPEN, self._open)

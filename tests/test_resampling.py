@@ -1,0 +1,90 @@
+"""Resampling schemes: unbiasedness (statistical, fixed seed), their variance ordering properties, ESS and the
+log-sum-exp normalization."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from aerial_loc_env.errors import ConfigError
+from aerial_loc_env.estimators.mcl import resampling
+
+SCHEMES = sorted(resampling.SCHEMES)
+
+
+def _weights(n: int = 12, seed: int = 3) -> np.ndarray:
+    W = np.random.default_rng(seed).dirichlet(np.full(n, 0.7))
+    return W
+
+
+@pytest.mark.parametrize("name", SCHEMES)
+def test_scheme_is_unbiased(name: str) -> None:
+    """E[copies of n] = M W_n. Over R independent resamplings the mean count has standard error at most
+    sqrt(M W (1 - W) / R) (the multinomial variance bounds all five schemes), so 5 standard errors (plus a
+    1e-9 floor for the zero-variance cases) is a test that fails with probability < 1e-5 per particle."""
+    W = _weights()
+    M, R = W.size, 4000
+    rng = np.random.default_rng(0)
+    fn = resampling.get_scheme(name)
+    counts = np.zeros(W.size)
+    for _ in range(R):
+        idx = fn(W, M, rng)
+        assert idx.shape == (M,) and idx.min() >= 0 and idx.max() < W.size
+        counts += np.bincount(idx, minlength=W.size)
+    mean = counts / R
+    se = np.sqrt(M * W * (1 - W) / R)
+    assert np.all(np.abs(mean - M * W) <= 5 * se + 1e-9), (name, mean, M * W)
+
+
+@pytest.mark.parametrize("name", ["systematic", "low_variance"])
+def test_comb_schemes_keep_counts_within_one_of_expectation(name: str) -> None:
+    """A comb of M evenly spaced teeth hits an interval of length W_n floor(M W_n) or ceil(M W_n) times."""
+    W = _weights(50, seed=5)
+    rng = np.random.default_rng(1)
+    for _ in range(200):
+        c = np.bincount(resampling.get_scheme(name)(W, W.size, rng), minlength=W.size)
+        assert np.all(c >= np.floor(W.size * W) - 1e-9) and np.all(c <= np.ceil(W.size * W) + 1e-9)
+
+
+def test_residual_keeps_the_deterministic_copies() -> None:
+    W = _weights(30, seed=7)
+    rng = np.random.default_rng(2)
+    for _ in range(100):
+        c = np.bincount(resampling.residual(W, W.size, rng), minlength=W.size)
+        assert np.all(c >= np.floor(W.size * W))
+        assert c.sum() == W.size
+
+
+def test_multinomial_is_noisier_than_systematic() -> None:
+    """The point of the low-variance schemes: the spread of the copy counts is smaller."""
+    W = _weights(40, seed=9)
+    rng = np.random.default_rng(3)
+    var = {}
+    for name in ("multinomial", "systematic"):
+        c = np.array([np.bincount(resampling.get_scheme(name)(W, W.size, rng), minlength=W.size)
+                      for _ in range(500)])
+        var[name] = float(c.var(axis=0).sum())
+    assert var["systematic"] < 0.5 * var["multinomial"]
+
+
+def test_degenerate_weights_copy_the_one_particle() -> None:
+    W = np.zeros(20)
+    W[7] = 1.0
+    for name in SCHEMES:
+        assert np.all(resampling.get_scheme(name)(W, 20, np.random.default_rng(0)) == 7)
+
+
+def test_ess_and_normalization() -> None:
+    assert resampling.ess(np.full(100, 0.01)) == pytest.approx(100)
+    W, log_mean = resampling.normalize_log_weights(np.array([1000.0, 1000.0, -np.inf, 1000.0 - np.log(2)]))
+    np.testing.assert_allclose(W, [0.4, 0.4, 0.0, 0.2])
+    assert log_mean == pytest.approx(1000.0 + np.log(2.5 / 4))
+    assert resampling.ess(W) == pytest.approx(1 / (0.16 + 0.16 + 0.04))
+    W, log_mean = resampling.normalize_log_weights(np.full(5, -np.inf))
+    np.testing.assert_allclose(W, 0.2)
+    assert log_mean == -np.inf
+
+
+def test_unknown_scheme_is_a_clear_error() -> None:
+    with pytest.raises(ConfigError, match="multinomial"):
+        resampling.get_scheme("bogus")
