@@ -88,7 +88,7 @@ def write_pictures(out: Path, *, map_path: str | None = None, seed: int = 0, alt
         shadow_note = f"sun az {sun.azimuth_deg:.0f} deg, el {sun.elevation_deg:.0f} deg"
     else:
         occlusion = shadow_cfg.draw_clouds(rng, orthomap.width_m, orthomap.height_m)
-        shadow_note = f"cloud shadows, cover {shadow_cfg.cloud_cover:.0%}"
+        shadow_note = f"cloud shadows at t = 0 s (they drift), cover {shadow_cfg.cloud_cover:.0%}"
     renderer = CameraRenderer(orthomap, camera, Photometry(), noise_seed=rng)
 
     picks = np.linspace(0, len(track) - 1, n_frames + 2)[1:-1].round().astype(int)

@@ -262,3 +262,35 @@ def test_bad_inputs_are_clear_errors():
         renderer.render(Pose(50.0, 50.0, 0.0, -1.0), np.random.default_rng(0))
     with pytest.raises(ConfigError, match="occlusion must be"):
         renderer.render(Pose(50.0, 50.0, 0.0, 20.0), np.random.default_rng(0), occlusion="shadows")
+
+
+def test_pictures_writes_overview_and_frame_pairs(tmp_path):
+    from aerial_loc_env.pictures import main, write_pictures
+
+    rng = np.random.default_rng(4)
+    rgb = smooth_map(600)
+    dsm = np.zeros((600, 600), np.float32)
+    for u, v in rng.integers(20, 560, (30, 2)):
+        dsm[v:v + 20, u:u + 25] = rng.uniform(3.0, 12.0)
+        rgb[v:v + 20, u:u + 25] = 200
+    georef = LocalTangentGeoref(origin_lat_deg=47.0, origin_lon_deg=8.0, gsd_x_m=GSD, gsd_y_m=GSD)
+    orthomap = Orthomap(rgb=rgb, gsd_x_m=GSD, gsd_y_m=GSD, georef=georef, dsm_m=dsm, name="tiny")
+    written = write_pictures(tmp_path, seed=3, altitude_m=30.0, n_frames=2, orthomap=orthomap)
+    names = sorted(p.name for p in written)
+    assert names == sorted(["overview.png", "overview_shadows.png", "contact_sheet.png"]
+                           + [f"frame_{k:02d}_{kind}.png" for k in range(2) for kind in ("database", "camera", "pair")])
+    overview = cv2.imread(str(tmp_path / "overview.png"))
+    assert overview.shape[1] == 600 and overview.shape[0] > 600          # the map plus a caption banner
+    camera = cv2.imread(str(tmp_path / "frame_00_camera.png"))
+    pair = cv2.imread(str(tmp_path / "frame_00_pair.png"))
+    assert camera.shape == (400, 600, 3)
+    assert np.array_equal(pair[-400:, 606:1206], camera)                # database | camera | mask
+    assert main(["--out", str(tmp_path / "bad"), "--frames", "0"]) == 2
+
+
+def test_rgb_and_rgba_warp_paths_give_the_same_bytes():
+    orthomap = make_map(smooth_map(800))
+    pose = Pose(97.3, 101.1, 2.1, 55.0)
+    frames = [CameraRenderer(orthomap, CAM, noise_seed=1, rgba=flag).render(pose, np.random.default_rng(2))
+              for flag in (True, False)]
+    assert np.array_equal(frames[0].image, frames[1].image)

@@ -32,7 +32,7 @@ FootprintStatus = Literal["valid", "outside", "nodata"]
 OcclusionSource = Any  # np.ndarray (map-sized float32) | world.shadows.ShadowGrid | world.shadows.CloudField
 
 _WARP_FLAGS = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
-_RGBA_MAX_PX = 64_000_000  # maps up to this many pixels get an RGBA copy (faster warps)
+_RGBA_MAX_PX = 32_000_000  # maps up to this many pixels get an RGBA copy (faster warps; the default city: 27 Mpx)
 _NOISE_MARGIN_PX = 97  # the noise bank is this much larger than a frame in each direction (random offsets)
 _BLOCK_PX = 16  # no-data screening block (map pixels)
 
@@ -87,10 +87,12 @@ class CameraRenderer:
     ``orthomap`` needs ``rgb`` (H, W, 3) uint8, ``gsd_x_m``, ``gsd_y_m``, ``height_px``, ``width_px`` and
     optionally ``nodata`` (H, W) bool (the ``Orthomap`` contract). The map pyramid is built lazily, once per
     level. ``noise_seed`` seeds the first noise bank; call ``reset(rng)`` at each episode to redraw it.
+    ``rgba``: keep a private RGBA copy of the map for twice faster warps (default: maps up to 32 Mpx).
     """
 
     def __init__(self, orthomap: Any, camera: CameraModel | None = None, photometry: Photometry | None = None,
-                 *, strict: bool = True, noise_seed: int | np.random.Generator = 0) -> None:
+                 *, strict: bool = True, noise_seed: int | np.random.Generator = 0,
+                 rgba: bool | None = None) -> None:
         rgb = orthomap.rgb
         if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
             raise ConfigError(f"CameraRenderer: map '{getattr(orthomap, 'name', 'map')}' rgb must be (H, W, 3) "
@@ -100,8 +102,9 @@ class CameraRenderer:
         self.photometry = photometry or Photometry()
         self.strict = strict
         # OpenCV's bilinear warp is about twice as fast on 4-channel pixels (same bytes per channel), so maps
-        # that fit comfortably in memory are kept as RGBA; huge (memory-mapped) maps are warped as they are.
-        self._rgba = rgb.shape[0] * rgb.shape[1] <= _RGBA_MAX_PX
+        # up to _RGBA_MAX_PX get a private RGBA copy (4 bytes/px, not shared between processes like a
+        # memory-mapped map); larger ones are warped as they are. Both give the same bytes.
+        self._rgba = rgb.shape[0] * rgb.shape[1] <= _RGBA_MAX_PX if rgba is None else bool(rgba)
         self._levels: list[np.ndarray] = [cv2.cvtColor(rgb, cv2.COLOR_RGB2RGBA) if self._rgba else rgb]
         nodata = getattr(orthomap, "nodata", None)
         self._nodata_levels: list[np.ndarray] | None = None
@@ -194,7 +197,7 @@ class CameraRenderer:
     def map_level(self, level: int) -> np.ndarray:
         """Level ``level`` of the map's Gaussian pyramid (pixel ``u_L = u_0 / 2**L``), built on first use.
 
-        RGBA (alpha unused) for maps up to 64 Mpx, else RGB."""
+        RGBA (alpha unused) for maps up to 32 Mpx unless the constructor says otherwise, else RGB."""
         while len(self._levels) <= level:
             self._levels.append(cv2.pyrDown(np.ascontiguousarray(self._levels[-1])))
         return self._levels[level]
