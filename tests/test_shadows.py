@@ -394,6 +394,8 @@ def test_shadow_config_ranges_and_draws():
         build_config(ShadowConfig, {"sun_colour": 1}, where="envs/test.toml")
     with pytest.raises(ConfigError, match="envs/test.toml.*sun_elevation_range_deg"):
         build_config(ShadowConfig, {"sun_elevation_range_deg": [0, 30]}, where="envs/test.toml")
+    with pytest.raises(ConfigError, match="cloud_edge_m"):
+        build_config(ShadowConfig, {"cloud_edge_m": -1.0})
     with pytest.raises(ConfigError, match="lo <= hi"):
         build_config(ShadowConfig, {"strength_range": [0.9, 0.2]})
     with pytest.raises(ConfigError, match="elevation"):

@@ -26,6 +26,7 @@ from typing import NamedTuple
 import cv2
 import numpy as np
 
+from ..config import check_value
 from ..config import rng as rng_meta
 from ..errors import ConfigError, MapError
 
@@ -512,7 +513,8 @@ class CloudField:
 
     Band-limited noise (Gaussian spectra at ``scale_m``, /2, /4: large shapes with ragged edges) made periodic by
     construction (FFT), thresholded at the quantile that gives ``cover``, with a smoothstep ramp about ``edge_m``
-    wide across the edges (a cloud 1-2 km up has a 9-19 m penumbra, and its own edges are diffuse), so the
+    wide across the edges (a cloud 1-2 km up has a 9-19 m penumbra, and its own edges are diffuse; default
+    min(20 m, scale_m / 4) so that small clouds keep a core), so the
     covered fraction (occlusion >= 0.5) equals ``cover`` up to one grid cell. The field moves with
     ``drift_mps`` (east, north): occlusion_t(x, y) = occlusion_0(x - vx t, y - vy t).
     Grid pixel (i, j) has its centre at world x = (j + 0.5) cell_m, y = (rows - 0.5 - i) cell_m (north up, like a
@@ -520,9 +522,11 @@ class CloudField:
     """
 
     def __init__(self, rng: np.random.Generator, extent_x_m: float, extent_y_m: float, *, cover: float = 0.4,
-                 scale_m: float = 150.0, drift_mps: tuple[float, float] = (3.0, 1.0), edge_m: float = 20.0,
+                 scale_m: float = 150.0, drift_mps: tuple[float, float] = (3.0, 1.0), edge_m: float | None = None,
                  cell_m: float = 2.0):
         where = "CloudField"
+        if edge_m is None:
+            edge_m = min(20.0, 0.25 * scale_m)
         for name, v, lo, hi in (("extent_x_m", extent_x_m, 0.0, 1e6), ("extent_y_m", extent_y_m, 0.0, 1e6),
                                 ("scale_m", scale_m, 0.0, 1e5), ("cell_m", cell_m, 0.0, 1e3),
                                 ("edge_m", edge_m, 0.0, 1e4)):
@@ -635,7 +639,7 @@ class ShadowConfig:
     database_strength: float = field(default=1.0, metadata=rng_meta(0.0, 1.0))
     cloud_cover: float = field(default=0.0, metadata=rng_meta(0.0, 1.0, doc="0 disables clouds"))
     cloud_scale_m: float = field(default=150.0, metadata=rng_meta(5.0, 1e5))
-    cloud_edge_m: float = field(default=20.0, metadata=rng_meta(0.0, 1e4, lo_open=True))
+    cloud_edge_m: float | None = None    # soft edge width; None = min(20 m, cloud_scale_m / 4)
     cloud_speed_range_mps: tuple[float, float] = field(default=(2.0, 8.0), metadata=rng_meta(0.0, 100.0))
     cloud_cell_m: float = field(default=2.0, metadata=rng_meta(0.0, 1e3, lo_open=True))
 
@@ -648,6 +652,8 @@ class ShadowConfig:
             raise ConfigError(f"{where}: sun ranges must be (lo, hi) pairs")
         if len(self.sky_tint_rgb) != 3:
             raise ConfigError(f"{where}: field 'sky_tint_rgb' must have three values (R, G, B)")
+        if self.cloud_edge_m is not None:
+            check_value("cloud_edge_m", self.cloud_edge_m, rng_meta(0.0, 1e4, lo_open=True), where)
         if self.database_sun_deg is not None:
             try:
                 Sun(*self.database_sun_deg)
