@@ -96,6 +96,9 @@ def test_resized_keeps_the_footprint():
         assert small.footprint_m(173.0) == pytest.approx(cam.footprint_m(173.0), rel=1e-12)
         corners = small.footprint_corners_m(5, 6, 1.0, 173.0)
         assert np.allclose(corners, cam.footprint_corners_m(5, 6, 1.0, 173.0))
+        s, r = small.scale_rotation(GridStandIn(), 1.0, 173.0)
+        lin = small.camera_to_map(GridStandIn(), 5, 6, 1.0, 173.0)[:, :2]
+        assert np.allclose(s @ r @ np.diag([1.0, small.pixel_aspect]), lin)
 
 
 @pytest.mark.parametrize("override", [{"width_px": 0}, {"hfov_deg": 180.0}, {"hfov_deg": -3}, {"bogus": 1}])
