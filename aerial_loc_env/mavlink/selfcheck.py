@@ -220,9 +220,10 @@ class LibmavCollector:
         self.port = port or free_udp_port()
         self.messages: list[tuple[float, str, dict, dict]] = []
         self._lock = threading.Lock()
-        message_set = libmav.MessageSet(str(common_xml()))
+        # keep references: the runtime does not own them (pybind11), freeing them early crashes libmav
+        self._message_set = libmav.MessageSet(str(common_xml()))
         self._server = libmav.UDPServer(self.port)
-        self._runtime = libmav.NetworkRuntime(libmav.Identifier(250, 1), message_set, self._server)
+        self._runtime = libmav.NetworkRuntime(libmav.Identifier(250, 1), self._message_set, self._server)
         self._conn = None
 
     def wait_connection(self, timeout_s: float = 3.0) -> None:
