@@ -83,3 +83,37 @@ def markdown_report(title: str, description: str, rows: Sequence[dict], machine:
              summary_table(summaries), ""]
     parts.extend(extra_sections)
     return "\n".join(parts)
+
+
+def paper_sections(experiment: str, rows: Sequence[dict]) -> list[str]:
+    """Tables beside the paper's, for the experiments that reproduce one (matched by agent-spec name)."""
+    if experiment == "table5":
+        return [_table5(rows)]
+    return []
+
+
+def _family(name: str) -> str | None:
+    for fam in ("shadow-aware", "restoration", "conventional"):
+        if fam in name:
+            return fam
+    return None
+
+
+def _table5(rows: Sequence[dict]) -> str:
+    cells: dict[tuple[str, int], list[np.ndarray]] = {}
+    for r in rows:
+        fam = _family(r["agent_spec"]["name"])
+        k = r["agent_spec"]["params"].get("num_pairs")
+        if fam and k is not None:
+            cells.setdefault((fam, int(k)), []).append(np.asarray(r["errors_m"], float))
+    ks = sorted({k for _, k in cells})
+    lines = ["## Table 5 (RMSE [m], ours / paper)", "", "| RMSE [m] | " + " | ".join(f"K = {k}" for k in ks) + " |",
+             "|---|" + "---|" * len(ks)]
+    for fam in ("conventional", "restoration", "shadow-aware"):
+        vals = []
+        for k in ks:
+            errs = cells.get((fam, k))
+            ours = _fmt(float(np.sqrt(np.mean(np.concatenate(errs) ** 2)))) if errs else "-"
+            vals.append(f"{ours} / {_fmt(PAPER_TABLE5[fam].get(k))}")
+        lines.append(f"| {fam} | " + " | ".join(vals) + " |")
+    return "\n".join(lines) + "\n"
