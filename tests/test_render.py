@@ -294,3 +294,12 @@ def test_rgb_and_rgba_warp_paths_give_the_same_bytes():
     frames = [CameraRenderer(orthomap, CAM, noise_seed=1, rgba=flag).render(pose, np.random.default_rng(2))
               for flag in (True, False)]
     assert np.array_equal(frames[0].image, frames[1].image)
+
+
+def test_warp_map_is_the_same_warp_as_database_patches():
+    renderer = ideal(make_map(smooth_map(800)))
+    pose = Pose(100.0, 90.0, -0.6, 70.0)
+    view = renderer.warp_map(renderer.camera_to_map(pose), (CAM.width_px, CAM.height_px))
+    assert np.array_equal(view, renderer.database_patch(pose))
+    with pytest.raises(ConfigError, match="2x3"):
+        renderer.warp_map(np.eye(3), (10, 10))

@@ -224,8 +224,21 @@ class CameraRenderer:
             self._check(pose, self._status(affine, level, camera), True, camera)
         return self._warp(affine, level, camera)
 
+    def warp_map(self, image_to_map: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+        """Any view of the map: ``image_to_map`` (2, 3) maps output pixels to map pixels (level 0); the
+        pyramid level is chosen as for camera frames (no aliasing). Returns RGB uint8 ``(size[1], size[0], 3)``,
+        black outside the map (no footprint checks: for overviews and debugging views)."""
+        affine = np.asarray(image_to_map, dtype=np.float64)
+        if affine.shape != (2, 3) or not np.isfinite(affine).all():
+            raise ConfigError(f"warp_map: image_to_map must be a finite 2x3 affine, got shape {affine.shape}")
+        w, h = int(size[0]), int(size[1])
+        return self._warp_level(affine, self.pyramid_level(affine), w, h)
+
     def _warp(self, affine: np.ndarray, level: int, camera: CameraModel) -> np.ndarray:
-        out = cv2.warpAffine(self.map_level(level), affine / (1 << level), (camera.width_px, camera.height_px),
+        return self._warp_level(affine, level, camera.width_px, camera.height_px)
+
+    def _warp_level(self, affine: np.ndarray, level: int, w: int, h: int) -> np.ndarray:
+        out = cv2.warpAffine(self.map_level(level), affine / (1 << level), (w, h),
                              flags=_WARP_FLAGS, borderMode=cv2.BORDER_CONSTANT, borderValue=(0, 0, 0, 0))
         return cv2.cvtColor(out, cv2.COLOR_RGBA2RGB) if self._rgba else out
 
