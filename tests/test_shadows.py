@@ -173,6 +173,17 @@ def test_flat_ground_and_gentle_slopes_cast_nothing():
     assert not cast_shadow_mask(random_city(np.random.default_rng(1)), 0.25, 0.25, Sun(10.0, 90.0)).any()
 
 
+def test_downsampled_shadows_are_those_of_the_block_maximum():
+    rng = np.random.default_rng(8)
+    dsm = random_city(rng, 47, 52)
+    sun = Sun(118.5, 35.0)
+    for f in (2, 3, 5):
+        ref = np.array([[dsm[i:i + f, j:j + f].max() for j in range(0, 52, f)] for i in range(0, 47, f)])
+        grid = cast_shadows(dsm, 0.25, 0.3, sun, downsample=f)
+        np.testing.assert_array_equal(grid.data, cast_shadow_mask(ref, 0.25 * f, 0.3 * f, sun))
+        assert (grid.gsd_x_m, grid.gsd_y_m, grid.factor) == (pytest.approx(0.25 * f), pytest.approx(0.3 * f), f)
+
+
 def test_downsampled_shadows_match_within_one_coarse_pixel():
     dsm = np.zeros((201, 203))
     dsm[120:150, 60:100] = 10.0

@@ -234,18 +234,13 @@ class ShadowGrid(NamedTuple):
 
 
 def _max_pool(dsm: np.ndarray, factor: int) -> np.ndarray:
-    """Block maximum: keeps the height of every occluder (thin poles and roof edges still cast shadows)."""
-    h, w = dsm.shape
-    ph, pw = (-h) % factor, (-w) % factor
-    if ph or pw:
-        dsm = np.pad(dsm, ((0, ph), (0, pw)), mode="edge")
-    rows = dsm[0::factor].copy()
-    for k in range(1, factor):
-        np.maximum(rows, dsm[k::factor], out=rows)
-    out = np.ascontiguousarray(rows[:, 0::factor])
-    for k in range(1, factor):
-        np.maximum(out, rows[:, k::factor], out=out)
-    return out
+    """Block maximum: keeps the height of every occluder (thin poles and roof edges still cast shadows).
+
+    Blocks start at multiples of ``factor``; a partial last block takes the maximum of the pixels it has.
+    """
+    kernel = np.ones((factor, factor), np.uint8)
+    grown = cv2.dilate(dsm, kernel, anchor=(0, 0), borderType=cv2.BORDER_REPLICATE)
+    return np.ascontiguousarray(grown[::factor, ::factor])
 
 
 def _check_factor(downsample: int, where: str) -> int:
