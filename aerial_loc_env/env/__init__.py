@@ -8,6 +8,8 @@ metres <-> the normalized action; ``env.unwrapped.briefing`` is what an estimato
 from .aerial_loc_env import AerialLocEnv, InvalidActionError, action_to_world, world_to_action
 from .briefing import Briefing, OdometryNoise, Prior
 from .scenarios import Scenario, load_scenario, register_all, scenario_spec_dict
+from .wrappers import EpisodeErrorStats, MetresAction
 
-__all__ = ["AerialLocEnv", "Briefing", "InvalidActionError", "OdometryNoise", "Prior", "Scenario",
-           "action_to_world", "load_scenario", "register_all", "scenario_spec_dict", "world_to_action"]
+__all__ = ["AerialLocEnv", "Briefing", "EpisodeErrorStats", "InvalidActionError", "MetresAction", "OdometryNoise",
+           "Prior", "Scenario", "action_to_world", "load_scenario", "register_all", "scenario_spec_dict",
+           "world_to_action"]
