@@ -132,7 +132,9 @@ def generate_city(config: CityConfig | None = None) -> Orthomap:
         if b.group not in uses:
             members = np.vstack([bb.inner for bb in layout.blocks if bb.group == b.group])
             uses[b.group] = choose_use(r_layout, layout.downtown(members.mean(axis=0)), cfg.park_fraction)
-        b.use = uses[b.group]
+            b.use = uses[b.group]
+        else:   # merged blocks share the use, but a school has one sports ground: the rest is its park
+            b.use = "park" if uses[b.group] == "school" else uses[b.group]
 
     canvas = Canvas(_ground(r_ground, w_px, h_px, cfg.gsd_m), cfg.gsd_m)
     filler = Filler(layout, r_content, building_density=cfg.building_density, tree_density=cfg.tree_density,

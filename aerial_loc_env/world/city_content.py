@@ -20,7 +20,8 @@ ROOF_TILE_COLOURS = np.array([(168, 78, 58), (128, 52, 44), (72, 98, 138), (84, 
                               (122, 88, 68), (176, 110, 62), (60, 70, 82)], np.int32)
 ROOF_FLAT_COLOURS = np.array([(178, 176, 170), (150, 150, 146), (196, 192, 184), (132, 130, 126),
                               (112, 146, 118), (110, 138, 146), (170, 160, 140), (120, 124, 130),
-                              (186, 180, 168), (160, 158, 154), (142, 136, 128)], np.int32)
+                              (186, 180, 168), (160, 158, 154), (142, 136, 128), (78, 78, 82),
+                              (96, 92, 90), (204, 204, 200)], np.int32)
 ROOF_METAL_COLOURS = np.array([(168, 172, 176), (92, 132, 166), (198, 200, 202), (150, 86, 70),
                                (104, 150, 144), (206, 200, 184)], np.int32)
 CAR_COLOURS = np.array([(232, 232, 232), (226, 228, 230), (30, 30, 34), (150, 152, 156), (96, 98, 104),
@@ -31,7 +32,7 @@ TREE_COLOURS = np.array([(52, 88, 42), (62, 96, 46), (44, 76, 40), (74, 104, 52)
 
 
 def _jitter(rng: np.random.Generator, colour: np.ndarray, amount: int) -> tuple[int, int, int]:
-    c = np.clip(colour + rng.integers(-amount, amount + 1) + rng.integers(-amount // 2, amount // 2 + 1, 3),
+    c = np.clip(colour + rng.integers(-amount, amount + 1) + rng.integers(-amount // 4, amount // 4 + 1, 3),
                 0, 255)
     return (int(c[0]), int(c[1]), int(c[2]))
 
@@ -79,6 +80,7 @@ class Building:
     units: list[tuple[np.ndarray, float]] = field(default_factory=list)   # rooftop units (poly, extra h)
     courtyard: np.ndarray | None = None
     cap_m: float = 60.0                                     # nothing of it (ridges, units) rises above this
+    panels: list[np.ndarray] = field(default_factory=list)  # rooftop solar panel rows
 
 
 @dataclass
@@ -185,8 +187,20 @@ class Filler:
             extra = float(min(self.rng.uniform(1.0, 3.5), self.hmax - height_m))
             if extra > 0.3:
                 bld.units.append((orect(cc, wu, su, sv), extra))
+        if style in ("flat", "metal") and self.rng.random() < 0.22 and height_m + 0.6 <= self.hmax:
+            bld.panels = self._solar_rows(wings[int(self.rng.integers(len(wings)))])
         self.scene.buildings.append(bld)
         return True
+
+    def _solar_rows(self, wing: tuple[np.ndarray, np.ndarray, float, float]) -> list[np.ndarray]:
+        """Rows of solar panels (1.7 m deep, 0.9 m apart) over part of a flat roof wing."""
+        c, u, a, b = wing
+        v = np.array([-u[1], u[0]])
+        fa, fb = a * self.rng.uniform(0.4, 0.8), b * self.rng.uniform(0.4, 0.8)
+        rows = []
+        for off in np.arange(-fb / 2 + 0.85, fb / 2 - 0.85, 2.6):
+            rows.append(orect(c + v * off, u, fa, 1.7))
+        return rows
 
     def parking(self, centre: np.ndarray, u: np.ndarray, a: float, b: float, occupancy: float) -> None:
         """Surface lot: asphalt, rows of 2.5 m x 5 m bays along ``u`` with 6 m aisles, parked cars."""
@@ -444,9 +458,9 @@ USES = ("houses", "midrise", "towers", "apartments", "industrial", "park", "scho
 
 def choose_use(rng: np.random.Generator, z: float, park_fraction: float) -> str:
     """Block use by downtown score z in [0, 1]: towers in the centre, houses and fields outside."""
-    w_down = np.array([0.02, 0.25, 0.45, 0.15, 0.0, 0.06, 0.0, 0.07, 0.0, 0.0])
-    w_mid = np.array([0.22, 0.28, 0.05, 0.22, 0.06, 0.07, 0.05, 0.03, 0.02, 0.0])
-    w_out = np.array([0.45, 0.08, 0.0, 0.12, 0.14, 0.08, 0.04, 0.02, 0.04, 0.03])
+    w_down = np.array([0.02, 0.28, 0.48, 0.15, 0.0, 0.06, 0.0, 0.03, 0.0, 0.0])
+    w_mid = np.array([0.24, 0.3, 0.05, 0.22, 0.06, 0.07, 0.04, 0.015, 0.02, 0.0])
+    w_out = np.array([0.47, 0.08, 0.0, 0.12, 0.14, 0.08, 0.03, 0.01, 0.04, 0.03])
     w = np.where(z > 0.5, (z - 0.5) * 2 * w_down + (1 - (z - 0.5) * 2) * w_mid,
                  z * 2 * w_mid + (1 - z * 2) * w_out)
     w[USES.index("park")] *= park_fraction / 0.08
@@ -557,6 +571,9 @@ def paint_building(canvas: Canvas, b: Building) -> None:
             canvas.dsm_fill([cv_ridge], min(h + 0.15 * W, b.cap_m))
     if b.courtyard is not None:
         canvas.fill([b.courtyard], (150, 146, 138), Material.PLAZA, 0.0)
+    if b.panels:
+        canvas.fill(b.panels, (40, 50, 76), Material.ROOF_UNIT, min(b.height_m + 0.6, b.cap_m), 128)
+        canvas.shade_lines([np.vstack([p, p[:1]]) for p in b.panels], 150)
     for k, (poly, extra) in enumerate(b.units):
         unit_grey = 150 + (k * 37 + int(h * 10)) % 50
         canvas.fill([poly], (unit_grey, unit_grey, unit_grey + 2), Material.ROOF_UNIT, h + extra, 136)

@@ -25,6 +25,7 @@ class Road:
     arterial: bool
     sidewalk_m: float
     bridge: bool = False
+    ext_m: tuple[float, float] | None = None   # grid segments: run-on into the junction at each end (flat ends)
 
 
 @dataclass
@@ -207,36 +208,50 @@ def build_layout(rng: np.random.Generator, width_m: float, height_m: float, *, r
         share = _water_share(river_mask, np.stack([p0, p1]))
         if share == 0:
             return False
-        if arterial and share < 0.6:
+        if arterial and share < 0.95:
             return True
         return None
 
-    # grid road segments
-    node_arms: dict[tuple[int, int], list[tuple[np.ndarray, float]]] = {}
+    # grid road segments: drop those in the river, then those left isolated (both ends dead)
+    cand = []      # (on-array, i, j, key0, key1, width, arterial, sidewalk, bridge)
     for i in range(nx):
         for j in range(ny - 1):
             if v_on[i, j]:
-                p0, p1 = nodes[i, j], nodes[i, j + 1]
-                crosses = crossing(p0, p1, bool(x_art[i]))
-                if crosses is None:
-                    v_on[i, j] = False
-                    continue
-                roads.append(Road(np.stack([p0, p1]), float(wx[i]), bool(x_art[i]), float(swx[i]), crosses))
-                dvec = (p1 - p0) / np.linalg.norm(p1 - p0)
-                node_arms.setdefault((i, j), []).append((dvec, float(wx[i])))
-                node_arms.setdefault((i, j + 1), []).append((-dvec, float(wx[i])))
+                cand.append((v_on, i, j, (i, j), (i, j + 1), wx[i], x_art[i], swx[i]))
     for i in range(nx - 1):
         for j in range(ny):
             if h_on[i, j]:
-                p0, p1 = nodes[i, j], nodes[i + 1, j]
-                crosses = crossing(p0, p1, bool(y_art[j]))
-                if crosses is None:
-                    h_on[i, j] = False
-                    continue
-                roads.append(Road(np.stack([p0, p1]), float(wy[j]), bool(y_art[j]), float(swy[j]), crosses))
-                dvec = (p1 - p0) / np.linalg.norm(p1 - p0)
-                node_arms.setdefault((i, j), []).append((dvec, float(wy[j])))
-                node_arms.setdefault((i + 1, j), []).append((-dvec, float(wy[j])))
+                cand.append((h_on, i, j, (i, j), (i + 1, j), wy[j], y_art[j], swy[j]))
+    kept = []
+    for on, i, j, k0, k1, w, art, sw in cand:
+        bridge = crossing(nodes[k0], nodes[k1], bool(art))
+        if bridge is None:
+            on[i, j] = False
+        else:
+            kept.append((on, i, j, k0, k1, float(w), bool(art), float(sw), bridge))
+    degree: dict[tuple[int, int], int] = {}
+    for seg in kept:
+        for k in (seg[3], seg[4]):
+            degree[k] = degree.get(k, 0) + 1
+    node_arms: dict[tuple[int, int], list[tuple[np.ndarray, float]]] = {}
+    segs = []
+    for on, i, j, k0, k1, w, art, sw, bridge in kept:
+        if degree[k0] == 1 and degree[k1] == 1:
+            on[i, j] = False
+            continue
+        p0, p1 = nodes[k0], nodes[k1]
+        dvec = (p1 - p0) / np.linalg.norm(p1 - p0)
+        node_arms.setdefault(k0, []).append((dvec, w))
+        node_arms.setdefault(k1, []).append((-dvec, w))
+        segs.append((k0, k1, w, art, sw, bridge))
+    for k0, k1, w, art, sw, bridge in segs:
+        # run on into the junction by the half-width of the widest other road there; dead ends stop flat
+        ext = []
+        for k in (k0, k1):
+            others = sorted(wo for _, wo in node_arms[k])
+            others.remove(w)
+            ext.append(max(others) / 2 if others else 0.0)
+        roads.append(Road(np.stack([nodes[k0], nodes[k1]]), w, art, sw, bridge, (ext[0], ext[1])))
     intersections = [(nodes[k], arms) for k, arms in node_arms.items() if len(arms) >= 3]
 
     # blocks, merged through removed streets (union-find over cells)

@@ -58,7 +58,7 @@ _MATERIAL_TABLE: dict[Material, tuple[LandCover, int, int, int]] = {
     Material.ASPHALT: (LandCover.ROAD, 22, 10, 12),
     Material.MARKING: (LandCover.LANE_MARKING, 10, 6, 8),
     Material.SIDEWALK: (LandCover.SIDEWALK, 22, 14, 10),
-    Material.ROOF_FLAT: (LandCover.BUILDING, 22, 14, 14),
+    Material.ROOF_FLAT: (LandCover.BUILDING, 22, 16, 24),
     Material.ROOF_TILE: (LandCover.BUILDING, 20, 10, 8),
     Material.ROOF_METAL: (LandCover.BUILDING, 10, 6, 8),
     Material.ROOF_GREEN: (LandCover.BUILDING, 30, 36, 20),
@@ -209,8 +209,7 @@ class Canvas:
         # large-scale illumination / weathering field (about 60 m blobs, +-10 %)
         light = _upsampled_noise(rng, h, w, max(1, int(round(60.0 / self.gsd_m))), lo=110, hi=146)
         mod = cv2.multiply(mod, light, scale=1.0 / 128.0)
-        channels = [cv2.multiply(c, mod, scale=1.0 / NEUTRAL_SHADE) for c in cv2.split(self.rgb)]
-        out = cv2.merge(channels)
+        out = cv2.multiply(self.rgb, cv2.cvtColor(mod, cv2.COLOR_GRAY2RGB), scale=1.0 / NEUTRAL_SHADE)
         sigma_px = 0.12 / self.gsd_m          # optics blur: about 0.12 m, i.e. half a pixel at 0.25 m
         if sigma_px > 0.3:
             out = cv2.GaussianBlur(out, (3, 3), sigma_px)

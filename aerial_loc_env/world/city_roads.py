@@ -96,13 +96,24 @@ def paint_roads(canvas: Canvas, layout: Layout, filler: Filler, rng: np.random.G
             out.append(0.0 if w is None else w / 2 + 9.0)
         return out[0], out[1]
 
+    def surface(r: Road, width_m: float, extra_m: float, col, mat: Material) -> None:
+        if r.ext_m is None:          # curved or long roads: round joins, ends off the map
+            canvas.lines([r.points], col, mat, width_m)
+            return
+        p0, p1 = r.points
+        d = (p1 - p0) / np.linalg.norm(p1 - p0)
+        n = np.array([-d[1], d[0]]) * width_m / 2
+        a = p0 - d * (r.ext_m[0] + extra_m if r.ext_m[0] > 0 else 0.0)
+        b = p1 + d * (r.ext_m[1] + extra_m if r.ext_m[1] > 0 else 0.0)
+        canvas.fill([np.stack([a - n, b - n, b + n, a + n])], col, mat)
+
     def draw(group: list[Road]) -> None:
         for r in group:
             col = np.clip(np.array([196, 188, 176]) + rng.integers(-12, 13), 0, 255)
-            canvas.lines([r.points], col, Material.SIDEWALK, r.width_m + 2 * r.sidewalk_m)
+            surface(r, r.width_m + 2 * r.sidewalk_m, r.sidewalk_m, col, Material.SIDEWALK)
         for r in group:
             g = int(rng.integers(72, 100)) if r.arterial else int(rng.integers(84, 112))
-            canvas.lines([r.points], (g, g, g + int(rng.integers(0, 5))), Material.ASPHALT, r.width_m)
+            surface(r, r.width_m, 0.0, (g, g, g + int(rng.integers(0, 5))), Material.ASPHALT)
         white, dashed, yellow = [], [], []
         for r in group:
             wt, ds, ye = _road_markings(r, trims(r))
