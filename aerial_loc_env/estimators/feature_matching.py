@@ -1,0 +1,115 @@
+"""Practitioners' baseline: local features (ORB, AKAZE or SIFT) matched against the map around the estimate,
+with a RANSAC similarity transform.
+
+Each step: dead-reckon (the floor's integrator), take the database window around the prediction at the working
+resolution (``WindowMatchingAgent``), resize the camera image to the same ground resolution with the measured
+altitude (no rotation: the descriptors are rotation-invariant), detect and describe keypoints on both, match
+them (brute force, Lowe's ratio test) and fit a 4-degree-of-freedom similarity (rotation, uniform scale,
+translation) with ``cv2.estimateAffinePartial2D`` (RANSAC). The fit is accepted when it has ``min_inliers``
+inliers, a scale within ``max_scale_error`` of 1 (both images are at the same ground resolution) and a rotation
+within ``max_rotation_error_deg`` of the one the measured heading implies (``CameraModel.scale_rotation``);
+the vehicle (the camera's centre pixel) mapped through it is the fix. Otherwise the agent dead-reckons and
+says why (status ``"dead_reckoning"``, ``extras["reason"]``).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from ..config import rng
+from ..errors import ConfigError
+from .patches import to_gray
+from .protocol import Estimate, Observation
+from .template_matching import Fix, Window, WindowMatchingAgent, WindowMatchingParams
+
+DETECTORS = ("orb", "akaze", "sift")
+
+
+@dataclass(frozen=True)
+class FeatureMatchingParams(WindowMatchingParams):
+    detector: str = field(default="orb", metadata=rng(choices=DETECTORS))
+    work_gsd_m: float = field(default=0.5, metadata=rng(0.01, 100.0, doc="ground size of a matching pixel"))
+    max_features: int = field(default=2000, metadata=rng(10, 100000, doc="ORB/SIFT keypoint cap per image"))
+    ratio: float = field(default=0.8, metadata=rng(0.0, 1.0, lo_open=True, doc="Lowe's ratio test"))
+    ransac_threshold_px: float = field(default=3.0, metadata=rng(0.1, 100.0))
+    min_inliers: int = field(default=12, metadata=rng(3, 100000))
+    max_scale_error: float = field(default=0.2, metadata=rng(0.0, 10.0))
+    max_rotation_error_deg: float = field(default=20.0, metadata=rng(0.0, 180.0))
+
+
+def make_detector(name: str, max_features: int):
+    """The OpenCV detector/descriptor and the norm to match its descriptors with."""
+    if name == "orb":
+        return cv2.ORB_create(nfeatures=max_features), cv2.NORM_HAMMING
+    if name == "akaze":
+        if not hasattr(cv2, "AKAZE_create"):  # OpenCV 5 moved AKAZE out of the main package
+            raise ConfigError(f"feature matching: detector 'akaze' is not in this OpenCV ({cv2.__version__}); "
+                              "use 'orb' or 'sift', or install an OpenCV build that has AKAZE")
+        return cv2.AKAZE_create(), cv2.NORM_HAMMING
+    if name == "sift":
+        if not hasattr(cv2, "SIFT_create"):  # pragma: no cover - OpenCV < 4.4
+            raise ConfigError(f"feature matching: detector 'sift' is not in this OpenCV ({cv2.__version__}); "
+                              "use 'orb'")
+        return cv2.SIFT_create(nfeatures=max_features), cv2.NORM_L2
+    raise ConfigError(f"feature matching: unknown detector {name!r}; use one of {DETECTORS}")
+
+
+class FeatureMatchingAgent(WindowMatchingAgent):
+    """ORB/AKAZE/SIFT matches between the camera image and the map window, RANSAC similarity."""
+
+    Params = FeatureMatchingParams
+
+    def __init__(self, params: FeatureMatchingParams | None = None) -> None:
+        super().__init__(params)
+        self.detector, norm = make_detector(self.params.detector, self.params.max_features)
+        self.matcher = cv2.BFMatcher(norm)
+
+    def _features(self, gray: np.ndarray):
+        img = np.clip(gray, 0, 255).astype(np.uint8)
+        return self.detector.detectAndCompute(img, None)
+
+    def match(self, obs: Observation, pred: Estimate, window: Window) -> Fix | str:
+        p: FeatureMatchingParams = self.params
+        cam = self.camera
+        gsd_u = cam.gsd_m(obs.altitude_m)
+        fx, fy = gsd_u / self.level_gsd[0], gsd_u * cam.pixel_aspect / self.level_gsd[1]
+        size = (max(8, int(round(cam.width_px * fx))), max(8, int(round(cam.height_px * fy))))
+        small = cv2.resize(to_gray(obs.image), size, interpolation=cv2.INTER_AREA)
+        kc, dc = self._features(small)
+        kw, dw = self._features(window.image)
+        if dc is None or dw is None or len(kc) < 2 or len(kw) < 2:
+            return "no match: too few keypoints"
+        pairs = self.matcher.knnMatch(dc, dw, k=2)
+        good = [m[0] for m in pairs if len(m) == 2 and m[0].distance < p.ratio * m[1].distance]
+        if len(good) < p.min_inliers:
+            return f"no match: {len(good)} ratio-test matches < min_inliers {p.min_inliers}"
+        src = np.float32([kc[m.queryIdx].pt for m in good])
+        dst = np.float32([kw[m.trainIdx].pt for m in good])
+        # OpenCV's RANSAC seeds its own generator identically on every call: deterministic
+        model, inliers = cv2.estimateAffinePartial2D(src, dst, method=cv2.RANSAC,
+                                                     ransacReprojThreshold=p.ransac_threshold_px)
+        if model is None:
+            return "no match: RANSAC found no similarity"
+        n_in = int(inliers.sum())
+        scale = math.hypot(model[0, 0], model[1, 0])
+        rot = math.atan2(model[1, 0], model[0, 0])
+        _, r = cam.scale_rotation(self.orthomap, obs.yaw_rad, obs.altitude_m)
+        expected = math.atan2(r[1, 0], r[0, 0])
+        rot_err = abs(math.degrees(math.atan2(math.sin(rot - expected), math.cos(rot - expected))))
+        extras = {"inliers": n_in, "matches": len(good), "scale": scale, "rotation_error_deg": rot_err}
+        if n_in < p.min_inliers:
+            return f"no match: {n_in} RANSAC inliers < min_inliers {p.min_inliers}"
+        if abs(scale - 1.0) > p.max_scale_error:
+            return f"no match: similarity scale {scale:.2f} is not 1 +- {p.max_scale_error}"
+        if rot_err > p.max_rotation_error_deg:
+            return f"no match: rotation {rot_err:.0f} deg off the measured heading"
+        cu, cv = cam.center_px
+        centre = np.array([(cu + 0.5) * size[0] / cam.width_px - 0.5,
+                           (cv + 0.5) * size[1] / cam.height_px - 0.5, 1.0])
+        u, v = model @ centre
+        x, y = self.level_point_to_world(window.u0 + u, window.v0 + v)
+        return Fix(x, y, extras)

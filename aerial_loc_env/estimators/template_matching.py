@@ -1,0 +1,210 @@
+"""Practitioners' baseline: OpenCV template matching of the camera image against the map around the estimate.
+
+Every step the agent first dead-reckons (``DeadReckoningAgent``, the same integrator as the floor baseline),
+then looks for the camera image in a search window of the database around that prediction. The camera image is
+warped north-up into the map's pixel grid at a working resolution (``work_gsd_m``) with the camera model's own
+eq. (3) affine (``CameraModel.camera_to_map`` at the predicted position, the measured heading and altitude),
+cropped to the square inscribed in the footprint, and matched with normalized cross-correlation
+(``cv2.TM_CCOEFF_NORMED``). A peak above ``min_score`` that is not on the window's border is a fix: the estimate
+jumps there (sub-pixel by a parabola through the peak), and dead reckoning continues from it. Otherwise the
+agent says so: status ``"dead_reckoning"`` with the reason in ``extras["reason"]``.
+
+``WindowMatchingAgent`` (the window, the fix/fallback logic and the frame conversions) is shared with the
+feature-matching baseline (``feature_matching.py``).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any, NamedTuple
+
+import cv2
+import numpy as np
+
+from ..config import rng
+from ..errors import ConfigError
+from ..sensors.camera import apply_affine, invert_affine, world_to_map_affine
+from .dead_reckoning import DeadReckoningAgent
+from .patches import to_gray
+from .protocol import Agent, Estimate, Observation, parse_observation
+
+if TYPE_CHECKING:
+    from ..env.briefing import Briefing
+
+
+@dataclass(frozen=True)
+class WindowMatchingParams:
+    """Common settings: matching resolution, search window, and the covariance reported on a fix."""
+
+    work_gsd_m: float = field(default=1.0, metadata=rng(0.01, 100.0, doc="ground size of a matching pixel"))
+    search_radius_m: float = field(default=40.0, metadata=rng(0.0, 1e5, doc="window half-size around the "
+                                                                              "prediction, beyond the footprint"))
+    global_search: bool = True      # with a uniform prior, search the whole map until the first fix
+    fix_std_m: float = field(default=3.0, metadata=rng(0.0, 1e4, lo_open=True, doc="1-sigma of a fix"))
+
+
+class Fix(NamedTuple):
+    x_m: float
+    y_m: float
+    extras: dict
+
+
+class Window(NamedTuple):
+    image: np.ndarray        # gray float32 crop of the working-resolution database
+    u0: int                  # its top-left corner in working-level pixels
+    v0: int
+
+
+class WindowMatchingAgent(Agent):
+    """Dead reckoning corrected by matching each frame against a map window (subclasses: ``match``)."""
+
+    Params = WindowMatchingParams
+
+    def __init__(self, params: WindowMatchingParams | None = None) -> None:
+        self.params = params or type(self).Params()
+        self.dr: DeadReckoningAgent | None = None
+
+    # ---------------------------------------------------------------- episode
+    def reset(self, briefing: Briefing, *, seed: int | None = None) -> Estimate:
+        m = briefing.orthomap
+        self.briefing, self.orthomap, self.camera = briefing, m, briefing.camera
+        gray = to_gray(np.asarray(m.rgb))
+        f = self.params.work_gsd_m / min(m.gsd_x_m, m.gsd_y_m)
+        lw, lh = max(2, int(round(m.width_px / f))), max(2, int(round(m.height_px / f)))
+        self.level = cv2.resize(gray, (lw, lh), interpolation=cv2.INTER_AREA) if f != 1 else gray
+        if m.nodata is not None and np.any(m.nodata):
+            bad = cv2.resize(np.asarray(m.nodata, np.float32), (lw, lh), interpolation=cv2.INTER_AREA) > 0
+            self.level_nodata: np.ndarray | None = bad
+        else:
+            self.level_nodata = None
+        sx, sy = m.width_px / lw, m.height_px / lh
+        to_level = np.array([[1 / sx, 0, 0.5 / sx - 0.5], [0, 1 / sy, 0.5 / sy - 0.5], [0, 0, 1.0]])
+        self.map_to_level = to_level                                # (3, 3) map pixel -> level pixel
+        self.world_to_level = to_level @ np.vstack([world_to_map_affine(m), [0, 0, 1.0]])
+        self.level_to_world = invert_affine(self.world_to_level[:2])
+        self.level_gsd = (m.gsd_x_m * sx, m.gsd_y_m * sy)
+        self.dr = DeadReckoningAgent()
+        self.has_fix = False
+        self.rng = np.random.default_rng(seed)
+        return self.dr.reset(briefing, seed=seed)
+
+    def step(self, observation: Mapping[str, np.ndarray], info: Mapping[str, Any] | None = None) -> Estimate:
+        if self.dr is None:
+            raise ConfigError(f"{type(self).__name__}.step called before reset(briefing, seed=...)")
+        pred = self.dr.step(observation)
+        obs = parse_observation(observation)
+        if self.has_fix or self.briefing.prior.kind == "gaussian" or not self.params.global_search:
+            prior = self.briefing.prior
+            radius = self.params.search_radius_m
+            if not self.has_fix and prior.kind == "gaussian":
+                radius = max(radius, 3.0 * float(prior.std_xy_m))
+            window = self.window((pred.x_m, pred.y_m), radius, obs)
+        else:
+            window = Window(self.level, 0, 0)
+        if window is None:
+            return self._dead_reckoning(pred, "the search window lies outside the map")
+        try:
+            fix = self.match(obs, pred, window)
+        except cv2.error as exc:  # OpenCV refused the inputs (e.g. a window smaller than the template)
+            return self._dead_reckoning(pred, f"opencv: {exc.err}")
+        if isinstance(fix, str):
+            return self._dead_reckoning(pred, fix)
+        self.has_fix = True
+        self.dr.xy = np.array([fix.x_m, fix.y_m])
+        self.dr.cov = np.eye(2) * self.params.fix_std_m ** 2
+        return Estimate(fix.x_m, fix.y_m, yaw_rad=obs.yaw_rad, cov_xy_m2=self.dr.cov.copy(), status="ok",
+                        extras={"match": True, **fix.extras})
+
+    def _dead_reckoning(self, pred: Estimate, reason: str) -> Estimate:
+        return Estimate(pred.x_m, pred.y_m, yaw_rad=pred.yaw_rad, cov_xy_m2=pred.cov_xy_m2,
+                        status="dead_reckoning", extras={"match": False, "reason": reason})
+
+    # ---------------------------------------------------------------- helpers
+    def footprint_half_diagonal_m(self, altitude_m: float) -> float:
+        w_m, h_m = self.camera.footprint_m(altitude_m)
+        return 0.5 * math.hypot(w_m, h_m)
+
+    def window(self, center_xy_m: tuple[float, float], radius_m: float, obs: Observation) -> Window | None:
+        """The working-level crop covering the footprint around ``center`` plus ``radius_m``, clipped to the
+        map; None when nothing of it is on the map."""
+        half_m = radius_m + self.footprint_half_diagonal_m(obs.altitude_m)
+        cu, cv = apply_affine(self.world_to_level[:2], np.array([center_xy_m]))[0]
+        hu, hv = half_m / self.level_gsd[0], half_m / self.level_gsd[1]
+        lh, lw = self.level.shape
+        u0, u1 = max(0, int(math.floor(cu - hu))), min(lw, int(math.ceil(cu + hu)) + 1)
+        v0, v1 = max(0, int(math.floor(cv - hv))), min(lh, int(math.ceil(cv + hv)) + 1)
+        if u1 - u0 < 2 or v1 - v0 < 2:
+            return None
+        return Window(self.level[v0:v1, u0:u1], u0, v0)
+
+    def level_point_to_world(self, u: float, v: float) -> tuple[float, float]:
+        x, y = apply_affine(self.level_to_world, np.array([[u, v]]))[0]
+        return float(x), float(y)
+
+    def match(self, obs: Observation, pred: Estimate, window: Window) -> Fix | str:
+        """A fix, or the reason there is none (a short sentence)."""
+        raise NotImplementedError
+
+
+def parabola_offset(left: float, centre: float, right: float) -> float:
+    """Sub-pixel offset in [-0.5, 0.5] of the vertex of the parabola through three samples around a peak."""
+    den = left - 2.0 * centre + right
+    if den >= 0 or not np.isfinite(den):
+        return 0.0
+    return float(np.clip(0.5 * (left - right) / den, -0.5, 0.5))
+
+
+@dataclass(frozen=True)
+class TemplateMatchingParams(WindowMatchingParams):
+    min_score: float = field(default=0.5, metadata=rng(-1.0, 1.0, doc="NCC peak needed for a fix"))
+
+
+class TemplateMatchingAgent(WindowMatchingAgent):
+    """Normalized cross-correlation of the north-up camera image over a map window."""
+
+    Params = TemplateMatchingParams
+
+    def template(self, obs: Observation, pred: Estimate) -> np.ndarray:
+        """The camera image warped north-up into the working-level grid, centred on the vehicle: the square
+        inscribed in the footprint."""
+        cam = self.camera
+        a = cam.camera_to_map(self.orthomap, pred.x_m, pred.y_m, obs.yaw_rad, obs.altitude_m)   # eq. (3)
+        full = self.map_to_level @ np.vstack([a, [0, 0, 1.0]])        # camera pixel -> level pixel
+        w_m, h_m = cam.footprint_m(obs.altitude_m)
+        angle = math.pi / 2 - obs.yaw_rad                              # camera -> map rotation
+        side_m = min(w_m, h_m) / (abs(math.cos(angle)) + abs(math.sin(angle)))
+        side = int(math.floor(side_m / max(self.level_gsd)))
+        if side < 8:
+            raise ConfigError("template matching: the footprint is smaller than 8 working pixels; lower work_gsd_m")
+        centre_level = full[:2] @ np.array([*cam.center_px, 1.0])
+        shift = np.array([[1, 0, (side - 1) / 2 - centre_level[0]], [0, 1, (side - 1) / 2 - centre_level[1]],
+                          [0, 0, 1.0]])
+        m = (shift @ full)[:2]
+        gray = to_gray(obs.image)
+        return cv2.warpAffine(gray, m, (side, side), flags=cv2.INTER_AREA)
+
+    def match(self, obs: Observation, pred: Estimate, window: Window) -> Fix | str:
+        tpl = self.template(obs, pred)
+        img = window.image
+        if img.shape[0] < tpl.shape[0] + 2 or img.shape[1] < tpl.shape[1] + 2:
+            return "the search window is smaller than the template (near the map edge)"
+        if float(tpl.std()) < 1e-3:
+            return "the camera image is uniform"
+        res = cv2.matchTemplate(img, tpl, cv2.TM_CCOEFF_NORMED)
+        res = np.nan_to_num(res, nan=-1.0)
+        _, score, _, (mx, my) = cv2.minMaxLoc(res)
+        if score < self.params.min_score:
+            return f"no match: NCC peak {score:.2f} < min_score {self.params.min_score:.2f}"
+        if mx in (0, res.shape[1] - 1) or my in (0, res.shape[0] - 1):
+            return f"no match: the NCC peak ({score:.2f}) is on the window border"
+        dx = parabola_offset(res[my, mx - 1], res[my, mx], res[my, mx + 1])
+        dy = parabola_offset(res[my - 1, mx], res[my, mx], res[my + 1, mx])
+        half = (tpl.shape[0] - 1) / 2
+        u = window.u0 + mx + dx + half
+        v = window.v0 + my + dy + half
+        if self.level_nodata is not None and self.level_nodata[int(round(v)), int(round(u))]:
+            return "no match: the NCC peak lies on no-data"
+        x, y = self.level_point_to_world(u, v)
+        return Fix(x, y, {"score": float(score)})

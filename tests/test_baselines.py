@@ -1,0 +1,107 @@
+"""Practitioners' baselines: template matching and feature matching recover a known offset, and fall back to
+dead reckoning (saying so) when the frame does not match."""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+import pytest
+from test_dense_models import ALT_M, briefing_standin, observation, render_frame, textured_map
+
+from aerial_loc_env.config import build_config
+from aerial_loc_env.errors import ConfigError
+from aerial_loc_env.estimators.feature_matching import FeatureMatchingAgent, FeatureMatchingParams
+from aerial_loc_env.estimators.template_matching import (
+    TemplateMatchingAgent,
+    TemplateMatchingParams,
+    parabola_offset,
+)
+from aerial_loc_env.sensors.camera import CameraModel
+
+#: 240 x 160 px over 120 m x 80 m at 100 m: the map's 0.5 m/px, and enough room for ORB's 31 px border
+WIDE = CameraModel(width_px=240, height_px=160, hfov_deg=math.degrees(2 * math.atan(0.6)))
+TRUTH = (150.0, 140.0, 0.6)
+OFFSET_M = (14.0, -9.0)
+
+
+def _scene():
+    m = textured_map(600, seed=4, buildings=120)
+    x, y, yaw = TRUTH
+    briefing = briefing_standin(m, camera=WIDE, mean_xy_m=(x + OFFSET_M[0], y + OFFSET_M[1]), std_xy_m=10.0)
+    return m, briefing
+
+
+BASELINES = ["template-ncc", "orb", "akaze", "sift"]
+
+
+def _agent(name: str):
+    if name == "template-ncc":
+        return TemplateMatchingAgent(build_config(TemplateMatchingParams, {"work_gsd_m": 0.5}))
+    if name == "akaze" and not hasattr(cv2, "AKAZE_create"):
+        pytest.skip(f"OpenCV {cv2.__version__} has no AKAZE (moved out of the main package in OpenCV 5)")
+    return FeatureMatchingAgent(build_config(FeatureMatchingParams, {"detector": name}))
+
+
+@pytest.mark.parametrize("name", BASELINES)
+def test_baseline_recovers_a_known_offset_and_keeps_tracking(name):
+    agent = _agent(name)
+    m, briefing = _scene()
+    x, y, yaw = TRUTH
+    start = agent.reset(briefing, seed=0)
+    assert math.hypot(start.x_m - x, start.y_m - y) == pytest.approx(math.hypot(*OFFSET_M))
+    est = agent.step(observation(render_frame(m, x, y, yaw, camera=WIDE), yaw))
+    assert est.status == "ok" and est.extras["match"] is True
+    assert math.hypot(est.x_m - x, est.y_m - y) < 1.0           # 2 working pixels
+    # fly 2.5 m along the heading; the next frame matches again around the dead-reckoned prediction
+    speed, dt = 10.0, briefing.dt_s
+    x2, y2 = x + speed * dt * math.cos(yaw), y + speed * dt * math.sin(yaw)
+    obs = observation(render_frame(m, x2, y2, yaw, camera=WIDE), yaw)
+    obs["odometry"] = np.array([speed, 0.0], np.float32)
+    est2 = agent.step(obs)
+    assert est2.status == "ok" and math.hypot(est2.x_m - x2, est2.y_m - y2) < 1.0
+
+
+@pytest.mark.parametrize("name", BASELINES)
+def test_baseline_falls_back_to_dead_reckoning_and_says_so(name):
+    agent = _agent(name)
+    m, briefing = _scene()
+    start = agent.reset(briefing, seed=0)
+    noise = np.random.default_rng(9).integers(0, 256, (WIDE.height_px, WIDE.width_px, 3), dtype=np.uint8)
+    est = agent.step(observation(noise, TRUTH[2]))
+    assert est.status == "dead_reckoning" and est.extras["match"] is False
+    assert isinstance(est.extras["reason"], str) and est.extras["reason"]
+    assert (est.x_m, est.y_m) == pytest.approx((start.x_m, start.y_m))       # first step: no motion yet
+
+
+def test_template_matching_window_outside_the_map_falls_back():
+    m, briefing = _scene()
+    agent = TemplateMatchingAgent()
+    agent.reset(briefing, seed=0)
+    agent.dr.xy = np.array([-5000.0, -5000.0])
+    agent.has_fix = True
+    est = agent.step(observation(render_frame(m, *TRUTH, camera=WIDE), TRUTH[2]))
+    assert est.status == "dead_reckoning" and "outside" in est.extras["reason"]
+
+
+def test_parabola_offset_finds_the_vertex():
+    f = lambda t: -(t - 0.3) ** 2  # noqa: E731
+    assert parabola_offset(f(-1), f(0), f(1)) == pytest.approx(0.3)
+    assert parabola_offset(1.0, 1.0, 1.0) == 0.0
+
+
+def test_baseline_params_are_checked():
+    with pytest.raises(ConfigError, match="detector"):
+        build_config(FeatureMatchingParams, {"detector": "surf"})
+    if not hasattr(cv2, "AKAZE_create"):
+        with pytest.raises(ConfigError, match="akaze"):
+            FeatureMatchingAgent(build_config(FeatureMatchingParams, {"detector": "akaze"}))
+    with pytest.raises(ConfigError, match="min_score"):
+        build_config(TemplateMatchingParams, {"min_score": 2.0})
+    with pytest.raises(ConfigError, match="before reset"):
+        TemplateMatchingAgent().step(observation(np.zeros((160, 240, 3), np.uint8)))
+
+
+def test_alt_constant_is_the_scene_altitude():
+    assert ALT_M == 100.0 and WIDE.footprint_m(ALT_M) == pytest.approx((120.0, 80.0))
