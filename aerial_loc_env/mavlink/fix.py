@@ -81,6 +81,7 @@ class FixPolicy:
     satellites_degraded: int = field(default=6, metadata=rng(0, 60))
     hdop_ref_m: float = field(default=2.0, metadata=rng(0.0, 100.0, lo_open=True))   # hdop = h_acc / hdop_ref
     jump_threshold_m: float = field(default=5.0, metadata=rng(0.0, 10_000.0, lo_open=True))
+    jump_sigma: float = field(default=3.0, metadata=rng(0.0, 100.0))   # jump: > this many sigmas (and > m)
     quality_ref_m: float = field(default=5.0, metadata=rng(0.0, 1000.0, lo_open=True))  # ODOMETRY q=50
 
     def validate(self, where: str) -> None:
@@ -147,16 +148,17 @@ class SlotItem:
 class FixSlot:
     """Thread-safe latest-value slot; detects jumps between consecutive fixes and counts them (reset_counter).
 
-    A jump is a move that the previous fix's velocity does not explain by more than ``jump_threshold_m``, or
-    a recovery from 'lost': the consumers (EKFs) then reset their external-navigation state instead of
-    rejecting the new position as an outlier.
+    A jump is a move that the previous fix's velocity does not explain by more than ``jump_threshold_m`` and
+    more than ``jump_sigma`` combined standard deviations, or a recovery from 'lost': the consumers (EKFs)
+    then reset their external-navigation state instead of rejecting the new position as an outlier.
     """
 
-    def __init__(self, jump_threshold_m: float = 5.0,
+    def __init__(self, jump_threshold_m: float = 5.0, jump_sigma: float = 3.0,
                  monotonic: Callable[[], float] = time.monotonic) -> None:
         self._lock = threading.Lock()
         self._item: SlotItem | None = None
         self._jump_threshold_m = jump_threshold_m
+        self._jump_sigma = jump_sigma
         self._monotonic = monotonic
         self._reset_counter = 0
 
@@ -177,7 +179,8 @@ class FixSlot:
         dt = max(0.0, new.time_s - prev.time_s)
         pred_e = prev.east_m + prev.vel_enu_mps[0] * dt
         pred_n = prev.north_m + prev.vel_enu_mps[1] * dt
-        return math.hypot(new.east_m - pred_e, new.north_m - pred_n) > self._jump_threshold_m
+        limit = max(self._jump_threshold_m, self._jump_sigma * math.hypot(prev.h_std_m, new.h_std_m))
+        return math.hypot(new.east_m - pred_e, new.north_m - pred_n) > limit
 
     def get(self) -> SlotItem | None:
         with self._lock:

@@ -153,7 +153,7 @@ class MavlinkSender:
         self.config = config
         self.policy = policy or FixPolicy()
         self.origin = origin
-        self.slot = slot or FixSlot(self.policy.jump_threshold_m)
+        self.slot = slot or FixSlot(self.policy.jump_threshold_m, self.policy.jump_sigma)
         self.link = Link(config.endpoint, reconnect_s=config.reconnect_s)
         self._file = _LinkFile(self.link)
         self._mav = mavlink2.MAVLink(self._file, srcSystem=config.system_id, srcComponent=config.component_id)

@@ -1,0 +1,297 @@
+"""``aerial-loc mavlink``: fly a scenario with an agent in real time and stream its estimates to an autopilot.
+
+The simulation and the sender run at their own rates: each env step publishes a fix into the sender's slot and
+the sender thread emits at ``--rate-hz`` whatever the latest fix is. ``--speed`` scales simulated time
+(1 = real time, 4 = four times faster, 0 = as fast as possible, e.g. replay into a logger). ``--demo`` streams
+a synthetic circular track without the env (to test a SITL setup). ``--follow`` makes the simulated camera
+follow the autopilot's own vehicle (GLOBAL_POSITION_INT / ATTITUDE), closing the loop.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from ..config import build_config
+from ..errors import AerialLocError, ConfigError
+from .bridge import EstimateBridge
+from .fix import FixPolicy
+from .messages import MESSAGE_KINDS, ODOMETRY_FRAMES
+from .sender import MavlinkSender, SenderConfig, SenderStats, VehicleState
+
+ALIASES = {"gps": "gps_input", "gps_input": "gps_input", "vision": "vision_position_estimate",
+           "vision_position_estimate": "vision_position_estimate", "odom": "odometry", "odometry": "odometry"}
+EARTH_RADIUS_M = 6_371_008.8
+SITL_HOME = "-35.363261,149.165230,584.0"   # ArduPilot SITL's default home (CMAC)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog="aerial-loc mavlink", description=__doc__.split("\n\n")[0],
+                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    src = ap.add_argument_group("what to fly")
+    src.add_argument("--scenario", help="registered env id, e.g. AerialLoc/...  (aerial-loc scenarios)")
+    src.add_argument("--agent", help="agent spec name (aerial-loc agents)")
+    src.add_argument("--demo", action="store_true", help="synthetic circular track, no env or agent needed")
+    src.add_argument("--origin", default=SITL_HOME, help="--demo: LAT,LON,ALT_AMSL of the track centre")
+    src.add_argument("--seed", type=int, default=0)
+    src.add_argument("--speed", type=float, default=1.0, help="simulated seconds per real second; 0 = max")
+    src.add_argument("--duration-s", type=float, default=0.0,
+                     help="stop after N real seconds; 0: at the end")
+    src.add_argument("--loop", action="store_true", help="restart the episode when it ends")
+    src.add_argument("--follow", action="store_true", help="the camera follows the autopilot's vehicle")
+    src.add_argument("--ground-amsl-m", type=float, default=0.0, help="terrain height of the map, m AMSL")
+    link = ap.add_argument_group("MAVLink")
+    link.add_argument("--connect", default="udpout:127.0.0.1:14550",
+                      help="pymavlink connection string: udpout:H:P, udpin:H:P, tcp:H:P, tcpin:H:P, "
+                           "/dev/ttyACM0,BAUD")
+    link.add_argument("--message", action="append", default=None,
+                      help=f"message(s) to send, repeatable or comma-separated: {', '.join(MESSAGE_KINDS)} "
+                           "(aliases gps, vision, odom); default gps_input")
+    link.add_argument("--rate-hz", type=float, default=10.0)
+    link.add_argument("--sysid", type=int, default=1)
+    link.add_argument("--compid", type=int, default=197)
+    link.add_argument("--gps-id", type=int, default=0, help="GPS_INPUT.gps_id (the GPS instance)")
+    link.add_argument("--gps-yaw", action="store_true", help="fill GPS_INPUT.yaw from the estimate")
+    link.add_argument("--odometry-frames", default="local_frd", choices=tuple(ODOMETRY_FRAMES))
+    link.add_argument("--signing-key", default="", help="MAVLink 2 signing: 64 hex digits or a passphrase")
+    link.add_argument("--signing-link-id", type=int, default=0)
+    link.add_argument("--baud", type=int, default=57600)
+    ap.add_argument("--quiet", action="store_true", help="no live status line")
+    return ap
+
+
+def _messages(values: list[str] | None) -> tuple[str, ...]:
+    out: list[str] = []
+    for value in values or ["gps_input"]:
+        for name in filter(None, (v.strip().lower() for v in value.split(","))):
+            if name not in ALIASES:
+                raise ConfigError(f"--message {name!r}: unknown; use {', '.join(MESSAGE_KINDS)} "
+                                  "(or gps, vision, odom)")
+            if ALIASES[name] not in out:
+                out.append(ALIASES[name])
+    return tuple(out)
+
+
+def sender_config(args: argparse.Namespace) -> SenderConfig:
+    return build_config(SenderConfig, {
+        "connect": args.connect, "messages": _messages(args.message), "rate_hz": args.rate_hz,
+        "system_id": args.sysid, "component_id": args.compid, "gps_id": args.gps_id, "gps_yaw": args.gps_yaw,
+        "odometry_frames": args.odometry_frames, "signing_key": args.signing_key,
+        "signing_link_id": args.signing_link_id, "baud": args.baud,
+        "request_vehicle_hz": 10.0 if args.follow else 0.0,
+    }, where="aerial-loc mavlink options")
+
+
+@dataclass(frozen=True)
+class Step:
+    """One simulation step as the bridge needs it."""
+
+    time_s: float
+    estimate: Any
+    altitude_m: float
+    yaw_fallback_rad: float | None
+
+
+@dataclass(frozen=True)
+class _Estimate:
+    x_m: float
+    y_m: float
+    yaw_rad: float | None
+    cov_xy_m2: np.ndarray
+    status: str = "ok"
+
+
+class DemoTrack:
+    """A circle flown at constant speed about a geographic centre, with Gaussian estimate noise.
+
+    The georeference is an equirectangular tangent plane at the centre: adequate for a demo track of a few
+    hundred metres (maps use their own Georeference through the Orthomap).
+    """
+
+    def __init__(self, origin: str, seed: int, radius_m: float = 150.0, speed_mps: float = 10.0,
+                 altitude_m: float = 100.0, dt_s: float = 0.25, noise_m: float = 2.0) -> None:
+        try:
+            lat, lon, alt = (float(v) for v in origin.split(","))
+        except ValueError as exc:
+            raise ConfigError(f"--origin {origin!r}: expected LAT,LON,ALT_AMSL, e.g. {SITL_HOME}") from exc
+        if not (abs(lat) < 89.0 and abs(lon) <= 180.0):
+            raise ConfigError(f"--origin {origin!r}: latitude must be in (-89, 89), longitude in [-180, 180]")
+        self.lat0, self.lon0, self.ground_amsl_m = lat, lon, alt
+        self.radius_m, self.speed_mps, self.altitude_m, self.dt_s = radius_m, speed_mps, altitude_m, dt_s
+        self.noise_m = noise_m
+        self.rng = np.random.default_rng(seed)
+        self.follow: VehicleState | None = None
+
+    def world_to_latlon(self, x_m: float, y_m: float) -> tuple[float, float]:
+        lat = self.lat0 + math.degrees(y_m / EARTH_RADIUS_M)
+        lon = self.lon0 + math.degrees(x_m / (EARTH_RADIUS_M * math.cos(math.radians(self.lat0))))
+        return lat, lon
+
+    def latlon_to_world(self, lat: float, lon: float) -> tuple[float, float]:
+        return (math.radians(lon - self.lon0) * EARTH_RADIUS_M * math.cos(math.radians(self.lat0)),
+                math.radians(lat - self.lat0) * EARTH_RADIUS_M)
+
+    def steps(self) -> Iterator[Step]:
+        k = 0
+        while True:
+            t = k * self.dt_s
+            if self.follow is not None:       # closed loop: the truth is the autopilot's own vehicle
+                x, y = self.latlon_to_world(self.follow.lat_deg, self.follow.lon_deg)
+                yaw, alt = math.pi / 2 - self.follow.heading_rad, max(0.0, self.follow.rel_alt_m)
+            else:
+                phase = self.speed_mps * t / self.radius_m
+                x, y = self.radius_m * math.cos(phase), self.radius_m * math.sin(phase)
+                yaw, alt = phase + math.pi / 2, self.altitude_m
+            nx, ny = self.rng.normal(0.0, self.noise_m, 2)
+            est = _Estimate(x + nx, y + ny, yaw, np.eye(2) * self.noise_m ** 2)
+            yield Step(t, est, alt, None)
+            k += 1
+
+
+class ScenarioRun:
+    """The env and an agent: reset, then step, handing each estimate to the bridge."""
+
+    def __init__(self, scenario: str, agent_name: str, seed: int) -> None:
+        try:
+            import gymnasium as gym
+
+            import aerial_loc_env.env  # noqa: F401  (registers the scenarios)
+            from aerial_loc_env.estimators.registry import make_agent
+        except ImportError as exc:
+            raise AerialLocError(
+                f"aerial-loc mavlink: the environment or the agents are not available ({exc}); "
+                "use --demo to stream a synthetic track") from exc
+        try:
+            self.env = gym.make(scenario)
+        except gym.error.Error as exc:
+            raise ConfigError(f"--scenario {scenario!r}: {exc}; list them: aerial-loc scenarios") from exc
+        self.agent = make_agent(agent_name)
+        self.seed = seed
+        self.episode = 0
+        self.follow: VehicleState | None = None
+        self._obs, info = self.env.reset(seed=seed)
+        self.briefing = getattr(self.env.unwrapped, "briefing", None) or info.get("briefing")
+        if self.briefing is None:
+            raise AerialLocError("aerial-loc mavlink: the env exposes no Briefing (env.unwrapped.briefing)")
+        self.orthomap = self.briefing.orthomap
+        self._estimate = self.agent.reset(self.briefing, seed=seed)
+        self._info = info
+
+    def _apply_follow(self) -> None:
+        if self.follow is None:
+            return
+        setter = getattr(self.env.unwrapped, "set_vehicle_pose", None)
+        if setter is None:
+            raise AerialLocError("--follow needs AerialLocEnv.set_vehicle_pose(x_m, y_m, yaw_rad, "
+                                 "altitude_m), which this version of the env lacks; see docs/mavlink.md")
+        x, y = self.orthomap.latlon_to_world(self.follow.lat_deg, self.follow.lon_deg)
+        setter(float(np.asarray(x).reshape(-1)[0]), float(np.asarray(y).reshape(-1)[0]),
+               math.pi / 2 - self.follow.heading_rad, max(1.0, self.follow.rel_alt_m))
+
+    def steps(self, loop: bool) -> Iterator[Step]:
+        dt = float(self.briefing.dt_s)
+        k = 0
+        w, h = float(self.orthomap.width_m), float(self.orthomap.height_m)
+        uses_truth = bool(getattr(self.agent, "uses_ground_truth", False))
+        yield Step(0.0, self._estimate, float(self._obs["altitude"][0]), float(self._obs["yaw"][0]))
+        while True:
+            self._apply_follow()
+            est = self._estimate
+            # the action is the estimate normalized over the map (ARCHITECTURE.md, "Action")
+            action = np.clip(np.array([2 * est.x_m / w - 1, 2 * est.y_m / h - 1], dtype=np.float32), -1, 1)
+            obs, _, terminated, truncated, info = self.env.step(action)
+            self._estimate = self.agent.step(obs, info if uses_truth else None)
+            k += 1
+            yield Step(k * dt, self._estimate, float(obs["altitude"][0]), float(obs["yaw"][0]))
+            if terminated or truncated:
+                if not loop:
+                    return
+                self.episode += 1
+                obs, info = self.env.reset(seed=self.seed + self.episode)
+                self._estimate = self.agent.reset(self.briefing, seed=self.seed + self.episode)
+
+    def close(self) -> None:
+        self.env.close()
+
+
+def status_line(t_sim_s: float, stats: SenderStats) -> str:
+    q = stats.quality
+    fix = "none" if q is None else ("3D" if q.fix_type == 3 else "no-fix")
+    hacc = "-" if q is None or not q.usable else f"{q.h_acc_m:.1f}m"
+    sent = " ".join(f"{k}={v}" for k, v in sorted(stats.sent.items()))
+    link = "up" if stats.link_up else "DOWN"
+    return (f"t={t_sim_s:7.1f}s fix={fix} hacc={hacc} rate={stats.rate_hz:5.2f}Hz "
+            f"jitter={stats.jitter_s * 1e3:4.1f}ms reset={stats.reset_counter} link={link} {sent}")
+
+
+def run(args: argparse.Namespace, *, out=sys.stdout, should_stop: Callable[[], bool] = lambda: False) -> int:
+    """Fly and stream until the episode ends, ``--duration-s`` passes, or Ctrl-C (returns 130)."""
+    if args.speed < 0 or not math.isfinite(args.speed):
+        raise ConfigError(f"--speed {args.speed}: must be >= 0 (1 = real time, 0 = as fast as possible)")
+    if not args.demo and not (args.scenario and args.agent):
+        raise ConfigError("aerial-loc mavlink: give --scenario and --agent (or --demo for a synthetic track)")
+    config = sender_config(args)
+    if args.demo:
+        source: DemoTrack | ScenarioRun = DemoTrack(args.origin, args.seed)
+        bridge = EstimateBridge(source.world_to_latlon, (0.0, 0.0), ground_amsl_m=source.ground_amsl_m)
+        steps = source.steps()
+    else:
+        source = ScenarioRun(args.scenario, args.agent, args.seed)
+        bridge = EstimateBridge.from_orthomap(source.orthomap, ground_amsl_m=args.ground_amsl_m)
+        steps = source.steps(args.loop)
+    sender = MavlinkSender(config, policy=FixPolicy(), origin=bridge.origin)
+    tty = hasattr(out, "isatty") and out.isatty()
+    t_sim = 0.0
+    code = 0
+    try:
+        sender.start()
+        t0 = time.monotonic()
+        last_print = -math.inf
+        for step in steps:
+            t_sim = step.time_s
+            if args.speed > 0:   # pace simulated time against the monotonic clock (absolute, no drift)
+                delay = t0 + t_sim / args.speed - time.monotonic()
+                if delay > 0:
+                    time.sleep(delay)
+            sender.publish(bridge.fix(step.estimate, time_s=step.time_s, altitude_m=step.altitude_m,
+                                      yaw_fallback_rad=step.yaw_fallback_rad))
+            if args.follow:
+                source.follow = sender.vehicle()
+            now = time.monotonic()
+            if not args.quiet and now - last_print >= 1.0:
+                print(status_line(t_sim, sender.stats()), end="\r" if tty else "\n", file=out, flush=True)
+                last_print = now
+            if sender.error is not None:
+                raise AerialLocError(f"aerial-loc mavlink: the sender stopped: {sender.error}")
+            if (args.duration_s > 0 and now - t0 >= args.duration_s) or should_stop():
+                break
+    except KeyboardInterrupt:
+        code = 130
+    finally:
+        stats = sender.stats()   # before stop(): the final line shows the link as it was
+        sender.stop()
+        if isinstance(source, ScenarioRun):
+            source.close()
+    ending = "interrupted" if code == 130 else "done"
+    print(("\n" if tty else "") + f"{ending}: {status_line(t_sim, stats)}", file=out, flush=True)
+    return code
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:   # --help or a usage error (argparse printed it)
+        return int(exc.code or 0)
+    return run(args)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())
