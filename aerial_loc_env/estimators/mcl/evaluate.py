@@ -127,7 +127,8 @@ def main(argv: list[str] | None = None) -> int:
     res = run_episodes(args.scenario, args.agents, seeds, agent_overrides=agent_overrides, max_steps=args.max_steps)
     summary = summarize(res, args.converge_m)
     print(f"{args.scenario}, seeds {seeds.start}..{seeds.stop - 1}, {time.time() - t0:.0f} s")
-    print(f"{'agent':28s} {'RMSE':>8s} {'med/seed':>9s} {'final':>8s} {'converged':>10s} {'t_conv':>7s} {'ms/step':>8s}")
+    print(f"{'agent':28s} {'RMSE':>8s} {'med/seed':>9s} {'final':>8s} {'converged':>10s} {'t_conv':>7s} "
+          f"{'ms/step':>8s}")
     for a, s in summary.items():
         if a == "shadow_detector":
             continue
