@@ -48,7 +48,7 @@ from ..errors import AerialLocError, MapError
 from ..sensors.camera import CameraModel, Pose, apply_affine, world_to_map_affine
 from ..sensors.flight import FlyableRegion, Measurements, Track, footprint_radius_m, measure, sample_track
 from .briefing import Briefing, Prior
-from .scenarios import Scenario, load_scenario
+from .scenarios import Scenario, build_scenario, load_scenario
 
 ODOMETRY_SPEED_MAX_MPS = 500.0
 ODOMETRY_YAW_RATE_MAX_RADPS = 20.0
@@ -130,7 +130,11 @@ class AerialLocEnv(gym.Env):
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise AerialLocError(f"render_mode {render_mode!r} is not supported; use None or 'rgb_array'")
         self._init_args = (scenario, render_mode, dict(overrides))
-        self.scenario = scenario if isinstance(scenario, Scenario) else load_scenario(scenario, overrides)
+        if isinstance(scenario, Scenario):
+            self.scenario = build_scenario(scenario.to_dict(), overrides, where=scenario.source) \
+                if overrides else scenario
+        else:
+            self.scenario = load_scenario(scenario, overrides)
         sc = self.scenario
         self.render_mode = render_mode
         self.metadata = {**self.metadata, "render_fps": sc.flight.rate_hz}
