@@ -263,15 +263,19 @@ class EdgeOrientationModel(MeasurementModel):
         # the camera's image gets the same processing without shadow-edge removal (its shadows are unknown)
         self.cam_cfg = replace(self.map_cfg, illumination="none", clutter=self.config.camera_clutter)
         self.sampler: PatchSampler | None = None
-        self.feature_map: FeatureMap | None = None
+        self.segments: np.ndarray | None = None
+        self.sun_azimuth_deg: float | None = None
 
     def reset(self, briefing, rng: np.random.Generator) -> None:
         cfg: EdgeModelConfig = self.config
         m = briefing.orthomap
-        self.feature_map = build_feature_map(np.asarray(m.rgb), self.map_cfg)
+        fm = build_feature_map(np.asarray(m.rgb), self.map_cfg)
         geometry = PatchGeometry(cfg.cells_x * cfg.nodes_per_cell, cfg.cells_y * cfg.nodes_per_cell)
-        self.sampler = PatchSampler(m, briefing.camera, geometry, self.feature_map.orientation,
-                                    briefing.altitude_m, nodata=m.nodata)
+        self.sampler = PatchSampler(m, briefing.camera, geometry, fm.orientation, briefing.altitude_m,
+                                    nodata=m.nodata)
+        # keep the vector features for reports; the full-resolution raster layers (hundreds of MB on the
+        # paper's map) live on only in the sampler's downsampled level
+        self.segments, self.sun_azimuth_deg = fm.segments, fm.sun_azimuth_deg
 
     def prepare(self, observation: Mapping[str, np.ndarray], rng: np.random.Generator,
                 info: Mapping[str, Any] | None = None) -> PreparedEdges:
