@@ -270,3 +270,30 @@ def test_async_vector_env_runs():
         assert r.shape == (2,)
     finally:
         envs.close()
+
+
+def _png_map(path, size_px: int) -> str:
+    import cv2
+
+    rng = np.random.default_rng(0)
+    img = cv2.resize(rng.integers(0, 255, (size_px // 8, size_px // 8, 3), dtype=np.uint8), (size_px, size_px),
+                     interpolation=cv2.INTER_CUBIC)
+    cv2.imwrite(str(path), img)
+    return str(path)
+
+
+def test_file_map_shortens_the_track_and_rejects_a_map_too_small(tmp_path):
+    from aerial_loc_env.errors import MapError
+
+    path = _png_map(tmp_path / "tile.png", 400)                    # 100 m x 100 m at 0.25 m/px
+    env = gym.make("AerialLoc/RealMap-v0", path=path, altitude_m=40.0, speed_mps=8.0, map={"gsd_m": 0.25},
+                   turn_rate_deg_s=5.0).unwrapped
+    lengths = []
+    for seed in range(3):
+        env.reset(seed=seed)
+        lengths.append(len(env._track) - 1)
+        assert env.region.contains(env._track.x_m, env._track.y_m).all()
+    # 8 m/s with a 92 m turn radius cannot stay 60 s over a ~40 m flyable square: shortened, not refused
+    assert all(env.scenario.flight.min_steps <= n < env.scenario.flight.steps for n in lengths)
+    with pytest.raises(MapError, match="too small"):
+        gym.make("AerialLoc/RealMap-v0", map={"path": path, "gsd_m": 0.25}, altitude_m=200.0)
