@@ -35,7 +35,9 @@ def _scene(seed: int = 0) -> tuple[SimpleNamespace, dict, np.ndarray]:
     camera = CameraModel()
     briefing = SimpleNamespace(orthomap=orthomap, camera=camera, altitude_m=_ALT_M, dt_s=0.25,
                                prior=SimpleNamespace(kind="gaussian", mean_xy_m=(250.0, 250.0), std_xy_m=15.0),
-                               odometry_noise=None, scenario_id="perf")
+                               odometry_noise=SimpleNamespace(speed_std_mps=0.1, yaw_rate_std_radps=0.087,
+                                                              heading_std_rad=0.035, altitude_std_m=1.0),
+                               scenario_id="perf")
     x, y, yaw = 250.0, 250.0, 0.4
     a = camera.camera_to_map(orthomap, x, y, yaw, _ALT_M)
     frame = cv2.warpAffine(rgb, a, (camera.width_px, camera.height_px), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
@@ -62,6 +64,23 @@ def _model_step(name: str, **params) -> Callable[[], Callable[[], object]]:
     return setup
 
 
+def _agent_step(spec: str) -> Callable[[], Callable[[], object]]:
+    def setup() -> Callable[[], object]:
+        from ..estimators.registry import make_agent
+
+        briefing, obs, _ = _scene()
+        agent = make_agent(spec)
+        agent.reset(briefing, seed=0)
+        agent.step(obs)                       # first fix: later steps search the tracking window
+
+        def step() -> object:
+            return agent.step(obs)
+
+        return step
+
+    return setup
+
+
 def _import_models() -> None:
     import importlib
 
@@ -80,4 +99,7 @@ BENCHMARKS = [
     Benchmark("MCL step MI 60x40 16 bins, N=700", _model_step("mi"), target_s=0.015, unit="step"),
     Benchmark("MCL step abBRIEF 60x40 12x64x2 bits, N=700", _model_step("abbrief"), unit="step"),
     Benchmark("MCL step edges 6x4 cells (incl. camera features), N=700", _model_step("edges"), unit="step"),
+    Benchmark("baseline step template-ncc (1 m/px, 40 m window)", _agent_step("template-ncc"), unit="step"),
+    Benchmark("baseline step features-orb (0.5 m/px, 40 m window)", _agent_step("features-orb"), unit="step",
+              repeats=10),
 ]
