@@ -40,7 +40,7 @@ from .landcover import LandCover
 from .orthomap import Orthomap
 
 #: Bump whenever the generator's output changes for a given config: it is part of the cache key.
-GENERATOR_VERSION = 1
+GENERATOR_VERSION = 2
 
 
 

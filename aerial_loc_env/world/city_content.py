@@ -501,16 +501,31 @@ def paint_cars(canvas: Canvas, cars: list[tuple[np.ndarray, int]]) -> None:
 
 
 def paint_trees(canvas: Canvas, trees: list[tuple[float, float, float, float, int]]) -> None:
-    """Round canopies: a dark rim, a lit crown offset towards the north-west, a few lumps; dome heights."""
+    """Round canopies: a dark rim, a lit crown offset towards the north-west, a few lumps; dome heights.
+
+    Fixed-point centres and radii of all the discs are computed at once; the loop only calls OpenCV.
+    """
+    if not trees:
+        return
+    t = np.asarray(trees, np.float64)
+    p, rad, h, k = t[:, :2], t[:, 2], t[:, 3], t[:, 4].astype(np.int64)
     light = np.array([-0.22, -0.22])
-    for x, y, rad, h, k in trees:
-        p = np.array([x, y])
-        canvas.disc(p, rad, TREE_COLOURS[k], Material.TREE, max(0.85 * h, 5.0), 96)
-        canvas.height_disc(p, 0.6 * rad, h)
-        for ang in (0.7, 2.6, 4.4):
-            canvas.shade_disc(p + rad * 0.45 * np.array([np.cos(ang + x), np.sin(ang + x)]), 0.42 * rad, 118)
-        canvas.shade_disc(p + light * rad, 0.55 * rad, 138)
-        canvas.shade_disc(p + light * rad * 1.4, 0.25 * rad, 156)
+    lumps = [p + (rad * 0.45)[:, None] * np.stack([np.cos(a + p[:, 0]), np.sin(a + p[:, 0])], axis=1)
+             for a in (0.7, 2.6, 4.4)]
+    # (centre, radius, shade) of the shading discs, drawn in this order over the rim
+    shades = [(lp, 0.42 * rad, 118) for lp in lumps] + [(p + light * rad[:, None], 0.55 * rad, 138),
+                                                         (p + light * rad[:, None] * 1.4, 0.25 * rad, 156)]
+    px = canvas.px
+    cen = px(p)
+    r_rim, r_top = canvas.px_radius(rad), canvas.px_radius(0.6 * rad)
+    sh = [(px(c), canvas.px_radius(r), v) for c, r, v in shades]
+    rim_h = np.maximum(0.85 * h, 5.0)
+    for i in range(len(t)):
+        c = (int(cen[i, 0]), int(cen[i, 1]))
+        canvas.disc_px(c, int(r_rim[i]), TREE_COLOURS[k[i]], Material.TREE, float(rim_h[i]), 96)
+        canvas.circle_px(canvas.dsm_m, c, int(r_top[i]), float(h[i]))
+        for cc, rr, v in sh:
+            canvas.circle_px(canvas.shade, (int(cc[i, 0]), int(cc[i, 1])), int(rr[i]), v)
 
 
 def paint_building(canvas: Canvas, b: Building) -> None:

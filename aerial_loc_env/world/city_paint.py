@@ -134,14 +134,22 @@ class Canvas:
         cv2.polylines(self.dsm_m, pts, closed, float(height_m), t, cv2.LINE_8, _SHIFT)
         cv2.polylines(self.shade, pts, closed, NEUTRAL_SHADE, t, cv2.LINE_8, _SHIFT)
 
-    def disc(self, centre_m: np.ndarray, radius_m: float, colour: Sequence[int], material: Material,
-             height_m: float = 0.0, shade: int = NEUTRAL_SHADE) -> None:
-        c = tuple(int(v) for v in self.px(centre_m))
-        r = max(1, int(round(radius_m / self.gsd_m * _SCALE)))
-        cv2.circle(self.rgb, c, r, tuple(int(v) for v in colour), -1, cv2.LINE_8, _SHIFT)
-        cv2.circle(self.material, c, r, int(material), -1, cv2.LINE_8, _SHIFT)
-        cv2.circle(self.dsm_m, c, r, float(height_m), -1, cv2.LINE_8, _SHIFT)
-        cv2.circle(self.shade, c, r, int(shade), -1, cv2.LINE_8, _SHIFT)
+    def px_radius(self, radius_m: np.ndarray) -> np.ndarray:
+        """Metres -> fixed-point pixel radii (at least one pixel)."""
+        return np.maximum(_SCALE, np.rint(np.asarray(radius_m) / self.gsd_m * _SCALE)).astype(np.int64)
+
+    @staticmethod
+    def circle_px(layer: np.ndarray, centre_px: tuple[int, int], radius_px: int, value: float) -> None:
+        """Filled disc in one layer, centre and radius already in fixed-point pixels (see px, px_radius)."""
+        cv2.circle(layer, centre_px, radius_px, value, -1, cv2.LINE_8, _SHIFT)
+
+    def disc_px(self, centre_px: tuple[int, int], radius_px: int, colour: Sequence[int], material: Material,
+                height_m: float = 0.0, shade: int = NEUTRAL_SHADE) -> None:
+        """Filled disc in all layers, fixed-point centre and radius."""
+        cv2.circle(self.rgb, centre_px, radius_px, tuple(int(v) for v in colour), -1, cv2.LINE_8, _SHIFT)
+        cv2.circle(self.material, centre_px, radius_px, int(material), -1, cv2.LINE_8, _SHIFT)
+        cv2.circle(self.dsm_m, centre_px, radius_px, float(height_m), -1, cv2.LINE_8, _SHIFT)
+        cv2.circle(self.shade, centre_px, radius_px, int(shade), -1, cv2.LINE_8, _SHIFT)
 
     # -- drawing into one layer -------------------------------------------------------------------------
     def shade_fill(self, polys_m: Sequence[np.ndarray], shade: int) -> None:
@@ -153,19 +161,9 @@ class Canvas:
             cv2.polylines(self.shade, self._polys(polylines_m), False, int(shade), self.thickness_px(width_m),
                           cv2.LINE_8, _SHIFT)
 
-    def shade_disc(self, centre_m: np.ndarray, radius_m: float, shade: int) -> None:
-        c = tuple(int(v) for v in self.px(centre_m))
-        cv2.circle(self.shade, c, max(1, int(round(radius_m / self.gsd_m * _SCALE))), int(shade), -1,
-                   cv2.LINE_8, _SHIFT)
-
     def dsm_fill(self, polys_m: Sequence[np.ndarray], height_m: float) -> None:
         if len(polys_m):
             cv2.fillPoly(self.dsm_m, self._polys(polys_m), float(height_m), cv2.LINE_8, _SHIFT)
-
-    def height_disc(self, centre_m: np.ndarray, radius_m: float, height_m: float) -> None:
-        c = tuple(int(v) for v in self.px(centre_m))
-        cv2.circle(self.dsm_m, c, max(1, int(round(radius_m / self.gsd_m * _SCALE))), float(height_m), -1,
-                   cv2.LINE_8, _SHIFT)
 
     def paint_lines(self, polylines_m: Sequence[np.ndarray], colour: Sequence[int], material: Material,
                     width_m: float) -> None:

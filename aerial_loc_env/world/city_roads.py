@@ -82,6 +82,29 @@ def _crosswalks(layout: Layout, rng: np.random.Generator) -> tuple[list, list]:
     return bars, stops
 
 
+def _repairs(canvas: Canvas, roads: list[Road], rng: np.random.Generator) -> None:
+    """Patched asphalt (darker or lighter rectangles) and manhole covers: roads are not uniform either."""
+    patches: list[list[np.ndarray]] = [[], []]
+    covers = []
+    for r in roads:
+        for p0, p1 in zip(r.points[:-1], r.points[1:], strict=True):
+            L = float(np.linalg.norm(p1 - p0))
+            d = (p1 - p0) / max(L, 1e-9)
+            n = np.array([-d[1], d[0]])
+            for t in rng.uniform(0.0, L, rng.poisson(L / 45.0)):
+                c = p0 + d * t + n * rng.uniform(-0.4, 0.4) * r.width_m
+                a, b = rng.uniform(1.5, 8.0), rng.uniform(1.0, 3.5)
+                q = np.stack([c - d * a / 2 - n * b / 2, c + d * a / 2 - n * b / 2, c + d * a / 2 + n * b / 2,
+                              c - d * a / 2 + n * b / 2])
+                patches[int(rng.random() < 0.35)].append(q)
+            for t in rng.uniform(0.0, L, rng.poisson(L / 60.0)):
+                covers.append(p0 + d * t + n * rng.uniform(-0.3, 0.3) * r.width_m)
+    canvas.shade_fill(patches[0], 112)
+    canvas.shade_fill(patches[1], 140)
+    for c in covers:
+        canvas.circle_px(canvas.shade, tuple(int(v) for v in canvas.px(c)), int(canvas.px_radius(0.35)), 84)
+
+
 def paint_roads(canvas: Canvas, layout: Layout, filler: Filler, rng: np.random.Generator) -> None:
     """Sidewalks, asphalt, markings, crosswalks, the river with its banks, bridges, traffic, street trees."""
     roads = layout.roads
@@ -124,6 +147,7 @@ def paint_roads(canvas: Canvas, layout: Layout, filler: Filler, rng: np.random.G
         canvas.paint_lines(yellow, YELLOW, Material.MARKING, 0.15)
 
     draw(ground_roads)
+    _repairs(canvas, ground_roads, rng)
     bars, stops = _crosswalks(layout, rng)
     canvas.paint_fill(bars, WHITE, Material.MARKING)
     canvas.paint_lines(stops, WHITE, Material.MARKING, 0.45)
