@@ -87,7 +87,6 @@ class WindowMatchingAgent(Agent):
         self.level_gsd = (m.gsd_x_m * sx, m.gsd_y_m * sy)
         self.dr = DeadReckoningAgent()
         self.has_fix = False
-        self.rng = np.random.default_rng(seed)
         return self.dr.reset(briefing, seed=seed)
 
     def step(self, observation: Mapping[str, np.ndarray], info: Mapping[str, Any] | None = None) -> Estimate:
