@@ -105,3 +105,38 @@ def test_baseline_params_are_checked():
 
 def test_alt_constant_is_the_scene_altitude():
     assert ALT_M == 100.0 and WIDE.footprint_m(ALT_M) == pytest.approx((120.0, 80.0))
+
+
+COMPARISON_SPECS = ["mcl-ssd", "mcl-ncc", "mcl-mi", "mcl-abbrief", "mcl-edges", "template-ncc", "features-orb",
+                    "features-sift"]
+
+
+def test_every_comparison_agent_runs_on_the_small_scenario():
+    """Integration: the specs of this issue run in lockstep on AerialLoc/Small-v0 (64 x 64 observations)."""
+    gym = pytest.importorskip("gymnasium")
+    import aerial_loc_env  # noqa: F401  (registers the scenarios)
+    from aerial_loc_env.env import world_to_action
+    from aerial_loc_env.estimators.registry import make_agent
+
+    env = gym.make("AerialLoc/Small-v0")
+    try:
+        obs, info = env.reset(seed=0)
+        briefing = env.unwrapped.briefing
+        agents = {n: make_agent(n, **({"n_particles": 200} if n.startswith("mcl") else {}))
+                  for n in COMPARISON_SPECS}
+        for a in agents.values():
+            a.reset(briefing, seed=0)
+        for _ in range(12):
+            truth = info["true_pose"]
+            errors = {}
+            for name, a in agents.items():
+                est = a.step(obs)
+                errors[name] = math.hypot(est.x_m - truth[0], est.y_m - truth[1])
+                assert est.status in ("ok", "degraded", "lost", "dead_reckoning")
+            obs, _, term, trunc, info = env.step(world_to_action(briefing.orthomap, est.x_m, est.y_m))
+            assert not (term or trunc)
+    finally:
+        env.close()
+    # the prior is 15 m (1 sigma) per axis: every MCL model has pulled its estimate well inside it
+    for name in COMPARISON_SPECS[:5]:
+        assert errors[name] < 15.0, errors
