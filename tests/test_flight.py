@@ -29,6 +29,7 @@ def test_full_track_stays_inside_with_clearance():
         assert track.length_m == pytest.approx(2500.0, rel=0.01)
         max_rate = math.radians(cfg.turn_rate_deg_s) + 5 * math.radians(cfg.yaw_rate_noise_deg_s)
         assert np.all(np.abs(track.yaw_rate_radps) <= max_rate)
+        assert np.all(np.abs(track.altitude_m - cfg.altitude_m) <= 3.0 * cfg.altitude_noise_m)
 
 
 def test_track_follows_motion_model():

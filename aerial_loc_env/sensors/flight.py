@@ -40,7 +40,8 @@ class FlightConfig:
     speed_noise_mps: float = field(default=0.2, metadata=rng(0.0, 10.0, doc="process noise of the speed"))
     yaw_rate_noise_deg_s: float = field(default=0.5, metadata=rng(0.0, 30.0,
                                                                      doc="process noise of the yaw rate"))
-    altitude_noise_m: float = field(default=0.5, metadata=rng(0.0, 50.0, doc="altitude jitter (1 sigma)"))
+    altitude_noise_m: float = field(default=0.5, metadata=rng(0.0, 50.0,
+                                                              doc="altitude jitter (1 sigma, clipped at 3)"))
     margin_m: float = field(default=45.0, metadata=rng(0.0, 1e4, doc="clearance beyond the footprint "
                                                                      "(room for particles: 3 x 15 m)"))
     min_steps: int = field(default=8, metadata=rng(1, 100000, doc="shortest acceptable track (steps)"))
@@ -186,7 +187,9 @@ def _fly(config: FlightConfig, region: FlyableRegion, rng: np.random.Generator) 
     # noise drawn as a bank up front: the same rng draws whatever the track's fate.
     speed_noise = rng.normal(0.0, config.speed_noise_mps, n)
     rate_noise = rng.normal(0.0, yaw_noise, n)
-    alt = config.altitude_m + rng.normal(0.0, config.altitude_noise_m, n)
+    # altitude jitter clipped at 3 sigma: the clearance is computed for altitude + 3 sigma (footprint size)
+    alt = config.altitude_m + np.clip(rng.normal(0.0, config.altitude_noise_m, n),
+                                      -3.0 * config.altitude_noise_m, 3.0 * config.altitude_noise_m)
     xs, ys, yaws = np.empty(n), np.empty(n), np.empty(n)
     speeds, rates = np.empty(n), np.empty(n)
     x, y = float(start[0]), float(start[1])
