@@ -88,6 +88,7 @@ class CameraRenderer:
     optionally ``nodata`` (H, W) bool (the ``Orthomap`` contract). The map pyramid is built lazily, once per
     level. ``noise_seed`` seeds the first noise bank; call ``reset(rng)`` at each episode to redraw it.
     ``rgba``: keep a private RGBA copy of the map for twice faster warps (default: maps up to 32 Mpx).
+    Not thread-safe (reused scratch buffers, lazily built pyramid): one renderer per thread or process.
     """
 
     def __init__(self, orthomap: Any, camera: CameraModel | None = None, photometry: Photometry | None = None,
@@ -113,9 +114,9 @@ class CameraRenderer:
             nd = np.where(np.asarray(nodata), np.uint8(255), np.uint8(0))
             self._nodata_levels = [nd]
             # integral image of "block has no-data" on a coarse grid: most footprints skip the mask warp
-            pad = ((0, (-nd.shape[0]) % _BLOCK_PX), (0, (-nd.shape[1]) % _BLOCK_PX))
-            blocks = np.pad(nd, pad).reshape(nd.shape[0] // _BLOCK_PX + bool(pad[0][1]), _BLOCK_PX, -1,
-                                             _BLOCK_PX).max(axis=(1, 3))
+            padded = np.pad(nd, ((0, (-nd.shape[0]) % _BLOCK_PX), (0, (-nd.shape[1]) % _BLOCK_PX)))
+            blocks = padded.reshape(padded.shape[0] // _BLOCK_PX, _BLOCK_PX, padded.shape[1] // _BLOCK_PX,
+                                    _BLOCK_PX).max(axis=(1, 3))
             self._nodata_blocks = cv2.integral((blocks > 0).astype(np.uint8))
         self._vignette = self._vignetting_map(self.camera, self.photometry.vignetting)
         self._noise_bank: np.ndarray | None = None
@@ -348,6 +349,7 @@ class CameraRenderer:
         assert self._noise_bank is not None
         dy, dx = rng.integers(0, _NOISE_MARGIN_PX + 1, size=2)
         z = self._noise_bank[dy:dy + h, dx:dx + w]
+        # sigma from the level before vignetting (a few % off in the corners; one LUT pass instead of two)
         cv2.LUT(image.reshape(h, w * 3), self._sigma_lut, dst=sigma.reshape(h, w * 3))
         cv2.multiply(sigma, z, dst=sigma)
         return cv2.add(signal, sigma, dtype=cv2.CV_8U)
