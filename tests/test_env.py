@@ -297,3 +297,16 @@ def test_file_map_shortens_the_track_and_rejects_a_map_too_small(tmp_path):
     assert all(env.scenario.flight.min_steps <= n < env.scenario.flight.steps for n in lengths)
     with pytest.raises(MapError, match="too small"):
         gym.make("AerialLoc/RealMap-v0", map={"path": path, "gsd_m": 0.25}, altitude_m=200.0)
+
+
+def test_database_with_another_suns_shadows():
+    env = make(shadows={"database_sun_deg": [120.0, 30.0]})
+    env.reset(seed=0)
+    db, scene = env.briefing.orthomap, env.orthomap
+    assert db is not scene and db.rgb.shape == scene.rgb.shape
+    assert (db.width_m, db.height_m) == (scene.width_m, scene.height_m)
+    darker = db.rgb.astype(int).sum(axis=2) < scene.rgb.astype(int).sum(axis=2)
+    assert 0.01 < darker.mean() < 0.9                      # some ground is in the baked shadows, not all
+    plain = make()
+    plain.reset(seed=0)
+    assert plain.briefing.orthomap is plain.orthomap       # default: the shadow-free scene

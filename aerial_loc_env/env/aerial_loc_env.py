@@ -26,7 +26,8 @@ Spaces (docs/ARCHITECTURE.md, "Environment <-> agent contract"):
 (x_m, y_m, yaw_rad, altitude_m) of the returned frame, ``time_s``, ``step``, ``prior``, ``shadow_fraction`` of
 the returned frame, ``sun_azimuth_deg``, ``sun_elevation_deg``, ``shadow_strength``; after a step also
 ``position_error_m`` and ``estimate_xy_m`` of the scored action; with ``observation.info_shadow_mask`` the
-frame's ground-truth ``shadow_mask`` (H, W) bool. What an estimator may use is ``env.unwrapped.briefing``.
+frame's ground-truth ``shadow_mask`` (H, W) bool. What an estimator may use is ``env.unwrapped.briefing``;
+its map is the shadow-free scene, or with ``shadows.database_sun_deg`` the scene with another sun's shadows.
 
 ``render_mode="rgb_array"``: a north-up overview around the vehicle with the camera frame (and its shadows) in
 its footprint, the true track so far (green), the estimates (red), the prior (cyan) and the points an agent
@@ -112,6 +113,21 @@ def load_map(scenario: Scenario) -> Any:
     return _MAPS[key]
 
 
+def database_map(orthomap: Any, shadows: Any) -> Any:
+    """What the estimators get as the map: the scene itself (shadow-free), or, with
+    ``shadows.database_sun_deg``, a copy with the shadows of that other sun baked in (time-of-day mismatch).
+    Baked once per process, map and shadow config."""
+    if shadows.database_sun_deg is None:
+        return orthomap
+    key = ("database", id(orthomap), repr(shadows))
+    if key not in _MAPS:
+        import dataclasses
+
+        rgb = shadows.database_image(orthomap.rgb, orthomap.dsm_m, orthomap.gsd_x_m, orthomap.gsd_y_m)
+        _MAPS[key] = dataclasses.replace(orthomap, rgb=rgb, name=f"{orthomap.name}-database")
+    return _MAPS[key]
+
+
 def _dsm_max(orthomap: Any) -> float:
     """The tallest height of a map's DSM (once per map: it bounds how far shadows reach)."""
     key = ("dsm_max", id(orthomap))
@@ -139,6 +155,7 @@ class AerialLocEnv(gym.Env):
         self.render_mode = render_mode
         self.metadata = {**self.metadata, "render_fps": sc.flight.rate_hz}
         self.orthomap = load_map(sc)
+        self.database = database_map(self.orthomap, sc.shadows)
         sensor: CameraModel = sc.camera
         obs = sc.observation
         w = obs.width_px or sensor.width_px
@@ -207,7 +224,7 @@ class AerialLocEnv(gym.Env):
             self._prior = Prior("gaussian", (float(mean[0]), float(mean[1])), float(std))
         else:
             self._prior = Prior("uniform")
-        self.briefing = Briefing(orthomap=self.orthomap, camera=self.camera, prior=self._prior,
+        self.briefing = Briefing(orthomap=self.database, camera=self.camera, prior=self._prior,
                                  dt_s=sc.flight.dt_s, altitude_m=sc.flight.altitude_m,
                                  odometry_noise=sc.odometry, scenario_id=sc.id)
         self._i = 0
@@ -258,7 +275,8 @@ class AerialLocEnv(gym.Env):
         cv0 = max(0, int(v0 + min(0.0, dv)) // f * f)
         cv1 = min(om.height_px, int(math.ceil(v1 + max(0.0, dv))))
         grid = sun_occlusion(np.asarray(om.dsm_m[cv0:cv1, cu0:cu1]), om.gsd_x_m, om.gsd_y_m, sun,
-                             downsample=f, penumbra_scale=cfg.penumbra_scale, antialias_px=cfg.antialias_px)
+                             downsample=f, penumbra_scale=cfg.penumbra_scale, antialias_px=cfg.antialias_px,
+                             azimuth_samples=cfg.penumbra_azimuth_samples)
         gi0, gj0 = (v0 - cv0) // f, (u0 - cu0) // f
         hb, wb = -(-(v1 - v0) // f), -(-(u1 - u0) // f)
         field = np.zeros((-(-om.height_px // f), -(-om.width_px // f)), dtype=np.float32)
