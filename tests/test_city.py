@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from aerial_loc_env.config import build_config
-from aerial_loc_env.errors import ConfigError, MapError
+from aerial_loc_env.errors import ConfigError
 from aerial_loc_env.world.city import (
     CityConfig,
     city_cache_path,
@@ -203,8 +203,10 @@ def test_config_validation():
         build_config(CityConfig, {"density": 1.0})
     with pytest.raises(ConfigError, match="name"):
         build_config(CityConfig, {"name": "a/b"})
-    with pytest.raises(MapError, match="CityConfig"):
+    with pytest.raises(ConfigError, match="CityConfig"):
         generate_city({"seed": 1})   # type: ignore[arg-type]
+    with pytest.raises(ConfigError, match="Mpx"):
+        build_config(CityConfig, {"width_m": 8000.0, "height_m": 8000.0, "gsd_m": 0.1})
     default = CityConfig()
     assert default.width_m >= 1200 and default.height_m >= 1400 and default.gsd_m == 0.25
     assert default.size_px == (4800, 5600)

@@ -29,7 +29,7 @@ import numpy as np
 
 from ..config import build_config, config_to_dict
 from ..config import rng as crange
-from ..errors import MapError
+from ..errors import ConfigError, MapError
 from ..paths import cache_dir
 from .city_content import Filler, choose_use, paint_scene
 from .city_layout import build_layout
@@ -38,6 +38,9 @@ from .city_roads import paint_roads
 from .geo import LocalTangentGeoref
 from .landcover import LandCover
 from .orthomap import Orthomap
+
+#: Largest map generated (pixels): 150 Mpx is ~1.2 GB of layers while drawing.
+MAX_PIXELS = 150_000_000
 
 #: Bump whenever the generator's output changes for a given config: it is part of the cache key.
 GENERATOR_VERSION = 2
@@ -71,9 +74,12 @@ class CityConfig:
 
     def validate(self, where: str) -> None:
         if self.name.strip() == "" or "/" in self.name:
-            from ..errors import ConfigError
-
             raise ConfigError(f"{where}: field 'name' = {self.name!r} must be a non-empty name without '/'")
+        w_px, h_px = self.size_px
+        if w_px * h_px > MAX_PIXELS:
+            raise ConfigError(f"{where}: width_m x height_m at gsd_m = {self.gsd_m} gives {w_px} x {h_px} px, "
+                              f"more than the {MAX_PIXELS / 1e6:.0f} Mpx allowed; use a coarser gsd_m or a "
+                              "smaller map")
 
     @property
     def size_px(self) -> tuple[int, int]:
@@ -119,7 +125,7 @@ def generate_city(config: CityConfig | None = None) -> Orthomap:
     """Draw the city described by ``config`` (uncached); every random draw comes from its seed."""
     cfg = config if config is not None else CityConfig()
     if not isinstance(cfg, CityConfig):
-        raise MapError(f"generate_city: expected a CityConfig, got {type(cfg).__name__}; build one with "
+        raise ConfigError(f"generate_city: expected a CityConfig, got {type(cfg).__name__}; build one with "
                        "aerial_loc_env.config.build_config(CityConfig, {...})")
     w_px, h_px = cfg.size_px
     seeds = np.random.SeedSequence([cfg.seed, 0xC17]).spawn(5)
