@@ -169,6 +169,7 @@ def test_c_odometry_frames_quaternion_body_velocity(c_session):
         right = np.array([-math.sin(h), math.cos(h)])
         v_ne = np.array([-4.0, 3.0])
         assert (f["vx"], f["vy"], f["vz"]) == pytest.approx((fwd @ v_ne, right @ v_ne, -0.5), abs=1e-5)
+        assert all(math.isnan(f[k]) for k in ("rollspeed", "pitchspeed", "yawspeed"))   # not estimated
         assert (f["pose_covariance"][0], f["pose_covariance"][20]) == pytest.approx((6.25, 0.0025))
         assert f["velocity_covariance"][0] == pytest.approx(0.8 ** 2)
         assert f["estimator_type"] == 2                         # MAV_ESTIMATOR_TYPE_VISION (extension)

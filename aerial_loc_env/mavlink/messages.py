@@ -127,7 +127,10 @@ def vision_position_estimate(fix: PoseFix, quality: FixQuality, time_usec: int,
 
 def odometry(fix: PoseFix, quality: FixQuality, time_usec: int, reset_counter: int,
              frames: str = "local_frd") -> mavlink2.MAVLink_odometry_message:
-    """ODOMETRY: pose in the local frame (north-aligned), velocity in body FRD (the child frame)."""
+    """ODOMETRY: pose in the local frame (north-aligned), velocity in body FRD (the child frame).
+
+    Angular rates are not estimated: NaN (PX4 skips non-finite rates; ArduPilot reads none of them).
+    """
     frame_id, child_frame_id = ODOMETRY_FRAMES[frames]
     x, y, z = enu_to_ned(fix.east_m, fix.north_m, fix.up_m)
     heading = heading_of(fix)
@@ -135,7 +138,7 @@ def odometry(fix: PoseFix, quality: FixQuality, time_usec: int, reset_counter: i
     vel_cov = np.diag([quality.speed_acc_mps ** 2] * 3 + [UNKNOWN_ANGLE_VAR_RAD2] * 3)
     return mavlink2.MAVLink_odometry_message(
         time_usec, frame_id, child_frame_id, x, y, z, quaternion_from_heading(heading), *v_body,
-        0.0, 0.0, 0.0,
+        math.nan, math.nan, math.nan,
         upper_triangle(pose_covariance(fix, quality)), upper_triangle(vel_cov), reset_counter,
         mavlink2.MAV_ESTIMATOR_TYPE_VISION, quality.odometry_quality)
 
