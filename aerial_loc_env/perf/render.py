@@ -1,4 +1,5 @@
-"""Camera rendering speed: one 600 x 400 frame with cast shadows and sensor noise (target 2.5 ms, one core)."""
+"""Camera rendering speed: one 600 x 400 frame with cast shadows and sensor noise (target 2.5 ms, one core),
+database patches, and eq. (3) projections for many particles."""
 
 from __future__ import annotations
 
@@ -67,6 +68,18 @@ def _patch_setup() -> Callable[[], object]:
     return lambda: renderer.database_patch(pose)
 
 
+def _project_setup() -> Callable[[], object]:
+    from ..sensors.camera import CameraModel
+
+    orthomap, _ = _scene()
+    rng = np.random.default_rng(2)
+    n = 5000
+    x, y, yaw = rng.uniform(170, 598, n), rng.uniform(170, 598, n), rng.uniform(-np.pi, np.pi, n)
+    uv = rng.uniform(0, 600, (256, 2))
+    camera = CameraModel()
+    return lambda: camera.project_pixels(orthomap, uv, x, y, yaw, 200.0)
+
+
 BENCHMARKS = [
     Benchmark("render 600x400 + cast shadows + noise (200 m)", _render_setup(200.0, True), target_s=2.5e-3,
               unit="frame", repeats=200),
@@ -75,4 +88,5 @@ BENCHMARKS = [
     Benchmark("render 600x400 + cast shadows + noise (350 m, pyramid level 1)", _render_setup(350.0, True),
               target_s=2.5e-3, unit="frame", repeats=200),
     Benchmark("database patch 600x400 (200 m)", _patch_setup, unit="patch", repeats=200),
+    Benchmark("camera.project_pixels: 5000 poses x 256 pixels (eq. 3)", _project_setup, unit="call", repeats=50),
 ]
