@@ -37,6 +37,18 @@ def _episode_setup(scenario: str, **overrides) -> Callable[[], Callable[[], obje
     return setup
 
 
+def _reset_setup(scenario: str) -> Callable[[], Callable[[], object]]:
+    def setup() -> Callable[[], object]:
+        import aerial_loc_env  # noqa: F401
+        from aerial_loc_env.env import AerialLocEnv
+
+        env = AerialLocEnv(scenario)
+        seeds = iter(range(10**9))
+        return lambda: env.reset(seed=next(seeds))
+
+    return setup
+
+
 def _steps(scenario: str) -> int:
     from aerial_loc_env.env.scenarios import load_scenario
 
@@ -50,6 +62,8 @@ BENCHMARKS = [
     Benchmark(name="env episode Small 64x64 + cast shadows (per step)",
               setup=_episode_setup("AerialLoc/Small-v0"), target_s=1 / 2000, unit="step", repeats=20,
               per_call_items=_steps("AerialLoc/Small-v0")),
+    Benchmark(name="env reset PaperShadows (track, sun, shadows over the track box, frame 0)",
+              setup=_reset_setup("AerialLoc/PaperShadows-v0"), target_s=None, unit="reset", repeats=10),
     Benchmark(name="env episode CloudShadows 600x400 (per step)",
               setup=_episode_setup("AerialLoc/CloudShadows-v0"), target_s=None, unit="step", repeats=5,
               per_call_items=_steps("AerialLoc/CloudShadows-v0")),
