@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import gymnasium as gym
 import pytest
+import tomllib
 
 import aerial_loc_env  # noqa: F401  (registers the scenarios)
 from aerial_loc_env.env.scenarios import (
@@ -104,4 +105,5 @@ def test_cli_lists_ids(capsys):
     for name in REQUIRED:
         assert f"AerialLoc/{name}-v0" in out
     assert main(["--show", "Small"]) == 0
-    assert "[flight]" in capsys.readouterr().out
+    shown = tomllib.loads(capsys.readouterr().out)          # valid TOML, the full validated spec
+    assert build_scenario(shown).sections == load_scenario("Small").sections

@@ -32,6 +32,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import importlib
+import json
 import sys
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -265,19 +266,19 @@ def register_all() -> list[str]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``aerial-loc scenarios``: list the registered ids (``--show ID`` prints one validated spec)."""
+    """``aerial-loc scenarios``: list the registered ids (``--show ID`` prints one validated spec as TOML)."""
     parser = argparse.ArgumentParser(prog="aerial-loc scenarios", description="list the registered scenarios")
     parser.add_argument("--show", metavar="ID", help="print the full validated spec of one scenario")
     args = parser.parse_args(argv)
     if args.show:
         sc = load_scenario(args.show)
         for key in TOP_KEYS:
-            print(f"{key} = {getattr(sc, key)!r}")
+            print(f"{key} = {json.dumps(getattr(sc, key))}")
         for name, table in sc.to_dict().items():
             if isinstance(table, dict):
                 print(f"\n[{name}]")
                 for k, v in table.items():
-                    print(f"{k} = {v!r}")
+                    print(f"{k} = {json.dumps(v)}")
         return 0
     for sid, (_path, raw) in specs().items():
         print(f"{sid:36s} {raw.get('description', '')}")
