@@ -2,9 +2,10 @@
 
 from __future__ import annotations
 
+import sys
+
 import gymnasium as gym
 import pytest
-import tomllib
 
 import aerial_loc_env  # noqa: F401  (registers the scenarios)
 from aerial_loc_env.env.scenarios import (
@@ -17,6 +18,11 @@ from aerial_loc_env.env.scenarios import (
 )
 from aerial_loc_env.errors import ConfigError, MapError
 from aerial_loc_env.paths import spec_dir
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib
 
 REQUIRED = ("PaperShadows", "PaperNoShadows", "GlobalLocalization", "CloudShadows", "MavicPro", "RealMap", "Small")
 
