@@ -1,68 +1,115 @@
 """``aerial-loc bench [EXPERIMENT]``: run an experiment grid, print the table, write CSV/JSON, a Markdown report
-and plots. With no argument it runs the default comparison on the embedded procedural city."""
+and plots. With no argument it runs the default comparison on the embedded procedural city.
+
+Results go to ``results/<experiment>/`` (``--out``): ``trials.jsonl`` (the source of truth, appended as each
+episode ends), ``trials.csv`` / ``trials.json`` (derived), ``report.md`` and PNG plots. A re-run skips the
+trials already there, so an interrupted run resumes where it stopped."""
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
 import os
+import sys
+import time
+from collections.abc import Sequence
 from pathlib import Path
 
 from ..perf import machine
-from .grid import available_experiments, load_grid
-from .report import markdown_report, summarize, summary_table
+from .grid import Grid, available_experiments, load_grid
+from .report import markdown_report, paper_sections, summarize, summary_table
 from .runner import run_grid
 
 
+def _default_workers() -> int:
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # pragma: no cover (not Linux)
+        return os.cpu_count() or 1
+
+
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="aerial-loc bench", description=__doc__)
+    ap = argparse.ArgumentParser(prog="aerial-loc bench", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("experiment", nargs="?", default="default",
                     help=f"an experiment name ({', '.join(available_experiments())}) or a TOML path")
     ap.add_argument("--out", help="results folder (default results/<experiment>); finished trials there are kept "
                                   "and skipped, never overwritten")
-    ap.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="parallel processes (default: cores)")
-    ap.add_argument("--executor", default="local", choices=("local", "ray"), help="where episodes run")
-    ap.add_argument("--seeds", type=int, help="use only the first N seeds of the experiment")
+    ap.add_argument("--workers", type=int, default=_default_workers(),
+                    help="parallel processes (default: the usable cores)")
+    ap.add_argument("--executor", default="local", choices=("local", "ray"),
+                    help="where episodes run: local processes, or Ray (RAY_ADDRESS or a local instance)")
+    ap.add_argument("--seeds", type=int, metavar="N", help="use only the first N seeds of the experiment")
     ap.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
+    ap.add_argument("--quiet", action="store_true", help="no progress bar")
     ap.add_argument("--list", action="store_true", help="list the experiments and exit")
     args = ap.parse_args(argv)
     if args.list:
         for name in available_experiments():
             g = load_grid(name)
-            print(f"{name:18s} {g.trials():6d} trials  {g.description}")
+            print(f"{name:14s} {g.trials():6d} trials ({g.episodes()} episodes)  {g.description}")
         return 0
     grid = load_grid(args.experiment)
     if args.seeds:
+        if args.seeds < 1:
+            ap.error("--seeds must be >= 1")
         grid = dataclasses.replace(grid, seeds=grid.seeds[: args.seeds])
     out = Path(args.out or Path("results") / grid.name)
     print(f"{grid.name}: {len(grid.agents)} agents x {len(grid.scenarios)} scenarios x {len(grid.seeds)} seeds "
           f"= {grid.trials()} trials -> {out}/", flush=True)
-    rows = run_grid(grid, str(out), workers=args.workers, executor=args.executor)
+    t0 = time.monotonic()
+    rows = run_grid(grid, str(out), workers=args.workers, executor=args.executor, progress=not args.quiet)
+    elapsed = time.monotonic() - t0
     print()
     print(summary_table(summarize(rows)))
-    write_report(grid, rows, out, plots=not args.no_plots)
-    print(f"\nreport: {out / 'report.md'}; rows: {out / 'trials.csv'}")
+    for section in paper_sections(grid.paper, rows):
+        print()
+        print(section)
+    path = write_report(grid, rows, out, plots=not args.no_plots,
+                        note=f"Run time of this invocation: {elapsed:.0f} s with {args.workers} "
+                             f"{args.executor} worker(s) (trials already on disk were skipped).")
+    print(f"\nreport: {path}; rows: {out / 'trials.csv'}; {elapsed:.0f} s", flush=True)
     return 0
 
 
-def write_report(grid, rows, out: Path, *, plots: bool = True) -> Path:
-    sections = []
-    if plots:
-        from . import plots as pl
-
-        png = pl.error_vs_time(rows, out / "error_vs_time.png", grid.description)
-        sections.append(f"![error against time]({png.name})\n")
-        for plot in grid.plots:
-            if plot.startswith("rmse_vs_"):
-                param = plot[len("rmse_vs_"):]
-                png = pl.rmse_vs_param(rows, param, out / f"{plot}.png", grid.description)
-                sections.append(f"![RMSE against {param}]({png.name})\n")
-    from .report import paper_sections
-
-    sections = paper_sections(grid.name, rows) + sections
-    text = markdown_report(grid.name, grid.description, rows, machine(), sections)
-    path = out / "report.md"
+def write_report(grid: Grid, rows: Sequence[dict], out: Path, *, plots: bool = True, note: str = "") -> Path:
+    """Write ``out/report.md`` (the summary, the paper's tables, the plots) and the PNGs it links."""
     from ..paths import atomic_write_bytes
 
+    sections = paper_sections(grid.paper, rows)
+    if plots and rows:
+        sections += _plots(grid, rows, out)
+    if note:
+        sections.append(note + "\n")
+    text = markdown_report(grid.name, grid.description, rows, machine(), sections)
+    path = Path(out) / "report.md"
     atomic_write_bytes(path, text.encode())
     return path
+
+
+def _plots(grid: Grid, rows: Sequence[dict], out: Path) -> list[str]:
+    from . import plots as pl
+
+    made: list[tuple[str, Path | None]] = []
+    for plot in grid.plots:
+        try:
+            if plot == "error_vs_time":
+                made.append(("error against time (Figs. 13-17)", pl.error_vs_time(
+                    rows, out / "error_vs_time.png", grid.description)))
+            elif plot == "shadow_pairs":
+                made.append(("pairs in shadow / K against time (Figs. 38, 42)", pl.shadow_pairs_vs_time(
+                    rows, out / "shadow_pairs.png", grid.description)))
+            elif plot.startswith("rmse_vs_"):
+                param = plot[len("rmse_vs_"):]
+                made.append((f"RMSE against {param} (Figs. 35-41)", pl.rmse_vs_param(
+                    rows, param, out / f"{plot}.png", grid.description)))
+            elif plot == "track":
+                agent = next((a for a in grid.agents if a.name.startswith("mcl")), grid.agents[0])
+                made.append(("track, estimates, particles and shadow (Fig. 12)", pl.track_plot(
+                    grid.scenarios[0], grid.seeds[0], agent, out / "track.png")))
+            elif plot == "likelihood":
+                made.append(("likelihood around the true position (Figs. 26-34)", pl.likelihood_plot(
+                    grid.agents, grid.scenarios[:3], grid.seeds[0], out / "likelihood.png")))
+        except Exception as exc:  # noqa: BLE001 (a plot must not lose a finished run's report)
+            print(f"plot {plot!r} failed: {type(exc).__name__}: {exc}", file=sys.stderr)
+    return [f"![{title}]({png.name})\n" for title, png in made if png is not None]

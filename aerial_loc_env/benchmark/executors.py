@@ -1,4 +1,9 @@
-"""Executors: where the episodes of a grid run. Local processes by default; Ray as an optional extra."""
+"""Executors: where the episodes of a grid run. Local processes by default; Ray as an optional extra.
+
+An executor takes the episode tasks, a callback that receives each episode's ``(rows, failures)`` as soon as
+it finishes (the runner writes them to disk at once), and a worker count. Results may arrive in any order:
+the store and the reports do not depend on it.
+"""
 
 from __future__ import annotations
 
@@ -8,17 +13,21 @@ from collections.abc import Callable, Sequence
 from ..errors import ConfigError, require_extra
 from .runner import EpisodeTask, run_episode
 
+OnResult = Callable[[tuple[list[dict], list[dict]]], None]
+
 
 def _worker_init() -> None:
     # One numeric thread per worker process: the workers are the parallelism.
-    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ.setdefault(var, "1")
     import cv2
 
     cv2.setNumThreads(1)
 
 
-def local_executor(tasks: Sequence[EpisodeTask], on_result: Callable[[list[dict]], None], workers: int) -> None:
-    """Run in this process (workers <= 1) or a pool of processes; results arrive as episodes finish."""
+def local_executor(tasks: Sequence[EpisodeTask], on_result: OnResult, workers: int) -> None:
+    """Run in this process (workers <= 1) or a pool of spawned processes (nothing extra to install)."""
+    workers = min(workers, len(tasks))
     if workers <= 1:
         _worker_init()
         for task in tasks:
@@ -28,27 +37,28 @@ def local_executor(tasks: Sequence[EpisodeTask], on_result: Callable[[list[dict]
     from concurrent.futures import ProcessPoolExecutor, as_completed
 
     ctx = mp.get_context("spawn")
-    with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_worker_init) as pool:
+    pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_worker_init)
+    try:
         futures = [pool.submit(run_episode, t) for t in tasks]
-        try:
-            for fut in as_completed(futures):
-                on_result(fut.result())
-        except BaseException:
-            for fut in futures:
-                fut.cancel()
-            raise
+        for fut in as_completed(futures):
+            on_result(fut.result())
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
 
 
-def ray_executor(tasks: Sequence[EpisodeTask], on_result: Callable[[list[dict]], None], workers: int) -> None:
-    """Run the same episodes as Ray tasks (a local instance unless RAY_ADDRESS points at a cluster)."""
-    ray = require_extra("ray", "ray", "The Ray executor")
+def ray_executor(tasks: Sequence[EpisodeTask], on_result: OnResult, workers: int) -> None:
+    """Run the same episodes as Ray tasks: on the cluster at ``RAY_ADDRESS`` (whose nodes must have this
+    package installed), else on a local instance with ``workers`` CPUs. An instance already initialized by
+    the caller is used as is."""
+    ray = require_extra("ray", "ray", "The Ray executor (--executor ray)")
     started = False
     if not ray.is_initialized():
-        ray.init(address=os.environ.get("RAY_ADDRESS"), num_cpus=None if os.environ.get("RAY_ADDRESS") else workers,
-                 include_dashboard=False, log_to_driver=False)
+        address = os.environ.get("RAY_ADDRESS")
+        ray.init(address=address, num_cpus=None if address else max(workers, 1), include_dashboard=False,
+                 log_to_driver=False, configure_logging=False)
         started = True
     try:
-        remote = ray.remote(num_cpus=1)(run_episode)
+        remote = ray.remote(num_cpus=1)(_ray_episode)
         pending = [remote.remote(t) for t in tasks]
         while pending:
             ready, pending = ray.wait(pending, num_returns=1)
@@ -58,10 +68,16 @@ def ray_executor(tasks: Sequence[EpisodeTask], on_result: Callable[[list[dict]],
             ray.shutdown()
 
 
-EXECUTORS = {"local": local_executor, "ray": ray_executor}
+def _ray_episode(task: EpisodeTask) -> tuple[list[dict], list[dict]]:
+    _worker_init()
+    return run_episode(task)
 
 
-def get_executor(name: str):
+EXECUTORS: dict[str, Callable[[Sequence[EpisodeTask], OnResult, int], None]] = {
+    "local": local_executor, "ray": ray_executor}
+
+
+def get_executor(name: str) -> Callable[[Sequence[EpisodeTask], OnResult, int], None]:
     try:
         return EXECUTORS[name]
     except KeyError:

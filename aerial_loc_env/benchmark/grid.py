@@ -1,9 +1,32 @@
-"""Experiment grids: agents x scenarios x seeds, from spec files or from Python."""
+"""Experiment grids: agents x scenarios x seeds, from spec files (``experiments/<name>.toml``) or from Python.
+
+An experiment spec::
+
+    name = "table5"
+    description = "..."
+    seeds = {start = 0, count = 100}          # or a list of integers
+    paper = ["table5"]                        # report sections beside the paper's (report.PAPER_SECTIONS)
+    plots = ["error_vs_time", "rmse_vs_n_pairs"]
+
+    [[agents]]
+    name = "mcl-conventional"                 # agents/<name>.toml
+    label = "conventional"
+    params = {n_particles = 700}              # overrides of the spec's [params]
+    sweep = {"measurement_params.n_pairs" = [10, 30, 50, 70]}   # one agent entry per value (product of keys)
+
+    [[scenarios]]
+    id = "AerialLoc/PaperShadows-v0"
+    overrides = {"flight.duration_s" = 30}   # gym.make overrides
+
+Parameter keys may be dotted (``measurement_params.n_pairs``): they address nested tables of the spec and are
+stored nested, so the dotted and the nested spelling name the same trial.
+"""
 
 from __future__ import annotations
 
 import itertools
 import sys
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -16,11 +39,60 @@ else:  # pragma: no cover
     import tomli as tomllib
 
 EXPERIMENT_DIR = Path(__file__).resolve().parent / "experiments"
+PLOTS = ("error_vs_time", "track", "likelihood", "shadow_pairs")  # plus "rmse_vs_<param>"
+
+
+def nest_params(params: Mapping[str, Any]) -> dict[str, Any]:
+    """``{"a.b": 1, "c": 2}`` -> ``{"a": {"b": 1}, "c": 2}`` (nested tables merged key by key)."""
+    out: dict[str, Any] = {}
+    for key, value in params.items():
+        if isinstance(value, Mapping):
+            value = nest_params(value)
+        parts = str(key).split(".")
+        node = out
+        for part in parts[:-1]:
+            node = node.setdefault(part, {})
+            if not isinstance(node, dict):
+                raise ConfigError(f"parameter '{key}': '{part}' is both a value and a table")
+        leaf = parts[-1]
+        if isinstance(value, dict) and isinstance(node.get(leaf), dict):
+            node[leaf] = {**node[leaf], **value}
+        else:
+            node[leaf] = value
+    return _sorted(out)
+
+
+def _sorted(d: Mapping[str, Any]) -> dict[str, Any]:
+    return {k: _sorted(v) if isinstance(v, Mapping) else v for k, v in sorted(d.items())}
+
+
+def param_value(params: Mapping[str, Any], name: str, default: Any = None) -> Any:
+    """A parameter by dotted path, or by leaf name anywhere in the nested tables (first match, depth first).
+
+    ``param_value(p, "n_pairs")`` finds ``p["measurement_params"]["n_pairs"]``: reports and plots use it to
+    group trials by K or N without knowing which table a model keeps them in.
+    """
+    node: Any = params
+    for part in name.split("."):
+        if isinstance(node, Mapping) and part in node:
+            node = node[part]
+        else:
+            break
+    else:
+        return node
+    if "." in name:
+        return default
+    for value in params.values():
+        if isinstance(value, Mapping):
+            found = param_value(value, name, None)
+            if found is not None:
+                return found
+    return default
 
 
 @dataclass(frozen=True)
 class AgentEntry:
-    """One agent configuration of a grid: a spec name (agents/<name>.toml) plus parameter overrides."""
+    """One agent configuration of a grid: a spec name (agents/<name>.toml) plus nested parameter overrides."""
 
     name: str
     params: dict[str, Any] = field(default_factory=dict)
@@ -31,7 +103,8 @@ class AgentEntry:
         return self.label or self.name
 
     def spec(self) -> dict[str, Any]:
-        return {"name": self.name, "params": dict(sorted(self.params.items())), "label": self.display}
+        """What identifies the agent of a trial (the label is for display only, not part of the identity)."""
+        return {"name": self.name, "params": _sorted(self.params)}
 
 
 @dataclass(frozen=True)
@@ -44,91 +117,136 @@ class ScenarioEntry:
 
     @property
     def display(self) -> str:
-        return self.label or self.id
+        return self.label or self.id.split("/")[-1]
 
     def spec(self) -> dict[str, Any]:
-        return {"id": self.id, "overrides": dict(sorted(self.overrides.items())), "label": self.display}
+        return {"id": self.id, "overrides": _sorted(self.overrides)}
 
 
 @dataclass(frozen=True)
 class Grid:
+    """An experiment: every agent runs on every (scenario, seed) episode."""
+
     name: str
     agents: tuple[AgentEntry, ...]
     scenarios: tuple[ScenarioEntry, ...]
     seeds: tuple[int, ...]
     description: str = ""
     converge_threshold_m: float = 10.0
+    diverge_threshold_m: float = 50.0
     plots: tuple[str, ...] = ("error_vs_time",)
+    paper: tuple[str, ...] = ()
 
     def trials(self) -> int:
         return len(self.agents) * len(self.scenarios) * len(self.seeds)
 
+    def episodes(self) -> int:
+        return len(self.scenarios) * len(self.seeds)
 
-def _expand_agents(items: list[dict], where: str) -> list[AgentEntry]:
+
+def _leaf(key: str) -> str:
+    return key.split(".")[-1]
+
+
+def _expand_agents(items: Sequence[Any], where: str) -> list[AgentEntry]:
     out = []
     for i, item in enumerate(items):
-        item = dict(item)
+        item = {"name": item} if isinstance(item, str) else dict(item)
         unknown = set(item) - {"name", "params", "label", "sweep"}
-        if unknown or "name" not in item:
-            raise ConfigError(f"{where}: agents[{i}] needs 'name' and may have 'params', 'label', 'sweep' "
-                              f"(got {sorted(item)})")
+        if unknown or not isinstance(item.get("name"), str):
+            raise ConfigError(f"{where}: agents[{i}] needs 'name' (an agent spec) and may have 'params', "
+                              f"'label', 'sweep' (got {sorted(item)})")
         sweep = item.get("sweep") or {}
-        keys = sorted(sweep)
-        for values in itertools.product(*(sweep[k] for k in keys)) if keys else [()]:
+        if not isinstance(sweep, Mapping) or any(not isinstance(v, list) or not v for v in sweep.values()):
+            raise ConfigError(f"{where}: agents[{i}].sweep must map parameter names to non-empty lists")
+        keys = list(sweep)
+        for values in itertools.product(*(sweep[k] for k in keys)):
             params = dict(item.get("params") or {})
             params.update(dict(zip(keys, values, strict=True)))
             label = item.get("label") or item["name"]
             if keys:
-                label += " " + " ".join(f"{k}={v}" for k, v in zip(keys, values, strict=True))
-            out.append(AgentEntry(item["name"], params, label))
+                label += " " + " ".join(f"{_leaf(k)}={v}" for k, v in zip(keys, values, strict=True))
+            out.append(AgentEntry(item["name"], nest_params(params), label))
+    displays = [a.display for a in out]
+    dup = sorted({d for d in displays if displays.count(d) > 1})
+    if dup:
+        raise ConfigError(f"{where}: agent labels {dup} appear twice; give each entry its own 'label'")
     return out
 
 
 def _seeds(value: Any, where: str) -> tuple[int, ...]:
-    if isinstance(value, dict):
+    if isinstance(value, Mapping):
         if set(value) - {"start", "count"} or "count" not in value:
             raise ConfigError(f"{where}: seeds must be a list of integers or {{start = 0, count = N}}")
         start, count = int(value.get("start", 0)), int(value["count"])
         if count < 1:
             raise ConfigError(f"{where}: seeds.count = {count} must be >= 1")
         return tuple(range(start, start + count))
-    if isinstance(value, list) and value and all(isinstance(s, int) for s in value):
+    if isinstance(value, int) and not isinstance(value, bool) and value >= 1:
+        return tuple(range(value))
+    if isinstance(value, (list, tuple)) and value and all(isinstance(s, int) for s in value):
+        if len(set(value)) != len(value):
+            raise ConfigError(f"{where}: seeds {list(value)} has duplicates")
         return tuple(value)
-    raise ConfigError(f"{where}: seeds must be a non-empty list of integers or {{start = 0, count = N}}")
+    raise ConfigError(f"{where}: seeds must be a count >= 1, a non-empty list of integers or "
+                      "{start = 0, count = N}")
 
 
-def grid_from_dict(data: dict, where: str = "experiment") -> Grid:
-    allowed = {"name", "description", "agents", "scenarios", "seeds", "converge_threshold_m", "plots"}
+def grid_from_dict(data: Mapping[str, Any], where: str = "experiment") -> Grid:
+    """A grid from a mapping laid out like an experiment spec (see the module docstring)."""
+    allowed = {"name", "description", "agents", "scenarios", "seeds", "converge_threshold_m",
+               "diverge_threshold_m", "plots", "paper"}
     unknown = set(data) - allowed
     if unknown:
         raise ConfigError(f"{where}: unknown key(s) {sorted(unknown)}; allowed: {sorted(allowed)}")
     for key in ("agents", "scenarios", "seeds"):
         if key not in data:
             raise ConfigError(f"{where}: missing '{key}'")
+    if not data["agents"] or not data["scenarios"]:
+        raise ConfigError(f"{where}: 'agents' and 'scenarios' must each list at least one entry")
     scenarios = []
     for i, s in enumerate(data["scenarios"]):
-        if isinstance(s, str):
-            s = {"id": s}
-        if "id" not in s or set(s) - {"id", "overrides", "label"}:
+        s = {"id": s} if isinstance(s, str) else dict(s)
+        if not isinstance(s.get("id"), str) or set(s) - {"id", "overrides", "label"}:
             raise ConfigError(f"{where}: scenarios[{i}] needs 'id' and may have 'overrides', 'label'")
         scenarios.append(ScenarioEntry(s["id"], dict(s.get("overrides") or {}), s.get("label", "")))
-    agents = _expand_agents([{"name": a} if isinstance(a, str) else a for a in data["agents"]], where)
+    plots = tuple(data.get("plots", ("error_vs_time",)))
+    bad = [p for p in plots if p not in PLOTS and not p.startswith("rmse_vs_")]
+    if bad:
+        raise ConfigError(f"{where}: unknown plot(s) {bad}; use {', '.join(PLOTS)} or rmse_vs_<parameter>")
+    from .report import PAPER_SECTIONS
+
+    paper = tuple(data.get("paper", ()))
+    bad = [p for p in paper if p not in PAPER_SECTIONS]
+    if bad:
+        raise ConfigError(f"{where}: unknown paper section(s) {bad}; use {', '.join(PAPER_SECTIONS)}")
+    converge, diverge = float(data.get("converge_threshold_m", 10.0)), float(data.get("diverge_threshold_m", 50.0))
+    if not 0.0 < converge <= diverge:
+        raise ConfigError(f"{where}: need 0 < converge_threshold_m ({converge}) <= diverge_threshold_m ({diverge})")
     return Grid(
         name=str(data.get("name", Path(where).stem)),
-        agents=tuple(agents),
+        agents=tuple(_expand_agents(data["agents"], where)),
         scenarios=tuple(scenarios),
         seeds=_seeds(data["seeds"], where),
         description=str(data.get("description", "")),
-        converge_threshold_m=float(data.get("converge_threshold_m", 10.0)),
-        plots=tuple(data.get("plots", ("error_vs_time",))),
+        converge_threshold_m=converge,
+        diverge_threshold_m=diverge,
+        plots=plots,
+        paper=paper,
     )
+
+
+def make_grid(name: str, agents: Sequence[Any], scenarios: Sequence[Any], seeds: Any, **options: Any) -> Grid:
+    """A grid from Python: ``make_grid("mine", ["mcl-shadow-aware"], ["AerialLoc/Small-v0"], seeds=5)``."""
+    return grid_from_dict({"name": name, "agents": list(agents), "scenarios": list(scenarios), "seeds": seeds,
+                           **options}, where=f"grid '{name}'")
 
 
 def available_experiments() -> list[str]:
     return sorted(p.stem for p in EXPERIMENT_DIR.glob("*.toml"))
 
 
-def load_grid(name_or_path: str) -> Grid:
+def load_grid(name_or_path: str | Path) -> Grid:
     """An experiment by name (aerial_loc_env/benchmark/experiments/<name>.toml) or by path."""
     path = Path(name_or_path)
     if not path.suffix:

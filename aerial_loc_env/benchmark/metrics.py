@@ -6,6 +6,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+#: columns that measure wall-clock time: they differ between two runs of the same trial, everything else is equal
+TIMING_COLUMNS = ("step_time_median_ms", "step_time_p95_ms", "compute_time_total_s")
+
 
 @dataclass(frozen=True)
 class MetricConfig:
@@ -47,5 +50,6 @@ def trial_metrics(errors_m: np.ndarray, t_s: np.ndarray, step_times_s: np.ndarra
         "diverged": bool(e[-1] > cfg.diverge_threshold_m),
         "step_time_median_ms": float(np.median(st) * 1e3) if st.size else float("nan"),
         "step_time_p95_ms": float(np.percentile(st, 95) * 1e3) if st.size else float("nan"),
+        "compute_time_total_s": float(np.sum(st)),
         "steps": int(e.size),
     }

@@ -1,11 +1,18 @@
-"""Markdown reports whose tables mirror the paper's, with our figures beside the paper's."""
+"""Markdown reports whose tables mirror the paper's (Choi & Park 2020), with our figures beside the paper's.
+
+Which paper tables an experiment reproduces is said by its spec (``paper = ["table5"]``); the cells are
+matched by agent-spec name (``FAMILIES``) and by parameters found anywhere in the agent's nested params
+(``n_pairs`` = K, ``n_particles`` = N).
+"""
 
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 
 import numpy as np
+
+from .grid import param_value
 
 # Choi & Park (2020), Table 5 (RMSE [m], simulation with shadows, N = 700, 100 trials).
 PAPER_TABLE5 = {
@@ -13,7 +20,8 @@ PAPER_TABLE5 = {
     "restoration": {10: 8.37, 30: 7.01, 50: 7.13, 70: 7.06},
     "shadow-aware": {10: 6.35, 30: 3.91, 50: 2.84, 70: 2.33},
 }
-# Table 9: RMSE [m] without / with shadows (simulation), and computation time [s].
+# Tables 6 and 9: RMSE [m] in simulation without / with shadows, and the computation time [s] (of the whole
+# simulation run; the paper does not say over how many trials or steps).
 PAPER_TABLE9 = {
     "SSD": (7.7, 12.5, 60.6),
     "NCC": (8.6, 9.6, 16401.0),
@@ -21,6 +29,12 @@ PAPER_TABLE9 = {
     "abBRIEF": (5.9, 8.9, 53.3),
     "Proposed": (4.2, 5.0, 56.0),
 }
+#: agent-spec name -> the paper's column of Tables 6/9
+TABLE9_COLUMNS = {"mcl-ssd": "SSD", "mcl-ncc": "NCC", "mcl-mi": "MI", "mcl-abbrief": "abBRIEF",
+                  "mcl-shadow-aware": "Proposed"}
+#: agent-spec name -> the paper's algorithm family of Table 5 and Figs. 35-42
+FAMILIES = {"mcl-conventional": "conventional", "mcl-restoration": "restoration",
+            "mcl-restoration-gain": "restoration (gain)", "mcl-shadow-aware": "shadow-aware"}
 
 
 def _fmt(x: float | None, digits: int = 2) -> str:
@@ -29,19 +43,32 @@ def _fmt(x: float | None, digits: int = 2) -> str:
     return f"{x:.{digits}f}"
 
 
+def pooled_rmse(rows: Sequence[dict]) -> float:
+    """The paper's RMSE: over every step of every trial pooled."""
+    if not rows:
+        return float("nan")
+    errs = np.concatenate([np.asarray(r["errors_m"], dtype=float) for r in rows])
+    return float(np.sqrt(np.mean(errs**2)))
+
+
+def _nanmean(values: Iterable) -> float:
+    arr = np.asarray([np.nan if v is None else v for v in values], dtype=float)
+    return float(np.nanmean(arr)) if np.isfinite(arr).any() else float("nan")
+
+
 def summarize(rows: Sequence[dict]) -> list[dict]:
-    """One summary per (agent, scenario): the paper's RMSE over all trials pooled, plus per-trial statistics."""
+    """One summary per (scenario, agent): the pooled RMSE plus per-trial statistics (mean over trials)."""
     groups: dict[tuple[str, str], list[dict]] = {}
     for r in rows:
-        groups.setdefault((r["agent"], r["scenario"]), []).append(r)
+        groups.setdefault((r["scenario"], r["agent"]), []).append(r)
     out = []
-    for (agent, scenario), rs in groups.items():
+    for (scenario, agent), rs in groups.items():
         errs = np.concatenate([np.asarray(r["errors_m"], dtype=float) for r in rs])
         ttc = [r["time_to_converge_s"] for r in rs if r.get("time_to_converge_s") is not None
                and math.isfinite(r["time_to_converge_s"])]
         out.append({
             "agent": agent, "scenario": scenario, "trials": len(rs),
-            "rmse_m": float(np.sqrt(np.mean(errs**2))),
+            "rmse_m": pooled_rmse(rs),
             "rmse_converged_m": _nanmean([r.get("rmse_converged_m") for r in rs]),
             "mean_error_m": float(np.mean(errs)),
             "p95_error_m": float(np.percentile(errs, 95)),
@@ -51,69 +78,163 @@ def summarize(rows: Sequence[dict]) -> list[dict]:
             "time_to_converge_s": float(np.median(ttc)) if ttc else float("nan"),
             "step_ms": _nanmean([r.get("step_time_median_ms") for r in rs]),
             "step_p95_ms": _nanmean([r.get("step_time_p95_ms") for r in rs]),
+            "compute_s": _nanmean([r.get("compute_time_total_s") for r in rs]),
             "shadow_pairs_normalized": _nanmean([r.get("shadow_pairs_normalized") for r in rs]),
         })
     return sorted(out, key=lambda s: (s["scenario"], s["rmse_m"]))
 
 
-def _nanmean(values: Iterable) -> float:
-    arr = np.asarray([np.nan if v is None else v for v in values], dtype=float)
-    return float(np.nanmean(arr)) if np.isfinite(arr).any() else float("nan")
-
-
 def summary_table(summaries: Sequence[dict]) -> str:
     head = ("| scenario | agent | trials | RMSE [m] | RMSE after conv. [m] | mean [m] | p95 [m] | final [m] | "
-            "converged | diverged | t conv. [s] | step median [ms] | step p95 [ms] | shadow pairs / K |")
-    lines = [head, "|" + "---|" * 14]
+            "converged | diverged | t conv. [s] | step median [ms] | step p95 [ms] | compute / trial [s] "
+            "| shadow pairs / K |")
+    lines = [head, "|" + "---|" * 15]
     for s in summaries:
         lines.append(
             f"| {s['scenario']} | {s['agent']} | {s['trials']} | {_fmt(s['rmse_m'])} | {_fmt(s['rmse_converged_m'])} "
             f"| {_fmt(s['mean_error_m'])} | {_fmt(s['p95_error_m'])} | {_fmt(s['final_error_m'])} "
             f"| {s['converged_frac']:.0%} | {s['diverged_frac']:.0%} | {_fmt(s['time_to_converge_s'], 1)} "
-            f"| {_fmt(s['step_ms'], 3)} | {_fmt(s['step_p95_ms'], 3)} | {_fmt(s['shadow_pairs_normalized'], 3)} |")
+            f"| {_fmt(s['step_ms'], 2)} | {_fmt(s['step_p95_ms'], 2)} | {_fmt(s['compute_s'], 2)} "
+            f"| {_fmt(s['shadow_pairs_normalized'], 3)} |")
     return "\n".join(lines)
 
 
 def markdown_report(title: str, description: str, rows: Sequence[dict], machine: str,
                     extra_sections: Sequence[str] = ()) -> str:
-    summaries = summarize(rows)
-    parts = [f"# {title}", "", description, "", f"Machine: {machine}.", "",
-             "RMSE is the root mean square horizontal error over all steps of all trials (the paper's figure); "
-             "'after conv.' is over the steps after the error fell below the convergence threshold for good.", "",
-             summary_table(summaries), ""]
+    seeds = sorted({r["seed"] for r in rows})
+    versions = sorted({str(r.get("version")) for r in rows})
+    parts = [f"# {title}", "", description, "",
+             f"Machine: {machine}. Package version(s): {', '.join(versions)}. {len(rows)} trials, "
+             f"{len(seeds)} seed(s).", "",
+             "RMSE is the root mean square horizontal error over all steps of all trials pooled (the paper's "
+             "figure); 'after conv.' is over the steps after the error fell below the convergence threshold for "
+             "good (mean over the converged trials); mean/p95 are over all steps (the second reference's "
+             "figures); 'compute / trial' is the agent's own time over the episode (rendering excluded); "
+             "'shadow pairs / K' is the mean fraction of the K pixel pairs with one end in detected shadow.", "",
+             summary_table(summarize(rows)), ""]
     parts.extend(extra_sections)
     return "\n".join(parts)
 
 
-def paper_sections(experiment: str, rows: Sequence[dict]) -> list[str]:
-    """Tables beside the paper's, for the experiments that reproduce one (matched by agent-spec name)."""
-    if experiment == "table5":
-        return [_table5(rows)]
-    return []
+# ------------------------------------------------------------------------------------------ paper tables
+def _family(row: dict) -> str | None:
+    return FAMILIES.get(row["agent_spec"]["name"])
 
 
-def _family(name: str) -> str | None:
-    for fam in ("shadow-aware", "restoration", "conventional"):
-        if fam in name:
-            return fam
-    return None
+def agent_param(row: dict, name: str) -> object:
+    """A parameter of the trial's agent as run (the resolved config, else the grid entry's overrides)."""
+    config = row.get("agent_config") or {}
+    value = param_value(config.get("params") or {}, name)
+    return param_value(row["agent_spec"]["params"], name) if value is None else value
 
 
-def _table5(rows: Sequence[dict]) -> str:
-    cells: dict[tuple[str, int], list[np.ndarray]] = {}
+def table5(rows: Sequence[dict]) -> str:
+    """Table 5: RMSE by family and K (N as run), ours / paper's."""
+    cells: dict[tuple[str, int], list[dict]] = {}
     for r in rows:
-        fam = _family(r["agent_spec"]["name"])
-        k = r["agent_spec"]["params"].get("num_pairs")
-        if fam and k is not None:
-            cells.setdefault((fam, int(k)), []).append(np.asarray(r["errors_m"], float))
+        fam, k = _family(r), agent_param(r, "n_pairs")
+        if fam and k is not None and r.get("shadow_fraction_mean", 0) > 0:
+            cells.setdefault((fam, int(k)), []).append(r)
+    if not cells:
+        return "## Table 5\n\nNo trials of the paper's three variants with shadows and a K sweep.\n"
     ks = sorted({k for _, k in cells})
-    lines = ["## Table 5 (RMSE [m], ours / paper)", "", "| RMSE [m] | " + " | ".join(f"K = {k}" for k in ks) + " |",
-             "|---|" + "---|" * len(ks)]
-    for fam in ("conventional", "restoration", "shadow-aware"):
+    fams = [f for f in dict.fromkeys(FAMILIES.values()) if any(f == c[0] for c in cells)]
+    n_trials = sorted({len(v) for v in cells.values()})
+    lines = [f"## Table 5: RMSE [m] with shadows, ours / paper ({'/'.join(map(str, n_trials))} trials per cell; "
+             "paper: N = 700, 100 trials)", "",
+             "| RMSE [m] | " + " | ".join(f"K = {k}" for k in ks) + " |", "|---|" + "---|" * len(ks)]
+    for fam in fams:
         vals = []
         for k in ks:
-            errs = cells.get((fam, k))
-            ours = _fmt(float(np.sqrt(np.mean(np.concatenate(errs) ** 2)))) if errs else "-"
-            vals.append(f"{ours} / {_fmt(PAPER_TABLE5[fam].get(k))}")
+            ours = _fmt(pooled_rmse(cells.get((fam, k), [])))
+            vals.append(f"{ours} / {_fmt(PAPER_TABLE5.get(fam, {}).get(k))}")
+        lines.append(f"| {fam} | " + " | ".join(vals) + " |")
+    lines += ["", "Normalized count of pair samples in shadow (mean over steps and trials; the paper's Fig. 42):", "",
+              "| shadow pairs / K | " + " | ".join(f"K = {k}" for k in ks) + " |", "|---|" + "---|" * len(ks)]
+    for fam in fams:
+        vals = [_fmt(_nanmean([r.get("shadow_pairs_normalized") for r in cells.get((fam, k), [])]), 3) for k in ks]
         lines.append(f"| {fam} | " + " | ".join(vals) + " |")
     return "\n".join(lines) + "\n"
+
+
+def table9(rows: Sequence[dict]) -> str:
+    """Tables 6 and 9: RMSE without / with shadows and computation time per measurement model."""
+    cols: dict[str, dict[str, list[dict]]] = {}
+    for r in rows:
+        col = TABLE9_COLUMNS.get(r["agent_spec"]["name"])
+        if col is None:
+            continue
+        cond = "with" if r.get("shadow_fraction_mean", 0) > 0 else "without"
+        cols.setdefault(col, {}).setdefault(cond, []).append(r)
+    if not cols:
+        return "## Tables 6 and 9\n\nNo trials of the paper's measurement models.\n"
+    names = [c for c in PAPER_TABLE9 if c in cols]
+    lines = ["## Tables 6 and 9: ours / paper", "",
+             "| | " + " | ".join(names) + " |", "|---|" + "---|" * len(names)]
+
+    def row(label: str, fn: Callable[[str], str]) -> None:
+        lines.append(f"| {label} | " + " | ".join(fn(c) for c in names) + " |")
+
+    row("Sim. w/o shadow RMSE [m]", lambda c: f"{_fmt(pooled_rmse(cols[c].get('without', [])))} / "
+                                              f"{_fmt(PAPER_TABLE9[c][0])}")
+    row("Sim. w/ shadow RMSE [m]", lambda c: f"{_fmt(pooled_rmse(cols[c].get('with', [])))} / "
+                                             f"{_fmt(PAPER_TABLE9[c][1])}")
+    row("compute per step [ms] (ours)", lambda c: _fmt(_nanmean(
+        [r.get("step_time_median_ms") for rs in cols[c].values() for r in rs]), 2))
+    row("compute per trial [s] (ours)", lambda c: _fmt(_nanmean(
+        [r.get("compute_time_total_s") for rs in cols[c].values() for r in rs]), 2))
+    row("computation time [s] (paper)", lambda c: f"{PAPER_TABLE9[c][2]:g}")
+    row("trials w/o / w/ shadow", lambda c: f"{len(cols[c].get('without', []))} / {len(cols[c].get('with', []))}")
+    return "\n".join(lines) + "\n"
+
+
+def sweep_tables(rows: Sequence[dict]) -> str:
+    """Figs. 35-42 as tables: RMSE (and the normalized shadow-pair count) against N and against K."""
+    parts = []
+    for param, label in (("n_particles", "N"), ("n_pairs", "K")):
+        groups: dict[tuple[str, str], dict[int, list[dict]]] = {}
+        for r in rows:
+            value = agent_param(r, param)
+            if value is not None:
+                name = _family(r) or r["agent_spec"]["name"]
+                groups.setdefault((name, r["scenario"]), {}).setdefault(int(value), []).append(r)
+        if not groups or all(len(v) < 2 for v in groups.values()):
+            continue
+        values = sorted({v for g in groups.values() for v in g})
+        parts += [f"## RMSE [m] against {label} (Figs. {'35-38' if label == 'N' else '39-42'})", "",
+                  "| agent / scenario | " + " | ".join(f"{label} = {v}" for v in values) + " | shadow pairs / K |",
+                  "|---|" + "---|" * (len(values) + 1)]
+        for (name, scenario), by in sorted(groups.items()):
+            cells = [_fmt(pooled_rmse(by.get(v, []))) for v in values]
+            sp = _nanmean([r.get("shadow_pairs_normalized") for rs in by.values() for r in rs])
+            parts.append(f"| {name} / {scenario} | " + " | ".join(cells) + f" | {_fmt(sp, 3)} |")
+        parts.append("")
+    return "\n".join(parts)
+
+
+def global_table(rows: Sequence[dict]) -> str:
+    """Global localization (the second reference): fraction converged and time to converge from a uniform start."""
+    lines = ["## Global localization: converged from a uniform start", "",
+             "| scenario | agent | trials | converged | median t conv. [s] | p90 t conv. [s] | final error [m] "
+             "| RMSE after conv. [m] |", "|---|---|---|---|---|---|---|---|"]
+    groups: dict[tuple[str, str], list[dict]] = {}
+    for r in rows:
+        groups.setdefault((r["scenario"], r["agent"]), []).append(r)
+    for (scenario, agent), rs in sorted(groups.items()):
+        ttc = np.array([r["time_to_converge_s"] for r in rs if r.get("time_to_converge_s") is not None
+                        and math.isfinite(r["time_to_converge_s"])])
+        lines.append(f"| {scenario} | {agent} | {len(rs)} | {np.mean([bool(r['converged']) for r in rs]):.0%} "
+                     f"| {_fmt(float(np.median(ttc)) if ttc.size else None, 1)} "
+                     f"| {_fmt(float(np.percentile(ttc, 90)) if ttc.size else None, 1)} "
+                     f"| {_fmt(float(np.median([r['final_error_m'] for r in rs])), 1)} "
+                     f"| {_fmt(_nanmean([r.get('rmse_converged_m') for r in rs]))} |")
+    return "\n".join(lines) + "\n"
+
+
+#: paper-section name -> builder; experiment specs list the ones they reproduce (``paper = [...]``)
+PAPER_SECTIONS: dict[str, Callable[[Sequence[dict]], str]] = {
+    "table5": table5, "table9": table9, "sweeps": sweep_tables, "global": global_table}
+
+
+def paper_sections(names: Iterable[str], rows: Sequence[dict]) -> list[str]:
+    return [PAPER_SECTIONS[n](rows) for n in names]

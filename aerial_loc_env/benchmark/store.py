@@ -19,6 +19,7 @@ from typing import Any
 from ..errors import ConfigError
 
 TRIALS_FILE = "trials.jsonl"
+FAILURES_FILE = "failures.jsonl"
 
 
 def trial_key(agent: Mapping[str, Any], scenario: Mapping[str, Any], seed: int) -> str:
@@ -46,6 +47,7 @@ class TrialStore:
             raise ConfigError(f"results path '{self.out_dir}' exists and is not a folder; choose another --out")
         self.out_dir.mkdir(parents=True, exist_ok=True)
         self.path = self.out_dir / TRIALS_FILE
+        self.failures_path = self.out_dir / FAILURES_FILE
 
     def rows(self) -> list[dict]:
         """All complete rows on disk (a torn last line from a killed run is ignored, and kept on disk)."""
@@ -68,25 +70,33 @@ class TrialStore:
 
     def append(self, row: Mapping[str, Any]) -> None:
         """Append one finished trial durably (one write of one line, then fsync)."""
-        line = json.dumps(_clean(dict(row)), sort_keys=True) + "\n"
-        # A torn line left by a killed run must not glue onto the next row.
-        needs_newline = self.path.exists() and self.path.stat().st_size > 0 and not self._ends_with_newline()
-        with open(self.path, "a", encoding="utf-8") as fh:
-            if needs_newline:
-                fh.write("\n")
-            fh.write(line)
-            fh.flush()
-            os.fsync(fh.fileno())
+        _append_line(self.path, row)
 
-    def _ends_with_newline(self) -> bool:
-        with open(self.path, "rb") as fh:
-            fh.seek(-1, os.SEEK_END)
-            return fh.read(1) == b"\n"
+    def append_failure(self, record: Mapping[str, Any]) -> None:
+        """Log an agent that raised (not a finished trial: a re-run tries it again)."""
+        _append_line(self.failures_path, record)
+
+
+def _append_line(path: Path, record: Mapping[str, Any]) -> None:
+    line = json.dumps(_clean(dict(record)), sort_keys=True) + "\n"
+    # A torn line left by a killed run must not glue onto the next row.
+    needs_newline = path.exists() and path.stat().st_size > 0 and not _ends_with_newline(path)
+    with open(path, "a", encoding="utf-8") as fh:
+        fh.write(("\n" if needs_newline else "") + line)
+        fh.flush()
+        os.fsync(fh.fileno())
+
+
+def _ends_with_newline(path: Path) -> bool:
+    with open(path, "rb") as fh:
+        fh.seek(-1, os.SEEK_END)
+        return fh.read(1) == b"\n"
 
 
 FLAT_COLUMNS = ["agent", "scenario", "seed", "rmse_m", "rmse_converged_m", "final_error_m", "mean_error_m",
                 "p95_error_m", "max_error_m", "time_to_converge_s", "converged", "diverged",
-                "step_time_median_ms", "step_time_p95_ms", "shadow_pairs_normalized", "shadow_fraction_mean",
+                "step_time_median_ms", "step_time_p95_ms", "compute_time_total_s", "shadow_pairs_normalized",
+                "shadow_fraction_mean",
                 "steps", "version", "key"]
 
 
