@@ -162,7 +162,7 @@ class ScenarioRun:
         try:
             import gymnasium as gym
 
-            import aerial_loc_env.env  # noqa: F401  (registers the scenarios)
+            from aerial_loc_env.env import world_to_action  # importing the env registers the scenarios
             from aerial_loc_env.estimators.registry import make_agent
         except ImportError as exc:
             raise AerialLocError(
@@ -173,6 +173,7 @@ class ScenarioRun:
         except gym.error.Error as exc:
             raise ConfigError(f"--scenario {scenario!r}: {exc}; list them: aerial-loc scenarios") from exc
         self.agent = make_agent(agent_name)
+        self._world_to_action = world_to_action
         self.seed = seed
         self.episode = 0
         self.follow: VehicleState | None = None
@@ -198,14 +199,12 @@ class ScenarioRun:
     def steps(self, loop: bool) -> Iterator[Step]:
         dt = float(self.briefing.dt_s)
         k = 0
-        w, h = float(self.orthomap.width_m), float(self.orthomap.height_m)
         uses_truth = bool(getattr(self.agent, "uses_ground_truth", False))
         yield Step(0.0, self._estimate, float(self._obs["altitude"][0]), float(self._obs["yaw"][0]))
         while True:
             self._apply_follow()
             est = self._estimate
-            # the action is the estimate normalized over the map (ARCHITECTURE.md, "Action")
-            action = np.clip(np.array([2 * est.x_m / w - 1, 2 * est.y_m / h - 1], dtype=np.float32), -1, 1)
+            action = np.clip(self._world_to_action(self.orthomap, est.x_m, est.y_m), -1.0, 1.0)
             obs, _, terminated, truncated, info = self.env.step(action)
             self._estimate = self.agent.step(obs, info if uses_truth else None)
             k += 1
