@@ -43,7 +43,7 @@ from .orthomap import Orthomap
 MAX_PIXELS = 150_000_000
 
 #: Bump whenever the generator's output changes for a given config: it is part of the cache key.
-GENERATOR_VERSION = 2
+GENERATOR_VERSION = 3
 
 
 

@@ -65,6 +65,11 @@ def orect(centre: np.ndarray, u: np.ndarray, a: float, b: float) -> np.ndarray:
                      centre - u * ha + v * hb])
 
 
+def _signed_area(q: np.ndarray) -> float:
+    x, y = q[:, 0], q[:, 1]
+    return 0.5 * float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1)))
+
+
 def rotate(u: np.ndarray, ang: float) -> np.ndarray:
     c, s = np.cos(ang), np.sin(ang)
     return np.array([c * u[0] - s * u[1], s * u[0] + c * u[1]])
@@ -187,7 +192,7 @@ class Filler:
             extra = float(min(self.rng.uniform(1.0, 3.5), self.hmax - height_m))
             if extra > 0.3:
                 bld.units.append((orect(cc, wu, su, sv), extra))
-        if style in ("flat", "metal") and self.rng.random() < 0.22 and height_m + 0.6 <= self.hmax:
+        if style in ("flat", "metal") and self.rng.random() < 0.12 and height_m + 0.6 <= self.hmax:
             bld.panels = self._solar_rows(wings[int(self.rng.integers(len(wings)))])
         self.scene.buildings.append(bld)
         return True
@@ -237,7 +242,14 @@ class Filler:
 
     # -- block uses ---------------------------------------------------------------------------------------
     def fill(self, block: Block) -> None:
-        getattr(self, "_use_" + block.use)(block.inner)
+        """Fill a block by its use; slivers left between wide roads (or inverted insets) become paved."""
+        inner = block.inner
+        _, _, a, b = quad_frame(inner)
+        if min(a, b) < 12.0 or _signed_area(inner) * _signed_area(block.quad) <= 0:
+            if min(a, b) > 1.0 and _signed_area(inner) * _signed_area(block.quad) > 0:
+                self.ground(inner, "paving")
+            return
+        getattr(self, "_use_" + block.use)(inner)
 
     def _parcels(self, quad: np.ndarray, frontage: tuple[float, float], two_rows_from_m: float):
         """Split a block into parcels (sub-quads): rows along s, one or two rows deep."""

@@ -51,12 +51,8 @@ class Layout:
     notes: dict = field(default_factory=dict)
 
     def is_free(self, pts_m: np.ndarray) -> bool:
-        """True when no point of ``pts_m`` (N, 2) falls on the keep-out mask or outside the map."""
-        ij = np.floor(np.asarray(pts_m) / KEEPOUT_CELL_M).astype(np.int64)
-        h, w = self.keepout.shape
-        inside = (ij[:, 0] >= 0) & (ij[:, 0] < w) & (ij[:, 1] >= 0) & (ij[:, 1] < h)
-        ij = ij[inside]
-        return not bool(self.keepout[ij[:, 1], ij[:, 0]].any())
+        """True when no point of ``pts_m`` (N, 2) falls on the keep-out mask (points off the map are free)."""
+        return not bool(_on_mask(self.keepout, pts_m).any())
 
     def downtown(self, p: np.ndarray) -> float:
         """1 at the centre of downtown, falling off as a Gaussian of the distance."""
@@ -120,16 +116,23 @@ def _smooth_curve(rng: np.random.Generator, length_m: float, amp_m: float, n: in
     return out
 
 
+def _on_mask(mask: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """Per point (N, 2) metres: True where it falls on ``mask`` (points off the map are not on it)."""
+    ij = np.floor(np.asarray(pts) / KEEPOUT_CELL_M).astype(np.int64)
+    h, w = mask.shape
+    ok = (ij[:, 0] >= 0) & (ij[:, 0] < w) & (ij[:, 1] >= 0) & (ij[:, 1] < h)
+    out = np.zeros(len(ij), bool)
+    out[ok] = mask[ij[ok, 1], ij[ok, 0]] > 0
+    return out
+
+
 def _water_share(mask: np.ndarray, pts: np.ndarray) -> float:
     """Share of points along a polyline (resampled every ~5 m) that fall on ``mask`` (river and banks)."""
     seg = np.linalg.norm(np.diff(pts, axis=0), axis=1)
     s = np.concatenate([[0.0], np.cumsum(seg)])
     t = np.linspace(0.0, s[-1], max(8, int(s[-1] / 5.0)))
     xy = np.stack([np.interp(t, s, pts[:, 0]), np.interp(t, s, pts[:, 1])], axis=1)
-    ij = np.floor(xy / KEEPOUT_CELL_M).astype(np.int64)
-    h, w = mask.shape
-    ok = (ij[:, 0] >= 0) & (ij[:, 0] < w) & (ij[:, 1] >= 0) & (ij[:, 1] < h)
-    return float(mask[ij[ok, 1], ij[ok, 0]].sum()) / len(t)
+    return float(_on_mask(mask, xy).mean())
 
 
 def build_layout(rng: np.random.Generator, width_m: float, height_m: float, *, river: bool,
@@ -188,6 +191,7 @@ def build_layout(rng: np.random.Generator, width_m: float, height_m: float, *, r
         cv2.polylines(keepout, [np.rint(ride / KEEPOUT_CELL_M).astype(np.int32)], False, 1,
                       max(1, int(2 * (road_off - bank + 12.0) / KEEPOUT_CELL_M)))
     river_mask = keepout.copy()
+    river_slope = None if river_line is None else np.gradient(river_line[:, 1], river_line[:, 0])
 
     # one diagonal arterial crossing the map corner to corner-ish
     ang = rng.uniform(np.radians(25), np.radians(65)) * (1 if rng.random() < 0.5 else -1)
@@ -208,8 +212,12 @@ def build_layout(rng: np.random.Generator, width_m: float, height_m: float, *, r
         share = _water_share(river_mask, np.stack([p0, p1]))
         if share == 0:
             return False
-        if arterial and share < 0.95:
-            return True
+        if arterial and share < 0.95 and river_line is not None:
+            # a bridge must cross the river, not run along it
+            slope = float(np.interp((p0[0] + p1[0]) / 2, river_line[:, 0], river_slope))
+            tangent = np.array([1.0, slope]) / np.hypot(1.0, slope)
+            if abs(float(np.dot(p1 - p0, tangent))) < 0.6 * float(np.linalg.norm(p1 - p0)):
+                return True
         return None
 
     # grid road segments: drop those in the river, then those left isolated (both ends dead)

@@ -222,4 +222,4 @@ def _upsampled_noise(rng: np.random.Generator, h: int, w: int, cell_px: int, lo:
     big = cv2.resize(coarse, ((cw - 1) * cell_px, (ch - 1) * cell_px), interpolation=cv2.INTER_CUBIC)
     oy = int(rng.integers(0, cell_px))
     ox = int(rng.integers(0, cell_px))
-    return np.ascontiguousarray(big[oy:oy + h, ox:ox + w])
+    return big[oy:oy + h, ox:ox + w]      # a strided view: OpenCV takes row-strided arrays as they are
