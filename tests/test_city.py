@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 import pytest
 
-from aerial_loc_env.config import build_config
+from aerial_loc_env.config import build_config, config_to_dict
 from aerial_loc_env.errors import ConfigError
 from aerial_loc_env.world.city import (
     CityConfig,
@@ -207,6 +207,8 @@ def test_config_validation():
         generate_city({"seed": 1})   # type: ignore[arg-type]
     with pytest.raises(ConfigError, match="Mpx"):
         build_config(CityConfig, {"width_m": 8000.0, "height_m": 8000.0, "gsd_m": 0.1})
+    cfg = small_city_config(5, river=False, tree_density=2.0)
+    assert build_config(CityConfig, config_to_dict(cfg)) == cfg       # spec files round-trip
     default = CityConfig()
     assert default.width_m >= 1200 and default.height_m >= 1400 and default.gsd_m == 0.25
     assert default.size_px == (4800, 5600)
