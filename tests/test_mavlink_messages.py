@@ -182,3 +182,9 @@ def test_bridge_georeference_local_frame_and_velocity():
     assert f0.yaw_rad == 0.5 and f1.yaw_rad is None
     assert f0.cov_en_m2 == (4.0, 1.0, 9.0)
     assert f1.vel_enu_mps[:2] == pytest.approx((4.0, 6.0))
+    f2 = br.fix(Est(412.0, 73.0), time_s=1.0, altitude_m=200.0)        # 600 m/s: a jump, not a velocity
+    assert f2.vel_enu_mps[:2] == (0.0, 0.0)
+    lost = br.fix(Est(0.0, 0.0, status="lost"), time_s=1.5, altitude_m=200.0)
+    assert lost.status == "lost"
+    f3 = br.fix(Est(414.0, 73.0), time_s=2.0, altitude_m=200.0)         # velocity from the last good fix
+    assert f3.vel_enu_mps[:2] == pytest.approx((2.0, 0.0))

@@ -27,13 +27,14 @@ class EstimateBridge:
 
     def __init__(self, world_to_latlon: WorldToLatLon, origin_xy_m: tuple[float, float], *,
                  ground_amsl_m: float = 0.0, default_std_m: float = 10.0, v_std_m: float = 0.5,
-                 velocity_tau_s: float = 1.0) -> None:
+                 velocity_tau_s: float = 1.0, max_speed_mps: float = 60.0) -> None:
         self._to_latlon = world_to_latlon
         self.origin_xy_m = (float(origin_xy_m[0]), float(origin_xy_m[1]))
         self.ground_amsl_m = float(ground_amsl_m)
         self.default_std_m = default_std_m
         self.v_std_m = v_std_m
         self.velocity_tau_s = velocity_tau_s
+        self.max_speed_mps = max_speed_mps   # faster than this is a jump (relocalization, new episode)
         lat, lon = self._latlon(*self.origin_xy_m)
         self.origin = GeoOrigin(lat, lon, self.ground_amsl_m)
         self._prev: tuple[float, float, float] | None = None   # (time_s, x_m, y_m)
@@ -71,7 +72,10 @@ class EstimateBridge:
             dt = time_s - self._prev[0]
             alpha = dt / (self.velocity_tau_s + dt)
             raw = ((x - self._prev[1]) / dt, (y - self._prev[2]) / dt)
-            self._vel = tuple(v + alpha * (r - v) for v, r in zip(self._vel, raw, strict=True))
+            if math.hypot(*raw) > self.max_speed_mps:
+                self._vel = (0.0, 0.0)     # a jump says nothing about the velocity: start again
+            else:
+                self._vel = tuple(v + alpha * (r - v) for v, r in zip(self._vel, raw, strict=True))
             dt_eff = self.velocity_tau_s + dt
         else:
             dt_eff = self.velocity_tau_s

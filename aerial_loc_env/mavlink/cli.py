@@ -97,6 +97,7 @@ class Step:
     estimate: Any
     altitude_m: float
     yaw_fallback_rad: float | None
+    error_m: float | None = None     # the simulator's position error, for the status line only
 
 
 @dataclass(frozen=True)
@@ -182,8 +183,9 @@ class ScenarioRun:
         if self.briefing is None:
             raise AerialLocError("aerial-loc mavlink: the env exposes no Briefing (env.unwrapped.briefing)")
         self.orthomap = self.briefing.orthomap
-        self._estimate = self.agent.reset(self.briefing, seed=seed)
+        self.agent.reset(self.briefing, seed=seed)
         self._info = info
+        self._done = False
 
     def _apply_follow(self) -> None:
         if self.follow is None:
@@ -197,36 +199,46 @@ class ScenarioRun:
                math.pi / 2 - self.follow.heading_rad, max(1.0, self.follow.rel_alt_m))
 
     def steps(self, loop: bool) -> Iterator[Step]:
+        """Each frame, the agent estimates on it (the first and the last frame too), then the env steps on
+        that estimate (the benchmark runner's convention)."""
         dt = float(self.briefing.dt_s)
-        k = 0
         uses_truth = bool(getattr(self.agent, "uses_ground_truth", False))
-        yield Step(0.0, self._estimate, float(self._obs["altitude"][0]), float(self._obs["yaw"][0]))
+        obs, info, t0_s = self._obs, self._info, 0.0
         while True:
-            self._apply_follow()
-            est = self._estimate
-            action = np.clip(self._world_to_action(self.orthomap, est.x_m, est.y_m), -1.0, 1.0)
-            obs, _, terminated, truncated, info = self.env.step(action)
-            self._estimate = self.agent.step(obs, info if uses_truth else None)
-            k += 1
-            yield Step(k * dt, self._estimate, float(obs["altitude"][0]), float(obs["yaw"][0]))
-            if terminated or truncated:
+            est = self.agent.step(obs, info if uses_truth else None)
+            t_s = t0_s + float(info.get("time_s", 0.0))
+            truth = info.get("true_pose")
+            error_m = None if truth is None else math.hypot(est.x_m - truth[0], est.y_m - truth[1])
+            yield Step(t_s, est, float(obs["altitude"][0]), float(obs["yaw"][0]), error_m)
+            if self._done:
                 if not loop:
                     return
                 self.episode += 1
+                t0_s = t_s + dt          # simulated time keeps running across episodes
                 obs, info = self.env.reset(seed=self.seed + self.episode)
-                self._estimate = self.agent.reset(self.briefing, seed=self.seed + self.episode)
+                # each reset builds a new briefing (track, prior)
+                self.briefing = getattr(self.env.unwrapped, "briefing", None) or self.briefing
+                self.orthomap = self.briefing.orthomap
+                self.agent.reset(self.briefing, seed=self.seed + self.episode)
+                self._done = False
+                continue
+            self._apply_follow()
+            action = np.clip(self._world_to_action(self.orthomap, est.x_m, est.y_m), -1.0, 1.0)
+            obs, _, terminated, truncated, info = self.env.step(action)
+            self._done = bool(terminated or truncated)
 
     def close(self) -> None:
         self.env.close()
 
 
-def status_line(t_sim_s: float, stats: SenderStats) -> str:
+def status_line(t_sim_s: float, stats: SenderStats, error_m: float | None = None) -> str:
     q = stats.quality
     fix = "none" if q is None else ("3D" if q.fix_type == 3 else "no-fix")
     hacc = "-" if q is None or not q.usable else f"{q.h_acc_m:.1f}m"
     sent = " ".join(f"{k}={v}" for k, v in sorted(stats.sent.items()))
     link = "up" if stats.link_up else "DOWN"
-    return (f"t={t_sim_s:7.1f}s fix={fix} hacc={hacc} rate={stats.rate_hz:5.2f}Hz "
+    err = "" if error_m is None else f"err={error_m:.1f}m "
+    return (f"t={t_sim_s:7.1f}s {err}fix={fix} hacc={hacc} rate={stats.rate_hz:5.2f}Hz "
             f"jitter={stats.jitter_s * 1e3:4.1f}ms reset={stats.reset_counter} link={link} {sent}")
 
 
@@ -243,18 +255,20 @@ def run(args: argparse.Namespace, *, out=sys.stdout, should_stop: Callable[[], b
         steps = source.steps()
     else:
         source = ScenarioRun(args.scenario, args.agent, args.seed)
-        bridge = EstimateBridge.from_orthomap(source.orthomap, ground_amsl_m=args.ground_amsl_m)
+        om = source.orthomap      # lat/lon through the current episode's map (--loop may change it)
+        bridge = EstimateBridge(lambda x, y: source.orthomap.world_to_latlon(x, y),
+                                (om.width_m / 2.0, om.height_m / 2.0), ground_amsl_m=args.ground_amsl_m)
         steps = source.steps(args.loop)
     sender = MavlinkSender(config, policy=FixPolicy(), origin=bridge.origin)
     tty = hasattr(out, "isatty") and out.isatty()
-    t_sim = 0.0
+    t_sim, error_m = 0.0, None
     code = 0
     try:
         sender.start()
         t0 = time.monotonic()
         last_print = -math.inf
         for step in steps:
-            t_sim = step.time_s
+            t_sim, error_m = step.time_s, step.error_m
             if args.speed > 0:   # pace simulated time against the monotonic clock (absolute, no drift)
                 delay = t0 + t_sim / args.speed - time.monotonic()
                 if delay > 0:
@@ -265,7 +279,8 @@ def run(args: argparse.Namespace, *, out=sys.stdout, should_stop: Callable[[], b
                 source.follow = sender.vehicle()
             now = time.monotonic()
             if not args.quiet and now - last_print >= 1.0:
-                print(status_line(t_sim, sender.stats()), end="\r" if tty else "\n", file=out, flush=True)
+                print(status_line(t_sim, sender.stats(), step.error_m), end="\r" if tty else "\n", file=out,
+                      flush=True)
                 last_print = now
             if sender.error is not None:
                 raise AerialLocError(f"aerial-loc mavlink: the sender stopped: {sender.error}")
@@ -279,7 +294,7 @@ def run(args: argparse.Namespace, *, out=sys.stdout, should_stop: Callable[[], b
         if isinstance(source, ScenarioRun):
             source.close()
     ending = "interrupted" if code == 130 else "done"
-    print(("\n" if tty else "") + f"{ending}: {status_line(t_sim, stats)}", file=out, flush=True)
+    print(("\n" if tty else "") + f"{ending}: {status_line(t_sim, stats, error_m)}", file=out, flush=True)
     return code
 
 
