@@ -43,7 +43,7 @@ from .orthomap import Orthomap
 MAX_PIXELS = 150_000_000
 
 #: Bump whenever the generator's output changes for a given config: it is part of the cache key.
-GENERATOR_VERSION = 3
+GENERATOR_VERSION = 4
 
 
 
@@ -139,8 +139,12 @@ def generate_city(config: CityConfig | None = None) -> Orthomap:
             members = np.vstack([bb.inner for bb in layout.blocks if bb.group == b.group])
             uses[b.group] = choose_use(r_layout, layout.downtown(members.mean(axis=0)), cfg.park_fraction)
             b.use = uses[b.group]
-        else:   # merged blocks share the use, but a school has one sports ground: the rest is its park
-            b.use = "park" if uses[b.group] == "school" else uses[b.group]
+        elif uses[b.group] == "school":     # a school has one sports ground: the rest of it is its park
+            b.use = "park"
+        elif uses[b.group] in ("parking", "construction"):   # never a whole superblock of these
+            b.use = choose_use(r_layout, layout.downtown(b.inner.mean(axis=0)), cfg.park_fraction)
+        else:                               # merged blocks share the use (apartment complexes, parks)
+            b.use = uses[b.group]
 
     canvas = Canvas(_ground(r_ground, w_px, h_px, cfg.gsd_m), cfg.gsd_m)
     filler = Filler(layout, r_content, building_density=cfg.building_density, tree_density=cfg.tree_density,

@@ -14,6 +14,7 @@ import cv2
 import numpy as np
 
 KEEPOUT_CELL_M = 1.0  # resolution of the coarse mask of land that blocks must not build on
+MAX_GROUP = 4         # most grid cells one use (apartment complex, park, ...) spans
 
 
 @dataclass
@@ -274,14 +275,23 @@ def build_layout(rng: np.random.Generator, width_m: float, height_m: float, *, r
     def cell(i: int, j: int) -> int:
         return i * (ny - 1) + j
 
+    size = np.ones_like(parent)
+
+    def union(a: int, b: int) -> None:
+        """Merge two cells' groups unless that makes a superblock of more than MAX_GROUP cells."""
+        ra, rb = find(a), find(b)
+        if ra != rb and size[ra] + size[rb] <= MAX_GROUP:
+            parent[ra] = rb
+            size[rb] += size[ra]
+
     for i in range(1, nx - 1):
         for j in range(ny - 1):
             if not v_on[i, j]:
-                parent[find(cell(i - 1, j))] = find(cell(i, j))
+                union(cell(i - 1, j), cell(i, j))
     for i in range(nx - 1):
         for j in range(1, ny - 1):
             if not h_on[i, j]:
-                parent[find(cell(i, j - 1))] = find(cell(i, j))
+                union(cell(i, j - 1), cell(i, j))
 
     blocks: list[Block] = []
     for i in range(nx - 1):
