@@ -145,7 +145,6 @@ class AerialLocEnv(gym.Env):
                  **overrides: Any) -> None:
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise AerialLocError(f"render_mode {render_mode!r} is not supported; use None or 'rgb_array'")
-        self._init_args = (scenario, render_mode, dict(overrides))
         if isinstance(scenario, Scenario):
             self.scenario = build_scenario(scenario.to_dict(), overrides, where=scenario.source) \
                 if overrides else scenario
