@@ -204,3 +204,87 @@ def mask_quality(predicted: np.ndarray, truth: np.ndarray) -> dict[str, float]:
             "precision": tp / n_p if n_p else 1.0,
             "recall": tp / n_t if n_t else 1.0,
             "fraction_true": n_t / t.size, "fraction_predicted": n_p / p.size}
+
+
+@dataclass(frozen=True)
+class MapRatioDetectorConfig:
+    """The map-ratio detector (an addition to the paper; see ``MapRatioShadowDetector``)."""
+
+    scale: float = field(default=0.25, metadata=rng(0.02, 1.0, doc="working resolution / frame resolution"))
+    max_std_m: float = field(default=4.0, metadata=rng(0.0, 1e4, doc="use it only when the particle cloud is "
+                                                                        "this tight (1 sigma); else the image one"))
+    blur_px: float = field(default=1.0, metadata=rng(0.0, 20.0, doc="Gaussian blur (reduced px) of both images"))
+    min_darkening: float = field(default=0.85, metadata=rng(0.0, 1.0, doc="shadow/lit ratio of the two Otsu "
+                                                                          "classes above which: no shadow"))
+    open_px: int = field(default=1, metadata=rng(0, 50))
+    close_px: int = field(default=1, metadata=rng(0, 50))
+
+
+class MapRatioShadowDetector:
+    """Shadows as the regions where the camera is darker than the shadow-free database at the estimated pose.
+
+    Not the paper's (III.B works from the camera image alone) but what an estimator that holds the database and
+    a converged pose estimate can do: the log-luminance ratio camera / database-patch is ~log(exposure) in sun
+    and ~log(exposure x 0.6) in shadow, two modes that an Otsu threshold separates far better than any
+    per-pixel colour index separates dark asphalt from shadowed grass. The database is downsampled once (area
+    filter) to the reduced camera resolution at the nominal altitude; each frame costs one small warp.
+    """
+
+    def __init__(self, config: MapRatioDetectorConfig | None = None) -> None:
+        self.config = config or MapRatioDetectorConfig()
+        c = self.config
+        self._open = _disc(c.open_px) if c.open_px > 0 else None
+        self._close = _disc(c.close_px) if c.close_px > 0 else None
+
+    def reset(self, briefing: Any) -> None:
+        m, cam = briefing.orthomap, briefing.camera
+        self.orthomap, self.camera = m, cam
+        # map pixels per reduced camera pixel at the nominal altitude: downsample the database by that much
+        f = max(1.0, cam.gsd_m(briefing.altitude_m) / self.config.scale / min(m.gsd_x_m, m.gsd_y_m))
+        self.factor = f
+        rgb = np.asarray(m.rgb)
+        if f > 1.0:
+            size = (max(1, round(rgb.shape[1] / f)), max(1, round(rgb.shape[0] / f)))
+            self._lum = cv2.resize(cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2GRAY), size,
+                                   interpolation=cv2.INTER_AREA)
+        else:
+            self._lum = cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2GRAY)
+        self._sx = self._lum.shape[1] / rgb.shape[1]
+        self._sy = self._lum.shape[0] / rgb.shape[0]
+
+    def detect(self, image: np.ndarray, x_m: float, y_m: float, yaw_rad: float, altitude_m: float,
+               small: np.ndarray | None = None) -> ShadowMask:
+        """The shadow mask of ``image`` taken at (about) the given pose."""
+        c = self.config
+        H, W = image.shape[:2]
+        if small is None:
+            small = cv2.resize(image, (max(1, round(W * c.scale)), max(1, round(H * c.scale))),
+                               interpolation=cv2.INTER_LINEAR)
+        h, w = small.shape[:2]
+        a = self.camera.camera_to_map(self.orthomap, x_m, y_m, yaw_rad, altitude_m)     # full cam px -> map px
+        # reduced camera px -> full camera px, then map px -> downsampled map px (pixel centres at integers)
+        su, sv = W / w, H / h
+        to_full = np.array([[su, 0.0, 0.5 * su - 0.5], [0.0, sv, 0.5 * sv - 0.5], [0.0, 0.0, 1.0]])
+        to_low = np.array([[self._sx, 0.0, 0.5 * self._sx - 0.5], [0.0, self._sy, 0.5 * self._sy - 0.5],
+                           [0.0, 0.0, 1.0]])
+        aff = (to_low @ np.vstack([a, [0.0, 0.0, 1.0]]) @ to_full)[:2]
+        db = cv2.warpAffine(self._lum, aff, (w, h), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                            borderMode=cv2.BORDER_REPLICATE).astype(np.float32)
+        cam = cv2.cvtColor(small, cv2.COLOR_RGB2GRAY).astype(np.float32)
+        if c.blur_px > 0:
+            db = cv2.GaussianBlur(db, (0, 0), c.blur_px)
+            cam = cv2.GaussianBlur(cam, (0, 0), c.blur_px)
+        lr = cv2.log((cam + 4.0) / (db + 4.0))                       # log ratio; +4 tames near-black pixels
+        # a fixed quantization range: ratios 0.22 .. 1.65 (a shadow is ~0.5-0.75, exposure jitter ~+-10 %)
+        q = cv2.convertScaleAbs(lr, alpha=255.0 / 2.0, beta=1.5 * 255.0 / 2.0)
+        _, binary = cv2.threshold(q, 0, 1, cv2.THRESH_BINARY_INV + cv2.THRESH_OTSU)      # 1 = darker class
+        mask = binary.astype(bool)
+        if mask.all() or not mask.any():
+            return ShadowMask(np.zeros((h, w), bool), (H, W))
+        if float(np.exp(lr[mask].mean() - lr[~mask].mean())) > c.min_darkening:
+            return ShadowMask(np.zeros((h, w), bool), (H, W))
+        if self._open is not None:
+            binary = cv2.morphologyEx(binary, cv2.MORPH_OPEN, self._open)
+        if self._close is not None:
+            binary = cv2.morphologyEx(binary, cv2.MORPH_CLOSE, self._close)
+        return ShadowMask(binary.astype(bool), (H, W))

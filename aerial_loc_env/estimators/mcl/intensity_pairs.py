@@ -38,6 +38,10 @@ Activation (``activation``, used with ``shadow = "drop"``):
   heavily shadowed frame (sigma_m -> 0) flattens the weights and moves the filter less;
 - ``"none"``: no activation.
 
+Shadow detector (``detector``): ``"image"``, the camera frame alone (III.B); ``"map"`` (an addition), the
+ratio of the frame to the shadow-free database at the particles' mean pose once the cloud is tight (the image
+detector before); ``"oracle"``, the simulator's mask (ablations).
+
 Points that fall outside the database or on no-data count as half an agreement (no information).
 """
 
@@ -54,7 +58,15 @@ import numpy as np
 from ...config import build_config, rng
 from ...errors import ConfigError
 from ..protocol import parse_observation
-from ..shadow_detection import ShadowDetector, ShadowDetectorConfig, oracle_mask, restoration_lut
+from ..shadow_detection import (
+    MapRatioDetectorConfig,
+    MapRatioShadowDetector,
+    ShadowDetector,
+    ShadowDetectorConfig,
+    ShadowMask,
+    oracle_mask,
+    restoration_lut,
+)
 from .measurement import MeasurementModel, register_model
 
 if TYPE_CHECKING:
@@ -69,9 +81,11 @@ class IntensityPairsConfig:
     n_pairs: int = field(default=70, metadata=rng(1, 100000, doc="K, random pixel pairs per frame"))
     channels: int = field(default=3, metadata=rng(choices=(1, 3), doc="c: 1 = luma, 3 = RGB"))
     shadow: str = field(default="ignore", metadata=rng(choices=("ignore", "restore", "drop")))
-    detector: str = field(default="image", metadata=rng(choices=("image", "oracle"),
-                                                         doc="image = from the frame; oracle = ground truth"))
+    detector: str = field(default="image", metadata=rng(choices=("image", "map", "oracle"),
+                                                         doc="image: the frame alone (the paper); map: frame / "
+                                                             "database ratio at the predicted pose; oracle: truth"))
     detector_params: dict = field(default_factory=dict)   # -> ShadowDetectorConfig
+    map_detector_params: dict = field(default_factory=dict)   # -> MapRatioDetectorConfig
     restoration: str = field(default="gain", metadata=rng(choices=("equalize", "gain")))
     likelihood: str = field(default="binomial", metadata=rng(choices=("binomial", "gaussian", "linear")))
     kappa: float = field(default=0.5, metadata=rng(0.0, 50.0, lo_open=True, doc="binomial: log-odds per bit"))
@@ -87,6 +101,7 @@ class IntensityPairsConfig:
         if self.detector == "oracle" and self.shadow == "ignore":
             raise ConfigError(f"{where}: detector = 'oracle' is meaningless with shadow = 'ignore'")
         build_config(ShadowDetectorConfig, self.detector_params, where=f"{where}: detector_params")
+        build_config(MapRatioDetectorConfig, self.map_detector_params, where=f"{where}: map_detector_params")
 
 
 def activation(K: int | np.ndarray, lc: int | np.ndarray, a: float | np.ndarray) -> np.ndarray | float:
@@ -133,6 +148,17 @@ class PreparedPairs:
     log_offset: float        # added to log L (the literal multiplied activation; 0 otherwise)
 
 
+@dataclass
+class _PendingPairs:
+    """A frame whose shadow mask waits for the predicted pose (``detector = "map"``)."""
+
+    image: np.ndarray
+    u: np.ndarray
+    v: np.ndarray
+    altitude_m: float
+    small: np.ndarray | None = None
+
+
 class IntensityPairsModel(MeasurementModel):
     """Binary intensity-pair descriptor with XNOR similarity, optionally shadow-restoring or shadow-aware."""
 
@@ -144,6 +170,8 @@ class IntensityPairsModel(MeasurementModel):
         self.uses_ground_truth = cfg.detector == "oracle"
         self.detector = ShadowDetector(build_config(ShadowDetectorConfig, cfg.detector_params,
                                                     where="intensity pairs: detector_params"))
+        self.map_detector = MapRatioShadowDetector(build_config(
+            MapRatioDetectorConfig, cfg.map_detector_params, where="intensity pairs: map_detector_params"))
         self._db: np.ndarray | None = None
 
     # ---------------------------------------------------------------- per map
@@ -163,10 +191,14 @@ class IntensityPairsModel(MeasurementModel):
             self._db = rgba.reshape(-1).view(np.uint32)
         self._nodata = None if m.nodata is None or not np.any(m.nodata) else \
             np.asarray(m.nodata, dtype=bool).reshape(-1)
+        if self.config.detector == "map" and self.config.shadow != "ignore":
+            self.map_detector.reset(briefing)
 
     # ---------------------------------------------------------------- per frame
     def prepare(self, observation: Mapping[str, np.ndarray], rng: np.random.Generator,
-                info: Mapping[str, Any] | None = None) -> PreparedPairs:
+                info: Mapping[str, Any] | None = None) -> PreparedPairs | _PendingPairs:
+        """Draw the K pairs, detect the shadows, take the camera bits. With ``detector = "map"`` the mask needs
+        the predicted pose, so the frame is finished by the first ``log_likelihood`` call (which has it)."""
         cfg: IntensityPairsConfig = self.config
         obs = parse_observation(observation)
         img = obs.image
@@ -174,28 +206,32 @@ class IntensityPairsModel(MeasurementModel):
         K = cfg.n_pairs
         u = rng.integers(0, W, 2 * K)
         v = rng.integers(0, H, 2 * K)
+        pending = _PendingPairs(img, u, v, obs.altitude_m)
+        if cfg.shadow == "ignore":
+            return self._finish(pending, None)
+        if cfg.detector == "oracle":
+            return self._finish(pending, oracle_mask(info, (H, W)))
+        pending.small = self.detector.reduce(img)
+        if cfg.detector == "map":
+            return pending
+        return self._finish(pending, self.detector.detect(img, small=pending.small))
+
+    def _finish(self, p: _PendingPairs, smask: ShadowMask | None) -> PreparedPairs:
+        cfg: IntensityPairsConfig = self.config
+        img, u, v = p.image, p.u, p.v
+        K = cfg.n_pairs
         vals = img[v, u].astype(np.float32)                                   # (2K, 3)
-        stats: dict[str, Any] = {"K": K}
+        stats: dict[str, Any] = {"K": K, "num_pairs": K}
         mask_pts = None
-        if cfg.shadow != "ignore":
-            if cfg.detector == "oracle":
-                smask = oracle_mask(info, (H, W))
-                small = None
-            else:
-                small = self.detector.reduce(img)
-                smask = self.detector.detect(img, small=small)
+        if smask is not None:
             mask_pts = smask.at(u, v)                                          # (2K,) bool
             stats["shadow_fraction"] = smask.fraction
             if cfg.shadow == "restore" and mask_pts.any():
-                if small is None:
-                    small = self.detector.reduce(img)
-                    sm = cv2.resize(smask.mask.astype(np.uint8), small.shape[1::-1],
-                                    interpolation=cv2.INTER_NEAREST).astype(bool)
-                else:
-                    sm = smask.mask
+                small = p.small if p.small is not None else self.detector.reduce(img)
+                sm = smask.mask if smask.mask.shape == small.shape[:2] else cv2.resize(
+                    smask.mask.astype(np.uint8), small.shape[1::-1], interpolation=cv2.INTER_NEAREST).astype(bool)
                 lut = restoration_lut(small, sm, cfg.restoration)              # (3, 256)
-                ch = np.arange(3)
-                restored = lut[ch[None, :], img[v, u].astype(np.int64)]       # (2K, 3)
+                restored = lut[np.arange(3)[None, :], img[v, u].astype(np.int64)]   # (2K, 3)
                 vals = np.where(mask_pts[:, None], restored, vals)
         if cfg.channels == 1:
             vals = vals @ _LUMA[:, None]
@@ -217,6 +253,21 @@ class IntensityPairsModel(MeasurementModel):
         uv = np.stack([u, v], axis=1).astype(np.float64)
         return PreparedPairs(uv, cam_bits, keep, log_scale, log_offset)
 
+    def _finish_with_map(self, p: _PendingPairs, states: np.ndarray) -> PreparedPairs:
+        """The map-ratio mask at the particles' mean pose when the cloud is tight, else the image-only one."""
+        xy = states[:, :2]
+        std = float(np.sqrt(np.max(xy.var(axis=0))))
+        if std <= self.map_detector.config.max_std_m:
+            yaw = float(np.arctan2(np.sin(states[:, 2]).mean(), np.cos(states[:, 2]).mean()))
+            mx, my = xy.mean(axis=0)
+            smask = self.map_detector.detect(p.image, float(mx), float(my), yaw, p.altitude_m, small=p.small)
+            source = "map"
+        else:
+            smask, source = self.detector.detect(p.image, small=p.small), "image"
+        prepared = self._finish(p, smask)
+        self.last_stats["detector"] = source
+        return prepared
+
     # ---------------------------------------------------------------- per particle (vectorized)
     def map_pixels(self, uv: np.ndarray, states: np.ndarray, altitude_m: float,
                    offset_px: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
@@ -236,10 +287,12 @@ class IntensityPairsModel(MeasurementModel):
         pts = a2 @ uvh                                                                 # (2N, P)
         return pts[:n], pts[n:]
 
-    def similarity(self, prepared: PreparedPairs, states: np.ndarray, altitude_m: float) -> np.ndarray:
+    def similarity(self, prepared: PreparedPairs | _PendingPairs, states: np.ndarray, altitude_m: float) -> np.ndarray:
         """xi (N,) of eq. (4) (or eq. (6) over the kept pairs) for every particle."""
         if self._db is None:
             raise ConfigError("intensity pairs: call reset(briefing, rng) before scoring particles")
+        if isinstance(prepared, _PendingPairs):
+            prepared = self._finish_with_map(prepared, states)
         cam_bits = prepared.cam_bits if prepared.keep is None else prepared.cam_bits[prepared.keep]
         K, c = cam_bits.shape
         if K == 0:
@@ -267,8 +320,11 @@ class IntensityPairsModel(MeasurementModel):
         valid_pairs = None if valid is None else valid[:, :K] & valid[:, K:]
         return xnor_similarity(cam_bits, db_bits, None, valid_pairs, channels=c)
 
-    def log_likelihood(self, prepared: PreparedPairs, states: np.ndarray, altitude_m: float) -> np.ndarray:
+    def log_likelihood(self, prepared: PreparedPairs | _PendingPairs, states: np.ndarray,
+                       altitude_m: float) -> np.ndarray:
         cfg: IntensityPairsConfig = self.config
+        if isinstance(prepared, _PendingPairs):
+            prepared = self._finish_with_map(prepared, states)
         xi = self.similarity(prepared, states, altitude_m)
         n_pairs = prepared.cam_bits.shape[0] if prepared.keep is None else int(np.count_nonzero(prepared.keep))
         if cfg.likelihood == "binomial":
