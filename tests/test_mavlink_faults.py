@@ -212,10 +212,14 @@ def test_slow_estimator_keeps_rate_then_degrades_and_drops_fix():
     assert fix_types[0] == 3 and fix_types[-1] == 1        # held, then dropped once lost_after_s passed
     assert fix_types == sorted(fix_types, reverse=True)     # never recovers without a new estimate
     held = [m for _, m in gps if m.fix_type == 3]
-    # held fixes degrade as hypot(h_std, growth * (age - stale)); the last is within a period of lost_after
-    worst = math.hypot(2.0, policy.stale_growth_mps * (policy.lost_after_s - policy.stale_after_s))
+    # held fixes degrade as hypot(h_std, growth * (age - stale)), up to age lost_after_s; the last held frame
+    # is a period before it (three periods of slack for a loaded machine)
+    def acc(age_s: float) -> float:
+        return math.hypot(2.0, policy.stale_growth_mps * max(0.0, age_s - policy.stale_after_s))
+
     assert min(h_acc) == pytest.approx(2.0)
-    assert max(m.horiz_accuracy for m in held) == pytest.approx(worst, rel=0.1)
+    assert acc(policy.lost_after_s - 3 / rate) <= max(m.horiz_accuracy for m in held)
+    assert max(m.horiz_accuracy for m in held) <= acc(policy.lost_after_s) * (1 + 1e-6)
     assert {m.satellites_visible for m in held} == {policy.satellites_ok, policy.satellites_degraded}
     assert all(m.satellites_visible == 0 for _, m in gps if m.fix_type == 1)
 
@@ -228,8 +232,10 @@ def test_ctrl_c_exits_cleanly():
                              f"udpout:127.0.0.1:{port}", "--duration-s", "60"], cwd=REPO, env=env,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
-        frames = _collect(sock, 1.5)
-        assert "GPS_INPUT" in _names(frames)
+        deadline = time.monotonic() + 20.0       # the interpreter may start slowly on a loaded machine
+        while "GPS_INPUT" not in _names(_collect(sock, 0.2)) and time.monotonic() < deadline:
+            pass
+        assert proc.poll() is None and time.monotonic() < deadline, "the CLI never streamed"
         proc.send_signal(signal.SIGINT)
         out, err = proc.communicate(timeout=10)
     finally:
