@@ -1,0 +1,161 @@
+"""Training recipes: the ``[train]`` table of an agent spec (in the spirit of the RL Zoo's hyperparameter files).
+
+A recipe names the algorithm, the scenario it trains on, the observation design, the reward, the
+hyperparameters, the policy network and the budget. Unknown keys and out-of-range values are clear errors
+naming the spec file and table::
+
+    class = "LearnedAgent"
+    [params]
+    model = "models/ppo-local-registration/model.zip"   # relative to the package (see agent.py)
+    [train]
+    algo = "PPO"                       # or "SAC"
+    scenario = "AerialLoc/Small-v0"
+    observation = "local_registration" # or "map_memorization"
+    total_timesteps = 200000
+    n_envs = 2
+    [train.observation_params]
+    image_px = 64
+    [train.reward]                     # local_registration only
+    kind = "improvement"
+    [train.hyperparameters]            # passed to the SB3 algorithm (names checked against its signature)
+    n_steps = 256
+    [train.policy]                     # policy network
+    net_arch = [128, 128]
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import inspect
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+from ..config import build_config, config_to_dict, rng
+from ..errors import ConfigError, require_extra
+
+ALGOS = ("PPO", "SAC")
+OBSERVATIONS = ("local_registration", "map_memorization")
+REWARDS = ("improvement", "error")
+#: SB3 constructor arguments the recipe sets through its own fields, never through [train.hyperparameters]
+_RESERVED = {"self", "policy", "env", "policy_kwargs", "seed", "device", "tensorboard_log", "verbose",
+             "_init_setup_model"}
+
+
+@dataclass(frozen=True)
+class ObservationParams:
+    """How the policy sees the world (see observations.py)."""
+
+    image_px: int = field(default=64, metadata=rng(16, 256, doc="square side of the policy's images"))
+    grayscale: bool = False
+    max_correction_m: float = field(default=6.0, metadata=rng(0.1, 500.0, lo_open=True,
+                                                                doc="largest correction per step (metres)"))
+
+
+@dataclass(frozen=True)
+class RewardParams:
+    """The training reward of the local-registration wrapper (see observations.py)."""
+
+    kind: str = field(default="improvement", metadata=rng(choices=REWARDS))
+    scale_m: float = field(default=5.0, metadata=rng(0.01, 1000.0, doc="metres per unit of reward"))
+    error_weight: float = field(default=0.1, metadata=rng(0.0, 100.0, doc="weight of the remaining error"))
+
+
+@dataclass(frozen=True)
+class PolicyParams:
+    """The policy network: SB3 ``net_arch`` after the features extractor (``paired`` CNN or SB3's ``nature``)."""
+
+    net_arch: tuple[int, ...] = (128, 128)
+    features_dim: int = field(default=256, metadata=rng(8, 4096))
+    cnn: str = field(default="paired", metadata=rng(choices=("paired", "nature")))
+    log_std_init: float = field(default=-1.0, metadata=rng(-10.0, 2.0, doc=(
+        "initial log std of the Gaussian policy: exploration noise in action units (1 = max correction)")))
+
+    def validate(self, where: str) -> None:
+        if not self.net_arch or any(isinstance(n, bool) or not isinstance(n, int) or not 1 <= n <= 4096
+                                    for n in self.net_arch):
+            raise ConfigError(f"{where}: field 'net_arch' = {list(self.net_arch)!r} must be a non-empty list of "
+                              "layer widths, integers in [1, 4096]")
+
+
+@dataclass(frozen=True)
+class Recipe:
+    """One training run: what to train, on what, for how long, and how to evaluate it."""
+
+    algo: str = field(default="PPO", metadata=rng(choices=ALGOS))
+    scenario: str = "AerialLoc/Small-v0"
+    scenario_overrides: dict = field(default_factory=dict)
+    observation: str = field(default="local_registration", metadata=rng(choices=OBSERVATIONS))
+    observation_params: ObservationParams = ObservationParams()
+    reward: RewardParams = RewardParams()
+    start_std_m: float = field(default=0.0, metadata=rng(0.0, 1000.0, doc=(
+        "training only: if > 0, start the estimate at N(truth, std^2) instead of the prior's mean")))
+    hyperparameters: dict = field(default_factory=dict)
+    policy: PolicyParams = PolicyParams()
+    total_timesteps: int = field(default=200_000, metadata=rng(1, 10**9))
+    max_wall_s: float = field(default=0.0, metadata=rng(0.0, 10**7, doc=(
+        "stop training after this wall time (seconds; 0 = no limit): a budget that holds on any machine")))
+    n_envs: int = field(default=2, metadata=rng(1, 256))
+    subproc: bool = True
+    seed: int = field(default=0, metadata=rng(0, 2**31 - 1))
+    eval_freq: int = field(default=10_000, metadata=rng(1, 10**9, doc="timesteps between evaluations"))
+    eval_episodes: int = field(default=4, metadata=rng(1, 1000))
+    eval_seed: int = field(default=10_000, metadata=rng(0, 2**31 - 1, doc="first held-out evaluation seed"))
+    checkpoint_freq: int = field(default=50_000, metadata=rng(1, 10**9))
+    device: str = field(default="cpu", metadata=rng(choices=("cpu", "cuda", "auto")))
+
+    def validate(self, where: str) -> None:
+        if self.eval_seed < self.seed + self.n_envs:
+            raise ConfigError(f"{where}: field 'eval_seed' = {self.eval_seed} overlaps the training seeds "
+                              f"[{self.seed}, {self.seed + self.n_envs}); evaluation needs held-out seeds")
+        for key in ("scenario_overrides", "hyperparameters"):
+            if not isinstance(getattr(self, key), Mapping):
+                raise ConfigError(f"{where}: '{key}' must be a table")
+
+
+_NESTED = {"observation_params": ObservationParams, "reward": RewardParams, "policy": PolicyParams}
+
+
+def recipe_from_table(table: Mapping[str, Any], where: str) -> Recipe:
+    """Build a Recipe from a spec's [train] table, validating nested tables and the SB3 hyperparameters."""
+    if not isinstance(table, Mapping):
+        raise ConfigError(f"{where}: [train] must be a table")
+    table = dict(table)
+    nested: dict[str, Any] = {}
+    for key, cls in _NESTED.items():
+        raw = table.pop(key, {})
+        if not isinstance(raw, Mapping):
+            raise ConfigError(f"{where}: [train.{key}] must be a table, got {raw!r}")
+        nested[key] = build_config(cls, raw, where=f"{where} [train.{key}]")
+    recipe = build_config(Recipe, table, where=f"{where} [train]")
+    recipe = dataclasses.replace(recipe, **nested)
+    if recipe.policy.cnn == "paired" and recipe.observation != "local_registration":
+        raise ConfigError(f"{where} [train.policy]: cnn = 'paired' stacks the camera image with the database "
+                          f"crop, which only the local_registration observation has; use cnn = 'nature' for "
+                          f"{recipe.observation}")
+    check_hyperparameters(recipe, where)
+    return recipe
+
+
+def algo_class(name: str) -> type:
+    """The SB3 algorithm class (stable-baselines3 is the optional extra ``rl``)."""
+    sb3 = require_extra("stable_baselines3", "rl", "Training and running learned policies")
+    return getattr(sb3, name)
+
+
+def check_hyperparameters(recipe: Recipe, where: str) -> None:
+    """Refuse hyperparameters the SB3 algorithm does not take (a typo would otherwise be silently ignored)."""
+    cls = algo_class(recipe.algo)
+    allowed = set(inspect.signature(cls.__init__).parameters) - _RESERVED
+    unknown = sorted(set(recipe.hyperparameters) - allowed)
+    if unknown:
+        raise ConfigError(f"{where} [train.hyperparameters]: {recipe.algo} has no parameter(s) {unknown}; "
+                          f"allowed: {', '.join(sorted(allowed))}")
+    for key, value in recipe.hyperparameters.items():
+        if isinstance(value, Mapping) and key != "replay_buffer_kwargs":
+            raise ConfigError(f"{where} [train.hyperparameters]: '{key}' must be a value, not a table")
+
+
+def recipe_to_dict(recipe: Recipe) -> dict:
+    """The recipe as a plain dict that ``recipe_from_table`` reads back (saved in training.json)."""
+    return config_to_dict(recipe)
