@@ -95,6 +95,7 @@ def test_c_all_frames_valid_mavlink2_with_our_ids_and_contiguous_seq(c_session):
     frames, _ = c_session
     assert len(frames) > 3 * SESSION_S * RATE_HZ * 0.9
     assert {f["result"] for f in frames} == {"ok"}        # CRC (with CRC_EXTRA from the XML) verified
+    assert {f["magic"] for f in frames} == {0xFD}         # MAVLink 2 framing
     assert {(f["sysid"], f["compid"]) for f in frames} == {(SYSID, COMPID)}
     seqs = [f["seq"] for f in frames]
     assert all((b - a) % 256 == 1 for a, b in zip(seqs, seqs[1:], strict=False))   # nothing lost or reordered

@@ -93,6 +93,7 @@ int main(int argc, char **argv) {
             uint64_t ts = 0; memcpy(&ts, msg.signature + 1, 6);
             printf("{\"result\":\"%s\",\"t\":%.6f,\"msgid\":%u,\"sysid\":%u,\"compid\":%u,\"seq\":%u,\"signed\":%d",
                    res, t, msg.msgid, msg.sysid, msg.compid, msg.seq, is_signed);
+            pu("magic", msg.magic);
             if (is_signed) { pu("link_id", msg.signature[0]); pu("sign_ts", ts); }
             if (r != MAVLINK_FRAMING_OK) { printf("}\n"); continue; }
             switch (msg.msgid) {
