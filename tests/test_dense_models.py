@@ -26,7 +26,8 @@ from aerial_loc_env.estimators.mcl.dense import (
     ncc,
 )
 from aerial_loc_env.estimators.patches import PatchGeometry, PatchSampler, to_gray
-from aerial_loc_env.sensors.camera import CameraModel
+from aerial_loc_env.sensors.camera import CameraModel, Pose
+from aerial_loc_env.sensors.render import CameraRenderer, Photometry
 
 ALT_M = 100.0
 GSD_M = 0.5
@@ -72,12 +73,11 @@ def briefing_standin(orthomap, camera: CameraModel = CAMERA, altitude_m: float =
 
 
 def render_frame(orthomap, x_m: float, y_m: float, yaw_rad: float, camera: CameraModel = CAMERA,
-                 altitude_m: float = ALT_M, rgb: np.ndarray | None = None) -> np.ndarray:
-    """A shadow-free camera frame: the map warped by the camera's eq. (3) affine (camera pixel -> map pixel)."""
-    a = camera.camera_to_map(orthomap, x_m, y_m, yaw_rad, altitude_m)
-    src = orthomap.rgb if rgb is None else rgb
-    return cv2.warpAffine(src, a.astype(np.float64), (camera.width_px, camera.height_px),
-                          flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REFLECT)
+                 altitude_m: float = ALT_M, seed: int = 0) -> np.ndarray:
+    """A shadow-free camera frame from the project's renderer, with its default photometry (exposure and
+    white-balance jitter, tone curve, noise, vignetting)."""
+    renderer = CameraRenderer(orthomap, camera, Photometry(), strict=False)
+    return renderer.render(Pose(x_m, y_m, yaw_rad, altitude_m), np.random.default_rng(seed)).image
 
 
 def observation(image: np.ndarray, yaw_rad: float = 0.0, altitude_m: float = ALT_M) -> dict:
