@@ -16,7 +16,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from ..perf import machine
-from .grid import Grid, available_experiments, load_grid
+from .grid import Grid, ScenarioEntry, available_experiments, load_grid
 from .report import markdown_report, paper_sections, summarize, summary_table
 from .runner import run_grid
 
@@ -87,6 +87,15 @@ def write_report(grid: Grid, rows: Sequence[dict], out: Path, *, plots: bool = T
     return path
 
 
+def _with_and_without_shadows(grid: Grid) -> list[ScenarioEntry]:
+    """The grid's first two scenarios, or its only one beside a shadow-free twin (same track for a seed)."""
+    if len(grid.scenarios) >= 2:
+        return list(grid.scenarios[:2])
+    s = grid.scenarios[0]
+    twin = ScenarioEntry(s.id, {**s.overrides, "shadows.strength_range": [0.0, 0.0]}, f"{s.display}, no shadows")
+    return [s, twin]
+
+
 def _plots(grid: Grid, rows: Sequence[dict], out: Path) -> list[str]:
     from . import plots as pl
 
@@ -108,8 +117,9 @@ def _plots(grid: Grid, rows: Sequence[dict], out: Path) -> list[str]:
                 made.append(("track, estimates, particles and shadow (Fig. 12)", pl.track_plot(
                     grid.scenarios[0], grid.seeds[0], agent, out / "track.png")))
             elif plot == "likelihood":
-                made.append(("likelihood around the true position (Figs. 26-34)", pl.likelihood_plot(
-                    grid.agents, grid.scenarios[:3], grid.seeds[0], out / "likelihood.png")))
+                made.append(("likelihood around the true position, with and without shadows (Figs. 26-34)",
+                             pl.likelihood_plot(grid.agents, _with_and_without_shadows(grid), grid.seeds[0],
+                                                out / "likelihood.png")))
         except Exception as exc:  # noqa: BLE001 (a plot must not lose a finished run's report)
             print(f"plot {plot!r} failed: {type(exc).__name__}: {exc}", file=sys.stderr)
     return [f"![{title}]({png.name})\n" for title, png in made if png is not None]

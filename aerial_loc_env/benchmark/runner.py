@@ -49,9 +49,10 @@ def resolve_agent(entry: AgentEntry) -> dict[str, Any]:
 
     Building the agent validates the parameters, so a typo fails here, before any episode is rendered.
     """
-    from ..estimators.registry import build_agent, load_spec, merge_params
+    from ..estimators.registry import SHORT_NAMES, AgentSpec, build_agent, load_spec, merge_params
 
-    spec = load_spec(entry.name)
+    dotted = ":" in entry.name and not entry.name.endswith(".toml")
+    spec = AgentSpec(entry.name, entry.name) if dotted or entry.name in SHORT_NAMES else load_spec(entry.name)
     build_agent(spec, **entry.params)
     return {"name": entry.name, "class": spec.class_ref, "params": merge_params(spec.params, entry.params)}
 
