@@ -64,6 +64,26 @@ def _model_step(name: str, **params) -> Callable[[], Callable[[], object]]:
     return setup
 
 
+def _ssd_loop_reference() -> Callable[[], object]:
+    """What the vectorized models replace: one ``cv2.warpAffine`` per particle (same level, same patches)."""
+    from ..estimators.mcl.dense import SSDModel, msd
+
+    briefing, obs, states = _scene()
+    model = SSDModel()
+    model.reset(briefing, np.random.default_rng(0))
+    sampler = model.sampler
+    size = (sampler.geometry.width_px, sampler.geometry.height_px)
+
+    def step() -> object:
+        ref = model.prepare(obs, None).ref
+        affines = sampler.grid_to_level(states, _ALT_M)
+        patches = np.stack([cv2.warpAffine(sampler.level, a, size, flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
+                            for a in affines])
+        return msd(patches.reshape(len(states), -1), ref)
+
+    return step
+
+
 def _agent_step(spec: str) -> Callable[[], Callable[[], object]]:
     def setup() -> Callable[[], object]:
         from ..estimators.registry import make_agent
@@ -97,6 +117,7 @@ BENCHMARKS = [
     Benchmark("MCL step SSD 60x40, N=700", _model_step("ssd"), target_s=0.005, unit="step"),
     Benchmark("MCL step NCC 60x40, N=700", _model_step("ncc"), target_s=0.005, unit="step"),
     Benchmark("MCL step MI 60x40 16 bins, N=700", _model_step("mi"), target_s=0.015, unit="step"),
+    Benchmark("reference: SSD with one warpAffine per particle, N=700", _ssd_loop_reference, unit="step"),
     Benchmark("MCL step abBRIEF 60x40 12x64x2 bits, N=700", _model_step("abbrief"), unit="step"),
     Benchmark("MCL step edges 6x4 cells (incl. camera features), N=700", _model_step("edges"), unit="step"),
     Benchmark("baseline step template-ncc (1 m/px, 40 m window)", _agent_step("template-ncc"), unit="step"),
