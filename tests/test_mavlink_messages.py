@@ -38,7 +38,7 @@ def test_gps_week_rollover_and_epoch():
     assert gps_week_ms(315_964_800 - 18) == (0, 0)
     week, ms = gps_week_ms(315_964_800 - 18 + 7 * 86400 - 0.0005)
     assert (week, ms) in ((0, 7 * 86400 * 1000 - 1), (1, 0))
-    with pytest.raises(ValueError, match="before the GPS epoch"):
+    with pytest.raises(ConfigError, match="before the GPS epoch"):
         gps_week_ms(0.0)
 
 
@@ -84,6 +84,27 @@ def test_pose_covariance_layout_is_ned_upper_triangle():
     assert tri[20] == pytest.approx(msgs.UNKNOWN_ANGLE_VAR_RAD2)  # no yaw std given
     lost = assess(_fix(status="lost"), 0.0, FixPolicy())
     assert math.isnan(msgs.upper_triangle(msgs.pose_covariance(fix, lost))[0])
+
+
+@pytest.mark.parametrize("bad", [
+    dict(lat_deg=math.nan), dict(vel_enu_mps=(0.0, math.inf, 0.0)), dict(cov_en_m2=(1.0, 5.0, 1.0)),
+    dict(status="confused"), dict(lon_deg=200.0), dict(yaw_rad=math.nan)])
+def test_posefix_rejects_bad_values_with_clear_errors(bad):
+    with pytest.raises(ConfigError, match="PoseFix"):
+        _fix(**bad)
+
+
+def test_bridge_turns_a_broken_estimate_into_a_lost_fix():
+    br = EstimateBridge(lambda x, y: (47.0 + y * 1e-5, 8.0 + x * 1e-5), (0.0, 0.0))
+
+    class Est:
+        def __init__(self, x, y):
+            self.x_m, self.y_m, self.yaw_rad, self.cov_xy_m2, self.status = x, y, math.nan, None, "ok"
+
+    good = br.fix(Est(10.0, 20.0), time_s=0.0, altitude_m=100.0)
+    broken = br.fix(Est(math.nan, 20.0), time_s=0.25, altitude_m=100.0)
+    assert good.status == "ok" and good.yaw_rad is None
+    assert broken.status == "lost" and (broken.east_m, broken.north_m) == (10.0, 20.0)
 
 
 def test_assess_degrades_with_age_and_status():

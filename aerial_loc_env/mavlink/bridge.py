@@ -63,6 +63,10 @@ class EstimateBridge:
         if status not in STATUSES:
             status = "degraded"
         cov = getattr(estimate, "cov_xy_m2", None)
+        if not (math.isfinite(x) and math.isfinite(y)) or (cov is not None and not np.all(np.isfinite(cov))):
+            # a broken estimate is a lost one (held at the last good position), never NaN on the wire
+            status, cov = "lost", None
+            x, y = self._prev[1:] if self._prev is not None else self.origin_xy_m
         if cov is None:
             cov_en = (self.default_std_m ** 2, 0.0, self.default_std_m ** 2)
         else:
@@ -83,8 +87,10 @@ class EstimateBridge:
             self._prev = (time_s, x, y)
         lat, lon = self._latlon(x, y)
         yaw = getattr(estimate, "yaw_rad", None)
-        if yaw is None:
+        if yaw is None or not math.isfinite(yaw):
             yaw = yaw_fallback_rad
+        if yaw is not None and not math.isfinite(yaw):
+            yaw = None
         h_std = math.sqrt(cov_en[0] + cov_en[2])
         return PoseFix(
             time_s=float(time_s), lat_deg=lat, lon_deg=lon, alt_amsl_m=self.ground_amsl_m + float(altitude_m),

@@ -14,6 +14,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from ..config import rng
+from ..errors import ConfigError
 
 STATUSES = ("ok", "degraded", "dead_reckoning", "lost")
 
@@ -29,7 +30,7 @@ class GeoOrigin:
     def __post_init__(self) -> None:
         ok = abs(self.lat_deg) <= 90.0 and abs(self.lon_deg) <= 180.0 and math.isfinite(self.alt_amsl_m)
         if not ok:
-            raise ValueError(f"GeoOrigin: out of range: {self}; need |lat|<=90, |lon|<=180, finite alt")
+            raise ConfigError(f"GeoOrigin: out of range: {self}; need |lat|<=90, |lon|<=180, finite alt")
 
 
 @dataclass(frozen=True)
@@ -57,11 +58,24 @@ class PoseFix:
 
     def __post_init__(self) -> None:
         if self.status not in STATUSES:
-            raise ValueError(f"PoseFix.status = {self.status!r}; allowed: {', '.join(STATUSES)}")
+            raise ConfigError(f"PoseFix.status = {self.status!r}; allowed: {', '.join(STATUSES)}")
+        values = {"lat_deg": self.lat_deg, "lon_deg": self.lon_deg, "alt_amsl_m": self.alt_amsl_m,
+                  "east_m": self.east_m, "north_m": self.north_m, "up_m": self.up_m, "v_std_m": self.v_std_m,
+                  "speed_std_mps": self.speed_std_mps,
+                  "yaw_rad": 0.0 if self.yaw_rad is None else self.yaw_rad,
+                  "yaw_std_rad": 0.0 if self.yaw_std_rad is None else self.yaw_std_rad}
+        values.update({f"vel_enu_mps[{i}]": v for i, v in enumerate(self.vel_enu_mps)})
+        values.update({f"cov_en_m2[{i}]": v for i, v in enumerate(self.cov_en_m2)})
+        bad = {k: v for k, v in values.items() if not math.isfinite(v)}
+        if bad:   # caught here, in the publisher's thread, never as garbage on the wire
+            raise ConfigError(f"PoseFix: non-finite {bad}; every field must be a finite number "
+                              "(report an unusable estimate with status='lost')")
+        if abs(self.lat_deg) > 90.0 or abs(self.lon_deg) > 180.0:
+            raise ConfigError(f"PoseFix: lat_deg={self.lat_deg}, lon_deg={self.lon_deg} out of range")
         var_e, cov_en, var_n = self.cov_en_m2
         if not (var_e >= 0 and var_n >= 0 and cov_en * cov_en <= var_e * var_n * (1 + 1e-9) + 1e-12):
-            raise ValueError(f"PoseFix.cov_en_m2 = {self.cov_en_m2!r} is not a covariance "
-                             "(need var >= 0 and |cov| <= sd_e * sd_n)")
+            raise ConfigError(f"PoseFix.cov_en_m2 = {self.cov_en_m2!r} is not a covariance "
+                              "(need var >= 0 and |cov| <= sd_e * sd_n)")
 
     @property
     def h_std_m(self) -> float:
@@ -85,8 +99,6 @@ class FixPolicy:
     quality_ref_m: float = field(default=5.0, metadata=rng(0.0, 1000.0, lo_open=True))  # ODOMETRY q=50
 
     def validate(self, where: str) -> None:
-        from ..errors import ConfigError
-
         if self.lost_after_s < self.stale_after_s:
             raise ConfigError(f"{where}: lost_after_s ({self.lost_after_s}) must be >= stale_after_s "
                               f"({self.stale_after_s})")

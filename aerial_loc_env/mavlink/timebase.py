@@ -11,6 +11,8 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
+from ..errors import ConfigError
+
 GPS_EPOCH_UNIX_S = 315_964_800  # 1980-01-06T00:00:00Z as a Unix time
 GPS_LEAP_SECONDS = 18            # GPS - UTC since 2017-01-01 (no leap second announced since)
 SECONDS_PER_WEEK = 7 * 86_400
@@ -21,7 +23,7 @@ def gps_week_ms(unix_s: float, leap_s: int = GPS_LEAP_SECONDS) -> tuple[int, int
     """(GPS week, milliseconds of week) of a UTC Unix time; GPS time runs ``leap_s`` ahead of UTC."""
     gps_s = unix_s - GPS_EPOCH_UNIX_S + leap_s
     if gps_s < 0:
-        raise ValueError(f"unix time {unix_s!r} is before the GPS epoch 1980-01-06")
+        raise ConfigError(f"unix time {unix_s!r} is before the GPS epoch 1980-01-06")
     week, rem_s = divmod(gps_s, SECONDS_PER_WEEK)
     ms = int(math.floor(rem_s * 1000.0 + 1e-6))
     if ms >= SECONDS_PER_WEEK * 1000:  # rounding at the very end of a week
@@ -65,7 +67,7 @@ class Schedule:
 
     def __init__(self, rate_hz: float, start_s: float) -> None:
         if not rate_hz > 0:
-            raise ValueError(f"rate_hz must be > 0, got {rate_hz!r}")
+            raise ConfigError(f"Schedule: rate_hz must be > 0, got {rate_hz!r}")
         self.period_s = 1.0 / rate_hz
         self.start_s = start_s
         self.index = 0
