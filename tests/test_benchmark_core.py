@@ -58,3 +58,55 @@ def test_grid_sweep_expands_and_rejects_unknown_keys():
         grid_from_dict({"agents": ["a"], "scenarios": ["s"], "seeds": []})
     with pytest.raises(ConfigError, match="not found"):
         load_grid("no-such-experiment")
+
+
+def test_dotted_and_nested_params_are_the_same_trial():
+    from aerial_loc_env.benchmark.grid import nest_params, param_value
+
+    dotted = grid_from_dict({"agents": [{"name": "m", "params": {"measurement_params.n_pairs": 30, "n": 1}}],
+                             "scenarios": ["S"], "seeds": 1})
+    nested = grid_from_dict({"agents": [{"name": "m", "params": {"n": 1, "measurement_params": {"n_pairs": 30}}}],
+                             "scenarios": ["S"], "seeds": 1})
+    assert dotted.agents[0].spec() == nested.agents[0].spec()
+    assert nest_params({"a.b": 1, "a": {"c": 2}}) == {"a": {"b": 1, "c": 2}}
+    p = {"n_particles": 700, "measurement_params": {"n_pairs": 50}}
+    assert param_value(p, "n_pairs") == 50 and param_value(p, "measurement_params.n_pairs") == 50
+    assert param_value(p, "n_particles") == 700 and param_value(p, "missing", "x") == "x"
+
+
+def test_grid_rejects_duplicate_labels_bad_plots_and_thresholds():
+    with pytest.raises(ConfigError, match="twice"):
+        grid_from_dict({"agents": ["a", "a"], "scenarios": ["s"], "seeds": 1})
+    with pytest.raises(ConfigError, match="unknown plot"):
+        grid_from_dict({"agents": ["a"], "scenarios": ["s"], "seeds": 1, "plots": ["pie"]})
+    with pytest.raises(ConfigError, match="paper section"):
+        grid_from_dict({"agents": ["a"], "scenarios": ["s"], "seeds": 1, "paper": ["table99"]})
+    with pytest.raises(ConfigError, match="converge_threshold_m"):
+        grid_from_dict({"agents": ["a"], "scenarios": ["s"], "seeds": 1, "converge_threshold_m": 80.0})
+
+
+def test_every_shipped_experiment_parses():
+    from aerial_loc_env.benchmark.grid import available_experiments
+
+    names = available_experiments()
+    assert {"default", "table5", "table9", "sweep_n", "sweep_k", "global"} <= set(names)
+    t5 = load_grid("table5")
+    assert t5.trials() == 12 * 100 and len(t5.seeds) == 100
+
+
+def test_paper_tables_from_rows():
+    from aerial_loc_env.benchmark.report import PAPER_TABLE5, table5, table9
+
+    def row(name, k, errs, shadow):
+        return {"agent": name, "scenario": "s", "seed": 0, "errors_m": errs, "shadow_fraction_mean": shadow,
+                "agent_spec": {"name": name, "params": {}},
+                "agent_config": {"params": {"measurement_params": {"n_pairs": k}}},
+                "shadow_pairs_normalized": 0.25, "step_time_median_ms": 1.0, "compute_time_total_s": 2.0}
+
+    rows = [row("mcl-shadow-aware", 70, [3.0, 4.0], 0.3), row("mcl-shadow-aware", 70, [0.0, 0.0], 0.3),
+            row("mcl-conventional", 10, [1.0], 0.3), row("mcl-shadow-aware", 70, [1.0], 0.0)]
+    t = table5(rows)
+    # pooled over the two shadowed trials: sqrt((9 + 16) / 4) = 2.5; the shadow-free trial is left out
+    assert f"2.50 / {PAPER_TABLE5['shadow-aware'][70]:.2f}" in t and "1.00 / 7.05" in t
+    t9 = table9(rows)
+    assert "| Sim. w/o shadow RMSE [m] | 1.00 / 4.20 |" in t9 and "| Sim. w/ shadow RMSE [m] | 2.50 / 5.00 |" in t9

@@ -126,7 +126,7 @@ def test_grid_growth_runs_only_the_missing_trials(tmp_path):
 
 
 def test_kill_mid_run_then_resume_loses_nothing(tmp_path):
-    spec = _write_experiment(tmp_path / "tinyexp.toml", seeds=8, duration_s=10.0, n_particles=300)
+    spec = _write_experiment(tmp_path / "tinyexp.toml", seeds=8, duration_s=6.0, n_particles=300)
     out = tmp_path / "killed"
     cmd = [sys.executable, "-m", "aerial_loc_env.cli", "bench", str(spec), "--out", str(out), "--workers", "1",
            "--no-plots", "--quiet"]

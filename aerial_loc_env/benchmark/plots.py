@@ -39,7 +39,7 @@ def _series_by(rows: Sequence[dict], column: str) -> dict[str, dict[str, tuple[n
     for r in rows:
         if r.get(column):
             groups.setdefault((r["scenario"], r["agent"]), []).append(r)
-    for (scenario, agent), rs in sorted(groups.items()):
+    for (scenario, agent), rs in groups.items():   # the grid's order
         n = min(len(r[column]) for r in rs)
         e = np.array([r[column][:n] for r in rs], dtype=float)
         out.setdefault(scenario, {})[agent] = (np.asarray(rs[0]["t_s"][:n], dtype=float), e, len(rs))
@@ -66,9 +66,15 @@ def _bands(rows: Sequence[dict], column: str, path: Path, ylabel: str, title: st
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize=7, ncol=2)
     if title:
-        fig.suptitle(title)
+        fig.suptitle(_wrap(title), fontsize=9)
     fig.tight_layout()
     return _save(fig, path)
+
+
+def _wrap(text: str, width: int = 100) -> str:
+    import textwrap
+
+    return "\n".join(textwrap.wrap(text, width))
 
 
 def error_vs_time(rows: Sequence[dict], path: Path, title: str = "") -> Path | None:
@@ -105,7 +111,7 @@ def rmse_vs_param(rows: Sequence[dict], param: str, path: Path, title: str = "")
     ax.grid(True, alpha=0.3)
     ax.legend(fontsize=7)
     if title:
-        ax.set_title(title)
+        ax.set_title(_wrap(title, 70), fontsize=9)
     fig.tight_layout()
     return _save(fig, path)
 
