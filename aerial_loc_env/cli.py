@@ -35,8 +35,8 @@ def main(argv: list[str] | None = None) -> int:
     if name not in COMMANDS:
         print(f"aerial-loc: unknown command {name!r}\n\n{_usage()}", file=sys.stderr)
         return 2
-    module = importlib.import_module(COMMANDS[name][0])
     try:
+        module = importlib.import_module(COMMANDS[name][0])
         return int(module.main(rest) or 0)
     except AerialLocError as exc:
         print(f"aerial-loc {name}: error: {exc}", file=sys.stderr)
