@@ -74,4 +74,6 @@ BENCHMARKS = [
               unit="step", repeats=200),
     Benchmark("mcl step restoration N=700 K=70 c=3 (600x400)", _mcl_step("mcl-restoration"),
               unit="step", repeats=200),
+    Benchmark("mcl step shadow-weighted, map detector N=700 K=70 c=3", _mcl_step("mcl-shadow-weighted"),
+              unit="step", repeats=200),
 ]
