@@ -123,3 +123,27 @@ def test_bad_inputs_are_clear_errors() -> None:
         build_config(ShadowDetectorConfig, {"scale": 0.0})
     with pytest.raises(ConfigError, match="index"):
         build_config(ShadowDetectorConfig, {"index": "ndvi"})
+
+
+def test_map_ratio_detector_sees_shadows_the_image_detector_cannot() -> None:
+    """On a high-contrast map (dark texture as dark as the shadows) the image alone is ambiguous; the ratio to
+    the shadow-free database at the (slightly wrong) pose is not."""
+    from test_dense_models import ALT_M, briefing_standin, render_frame, textured_map
+
+    from aerial_loc_env.estimators.shadow_detection import MapRatioShadowDetector
+
+    m = textured_map(400, seed=1)
+    br = briefing_standin(m)
+    det = MapRatioShadowDetector()
+    det.reset(br)
+    ious, ious_image = [], []
+    for k in range(4):
+        x, y, yaw = 80.0 + 10 * k, 100.0, 0.4 * k
+        frame = render_frame(m, x, y, yaw)
+        occ = np.zeros(frame.shape[:2], np.uint8)
+        occ[10 + 5 * k:50, 15:60 + 10 * k] = 255
+        shadowed, truth = apply_shading(frame, occ, 0.8), occ > 127
+        ious.append(mask_quality(det.detect(shadowed, x + 0.4, y - 0.3, yaw, ALT_M).full(), truth)["iou"])
+        ious_image.append(mask_quality(ShadowDetector().detect(shadowed).full(), truth)["iou"])
+        assert det.detect(frame, x, y, yaw, ALT_M).fraction < 0.02            # sunlit: no shadow
+    assert np.mean(ious) > 0.7 and np.mean(ious) > np.mean(ious_image) + 0.2, (ious, ious_image)
