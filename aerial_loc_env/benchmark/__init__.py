@@ -1,10 +1,12 @@
-"""Layer 5: the benchmark harness (``aerial-loc bench``): experiment grids of agents x scenarios x seeds, run with
-one rendering per episode shared by all agents, resumable on disk, reported beside the paper's tables.
+"""Layer 5: the benchmark harness (``aerial-loc bench``): experiment grids of agents x scenarios x seeds,
+run with one rendering per episode shared by all agents, resumable on disk, reported beside the paper's
+tables.
 
 From Python::
 
     from aerial_loc_env.benchmark import make_grid, run_experiment
-    grid = make_grid("mine", ["mcl-shadow-aware", "mcl-conventional"], ["AerialLoc/PaperShadows-v0"], seeds=10)
+    grid = make_grid("mine", ["mcl-shadow-aware", "mcl-conventional"], ["AerialLoc/PaperShadows-v0"],
+                     seeds=10)
     rows = run_experiment(grid, "results/mine", workers=2)     # or run_experiment("table5", ...)
 """
 

@@ -1,5 +1,5 @@
-"""``aerial-loc bench [EXPERIMENT]``: run an experiment grid, print the table, write CSV/JSON, a Markdown report
-and plots. With no argument it runs the default comparison on the embedded procedural city.
+"""``aerial-loc bench [EXPERIMENT]``: run an experiment grid, print the table, write CSV/JSON, a Markdown
+report and plots. With no argument it runs the default comparison on the embedded procedural city.
 
 Results go to ``results/<experiment>/`` (``--out``): ``trials.jsonl`` (the source of truth, appended as each
 episode ends), ``trials.csv`` / ``trials.json`` (derived), ``report.md`` and PNG plots. A re-run skips the
@@ -33,8 +33,8 @@ def main(argv: list[str] | None = None) -> int:
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("experiment", nargs="?", default="default",
                     help=f"an experiment name ({', '.join(available_experiments())}) or a TOML path")
-    ap.add_argument("--out", help="results folder (default results/<experiment>); finished trials there are kept "
-                                  "and skipped, never overwritten")
+    ap.add_argument("--out", help="results folder (default results/<experiment>); finished trials there are "
+                                  "kept and skipped, never overwritten")
     ap.add_argument("--workers", type=int, default=_default_workers(),
                     help="parallel processes (default: the usable cores)")
     ap.add_argument("--executor", default="local", choices=("local", "ray"),
@@ -55,8 +55,8 @@ def main(argv: list[str] | None = None) -> int:
             ap.error("--seeds must be >= 1")
         grid = dataclasses.replace(grid, seeds=grid.seeds[: args.seeds])
     out = Path(args.out or Path("results") / grid.name)
-    print(f"{grid.name}: {len(grid.agents)} agents x {len(grid.scenarios)} scenarios x {len(grid.seeds)} seeds "
-          f"= {grid.trials()} trials -> {out}/", flush=True)
+    print(f"{grid.name}: {len(grid.agents)} agents x {len(grid.scenarios)} scenarios x "
+          f"{len(grid.seeds)} seeds = {grid.trials()} trials -> {out}/", flush=True)
     t0 = time.monotonic()
     rows = run_grid(grid, str(out), workers=args.workers, executor=args.executor, progress=not args.quiet)
     elapsed = time.monotonic() - t0
@@ -92,7 +92,8 @@ def _with_and_without_shadows(grid: Grid) -> list[ScenarioEntry]:
     if len(grid.scenarios) >= 2:
         return list(grid.scenarios[:2])
     s = grid.scenarios[0]
-    twin = ScenarioEntry(s.id, {**s.overrides, "shadows.strength_range": [0.0, 0.0]}, f"{s.display}, no shadows")
+    twin = ScenarioEntry(s.id, {**s.overrides, "shadows.strength_range": [0.0, 0.0]},
+                         f"{s.display}, no shadows")
     return [s, twin]
 
 

@@ -220,9 +220,11 @@ def grid_from_dict(data: Mapping[str, Any], where: str = "experiment") -> Grid:
     bad = [p for p in paper if p not in PAPER_SECTIONS]
     if bad:
         raise ConfigError(f"{where}: unknown paper section(s) {bad}; use {', '.join(PAPER_SECTIONS)}")
-    converge, diverge = float(data.get("converge_threshold_m", 10.0)), float(data.get("diverge_threshold_m", 50.0))
+    converge = float(data.get("converge_threshold_m", 10.0))
+    diverge = float(data.get("diverge_threshold_m", 50.0))
     if not 0.0 < converge <= diverge:
-        raise ConfigError(f"{where}: need 0 < converge_threshold_m ({converge}) <= diverge_threshold_m ({diverge})")
+        raise ConfigError(f"{where}: need 0 < converge_threshold_m ({converge}) <= "
+                          f"diverge_threshold_m ({diverge})")
     return Grid(
         name=str(data.get("name", Path(where).stem)),
         agents=tuple(_expand_agents(data["agents"], where)),

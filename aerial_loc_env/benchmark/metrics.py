@@ -1,4 +1,5 @@
-"""Per-trial error statistics: the paper's RMSE and the second reference's mean / 95th percentile / convergence."""
+"""Per-trial error statistics: the paper's RMSE and the second reference's mean / 95th percentile /
+convergence."""
 
 from __future__ import annotations
 
@@ -6,8 +7,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-#: columns that measure wall-clock time: they differ between two runs of the same trial, everything else is equal
-TIMING_COLUMNS = ("step_time_median_ms", "step_time_p95_ms", "compute_time_total_s")
+#: columns that measure time: they differ between two runs of the same trial, everything else is equal
+TIMING_COLUMNS = ("step_time_median_ms", "step_time_p95_ms", "compute_time_total_s", "cpu_time_total_s",
+                  "episode_render_cpu_s")
 
 
 @dataclass(frozen=True)

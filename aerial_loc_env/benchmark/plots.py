@@ -78,7 +78,7 @@ def _wrap(text: str, width: int = 100) -> str:
 
 
 def error_vs_time(rows: Sequence[dict], path: Path, title: str = "") -> Path | None:
-    """Mean horizontal error against time per agent, with a 10-90 % band over trials; one panel per scenario."""
+    """Mean horizontal error against time per agent, a 10-90 % band over trials; one panel per scenario."""
     return _bands(rows, "errors_m", path, "horizontal error [m] (mean, 10-90 % band)", title, log=True)
 
 
@@ -202,11 +202,12 @@ def likelihood_surface(agent: AgentEntry, scenario: ScenarioEntry, seed: int, *,
     gx, gy = np.meshgrid(x + offs, y + offs)
     states = np.column_stack([gx.ravel(), gy.ravel(), np.full(gx.size, yaw)])
     om = env.briefing.orthomap
-    inside = (states[:, 0] >= 0) & (states[:, 0] <= om.width_m) & (states[:, 1] >= 0) & (states[:, 1] <= om.height_m)
+    inside = ((states[:, 0] >= 0) & (states[:, 0] <= om.width_m)
+              & (states[:, 1] >= 0) & (states[:, 1] <= om.height_m))
     ll = np.full(gx.size, np.nan)
     ll[inside] = model.log_likelihood(prepared, states[inside], float(obs["altitude"][0]))
-    return {"offsets_m": offs, "log_likelihood": ll.reshape(gx.shape), "shadow_fraction": info["shadow_fraction"],
-            "stats": dict(getattr(model, "last_stats", {}))}
+    return {"offsets_m": offs, "log_likelihood": ll.reshape(gx.shape),
+            "shadow_fraction": info["shadow_fraction"], "stats": dict(getattr(model, "last_stats", {}))}
 
 
 def likelihood_plot(agents: Sequence[AgentEntry], scenarios: Sequence[ScenarioEntry], seed: int, path: Path,
@@ -221,8 +222,8 @@ def likelihood_plot(agents: Sequence[AgentEntry], scenarios: Sequence[ScenarioEn
             surfaces.append((agent, row))
     if not surfaces:
         return None
-    fig, axes = plt.subplots(len(surfaces), len(scenarios), figsize=(3.4 * len(scenarios), 3.0 * len(surfaces)),
-                             squeeze=False)
+    fig, axes = plt.subplots(len(surfaces), len(scenarios),
+                             figsize=(3.4 * len(scenarios), 3.0 * len(surfaces)), squeeze=False)
     for i, (agent, row) in enumerate(surfaces):
         for j, (scenario, surf) in enumerate(zip(scenarios, row, strict=True)):
             ax = axes[i, j]
@@ -230,9 +231,11 @@ def likelihood_plot(agents: Sequence[AgentEntry], scenarios: Sequence[ScenarioEn
             rel = ll - np.nanmax(ll) if np.isfinite(ll).any() else ll
             lo = float(np.nanpercentile(rel, 5)) if np.isfinite(rel).any() else -1.0
             r = float(surf["offsets_m"][-1])
-            im = ax.imshow(rel, origin="lower", extent=(-r, r, -r, r), cmap="viridis", vmin=min(lo, -1e-6), vmax=0)
+            im = ax.imshow(rel, origin="lower", extent=(-r, r, -r, r), cmap="viridis",
+                           vmin=min(lo, -1e-6), vmax=0)
             ax.plot(0, 0, "r+", ms=10)
-            ax.set_title(f"{agent.display}\n{scenario.display} (shadow {surf['shadow_fraction']:.0%})", fontsize=8)
+            shade = surf["shadow_fraction"]
+            ax.set_title(f"{agent.display}\n{scenario.display} (shadow {shade:.0%})", fontsize=8)
             ax.set_xlabel("east offset [m]", fontsize=7)
             ax.set_ylabel("north offset [m]", fontsize=7)
             ax.tick_params(labelsize=7)

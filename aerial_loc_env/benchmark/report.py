@@ -79,22 +79,25 @@ def summarize(rows: Sequence[dict]) -> list[dict]:
             "step_ms": _nanmean([r.get("step_time_median_ms") for r in rs]),
             "step_p95_ms": _nanmean([r.get("step_time_p95_ms") for r in rs]),
             "compute_s": _nanmean([r.get("compute_time_total_s") for r in rs]),
+            "cpu_s": _nanmean([r.get("cpu_time_total_s") for r in rs]),
             "shadow_pairs_normalized": _nanmean([r.get("shadow_pairs_normalized") for r in rs]),
         })
     return sorted(out, key=lambda s: (s["scenario"], s["rmse_m"]))
 
 
 def summary_table(summaries: Sequence[dict]) -> str:
-    head = ("| scenario | agent | trials | RMSE [m] | RMSE after conv. [m] | mean [m] | p95 [m] | final [m] | "
-            "converged | diverged | t conv. [s] | step median [ms] | step p95 [ms] | compute / trial [s] "
-            "| shadow pairs / K |")
-    lines = [head, "|" + "---|" * 15]
+    head = ("| scenario | agent | trials | RMSE [m] | RMSE after conv. [m] | mean [m] | p95 [m] "
+            "| final [m] | converged | diverged | t conv. [s] | step median [ms] | step p95 [ms] "
+            "| compute / trial [s] | CPU / trial [s] | shadow pairs / K |")
+    lines = [head, "|" + "---|" * 16]
     for s in summaries:
         lines.append(
-            f"| {s['scenario']} | {s['agent']} | {s['trials']} | {_fmt(s['rmse_m'])} | {_fmt(s['rmse_converged_m'])} "
+            f"| {s['scenario']} | {s['agent']} | {s['trials']} | {_fmt(s['rmse_m'])} "
+            f"| {_fmt(s['rmse_converged_m'])} "
             f"| {_fmt(s['mean_error_m'])} | {_fmt(s['p95_error_m'])} | {_fmt(s['final_error_m'])} "
             f"| {s['converged_frac']:.0%} | {s['diverged_frac']:.0%} | {_fmt(s['time_to_converge_s'], 1)} "
             f"| {_fmt(s['step_ms'], 2)} | {_fmt(s['step_p95_ms'], 2)} | {_fmt(s['compute_s'], 2)} "
+            f"| {_fmt(s['cpu_s'], 2)} "
             f"| {_fmt(s['shadow_pairs_normalized'], 3)} |")
     return "\n".join(lines)
 
@@ -106,11 +109,13 @@ def markdown_report(title: str, description: str, rows: Sequence[dict], machine:
     parts = [f"# {title}", "", description, "",
              f"Machine: {machine}. Package version(s): {', '.join(versions)}. {len(rows)} trials, "
              f"{len(seeds)} seed(s).", "",
-             "RMSE is the root mean square horizontal error over all steps of all trials pooled (the paper's "
-             "figure); 'after conv.' is over the steps after the error fell below the convergence threshold for "
-             "good (mean over the converged trials); mean/p95 are over all steps (the second reference's "
-             "figures); 'compute / trial' is the agent's own time over the episode (rendering excluded); "
-             "'shadow pairs / K' is the mean fraction of the K pixel pairs with one end in detected shadow.", "",
+             "RMSE is the root mean square horizontal error over all steps of all trials pooled (the "
+             "paper's figure); 'after conv.' is over the steps after the error fell below the convergence "
+             "threshold for good (mean over the converged trials); mean/p95 are over all steps (the second "
+             "reference's figures); 'compute / trial' is the agent's own wall time over the episode "
+             "(rendering excluded), 'CPU / trial' its CPU time (not inflated by other load on a shared "
+             "machine); 'shadow pairs / K' is the mean fraction of the K pixel pairs with one end in "
+             "detected shadow.", "",
              summary_table(summarize(rows)), ""]
     parts.extend(extra_sections)
     return "\n".join(parts)
@@ -140,8 +145,8 @@ def table5(rows: Sequence[dict]) -> str:
     ks = sorted({k for _, k in cells})
     fams = [f for f in dict.fromkeys(FAMILIES.values()) if any(f == c[0] for c in cells)]
     n_trials = sorted({len(v) for v in cells.values()})
-    lines = [f"## Table 5: RMSE [m] with shadows, ours / paper ({'/'.join(map(str, n_trials))} trials per cell; "
-             "paper: N = 700, 100 trials)", "",
+    lines = [f"## Table 5: RMSE [m] with shadows, ours / paper ({'/'.join(map(str, n_trials))} trials per "
+             "cell; paper: N = 700, 100 trials)", "",
              "| RMSE [m] | " + " | ".join(f"K = {k}" for k in ks) + " |", "|---|" + "---|" * len(ks)]
     for fam in fams:
         vals = []
@@ -149,10 +154,12 @@ def table5(rows: Sequence[dict]) -> str:
             ours = _fmt(pooled_rmse(cells.get((fam, k), [])))
             vals.append(f"{ours} / {_fmt(PAPER_TABLE5.get(fam, {}).get(k))}")
         lines.append(f"| {fam} | " + " | ".join(vals) + " |")
-    lines += ["", "Normalized count of pair samples in shadow (mean over steps and trials; the paper's Fig. 42):", "",
+    lines += ["", "Normalized count of pair samples in shadow (mean over steps and trials; the paper's "
+              "Fig. 42):", "",
               "| shadow pairs / K | " + " | ".join(f"K = {k}" for k in ks) + " |", "|---|" + "---|" * len(ks)]
     for fam in fams:
-        vals = [_fmt(_nanmean([r.get("shadow_pairs_normalized") for r in cells.get((fam, k), [])]), 3) for k in ks]
+        vals = [_fmt(_nanmean([r.get("shadow_pairs_normalized") for r in cells.get((fam, k), [])]), 3)
+                for k in ks]
         lines.append(f"| {fam} | " + " | ".join(vals) + " |")
     return "\n".join(lines) + "\n"
 
@@ -183,8 +190,11 @@ def table9(rows: Sequence[dict]) -> str:
         [r.get("step_time_median_ms") for rs in cols[c].values() for r in rs]), 2))
     row("compute per trial [s] (ours)", lambda c: _fmt(_nanmean(
         [r.get("compute_time_total_s") for rs in cols[c].values() for r in rs]), 2))
+    row("CPU per trial [s] (ours)", lambda c: _fmt(_nanmean(
+        [r.get("cpu_time_total_s") for rs in cols[c].values() for r in rs]), 2))
     row("computation time [s] (paper)", lambda c: f"{PAPER_TABLE9[c][2]:g}")
-    row("trials w/o / w/ shadow", lambda c: f"{len(cols[c].get('without', []))} / {len(cols[c].get('with', []))}")
+    row("trials w/o / w/ shadow",
+        lambda c: f"{len(cols[c].get('without', []))} / {len(cols[c].get('with', []))}")
     return "\n".join(lines) + "\n"
 
 
@@ -202,7 +212,8 @@ def sweep_tables(rows: Sequence[dict]) -> str:
             continue
         values = sorted({v for g in groups.values() for v in g})
         parts += [f"## RMSE [m] against {label} (Figs. {'35-38' if label == 'N' else '39-42'})", "",
-                  "| agent / scenario | " + " | ".join(f"{label} = {v}" for v in values) + " | shadow pairs / K |",
+                  "| agent / scenario | " + " | ".join(f"{label} = {v}" for v in values)
+                  + " | shadow pairs / K |",
                   "|---|" + "---|" * (len(values) + 1)]
         for (name, scenario), by in sorted(groups.items()):
             cells = [_fmt(pooled_rmse(by.get(v, []))) for v in values]
@@ -213,17 +224,18 @@ def sweep_tables(rows: Sequence[dict]) -> str:
 
 
 def global_table(rows: Sequence[dict]) -> str:
-    """Global localization (the second reference): fraction converged and time to converge from a uniform start."""
+    """Global localization (the second reference): fraction converged and time to converge, uniform start."""
     lines = ["## Global localization: converged from a uniform start", "",
-             "| scenario | agent | trials | converged | median t conv. [s] | p90 t conv. [s] | final error [m] "
-             "| RMSE after conv. [m] |", "|---|---|---|---|---|---|---|---|"]
+             "| scenario | agent | trials | converged | median t conv. [s] | p90 t conv. [s] "
+             "| final error [m] | RMSE after conv. [m] |", "|---|---|---|---|---|---|---|---|"]
     groups: dict[tuple[str, str], list[dict]] = {}
     for r in rows:
         groups.setdefault((r["scenario"], r["agent"]), []).append(r)
     for (scenario, agent), rs in sorted(groups.items()):
         ttc = np.array([r["time_to_converge_s"] for r in rs if r.get("time_to_converge_s") is not None
                         and math.isfinite(r["time_to_converge_s"])])
-        lines.append(f"| {scenario} | {agent} | {len(rs)} | {np.mean([bool(r['converged']) for r in rs]):.0%} "
+        converged = np.mean([bool(r["converged"]) for r in rs])
+        lines.append(f"| {scenario} | {agent} | {len(rs)} | {converged:.0%} "
                      f"| {_fmt(float(np.median(ttc)) if ttc.size else None, 1)} "
                      f"| {_fmt(float(np.percentile(ttc, 90)) if ttc.size else None, 1)} "
                      f"| {_fmt(float(np.median([r['final_error_m'] for r in rs])), 1)} "

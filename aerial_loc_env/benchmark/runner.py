@@ -126,15 +126,17 @@ def run_episode(task: EpisodeTask) -> tuple[list[dict], list[dict]]:
     failures: list[dict] = []
     errors: list[list[float]] = [[] for _ in range(n)]
     step_times: list[list[float]] = [[] for _ in range(n)]
+    cpu_times = [0.0] * n          # CPU seconds: unlike wall time, not inflated by other load on the machine
+    env_cpu_s = 0.0
     shadow_pairs: list[list[float]] = [[] for _ in range(n)]
     t_s: list[float] = []
     shadow_fraction: list[float] = []
 
     def fail(i: int, stage: str, exc: BaseException) -> None:
         alive[i] = False
-        failures.append({"key": task.keys[i], "agent": task.agents[i].display, "scenario": task.scenario.display,
-                         "seed": task.seed, "stage": stage, "error": f"{type(exc).__name__}: {exc}",
-                         "traceback": traceback.format_exc(limit=8)})
+        failures.append({"key": task.keys[i], "agent": task.agents[i].display,
+                         "scenario": task.scenario.display, "seed": task.seed, "stage": stage,
+                         "error": f"{type(exc).__name__}: {exc}", "traceback": traceback.format_exc(limit=8)})
 
     for i, agent in enumerate(agents):
         try:
@@ -153,9 +155,10 @@ def run_episode(task: EpisodeTask) -> tuple[list[dict], list[dict]]:
             if not alive[i]:
                 continue
             try:
-                t0 = time.perf_counter()
+                t0, c0 = time.perf_counter(), time.process_time()
                 est = agent.step(frame, info if getattr(agent, "uses_ground_truth", False) else None)
                 step_times[i].append(time.perf_counter() - t0)
+                cpu_times[i] += time.process_time() - c0
             except Exception as exc:  # noqa: BLE001
                 fail(i, f"step {len(t_s) - 1}", exc)
                 continue
@@ -175,7 +178,9 @@ def run_episode(task: EpisodeTask) -> tuple[list[dict], list[dict]]:
         action = step_all(obs, info)  # the last frame is an observation too: agents estimate on it
         if done:
             break
+        c0 = time.process_time()
         obs, _reward, terminated, truncated, info = env.step(action)
+        env_cpu_s += time.process_time() - c0
         done = terminated or truncated
     rows = []
     t_arr = np.asarray(t_s)
@@ -194,6 +199,8 @@ def run_episode(task: EpisodeTask) -> tuple[list[dict], list[dict]]:
             "scenario_config": task.scenario_config,
             "version": __version__,
             **m,
+            "cpu_time_total_s": cpu_times[i],
+            "episode_render_cpu_s": env_cpu_s,
             "shadow_pairs_normalized": float(np.mean(shadow_pairs[i])) if shadow_pairs[i] else float("nan"),
             "shadow_fraction_mean": float(np.mean(shadow_fraction)),
             "t_s": [round(x, 4) for x in t_s],
@@ -220,7 +227,8 @@ def resolve_grid(grid: Grid) -> ResolvedGrid:
     agents = tuple(_jsonable(resolve_agent(a)) for a in grid.agents)
     scenarios = tuple(_jsonable(resolve_scenario(s)) for s in grid.scenarios)
     keys = {(si, seed, ai): trial_key(agent, scenario, seed)
-            for si, scenario in enumerate(scenarios) for seed in grid.seeds for ai, agent in enumerate(agents)}
+            for si, scenario in enumerate(scenarios) for seed in grid.seeds
+            for ai, agent in enumerate(agents)}
     return ResolvedGrid(agents, scenarios, keys)
 
 
@@ -234,19 +242,20 @@ def plan(grid: Grid, done: set[str], resolved: ResolvedGrid | None = None) -> li
         for seed in grid.seeds:
             todo = [ai for ai in range(len(grid.agents)) if res.keys[si, seed, ai] not in done]
             if todo:
-                tasks.append(EpisodeTask(scenario, seed, tuple(grid.agents[ai] for ai in todo),
-                                         tuple(res.keys[si, seed, ai] for ai in todo), metric,
-                                         tuple(res.agent_configs[ai] for ai in todo), res.scenario_configs[si]))
+                tasks.append(EpisodeTask(
+                    scenario, seed, tuple(grid.agents[ai] for ai in todo),
+                    tuple(res.keys[si, seed, ai] for ai in todo), metric,
+                    tuple(res.agent_configs[ai] for ai in todo), res.scenario_configs[si]))
     return tasks
 
 
 class Progress:
-    """A one-line progress bar with ETA on stderr (on a non-terminal: a line every 10 %)."""
+    """A one-line progress bar with ETA on stderr (on a non-terminal: a line every 10 % or 30 s)."""
 
     def __init__(self, total: int, label: str, stream: Any = None) -> None:
         self.total, self.label = max(total, 1), label
         self.stream = sys.stderr if stream is None else stream
-        self.done, self.t0, self._last_decile = 0, time.monotonic(), -1
+        self.done, self.t0, self._last_decile, self._last_line = 0, time.monotonic(), -1, 0.0
 
     def update(self, n: int = 1) -> None:
         self.done += n
@@ -258,8 +267,9 @@ class Progress:
         tty = getattr(self.stream, "isatty", lambda: False)()
         if tty:
             self.stream.write("\r" + line + ("\n" if self.done >= self.total else ""))
-        elif int(frac * 10) != self._last_decile or self.done >= self.total:
-            self._last_decile = int(frac * 10)
+        elif (int(frac * 10) != self._last_decile or self.done >= self.total
+              or elapsed - self._last_line >= 30):
+            self._last_decile, self._last_line = int(frac * 10), elapsed
             self.stream.write(line + "\n")
         self.stream.flush()
 
@@ -292,8 +302,8 @@ def run_grid(grid: Grid, out_dir: str, *, workers: int = 1, executor: str | Exec
         for failure in failures:
             store.append_failure(failure)
             n_failed += 1
-            print(f"\n{grid.name}: {failure['agent']} on {failure['scenario']} seed {failure['seed']} failed at "
-                  f"{failure['stage']}: {failure['error']}", file=sys.stderr)
+            print(f"\n{grid.name}: {failure['agent']} on {failure['scenario']} seed {failure['seed']} "
+                  f"failed at {failure['stage']}: {failure['error']}", file=sys.stderr)
         if bar:
             bar.update()
 
@@ -320,7 +330,8 @@ def rerun_row(row: Mapping[str, Any]) -> dict:
     """Run the trial of a stored row again (same agent spec, scenario spec and seed): the same figures, apart
     from the wall-clock timing columns, as long as the package version and spec files are the same."""
     agent = AgentEntry(row["agent_spec"]["name"], dict(row["agent_spec"]["params"]), row["agent"])
-    scenario = ScenarioEntry(row["scenario_spec"]["id"], dict(row["scenario_spec"]["overrides"]), row["scenario"])
+    scenario = ScenarioEntry(row["scenario_spec"]["id"], dict(row["scenario_spec"]["overrides"]),
+                             row["scenario"])
     grid = Grid(name="rerun", agents=(agent,), scenarios=(scenario,), seeds=(int(row["seed"]),))
     (task,) = plan(grid, set())
     rows, failures = run_episode(task)

@@ -44,7 +44,8 @@ class TrialStore:
     def __init__(self, out_dir: str | os.PathLike):
         self.out_dir = Path(out_dir)
         if self.out_dir.exists() and not self.out_dir.is_dir():
-            raise ConfigError(f"results path '{self.out_dir}' exists and is not a folder; choose another --out")
+            raise ConfigError(f"results path '{self.out_dir}' exists and is not a folder; "
+                              "choose another --out")
         self.out_dir.mkdir(parents=True, exist_ok=True)
         self.path = self.out_dir / TRIALS_FILE
         self.failures_path = self.out_dir / FAILURES_FILE
@@ -95,7 +96,8 @@ def _ends_with_newline(path: Path) -> bool:
 
 FLAT_COLUMNS = ["agent", "scenario", "seed", "rmse_m", "rmse_converged_m", "final_error_m", "mean_error_m",
                 "p95_error_m", "max_error_m", "time_to_converge_s", "converged", "diverged",
-                "step_time_median_ms", "step_time_p95_ms", "compute_time_total_s", "shadow_pairs_normalized",
+                "step_time_median_ms", "step_time_p95_ms", "compute_time_total_s", "cpu_time_total_s",
+                "episode_render_cpu_s", "shadow_pairs_normalized",
                 "shadow_fraction_mean",
                 "steps", "version", "key"]
 
@@ -112,7 +114,8 @@ def write_summaries(rows: Iterable[Mapping[str, Any]], out_dir: Path) -> tuple[P
     import io
 
     buf = io.StringIO()
-    writer = csv.DictWriter(buf, fieldnames=FLAT_COLUMNS + ["agent_spec", "scenario_spec"], extrasaction="ignore")
+    writer = csv.DictWriter(buf, fieldnames=FLAT_COLUMNS + ["agent_spec", "scenario_spec"],
+                            extrasaction="ignore")
     writer.writeheader()
     for r in rows:
         flat = {k: r.get(k) for k in FLAT_COLUMNS}

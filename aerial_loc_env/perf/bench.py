@@ -23,8 +23,8 @@ def _episode_setup(experiment: str) -> Callable[[], Callable[[], object]]:
 
 
 BENCHMARKS = [
-    Benchmark("bench: Table 5 episode (240 frames rendered once, 12 MCL configurations)", _episode_setup("table5"),
-              unit="episode", repeats=3),
+    Benchmark("bench: Table 5 episode (240 frames rendered once, 12 MCL configurations)",
+              _episode_setup("table5"), unit="episode", repeats=3),
     Benchmark("bench: default-comparison episode (240 frames, 7 agents)", _episode_setup("default"),
               unit="episode", repeats=3),
 ]
