@@ -117,10 +117,6 @@ def run_episode(task: EpisodeTask) -> tuple[list[dict], list[dict]]:
     from ..estimators.registry import make_agent
 
     agents = [make_agent(a.name, **a.params) for a in task.agents]
-    oracle = any(getattr(a, "uses_ground_truth", False) for a in agents)
-    env = make_benchmark_env(task.scenario, shadow_mask=oracle)
-    obs, info = env.reset(seed=task.seed)
-    briefing = env.briefing
     n = len(agents)
     alive = [True] * n
     failures: list[dict] = []
@@ -138,6 +134,15 @@ def run_episode(task: EpisodeTask) -> tuple[list[dict], list[dict]]:
                          "scenario": task.scenario.display, "seed": task.seed, "stage": stage,
                          "error": f"{type(exc).__name__}: {exc}", "traceback": traceback.format_exc(limit=8)})
 
+    oracle = any(getattr(a, "uses_ground_truth", False) for a in agents)
+    try:
+        env = make_benchmark_env(task.scenario, shadow_mask=oracle)
+        obs, info = env.reset(seed=task.seed)
+    except Exception as exc:  # noqa: BLE001 (a bad episode fails its trials, not the whole grid)
+        for i in range(n):
+            fail(i, "env reset", exc)
+        return [], failures
+    briefing = env.briefing
     for i, agent in enumerate(agents):
         try:
             agent.reset(briefing, seed=task.seed)
@@ -179,7 +184,13 @@ def run_episode(task: EpisodeTask) -> tuple[list[dict], list[dict]]:
         if done:
             break
         c0 = time.process_time()
-        obs, _reward, terminated, truncated, info = env.step(action)
+        try:
+            obs, _reward, terminated, truncated, info = env.step(action)
+        except Exception as exc:  # noqa: BLE001
+            for i in range(n):
+                if alive[i]:
+                    fail(i, f"env step {len(t_s)}", exc)
+            break
         env_cpu_s += time.process_time() - c0
         done = terminated or truncated
     rows = []
