@@ -136,6 +136,18 @@ def _dsm_max(orthomap: Any) -> float:
     return _MAPS[key]
 
 
+def _coarse_dsm(orthomap: Any, factor: int) -> np.ndarray:
+    """The DSM's block maximum on the shadow grid (``factor`` map pixels per cell), once per map and factor:
+    the per-episode shadow sweep then starts from it instead of re-pooling the full-resolution heights."""
+    key = ("coarse_dsm", id(orthomap), factor)
+    if key not in _MAPS:
+        from ..world import shadows
+
+        dsm = np.ascontiguousarray(orthomap.dsm_m, dtype=np.float32)
+        _MAPS[key] = shadows._max_pool(dsm, factor) if factor > 1 else dsm
+    return _MAPS[key]
+
+
 class AerialLocEnv(gym.Env):
     """See the module docstring. Build with ``gym.make("AerialLoc/<Name>-v0", **overrides)``."""
 
@@ -257,30 +269,28 @@ class AerialLocEnv(gym.Env):
 
         om, cfg, sun = self.orthomap, self.scenario.shadows, self._sun
         f = int(cfg.downsample)
+        coarse = _coarse_dsm(om, f)
+        hc, wc = coarse.shape
+        gx, gy = om.gsd_x_m * f, om.gsd_y_m * f
         x0, y0, x1, y1 = self._track.bounds_m()
         fw, fh = self.camera.footprint_m(float(self._track.altitude_m.max()))
-        pad = footprint_radius_m(fw, fh) + 2.0 * max(om.gsd_x_m, om.gsd_y_m) * f
-        # the box in map pixels, on multiples of the grid factor so that its grid is the map's grid
-        u0 = max(0, int((x0 - pad) / om.gsd_x_m) // f * f)
-        u1 = min(om.width_px, -(-int(math.ceil((x1 + pad) / om.gsd_x_m)) // f) * f)
-        v0 = max(0, int(om.height_px - (y1 + pad) / om.gsd_y_m) // f * f)
-        v1 = min(om.height_px, -(-int(math.ceil(om.height_px - (y0 - pad) / om.gsd_y_m)) // f) * f)
-        # casters up to one shadow length towards the sun may shade the box (rows grow south)
+        pad = footprint_radius_m(fw, fh) + 2.0 * max(gx, gy)
+        # the box in grid pixels (grid rows grow south from the map's north edge)
+        j0, j1 = max(0, int((x0 - pad) / gx)), min(wc, int(math.ceil((x1 + pad) / gx)))
+        i0 = max(0, int((om.height_m - y1 - pad) / gy))
+        i1 = min(hc, int(math.ceil((om.height_m - y0 + pad) / gy)))
+        # casters up to one shadow length towards the sun may shade the box
         reach_m = sun.shadow_length_m(_dsm_max(om))
         tx, ty = sun.towards_sun_en
-        du, dv = tx * reach_m / om.gsd_x_m, -ty * reach_m / om.gsd_y_m
-        cu0 = max(0, int(u0 + min(0.0, du)) // f * f)
-        cu1 = min(om.width_px, int(math.ceil(u1 + max(0.0, du))))
-        cv0 = max(0, int(v0 + min(0.0, dv)) // f * f)
-        cv1 = min(om.height_px, int(math.ceil(v1 + max(0.0, dv))))
-        grid = sun_occlusion(np.asarray(om.dsm_m[cv0:cv1, cu0:cu1]), om.gsd_x_m, om.gsd_y_m, sun,
-                             downsample=f, penumbra_scale=cfg.penumbra_scale, antialias_px=cfg.antialias_px,
+        dj, di = tx * reach_m / gx, -ty * reach_m / gy
+        cj0, cj1 = max(0, int(j0 + min(0.0, dj))), min(wc, int(math.ceil(j1 + max(0.0, dj))))
+        ci0, ci1 = max(0, int(i0 + min(0.0, di))), min(hc, int(math.ceil(i1 + max(0.0, di))))
+        grid = sun_occlusion(coarse[ci0:ci1, cj0:cj1], gx, gy, sun, downsample=1,
+                             penumbra_scale=cfg.penumbra_scale, antialias_px=cfg.antialias_px,
                              azimuth_samples=cfg.penumbra_azimuth_samples)
-        gi0, gj0 = (v0 - cv0) // f, (u0 - cu0) // f
-        hb, wb = -(-(v1 - v0) // f), -(-(u1 - u0) // f)
-        field = np.zeros((-(-om.height_px // f), -(-om.width_px // f)), dtype=np.float32)
-        field[v0 // f:v0 // f + hb, u0 // f:u0 // f + wb] = grid.data[gi0:gi0 + hb, gj0:gj0 + wb]
-        return ShadowGrid(field, grid.gsd_x_m, grid.gsd_y_m, f)
+        field = np.zeros((hc, wc), dtype=np.float32)
+        field[i0:i1, j0:j1] = grid.data[i0 - ci0:i1 - ci0, j0 - cj0:j1 - cj0]
+        return ShadowGrid(field, gx, gy, f)
 
     def _pose(self, i: int) -> Pose:
         t = self._track

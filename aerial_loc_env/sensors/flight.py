@@ -116,7 +116,9 @@ class FlyableRegion:
         dist_m = dist_cells * cell_min - 0.5 * cell_min - 0.5 * math.hypot(self.cell_x_m, self.cell_y_m)
         self.ok = dist_m >= clearance_m            # (ny, nx), row 0 = southernmost
         self.name = name
+        self._dist_m = dist_m
         self._cells = np.flatnonzero(self.ok)
+        self._inner: dict[float, np.ndarray] = {}
 
     @property
     def area_m2(self) -> float:
@@ -132,11 +134,18 @@ class FlyableRegion:
         out[inside] = self.ok[i[inside], j[inside]]
         return out
 
-    def sample(self, rng: np.random.Generator, n: int = 1) -> np.ndarray:
-        """``n`` uniform points (n, 2) of the region."""
+    def sample(self, rng: np.random.Generator, n: int = 1, inset_m: float = 0.0) -> np.ndarray:
+        """``n`` uniform points (n, 2) of the region, or of its part at least ``inset_m`` further from the
+        edge when that part is not empty."""
         if self._cells.size == 0:
             raise self.too_small_error()
-        idx = self._cells[rng.integers(0, self._cells.size, size=n)]
+        cells = self._cells
+        if inset_m > 0.0:
+            if inset_m not in self._inner:
+                self._inner[inset_m] = np.flatnonzero(self._dist_m >= self.clearance_m + inset_m)
+            if self._inner[inset_m].size:
+                cells = self._inner[inset_m]
+        idx = cells[rng.integers(0, cells.size, size=n)]
         i, j = np.divmod(idx, self.ok.shape[1])
         u = rng.random((n, 2))
         return np.stack([(j + u[:, 0]) * self.cell_x_m, (i + u[:, 1]) * self.cell_y_m], axis=1)
@@ -182,7 +191,9 @@ def _fly(config: FlightConfig, region: FlyableRegion, rng: np.random.Generator) 
     turn = math.radians(config.turn_rate_deg_s)
     yaw_noise = math.radians(config.yaw_rate_noise_deg_s)
     start = region.sample(rng)[0]
-    waypoint = _next_waypoint(region, rng, start, config.min_leg_m)
+    # waypoints keep a turn radius from the edge: the turn towards the next one then rarely leaves the region
+    inset = config.speed_mps / max(turn, 1e-9)
+    waypoint = _next_waypoint(region, rng, start, config.min_leg_m, inset)
     yaw = math.atan2(waypoint[1] - start[1], waypoint[0] - start[0])
     # noise drawn as a bank up front: the same rng draws whatever the track's fate.
     speed_noise = rng.normal(0.0, config.speed_noise_mps, n)
@@ -198,7 +209,7 @@ def _fly(config: FlightConfig, region: FlyableRegion, rng: np.random.Generator) 
     count = 1
     for i in range(1, n):
         if math.hypot(waypoint[0] - x, waypoint[1] - y) < reach:
-            waypoint = _next_waypoint(region, rng, (x, y), config.min_leg_m)
+            waypoint = _next_waypoint(region, rng, (x, y), config.min_leg_m, inset)
         err = float(wrap_angle(math.atan2(waypoint[1] - y, waypoint[0] - x) - yaw))
         cmd = max(-turn, min(turn, err / dt))
         v = max(0.0, config.speed_mps + speed_noise[i])
@@ -215,9 +226,10 @@ def _fly(config: FlightConfig, region: FlyableRegion, rng: np.random.Generator) 
                  altitude_m=alt[:m].copy(), speed_mps=speeds[:m].copy(), yaw_rate_radps=rates[:m].copy())
 
 
-def _next_waypoint(region: FlyableRegion, rng: np.random.Generator, here, min_leg_m: float) -> np.ndarray:
+def _next_waypoint(region: FlyableRegion, rng: np.random.Generator, here, min_leg_m: float,
+                   inset_m: float) -> np.ndarray:
     """A random flyable point, preferably at least ``min_leg_m`` away (the farthest of a few candidates)."""
-    cand = region.sample(rng, 8)
+    cand = region.sample(rng, 8, inset_m)
     d = np.hypot(cand[:, 0] - here[0], cand[:, 1] - here[1])
     far = np.flatnonzero(d >= min_leg_m)
     return cand[far[0]] if far.size else cand[int(np.argmax(d))]
