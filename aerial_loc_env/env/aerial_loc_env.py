@@ -250,7 +250,9 @@ class AerialLocEnv(gym.Env):
 
         Cast shadows are computed only over the track's bounding box plus the footprint (and the casters up to
         one shadow length towards the sun); the rest of the map-wide grid stays zero and is never read, since
-        every footprint stays inside the box. Clouds drift with time; the renderer samples them per frame.
+        every footprint stays inside the box. The sweep's digital lines start at the box, so shadow edges may
+        sit one grid pixel off a whole-map sweep (the sweep's own tolerance); the box, hence the field, is a
+        function of the episode seed. Clouds drift with time; the renderer samples them per frame.
         """
         sc, om = self.scenario, self.orthomap
         cfg = sc.shadows
