@@ -1,20 +1,39 @@
-"""``aerial-loc train agents/<recipe>``: train a learned policy from a recipe spec."""
+"""``aerial-loc train <recipe>``: train a learned policy from a recipe spec (an agent spec with a [train] table).
+
+Examples::
+
+    aerial-loc train ppo-local-registration                     # -> runs/ppo-local-registration/
+    aerial-loc train ppo-local-registration --timesteps 2000 --out /tmp/try
+    aerial-loc train ppo-local-registration --resume runs/ppo-local-registration/checkpoints/model_50000_steps.zip
+    aerial-loc train --curve runs/ppo-local-registration         # training curves -> <run>/learning_curve.png
+"""
 
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="aerial-loc train", description=__doc__)
-    ap.add_argument("recipe", help="an agent spec with a [train] table: a name in agents/ or a path to its TOML")
+    ap = argparse.ArgumentParser(prog="aerial-loc train", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("recipe", nargs="?", help="an agent spec with a [train] table: a name in agents/ or a TOML path")
     ap.add_argument("--out", help="output folder (default runs/<recipe name>)")
     ap.add_argument("--timesteps", type=int, help="override the recipe's total_timesteps")
-    ap.add_argument("--resume", help="continue from this checkpoint (.zip)")
+    ap.add_argument("--resume", help="continue from this checkpoint (.zip); its timesteps count towards the total")
     ap.add_argument("--overwrite", action="store_true", help="replace an existing model in --out")
     ap.add_argument("--no-progress", action="store_true", help="no progress bar")
+    ap.add_argument("--curve", metavar="RUN_DIR", help="only plot the training curves of a run folder")
+    ap.add_argument("--png", help="with --curve: the PNG to write (default RUN_DIR/learning_curve.png)")
     ap.add_argument("-v", "--verbose", action="count", default=0)
     args = ap.parse_args(argv)
+    if args.curve:
+        from .plots import learning_curve
+
+        print(learning_curve(args.curve, args.png or Path(args.curve) / "learning_curve.png"))
+        return 0
+    if not args.recipe:
+        ap.error("a recipe is required (or --curve RUN_DIR)")
     from .train import train
 
     res = train(args.recipe, args.out, overwrite=args.overwrite, resume=args.resume, total_timesteps=args.timesteps,

@@ -1,33 +1,48 @@
-"""Feature extractors. ``PairedCNN`` stacks the camera image and the database crop channel-wise so the very
-first convolutions can compare them (registration needs correlation, not two separate summaries)."""
+"""Feature extractors for the local-registration pair (camera image, database crop at the predicted pose).
+
+- ``PairedCNN`` stacks the two images channel-wise so the very first convolutions can compare them.
+- ``CorrelationCNN`` encodes both with one shared (siamese) CNN, correlates the feature maps over a window of
+  shifts (a FlowNet-C style cost volume, pooled over the image) and hands the head the scores plus their
+  soft-argmax: the shift that best aligns camera and database, which is the correction up to a fixed linear
+  map. Matching is built into the architecture, so the policy only has to learn shadow-robust features and
+  that map, in far fewer samples than the stacked CNN.
+
+SB3 hands both images channel-first and scaled to [0, 1] (its preprocessing of image spaces).
+"""
 
 from __future__ import annotations
 
 import gymnasium as gym
 
-from ..errors import require_extra
+from ..errors import ConfigError, require_extra
 
 th = require_extra("torch", "rl", "Learned policies")
 sb3_torch_layers = require_extra("stable_baselines3.common.torch_layers", "rl", "Learned policies")
+sb3_preprocessing = require_extra("stable_baselines3.common.preprocessing", "rl", "Learned policies")
 nn = th.nn
+F = th.nn.functional
+
+
+def _pair_shape(observation_space: gym.spaces.Dict, who: str) -> tuple[int, int, int]:
+    """(channels, height, width) of the image pair, which must have equal shapes."""
+    space = observation_space["image"]
+    if observation_space["map"].shape != space.shape:
+        raise ConfigError(f"{who}: 'image' and 'map' must have the same shape, got {space.shape} and "
+                          f"{observation_space['map'].shape}")
+    if sb3_preprocessing.is_image_space_channels_first(space):
+        return tuple(space.shape)  # type: ignore[return-value]
+    h, w, c = space.shape
+    return c, h, w
 
 
 class PairedCNN(sb3_torch_layers.BaseFeaturesExtractor):
-    """A small CNN over [image | map] stacked on channels (channel-first, scaled to [0, 1] by SB3)."""
+    """A small CNN over [image | map] stacked on channels."""
 
     def __init__(self, observation_space: gym.spaces.Dict, features_dim: int = 256):
         super().__init__(observation_space, features_dim)
-        preprocessing = require_extra("stable_baselines3.common.preprocessing", "rl", "Learned policies")
-        space = observation_space["image"]
-        if observation_space["map"].shape != space.shape:
-            raise ValueError("PairedCNN: 'image' and 'map' must have the same shape")
-        # SB3 wraps envs with image spaces in VecTransposeImage, so the spaces arrive channel-first.
-        if preprocessing.is_image_space_channels_first(space):
-            c, h, w = space.shape
-        else:  # pragma: no cover - only when used outside SB3's wrapping
-            h, w, c = space.shape
+        c, h, w = _pair_shape(observation_space, "PairedCNN")
         # A Nature-DQN-like stem (8x8 stride 4) keeps a 64 px pair at ~2 ms per sample (forward + backward) on
-        # one CPU core, 3x cheaper than a stride-2 stem; the flattened 8x8 grid keeps where things matched.
+        # one CPU core, 3x cheaper than a stride-2 stem; the flattened grid keeps where things matched.
         self.cnn = nn.Sequential(
             nn.Conv2d(2 * c, 32, 8, stride=4, padding=2), nn.ReLU(),
             nn.Conv2d(32, 64, 4, stride=2, padding=1), nn.ReLU(),
@@ -39,5 +54,61 @@ class PairedCNN(sb3_torch_layers.BaseFeaturesExtractor):
         self.head = nn.Sequential(nn.Linear(n, features_dim), nn.ReLU())
 
     def forward(self, obs: dict) -> th.Tensor:
-        # Inputs are already channel-first and scaled to [0, 1] by SB3's preprocessing of image spaces.
         return self.head(self.cnn(th.cat([obs["image"], obs["map"]], dim=1)))
+
+
+class CorrelationCNN(sb3_torch_layers.BaseFeaturesExtractor):
+    """Siamese encoder + cost volume over shifts of +-``max_shift`` feature pixels + soft-argmax (see above).
+
+    Features: ``features_dim - 2`` ReLU units over the (2 s + 1)^2 correlation scores, then the soft-argmax
+    shift (x, y) in units of ``max_shift`` (signed, kept linear so the action head can read it directly).
+    """
+
+    def __init__(self, observation_space: gym.spaces.Dict, features_dim: int = 128, max_shift: int = 6,
+                 channels: int = 32):
+        super().__init__(observation_space, features_dim)
+        if features_dim < 3:
+            raise ConfigError(f"CorrelationCNN: features_dim = {features_dim} must be >= 3")
+        c, h, w = _pair_shape(observation_space, "CorrelationCNN")
+        self.encoder = nn.Sequential(
+            nn.Conv2d(c, channels // 2, 4, stride=2, padding=1), nn.ReLU(),
+            nn.Conv2d(channels // 2, channels, 4, stride=2, padding=1), nn.ReLU(),
+            nn.Conv2d(channels, channels, 1),
+        )
+        with th.no_grad():
+            _, _, fh, fw = self.encoder(th.zeros(1, c, h, w)).shape
+        self.max_shift = min(int(max_shift), fh - 1, fw - 1)
+        s = self.max_shift
+        self.n_shifts = (2 * s + 1) ** 2
+        grid = th.arange(-s, s + 1, dtype=th.float32) / max(s, 1)
+        gy, gx = th.meshgrid(grid, grid, indexing="ij")
+        self.register_buffer("shift_x", gx.reshape(-1), persistent=False)
+        self.register_buffer("shift_y", gy.reshape(-1), persistent=False)
+        self.log_temperature = nn.Parameter(th.tensor(2.0))
+        self.head = nn.Sequential(nn.Linear(self.n_shifts, features_dim - 2), nn.ReLU())
+
+    def _features(self, x: th.Tensor) -> th.Tensor:
+        f = self.encoder(x)
+        f = f - f.mean(dim=(2, 3), keepdim=True)
+        return F.normalize(f, dim=1)
+
+    def cost_volume(self, image: th.Tensor, database: th.Tensor) -> th.Tensor:
+        """(B, (2s+1)^2) mean correlation of the camera features with the database features shifted by each
+        (dy, dx) (row-major over dy, then dx): high where the camera content sits at that shift in the crop."""
+        a, b = self._features(image), self._features(database)
+        s = self.max_shift
+        n, c, h, w = a.shape
+        # one grouped convolution: each (sample, channel) of the camera features is the kernel slid over the
+        # same channel of the padded database features, then summed over channels
+        bp = F.pad(b, (s, s, s, s)).reshape(1, n * c, h + 2 * s, w + 2 * s)
+        out = F.conv2d(bp, a.reshape(n * c, 1, h, w), groups=n * c)
+        return out.reshape(n, c, -1).sum(dim=1) / (h * w)
+
+    def forward(self, obs: dict) -> th.Tensor:
+        scores = self.cost_volume(obs["image"], obs["map"])
+        weights = th.softmax(scores * self.log_temperature.exp() * 10.0, dim=1)
+        soft = th.stack([(weights * self.shift_x).sum(dim=1), (weights * self.shift_y).sum(dim=1)], dim=1)
+        return th.cat([self.head(scores * 10.0), soft], dim=1)
+
+
+EXTRACTORS = {"paired": PairedCNN, "correlation": CorrelationCNN}

@@ -63,11 +63,13 @@ class RewardParams:
 
 @dataclass(frozen=True)
 class PolicyParams:
-    """The policy network: SB3 ``net_arch`` after the features extractor (``paired`` CNN or SB3's ``nature``)."""
+    """The policy network: SB3 ``net_arch`` after the features extractor: ``correlation`` (siamese CNN + cost
+    volume) or ``paired`` (stacked channels) for local registration (networks.py), SB3's ``nature`` CNN else."""
 
     net_arch: tuple[int, ...] = (128, 128)
     features_dim: int = field(default=256, metadata=rng(8, 4096))
-    cnn: str = field(default="paired", metadata=rng(choices=("paired", "nature")))
+    cnn: str = field(default="correlation", metadata=rng(choices=("correlation", "paired", "nature")))
+    max_shift: int = field(default=6, metadata=rng(1, 32, doc="correlation: shifts searched (feature pixels)"))
     log_std_init: float = field(default=-1.0, metadata=rng(-10.0, 2.0, doc=(
         "initial log std of the Gaussian policy: exploration noise in action units (1 = max correction)")))
 
@@ -129,10 +131,13 @@ def recipe_from_table(table: Mapping[str, Any], where: str) -> Recipe:
         nested[key] = build_config(cls, raw, where=f"{where} [train.{key}]")
     recipe = build_config(Recipe, table, where=f"{where} [train]")
     recipe = dataclasses.replace(recipe, **nested)
-    if recipe.policy.cnn == "paired" and recipe.observation != "local_registration":
-        raise ConfigError(f"{where} [train.policy]: cnn = 'paired' stacks the camera image with the database "
-                          f"crop, which only the local_registration observation has; use cnn = 'nature' for "
-                          f"{recipe.observation}")
+    if recipe.policy.cnn != "nature" and recipe.observation != "local_registration":
+        raise ConfigError(f"{where} [train.policy]: cnn = '{recipe.policy.cnn}' compares the camera image with "
+                          f"the database crop, which only the local_registration observation has; use cnn = "
+                          f"'nature' for {recipe.observation}")
+    if recipe.policy.cnn == "nature" and recipe.observation_params.image_px < 36:
+        raise ConfigError(f"{where} [train.observation_params]: image_px = {recipe.observation_params.image_px} "
+                          "is too small for SB3's nature CNN (8x8/4, 4x4/2, 3x3/1 needs >= 36 px)")
     check_hyperparameters(recipe, where)
     return recipe
 

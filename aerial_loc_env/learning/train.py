@@ -80,11 +80,13 @@ def _vec_env(recipe: Recipe, out: Path | None) -> Any:
 def policy_kwargs(recipe: Recipe) -> dict:
     """SB3 ``policy_kwargs`` of the recipe's network."""
     kwargs: dict = {"net_arch": list(recipe.policy.net_arch), "log_std_init": recipe.policy.log_std_init}
-    if recipe.policy.cnn == "paired":
-        from .networks import PairedCNN
+    if recipe.policy.cnn in ("paired", "correlation"):
+        from .networks import EXTRACTORS
 
-        kwargs["features_extractor_class"] = PairedCNN
+        kwargs["features_extractor_class"] = EXTRACTORS[recipe.policy.cnn]
         kwargs["features_extractor_kwargs"] = {"features_dim": recipe.policy.features_dim}
+        if recipe.policy.cnn == "correlation":
+            kwargs["features_extractor_kwargs"]["max_shift"] = recipe.policy.max_shift
     else:
         kwargs["features_extractor_kwargs"] = {"cnn_output_dim": recipe.policy.features_dim}
     return kwargs

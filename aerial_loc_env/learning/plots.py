@@ -1,0 +1,83 @@
+"""Training curves of a run folder written by ``train``: held-out evaluation RMSE (eval.csv) and training
+episodes' RMSE (monitor files), each beside dead reckoning's on the same episodes."""
+
+from __future__ import annotations
+
+import csv
+import os
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import ConfigError, require_extra
+
+
+def _monitor_rows(run_dir: Path) -> np.ndarray:
+    """(N, 4) [wall_s, length, episode_rmse_m, dead_reckoning_rmse_m] of all training episodes, in time order."""
+    rows = []
+    for path in sorted((run_dir / "monitor").glob("*.monitor.csv")):
+        with open(path, newline="") as fh:
+            fh.readline()  # the JSON header line
+            for r in csv.DictReader(fh):
+                if r.get("episode_rmse_m"):
+                    rows.append((float(r["t"]), float(r["l"]), float(r["episode_rmse_m"]),
+                                 float(r["dead_reckoning_rmse_m"])))
+    arr = np.asarray(rows, dtype=float).reshape(-1, 4)
+    return arr[np.argsort(arr[:, 0], kind="stable")]
+
+
+def _eval_rows(run_dir: Path) -> dict[str, np.ndarray]:
+    path = run_dir / "eval.csv"
+    if not path.is_file():
+        raise ConfigError(f"'{path}' is missing: not a run folder written by `aerial-loc train`")
+    with open(path, newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    return {k: np.array([float(r[k]) for r in rows if r.get(k)]) for k in rows[0]} if rows else {}
+
+
+def learning_curve(run_dir: str | os.PathLike, out_png: str | os.PathLike, *, window: int = 50,
+                   title: str | None = None) -> Path:
+    """Write the training curves of ``run_dir`` to ``out_png`` (needs matplotlib, the ``plots`` extra)."""
+    run_dir, out_png = Path(run_dir), Path(out_png)
+    ev = _eval_rows(run_dir)
+    mon = _monitor_rows(run_dir)
+    mpl = require_extra("matplotlib", "plots", "Learning curves")
+    mpl.use("Agg")
+    plt = require_extra("matplotlib.pyplot", "plots", "Learning curves")
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4), constrained_layout=True)
+    ax = axes[0]
+    if mon.size:
+        steps = np.cumsum(mon[:, 1])
+        k = max(1, min(window, len(mon) // 5 or 1))
+        kernel = np.ones(k) / k
+        smooth = np.sqrt(np.convolve(mon[:, 2] ** 2, kernel, mode="valid"))
+        smooth_dr = np.sqrt(np.convolve(mon[:, 3] ** 2, kernel, mode="valid"))
+        ax.plot(steps[k - 1:], smooth, label="policy (stochastic, training episodes)")
+        ax.plot(steps[k - 1:], smooth_dr, "--", color="gray", label="dead reckoning, same episodes")
+        ax.set_title(f"training episodes (RMSE over a window of {k})")
+    ax.set_xlabel("timesteps")
+    ax.set_ylabel("RMSE (m)")
+    ax.legend()
+    ax.grid(alpha=0.3)
+    ax = axes[1]
+    if ev:
+        ax.plot(ev["timesteps"], ev["rmse_m"], "o-", label="policy (deterministic)")
+        if "dead_reckoning_rmse_m" in ev:
+            ax.plot(ev["timesteps"], ev["dead_reckoning_rmse_m"], "--", color="gray", label="dead reckoning")
+        n = int(ev["episodes"][0]) if "episodes" in ev and len(ev["episodes"]) else 0
+        ax.set_title(f"held-out evaluation ({n} fixed seeds, pooled RMSE)")
+        if "wall_s" in ev and len(ev["wall_s"]):
+            top = ax.secondary_xaxis("top", functions=(
+                lambda x: np.interp(x, ev["timesteps"], ev["wall_s"] / 60.0),
+                lambda m: np.interp(m, ev["wall_s"] / 60.0, ev["timesteps"])))
+            top.set_xlabel("wall time (min)")
+    ax.set_xlabel("timesteps")
+    ax.set_ylabel("RMSE (m)")
+    ax.set_ylim(bottom=0)
+    ax.legend()
+    ax.grid(alpha=0.3)
+    fig.suptitle(title or f"learning curves: {run_dir.name}")
+    out_png.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out_png, dpi=110)
+    plt.close(fig)
+    return out_png
