@@ -214,7 +214,7 @@ class MapRatioDetectorConfig:
     max_std_m: float = field(default=4.0, metadata=rng(0.0, 1e4, doc="use it only when the particle cloud is "
                                                                         "this tight (1 sigma); else the image one"))
     blur_px: float = field(default=1.0, metadata=rng(0.0, 20.0, doc="Gaussian blur (reduced px) of both images"))
-    min_darkening: float = field(default=0.85, metadata=rng(0.0, 1.0, doc="shadow/lit ratio of the two Otsu "
+    min_darkening: float = field(default=0.8, metadata=rng(0.0, 1.0, doc="shadow/lit ratio of the two Otsu "
                                                                           "classes above which: no shadow"))
     open_px: int = field(default=1, metadata=rng(0, 50))
     close_px: int = field(default=1, metadata=rng(0, 50))
