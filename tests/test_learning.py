@@ -238,8 +238,8 @@ def test_loaded_agent_runs_in_the_benchmark_harness(tiny_model: Path, tmp_path: 
 ])
 def test_other_algorithms_and_designs_train(tmp_path: Path, algo: str, observation: str, cnn: str,
                                             hyper: str) -> None:
-    recipe = write_recipe(tmp_path, "other", algo=algo, observation=observation, cnn=cnn, steps=32, hyper=hyper,
-                          image_px=40)
+    recipe = write_recipe(tmp_path, "other", algo=algo, observation=observation, cnn=cnn, steps=32,
+                          hyper=hyper, image_px=40)
     res = train(recipe, tmp_path / "other", progress_bar=False)
     agent = make_agent(recipe)
     env = gym.make("AerialLoc/Small-v0", **SHORT)

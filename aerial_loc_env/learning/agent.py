@@ -36,15 +36,15 @@ class LearnedParams:
 
 
 def resolve_model_path(model: str) -> Path:
-    """The model file: absolute, or under the package folder, or under the current directory (in this order)."""
+    """The model file: absolute, else under the package folder, else under the current directory."""
     p = Path(model).expanduser()
     candidates = [p] if p.is_absolute() else [PACKAGE_DIR / p, Path.cwd() / p]
     for c in candidates:
         if c.is_file():
             return c
     raise ConfigError(f"learned agent: params.model '{model}' does not exist (looked at "
-                      f"{', '.join(str(c) for c in candidates)}); train it with `aerial-loc train <recipe> --out "
-                      "<folder>` and point params.model to <folder>/model.zip")
+                      f"{', '.join(str(c) for c in candidates)}); train it with `aerial-loc train <recipe> "
+                      "--out <folder>` and point params.model to <folder>/model.zip")
 
 
 class LearnedAgent(Agent):

@@ -1,10 +1,11 @@
-"""``aerial-loc train <recipe>``: train a learned policy from a recipe spec (an agent spec with a [train] table).
+"""``aerial-loc train <recipe>``: train a learned policy from a recipe (an agent spec with a [train] table).
 
 Examples::
 
     aerial-loc train ppo-local-registration                     # -> runs/ppo-local-registration/
     aerial-loc train ppo-local-registration --timesteps 2000 --out /tmp/try
-    aerial-loc train ppo-local-registration --resume runs/ppo-local-registration/checkpoints/model_50000_steps.zip
+    aerial-loc train ppo-local-registration \
+        --resume runs/ppo-local-registration/checkpoints/model_5000_steps.zip
     aerial-loc train --curve runs/ppo-local-registration         # training curves -> <run>/learning_curve.png
 """
 
@@ -17,10 +18,12 @@ from pathlib import Path
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="aerial-loc train", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("recipe", nargs="?", help="an agent spec with a [train] table: a name in agents/ or a TOML path")
+    ap.add_argument("recipe", nargs="?",
+                    help="an agent spec with a [train] table: a name in agents/ or a TOML path")
     ap.add_argument("--out", help="output folder (default runs/<recipe name>)")
     ap.add_argument("--timesteps", type=int, help="override the recipe's total_timesteps")
-    ap.add_argument("--resume", help="continue from this checkpoint (.zip); its timesteps count towards the total")
+    ap.add_argument("--resume",
+                    help="continue from this checkpoint (.zip); its timesteps count towards the total")
     ap.add_argument("--overwrite", action="store_true", help="replace an existing model in --out")
     ap.add_argument("--no-progress", action="store_true", help="no progress bar")
     ap.add_argument("--curve", metavar="RUN_DIR", help="only plot the training curves of a run folder")
@@ -36,7 +39,7 @@ def main(argv: list[str] | None = None) -> int:
         ap.error("a recipe is required (or --curve RUN_DIR)")
     from .train import train
 
-    res = train(args.recipe, args.out, overwrite=args.overwrite, resume=args.resume, total_timesteps=args.timesteps,
-                progress_bar=not args.no_progress, verbose=args.verbose)
+    res = train(args.recipe, args.out, overwrite=args.overwrite, resume=args.resume,
+                total_timesteps=args.timesteps, progress_bar=not args.no_progress, verbose=args.verbose)
     print(f"trained {res.timesteps} timesteps in {res.wall_time_s:.0f} s; model: {res.model_path}")
     return 0

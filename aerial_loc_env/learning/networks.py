@@ -93,8 +93,8 @@ class CorrelationCNN(sb3_torch_layers.BaseFeaturesExtractor):
         return F.normalize(f, dim=1)
 
     def cost_volume(self, image: th.Tensor, database: th.Tensor) -> th.Tensor:
-        """(B, (2s+1)^2) mean correlation of the camera features with the database features shifted by each
-        (dy, dx) (row-major over dy, then dx): high where the camera content sits at that shift in the crop."""
+        """(B, (2s+1)^2) mean correlation of the camera features with the database features shifted by
+        each (dy, dx) (row-major over dy, then dx): high where the camera content sits at that shift."""
         a, b = self._features(image), self._features(database)
         s = self.max_shift
         n, c, h, w = a.shape

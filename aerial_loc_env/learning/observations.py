@@ -72,9 +72,10 @@ class LocalRegistration:
     def reset(self, briefing: Any, start_xy_m: tuple[float, float] | None = None) -> None:
         """Start from the prior's mean (or ``start_xy_m``: the training curriculum's own start)."""
         if briefing.prior.kind != "gaussian":
-            raise ConfigError(f"local_registration: scenario {briefing.scenario_id} has a {briefing.prior.kind} "
-                              "prior; this observation design tracks from a gaussian prior (episode.start = "
-                              "'tracking'); use map_memorization for global localization")
+            raise ConfigError(f"local_registration: scenario {briefing.scenario_id} has a "
+                              f"{briefing.prior.kind} prior; this observation design tracks from a "
+                              "gaussian prior (episode.start = 'tracking'); use map_memorization for "
+                              "global localization")
         self.briefing = briefing
         self._renderer = CameraRenderer(briefing.orthomap, briefing.camera, strict=False)
         self._dr.reset(briefing)
@@ -109,8 +110,8 @@ class LocalRegistration:
 class LocalRegistrationWrapper(gym.Wrapper):
     """Training wrapper around a tracking scenario (see the module docstring for the reward).
 
-    ``info`` gains ``registration_error_m`` (after the correction) and ``dead_reckoning_error_m`` (of the plain
-    dead-reckoning agent on the same episode); at the episode's end also ``episode_rmse_m`` and
+    ``info`` gains ``registration_error_m`` (after the correction) and ``dead_reckoning_error_m`` (of the
+    plain dead-reckoning agent on the same episode); at the episode's end also ``episode_rmse_m`` and
     ``dead_reckoning_rmse_m``, so that Monitor files and evaluations compare the two. ``start_std_m``, if > 0,
     replaces the prior's error by the policy's own draw around the truth (a curriculum; training only).
     """
@@ -183,7 +184,8 @@ class MapMemorizationWrapper(gym.ObservationWrapper):
                                       self.params.grayscale)}
 
 
-OBSERVATION_WRAPPERS = {"local_registration": LocalRegistrationWrapper, "map_memorization": MapMemorizationWrapper}
+OBSERVATION_WRAPPERS = {"local_registration": LocalRegistrationWrapper,
+                        "map_memorization": MapMemorizationWrapper}
 
 
 def wrap(env: gym.Env, observation: str, params: ObservationParams, reward: RewardParams | None = None,
@@ -193,7 +195,8 @@ def wrap(env: gym.Env, observation: str, params: ObservationParams, reward: Rewa
         return LocalRegistrationWrapper(env, params, reward, start_std_m)
     if observation == "map_memorization":
         return MapMemorizationWrapper(env, params)
-    raise ConfigError(f"unknown observation design {observation!r}; use one of {sorted(OBSERVATION_WRAPPERS)}")
+    raise ConfigError(f"unknown observation design {observation!r}; "
+                      f"use one of {sorted(OBSERVATION_WRAPPERS)}")
 
 
 __all__ = ["LocalRegistration", "LocalRegistrationWrapper", "MapMemorizationWrapper", "RewardParams",

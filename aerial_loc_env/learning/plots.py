@@ -13,7 +13,7 @@ from ..errors import ConfigError, require_extra
 
 
 def _monitor_rows(run_dir: Path) -> np.ndarray:
-    """(N, 4) [wall_s, length, episode_rmse_m, dead_reckoning_rmse_m] of all training episodes, in time order."""
+    """(N, 4) [wall_s, length, episode_rmse_m, dead_reckoning_rmse_m] of the training episodes, by time."""
     rows = []
     for path in sorted((run_dir / "monitor").glob("*.monitor.csv")):
         with open(path, newline="") as fh:

@@ -1,4 +1,4 @@
-"""Training recipes: the ``[train]`` table of an agent spec (in the spirit of the RL Zoo's hyperparameter files).
+"""Training recipes: the ``[train]`` table of an agent spec (in the spirit of the RL Zoo's hyperparameters).
 
 A recipe names the algorithm, the scenario it trains on, the observation design, the reward, the
 hyperparameters, the policy network and the budget. Unknown keys and out-of-range values are clear errors
@@ -63,21 +63,22 @@ class RewardParams:
 
 @dataclass(frozen=True)
 class PolicyParams:
-    """The policy network: SB3 ``net_arch`` after the features extractor: ``correlation`` (siamese CNN + cost
-    volume) or ``paired`` (stacked channels) for local registration (networks.py), SB3's ``nature`` CNN else."""
+    """The policy network: SB3 ``net_arch`` after the features extractor: ``correlation`` (siamese CNN +
+    cost volume) or ``paired`` (stacked channels) for local registration (networks.py), else SB3's
+    ``nature``."""
 
     net_arch: tuple[int, ...] = (128, 128)
     features_dim: int = field(default=256, metadata=rng(8, 4096))
     cnn: str = field(default="correlation", metadata=rng(choices=("correlation", "paired", "nature")))
-    max_shift: int = field(default=6, metadata=rng(1, 32, doc="correlation: shifts searched (feature pixels)"))
+    max_shift: int = field(default=6, metadata=rng(1, 32, doc="correlation: shifts searched (feature px)"))
     log_std_init: float = field(default=-1.0, metadata=rng(-10.0, 2.0, doc=(
         "initial log std of the Gaussian policy: exploration noise in action units (1 = max correction)")))
 
     def validate(self, where: str) -> None:
         if not self.net_arch or any(isinstance(n, bool) or not isinstance(n, int) or not 1 <= n <= 4096
                                     for n in self.net_arch):
-            raise ConfigError(f"{where}: field 'net_arch' = {list(self.net_arch)!r} must be a non-empty list of "
-                              "layer widths, integers in [1, 4096]")
+            raise ConfigError(f"{where}: field 'net_arch' = {list(self.net_arch)!r} must be a non-empty list "
+                              "of layer widths, integers in [1, 4096]")
 
 
 @dataclass(frozen=True)
@@ -132,12 +133,13 @@ def recipe_from_table(table: Mapping[str, Any], where: str) -> Recipe:
     recipe = build_config(Recipe, table, where=f"{where} [train]")
     recipe = dataclasses.replace(recipe, **nested)
     if recipe.policy.cnn != "nature" and recipe.observation != "local_registration":
-        raise ConfigError(f"{where} [train.policy]: cnn = '{recipe.policy.cnn}' compares the camera image with "
-                          f"the database crop, which only the local_registration observation has; use cnn = "
-                          f"'nature' for {recipe.observation}")
+        raise ConfigError(f"{where} [train.policy]: cnn = '{recipe.policy.cnn}' compares the camera image "
+                          "with the database crop, which only the local_registration observation has; use "
+                          f"cnn = 'nature' for {recipe.observation}")
     if recipe.policy.cnn == "nature" and recipe.observation_params.image_px < 36:
-        raise ConfigError(f"{where} [train.observation_params]: image_px = {recipe.observation_params.image_px} "
-                          "is too small for SB3's nature CNN (8x8/4, 4x4/2, 3x3/1 needs >= 36 px)")
+        raise ConfigError(f"{where} [train.observation_params]: image_px = "
+                          f"{recipe.observation_params.image_px} is too small for SB3's nature CNN "
+                          "(8x8/4, 4x4/2, 3x3/1 needs >= 36 px)")
     check_hyperparameters(recipe, where)
     return recipe
 

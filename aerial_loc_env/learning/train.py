@@ -44,7 +44,7 @@ EPISODE_KEYS = ("episode_rmse_m", "dead_reckoning_rmse_m")
 def recipe_of(spec: AgentSpec) -> Recipe:
     """The training recipe of an agent spec (its ``[train]`` table)."""
     if "train" not in spec.extra:
-        raise ConfigError(f"{spec.where}: this agent spec has no [train] table, so it is not a training recipe")
+        raise ConfigError(f"{spec.where}: this agent spec has no [train] table, so it is not a recipe")
     return recipe_from_table(dict(spec.extra["train"]), spec.where)
 
 
@@ -223,14 +223,14 @@ def train(spec_name: str | os.PathLike, out_dir: str | os.PathLike | None = None
     out = Path(out_dir) if out_dir else Path("runs") / spec.name
     model_path = out / MODEL_FILE
     if model_path.exists() and not overwrite:
-        raise ConfigError(f"model '{model_path}' already exists and would be overwritten; choose another --out "
-                          "or pass --overwrite (with --resume to continue training it)")
+        raise ConfigError(f"model '{model_path}' already exists and would be overwritten; choose another "
+                          "--out or pass --overwrite (with --resume to continue training it)")
     if resume is not None and not Path(resume).is_file():
         raise ConfigError(f"--resume: checkpoint '{resume}' does not exist")
     if not resume and out.exists() and (out / "eval.csv").exists():
         if not overwrite:
-            raise ConfigError(f"'{out}' holds an unfinished run (eval.csv, no model.zip); continue it with --resume "
-                              f"{out}/checkpoints/<latest>.zip, or pass --overwrite to start afresh")
+            raise ConfigError(f"'{out}' holds an unfinished run (eval.csv, no model.zip); continue it with "
+                              f"--resume {out}/checkpoints/<latest>.zip, or pass --overwrite to start afresh")
         (out / "eval.csv").unlink()
     out.mkdir(parents=True, exist_ok=True)
     logger_mod = require_extra("stable_baselines3.common.logger", "rl", "Training")
