@@ -25,8 +25,9 @@ run: venv
 test: venv
 	$(PY) -m pytest -q
 
+# Speed benchmarks on one core (BLAS/OpenMP pinned before numpy loads).
 bench: venv
-	$(PY) -m aerial_loc_env.perf
+	OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 $(PY) -m aerial_loc_env.perf $(ARGS)
 
 pictures: venv
 	$(VENV)/bin/aerial-loc pictures --out docs/img

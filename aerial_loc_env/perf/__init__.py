@@ -26,9 +26,19 @@ class Benchmark:
 
 
 def single_core() -> None:
-    """Pin the numeric libraries to one thread so the figures are per-core."""
+    """Pin the numeric libraries to one thread so the figures are per-core.
+
+    BLAS reads its thread count when numpy is first imported, so ``make bench`` also sets the variables in the
+    environment; here threadpoolctl (when installed) limits an already-loaded BLAS as well.
+    """
     for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ.setdefault(var, "1")
+    try:
+        from threadpoolctl import threadpool_limits
+
+        threadpool_limits(1)
+    except ImportError:
+        pass
     try:
         import cv2
 
