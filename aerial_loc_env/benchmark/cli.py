@@ -114,7 +114,8 @@ def _plots(grid: Grid, rows: Sequence[dict], out: Path) -> list[str]:
                 made.append((f"RMSE against {param} (Figs. 35-41)", pl.rmse_vs_param(
                     rows, param, out / f"{plot}.png", grid.description)))
             elif plot == "track":
-                agent = next((a for a in grid.agents if a.name.startswith("mcl")), grid.agents[0])
+                agent = next((a for a in grid.agents if "shadow-aware" in a.name),
+                             next((a for a in grid.agents if a.name.startswith("mcl")), grid.agents[0]))
                 made.append(("track, estimates, particles and shadow (Fig. 12)", pl.track_plot(
                     grid.scenarios[0], grid.seeds[0], agent, out / "track.png")))
             elif plot == "likelihood":
