@@ -49,8 +49,10 @@ def main(argv: list[str] | None = None) -> int:
             g = load_grid(name)
             print(f"{name:14s} {g.trials():6d} trials ({g.episodes()} episodes)  {g.description}")
         return 0
+    if args.workers < 1:
+        ap.error(f"--workers {args.workers}: need at least 1")
     grid = load_grid(args.experiment)
-    if args.seeds:
+    if args.seeds is not None:
         if args.seeds < 1:
             ap.error("--seeds must be >= 1")
         grid = dataclasses.replace(grid, seeds=grid.seeds[: args.seeds])
