@@ -280,3 +280,29 @@ def test_correlation_cost_volume_finds_a_known_shift() -> None:
     naive = torch.stack([(a * bp[:, :, s + dy:s + dy + h, s + dx:s + dx + w]).sum(1).mean((1, 2))
                          for dy in range(-s, s + 1) for dx in range(-s, s + 1)], dim=1)
     torch.testing.assert_close(vol, naive, rtol=1e-4, atol=1e-5)
+
+
+@pytest.mark.slow
+def test_shipped_model_loads_from_any_directory_and_beats_dead_reckoning(tmp_path: Path,
+                                                                         monkeypatch: pytest.MonkeyPatch) -> None:
+    """The committed model (package data) resolves relative to the package, not the working directory, and on
+    held-out seeds of its scenario walks the estimate in from the prior: its RMSE is below dead reckoning's,
+    whose error is dominated by the 15 m prior offset the policy is trained to remove."""
+    monkeypatch.chdir(tmp_path)
+    env = gym.make("AerialLoc/Small-v0")
+    sq, sq_dr = [], []
+    for seed in (50_000, 50_001, 50_002):
+        learned, dr = make_agent("ppo-local-registration"), make_agent("dead-reckoning")
+        obs, info = env.reset(seed=seed)
+        for agent in (learned, dr):
+            agent.reset(env.unwrapped.briefing, seed=seed)
+        done = False
+        while not done:
+            truth = info["true_pose"][:2]
+            est, est_dr = learned.step(obs), dr.step(obs)
+            sq.append((est.x_m - truth[0]) ** 2 + (est.y_m - truth[1]) ** 2)
+            sq_dr.append((est_dr.x_m - truth[0]) ** 2 + (est_dr.y_m - truth[1]) ** 2)
+            action = np.clip(world_to_action(env.unwrapped.orthomap, est_dr.x_m, est_dr.y_m), -1, 1)
+            obs, _r, te, tr, info = env.step(action)
+            done = te or tr
+    assert math.sqrt(np.mean(sq)) < math.sqrt(np.mean(sq_dr))

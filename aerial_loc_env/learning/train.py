@@ -275,6 +275,10 @@ def train(spec_name: str | os.PathLike, out_dir: str | os.PathLike | None = None
             "wall_time_s": round(wall, 1), "machine": _machine(), "versions": _versions(),
             "best_eval_rmse_m": _best_so_far(out / "eval.csv"), "scenario": scenario}
     (out / "training.json").write_text(json.dumps(meta, indent=2, default=str))
+    if (out / "best" / MODEL_FILE).is_file():  # the best model loads as an agent too
+        for name in ("training.json", "recipe.toml", "scenario.json"):
+            if (out / name).is_file():
+                shutil.copyfile(out / name, out / "best" / name)
     return TrainResult(model_path, out, wall, int(model.num_timesteps))
 
 
