@@ -283,8 +283,8 @@ def test_correlation_cost_volume_finds_a_known_shift() -> None:
 
 
 @pytest.mark.slow
-def test_shipped_model_loads_from_any_directory_and_beats_dead_reckoning(tmp_path: Path,
-                                                                         monkeypatch: pytest.MonkeyPatch) -> None:
+def test_shipped_model_loads_anywhere_and_beats_dead_reckoning(tmp_path: Path,
+                                                                monkeypatch: pytest.MonkeyPatch) -> None:
     """The committed model (package data) resolves relative to the package, not the working directory, and on
     held-out seeds of its scenario walks the estimate in from the prior: its RMSE is below dead reckoning's,
     whose error is dominated by the 15 m prior offset the policy is trained to remove."""
