@@ -35,7 +35,7 @@ def _describe_range(meta: Mapping) -> str:
 
 def check_value(name: str, value: Any, meta: Mapping, where: str) -> None:
     """Raise ConfigError if ``value`` violates the range/choices in ``meta``."""
-    if not meta:
+    if not meta or value is None:  # None: an optional field left unset (its type check is in _coerce)
         return
     if meta.get("choices") is not None:
         if value not in meta["choices"]:

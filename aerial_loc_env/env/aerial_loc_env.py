@@ -144,7 +144,7 @@ def _coarse_dsm(orthomap: Any, factor: int) -> np.ndarray:
         from ..world import shadows
 
         dsm = np.ascontiguousarray(orthomap.dsm_m, dtype=np.float32)
-        _MAPS[key] = shadows._max_pool(dsm, factor) if factor > 1 else dsm
+        _MAPS[key] = shadows.max_pool(dsm, factor) if factor > 1 else dsm
     return _MAPS[key]
 
 

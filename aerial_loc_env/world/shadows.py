@@ -233,7 +233,7 @@ class ShadowGrid(NamedTuple):
     factor: int          # map pixels per grid pixel along each axis
 
 
-def _max_pool(dsm: np.ndarray, factor: int) -> np.ndarray:
+def max_pool(dsm: np.ndarray, factor: int) -> np.ndarray:
     """Block maximum: keeps the height of every occluder (thin poles and roof edges still cast shadows).
 
     Blocks start at multiples of ``factor``; a partial last block takes the maximum of the pixels it has.
@@ -275,7 +275,7 @@ def cast_shadows(dsm_m: np.ndarray, gsd_x_m: float, gsd_y_m: float, sun: Sun, *,
     factor = _check_factor(downsample, "cast_shadows")
     dsm = _check_inputs(dsm_m, gsd_x_m, gsd_y_m, sun, "cast_shadows")
     gx, gy = float(gsd_x_m) * factor, float(gsd_y_m) * factor
-    coarse = _max_pool(dsm, factor) if factor > 1 else dsm
+    coarse = max_pool(dsm, factor) if factor > 1 else dsm
     return ShadowGrid(cast_shadow_mask(coarse, gx, gy, sun), gx, gy, factor)
 
 
@@ -371,7 +371,7 @@ def sun_occlusion(dsm_m: np.ndarray, gsd_x_m: float, gsd_y_m: float, sun: Sun, *
             or not 1 <= azimuth_samples <= 15:
         raise ConfigError(f"sun_occlusion: azimuth_samples = {azimuth_samples!r} must be an integer in [1, 15]")
     gx, gy = float(gsd_x_m) * factor, float(gsd_y_m) * factor
-    coarse = (_max_pool(dsm, factor) if factor > 1 else dsm).astype(np.float32, copy=False)
+    coarse = (max_pool(dsm, factor) if factor > 1 else dsm).astype(np.float32, copy=False)
     if sun.elevation_deg >= 90.0:
         return ShadowGrid(np.zeros(coarse.shape, np.float32), gx, gy, factor)
     el = math.radians(sun.elevation_deg)
