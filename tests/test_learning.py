@@ -151,6 +151,25 @@ def test_wrapper_reward_pays_the_error_reduction() -> None:
     assert info["registration_error_m"] < before
 
 
+def test_curriculum_start_replaces_the_prior_offset_and_evaluation_keeps_the_prior() -> None:
+    from aerial_loc_env.learning.recipes import recipe_from_table
+    from aerial_loc_env.learning.train import make_env
+
+    recipe = recipe_from_table({"start_std_m": 0.5, "scenario_overrides": SHORT,
+                                "observation_params": {"image_px": 32}}, "x")
+    offsets = {}
+    for training in (True, False):
+        wrapped = make_env(recipe, training=training)
+        errs = []
+        for seed in range(20):
+            _obs, info = wrapped.reset(seed=seed)
+            start = wrapped.get_wrapper_attr("core").predicted
+            errs.append(float(np.hypot(*(start - info["true_pose"][:2]))))
+        offsets[training] = math.sqrt(np.mean(np.square(errs)))
+    # RMS radial offset: sqrt(2) * std, i.e. 0.71 m for the curriculum, 21 m for the 15 m prior
+    assert offsets[True] < 2.0 < 10.0 < offsets[False]
+
+
 # ------------------------------------------------------------------------------------ training end to end
 @pytest.fixture(scope="module")
 def tiny_model(tmp_path_factory: pytest.TempPathFactory) -> Path:
