@@ -4,6 +4,7 @@ overwrite, resume), save/reload with identical predictions, and the loaded agent
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import math
 from pathlib import Path
@@ -186,6 +187,8 @@ def test_training_writes_model_recipe_scenario_logs_and_checkpoints(tiny_model: 
                  "logs/progress.csv", "monitor/0.monitor.csv"):
         assert (out / name).is_file(), name
     assert list((out / "checkpoints").glob("model_*_steps.zip"))
+    if importlib.util.find_spec("tensorboard"):   # the rl extra has it; TensorBoard-compatible event files
+        assert list((out / "logs").glob("events.out.tfevents.*"))
     meta = json.loads((out / "training.json").read_text())
     assert meta["recipe"]["observation"] == "local_registration"
     assert meta["scenario"]["id"] == "AerialLoc/Small-v0"
