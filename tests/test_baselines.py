@@ -75,6 +75,19 @@ def test_baseline_falls_back_to_dead_reckoning_and_says_so(name):
     assert (est.x_m, est.y_m) == pytest.approx((start.x_m, start.y_m))       # first step: no motion yet
 
 
+@pytest.mark.parametrize("name", ["template-ncc", "orb"])
+def test_a_fix_far_outside_the_predicted_uncertainty_is_gated(name):
+    agent = _agent(name)
+    m, briefing = _scene()
+    x, y, yaw = TRUTH
+    agent.reset(briefing, seed=0)
+    assert agent.step(observation(render_frame(m, x, y, yaw, camera=WIDE), yaw)).status == "ok"
+    # the next frame is 30 m away, 10 sigma of the dead-reckoned prediction (3 m fix + 2 steps of odometry)
+    est = agent.step(observation(render_frame(m, x + 30.0, y, yaw, camera=WIDE), yaw))
+    assert est.status == "dead_reckoning" and "gate" in est.extras["reason"]
+    assert math.hypot(est.x_m - x, est.y_m - y) < 1.0
+
+
 def test_template_matching_window_outside_the_map_falls_back():
     m, briefing = _scene()
     agent = TemplateMatchingAgent()
@@ -132,7 +145,7 @@ def test_every_comparison_agent_runs_on_the_small_scenario():
                 assert est.status in ("ok", "degraded", "lost", "dead_reckoning")
                 assert -50 < est.x_m < briefing.orthomap.width_m + 50, name
                 assert -50 < est.y_m < briefing.orthomap.height_m + 50, name
-                if est.status == "dead_reckoning" and name not in ("dead-reckoning",):
+                if est.status == "dead_reckoning":
                     assert est.extras["reason"], name
             obs, _, term, trunc, info = env.step(world_to_action(briefing.orthomap, est.x_m, est.y_m))
             assert not (term or trunc)

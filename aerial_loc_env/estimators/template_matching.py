@@ -6,8 +6,10 @@ warped north-up into the map's pixel grid at a working resolution (``work_gsd_m`
 eq. (3) affine (``CameraModel.camera_to_map`` at the predicted position, the measured heading and altitude),
 cropped to the square inscribed in the footprint, and matched with normalized cross-correlation
 (``cv2.TM_CCOEFF_NORMED``). A peak above ``min_score`` that is not on the window's border is a fix: the estimate
-jumps there (sub-pixel by a parabola through the peak), and dead reckoning continues from it. Otherwise the
-agent says so: status ``"dead_reckoning"`` with the reason in ``extras["reason"]``.
+jumps there (sub-pixel by a parabola through the peak), and dead reckoning continues from it, unless the
+fix lies beyond ``gate_sigma`` standard deviations of the prediction (an innovation gate against false
+matches, e.g. under large shadows). Otherwise the agent says so: status ``"dead_reckoning"`` with the
+reason in ``extras["reason"]``.
 
 ``WindowMatchingAgent`` (the window, the fix/fallback logic and the frame conversions) is shared with the
 feature-matching baseline (``feature_matching.py``).
@@ -43,6 +45,8 @@ class WindowMatchingParams:
                                                                               "prediction, beyond the footprint"))
     global_search: bool = True      # with a uniform prior, search the whole map until the first fix
     fix_std_m: float = field(default=3.0, metadata=rng(0.0, 1e4, lo_open=True, doc="1-sigma of a fix"))
+    gate_sigma: float = field(default=3.0, metadata=rng(0.0, 1e3, doc="reject a fix farther than this many "
+                                                                       "sigma from the prediction (0: never)"))
 
 
 class Fix(NamedTuple):
@@ -110,6 +114,11 @@ class WindowMatchingAgent(Agent):
             return self._dead_reckoning(pred, f"opencv: {exc.err}")
         if isinstance(fix, str):
             return self._dead_reckoning(pred, fix)
+        jump = math.hypot(fix.x_m - pred.x_m, fix.y_m - pred.y_m)
+        limit = self.params.gate_sigma * math.hypot(pred.std_m or 0.0, self.params.fix_std_m)
+        if self.params.gate_sigma > 0 and jump > limit:
+            return self._dead_reckoning(pred, f"no fix: the match is {jump:.0f} m from the prediction, beyond "
+                                              f"the {self.params.gate_sigma:g}-sigma gate ({limit:.0f} m)")
         self.has_fix = True
         self.dr.xy = np.array([fix.x_m, fix.y_m])
         self.dr.cov = np.eye(2) * self.params.fix_std_m ** 2
