@@ -233,6 +233,8 @@ def train(spec_name: str | os.PathLike, out_dir: str | os.PathLike | None = None
                               f"--resume {out}/checkpoints/<latest>.zip, or pass --overwrite to start afresh")
         (out / "eval.csv").unlink()
     out.mkdir(parents=True, exist_ok=True)
+    # the spec as it was when training started (it may be edited while a long run goes on)
+    spec_text = Path(spec.path).read_text() if spec.path is not None else None
     logger_mod = require_extra("stable_baselines3.common.logger", "rl", "Training")
     callbacks_mod = require_extra("stable_baselines3.common.callbacks", "rl", "Training")
     cls = algo_class(recipe.algo)
@@ -266,8 +268,8 @@ def train(spec_name: str | os.PathLike, out_dir: str | os.PathLike | None = None
         os.replace(tmp, model_path)
     finally:
         env.close()
-    if spec.path is not None:
-        shutil.copyfile(spec.path, out / "recipe.toml")
+    if spec_text is not None:
+        (out / "recipe.toml").write_text(spec_text)
     scenario = scenario_spec(recipe)
     (out / "scenario.json").write_text(json.dumps(scenario, indent=2, default=str))
     meta = {"spec": spec.name, "recipe": recipe_to_dict(recipe), "timesteps": int(model.num_timesteps),
