@@ -441,7 +441,7 @@ def _check_shading(strength: float, shadow_ratio: float, sky_tint_rgb, gamma: fl
         raise ConfigError(f"{where}: gamma = {gamma!r} must be in [1, 3] (2.2 for sRGB-like images)")
 
 
-def apply_shading(rgb: np.ndarray, occlusion: np.ndarray, strength: float, *, shadow_ratio: float = 0.35,
+def apply_shading(rgb: np.ndarray, occlusion: np.ndarray, strength: float, *, shadow_ratio: float = 0.15,
                   sky_tint_rgb: tuple[float, float, float] = (0.55, 0.65, 0.85), gamma: float = 2.2,
                   out: np.ndarray | None = None) -> np.ndarray:
     """Darken and blue-shift ``rgb`` (H, W, 3) uint8 where the direct sun is occluded; returns uint8.
@@ -487,7 +487,7 @@ def combine_occlusion(*fields: np.ndarray) -> np.ndarray:
 
 def bake_shadows(rgb: np.ndarray, dsm_m: np.ndarray, gsd_x_m: float, gsd_y_m: float, sun: Sun, strength: float,
                  *, downsample: int = 1, penumbra_scale: float = 1.0, antialias_px: float = 0.7,
-                 azimuth_samples: int = 1, shadow_ratio: float = 0.35,
+                 azimuth_samples: int = 1, shadow_ratio: float = 0.15,
                  sky_tint_rgb: tuple[float, float, float] = (0.55, 0.65, 0.85), gamma: float = 2.2) -> np.ndarray:
     """A copy of the map image with the shadows of ``sun`` (time-of-day mismatch: a database taken at another
     hour than the flight). Same occlusion and shading as the camera frames."""
@@ -619,9 +619,12 @@ class ShadowConfig:
         default=(90.0, 270.0), metadata=rng_meta(0.0, 360.0, doc="towards the sun; lo > hi wraps through north"))
     sun_elevation_range_deg: tuple[float, float] = field(
         default=(25.0, 65.0), metadata=rng_meta(0.0, 90.0, lo_open=True))
-    strength_range: tuple[float, float] = field(default=(0.7, 1.0), metadata=rng_meta(0.0, 1.0))
-    shadow_ratio: float = field(default=0.35, metadata=rng_meta(0.0, 1.0, lo_open=True,
-                                                                doc="shadow/sun luminance"))
+    # Clear sky: diffuse light is 10-20 % of the global irradiance at these sun elevations, less where buildings
+    # hide part of the sky, so shadowed ground receives about 0.15 of the sunlit irradiance (linear light; about
+    # 0.42 of the grey level after a 2.2 gamma, as in ordinary aerial photographs). Haze lowers the contrast.
+    strength_range: tuple[float, float] = field(default=(0.8, 1.0), metadata=rng_meta(0.0, 1.0))
+    shadow_ratio: float = field(default=0.15, metadata=rng_meta(0.0, 1.0, lo_open=True,
+                                                                doc="shadow/sun luminance (linear light)"))
     sky_tint_rgb: tuple[float, float, float] = field(default=(0.55, 0.65, 0.85),
                                                      metadata=rng_meta(0.0, 1.0, lo_open=True))
     gamma: float = field(default=2.2, metadata=rng_meta(1.0, 3.0))
