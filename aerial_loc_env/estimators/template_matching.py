@@ -8,7 +8,8 @@ cropped to the square inscribed in the footprint, and matched with normalized cr
 (``cv2.TM_CCOEFF_NORMED``). A peak above ``min_score`` that is not on the window's border is a fix: the estimate
 jumps there (sub-pixel by a parabola through the peak), and dead reckoning continues from it, unless the
 fix lies beyond ``gate_sigma`` standard deviations of the prediction (an innovation gate against false
-matches, e.g. under large shadows). Otherwise the agent says so: status ``"dead_reckoning"`` with the
+matches, e.g. under large shadows; after ``regate_after`` gated frames in a row the match is accepted, so
+that one false fix cannot lock the agent out). Otherwise the agent says so: status ``"dead_reckoning"`` with the
 reason in ``extras["reason"]``.
 
 ``WindowMatchingAgent`` (the window, the fix/fallback logic and the frame conversions) is shared with the
@@ -47,6 +48,8 @@ class WindowMatchingParams:
     fix_std_m: float = field(default=3.0, metadata=rng(0.0, 1e4, lo_open=True, doc="1-sigma of a fix"))
     gate_sigma: float = field(default=3.0, metadata=rng(0.0, 1e3, doc="reject a fix farther than this many "
                                                                        "sigma from the prediction (0: never)"))
+    regate_after: int = field(default=4, metadata=rng(1, 10000, doc="accept a gated fix after this many "
+                                                                     "consecutive gated frames (re-localize)"))
 
 
 class Fix(NamedTuple):
@@ -91,6 +94,7 @@ class WindowMatchingAgent(Agent):
         self.level_gsd = (m.gsd_x_m * sx, m.gsd_y_m * sy)
         self.dr = DeadReckoningAgent()
         self.has_fix = False
+        self.gated = 0                                              # consecutive gated matches
         return self.dr.reset(briefing, seed=seed)
 
     def step(self, observation: Mapping[str, np.ndarray], info: Mapping[str, Any] | None = None) -> Estimate:
@@ -117,8 +121,13 @@ class WindowMatchingAgent(Agent):
         jump = math.hypot(fix.x_m - pred.x_m, fix.y_m - pred.y_m)
         limit = self.params.gate_sigma * math.hypot(pred.std_m or 0.0, self.params.fix_std_m)
         if self.params.gate_sigma > 0 and jump > limit:
-            return self._dead_reckoning(pred, f"no fix: the match is {jump:.0f} m from the prediction, beyond "
-                                              f"the {self.params.gate_sigma:g}-sigma gate ({limit:.0f} m)")
+            # a lone far match is likely false; several in a row mean the estimate itself is off (e.g. after
+            # a false fix), so the agent re-localizes instead of staying locked out
+            self.gated += 1
+            if self.gated < self.params.regate_after:
+                return self._dead_reckoning(pred, f"no fix: the match is {jump:.0f} m from the prediction, beyond"
+                                                  f" the {self.params.gate_sigma:g}-sigma gate ({limit:.0f} m)")
+        self.gated = 0
         self.has_fix = True
         self.dr.xy = np.array([fix.x_m, fix.y_m])
         self.dr.cov = np.eye(2) * self.params.fix_std_m ** 2
