@@ -12,7 +12,7 @@ $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(PIP) install -q --upgrade pip
 	$(PIP) install -q "$(TORCH)"
-	$(PIP) install -q -e ".[test,rl,mavlink,plots]"
+	$(PIP) install -q -e ".[test,rl,mavlink,plots,ray]"
 	touch $@
 
 venv: $(VENV)/.installed
