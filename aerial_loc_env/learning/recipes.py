@@ -71,6 +71,7 @@ class PolicyParams:
     features_dim: int = field(default=256, metadata=rng(8, 4096))
     cnn: str = field(default="correlation", metadata=rng(choices=("correlation", "paired", "nature")))
     max_shift: int = field(default=6, metadata=rng(1, 32, doc="correlation: shifts searched (feature px)"))
+    channels: int = field(default=32, metadata=rng(2, 256, doc="correlation: feature channels compared"))
     log_std_init: float = field(default=-1.0, metadata=rng(-10.0, 2.0, doc=(
         "initial log std of the Gaussian policy: exploration noise in action units (1 = max correction)")))
 

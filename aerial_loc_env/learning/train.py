@@ -86,7 +86,8 @@ def policy_kwargs(recipe: Recipe) -> dict:
         kwargs["features_extractor_class"] = EXTRACTORS[recipe.policy.cnn]
         kwargs["features_extractor_kwargs"] = {"features_dim": recipe.policy.features_dim}
         if recipe.policy.cnn == "correlation":
-            kwargs["features_extractor_kwargs"]["max_shift"] = recipe.policy.max_shift
+            kwargs["features_extractor_kwargs"].update(max_shift=recipe.policy.max_shift,
+                                                       channels=recipe.policy.channels)
     else:
         kwargs["features_extractor_kwargs"] = {"cnn_output_dim": recipe.policy.features_dim}
     return kwargs
