@@ -55,6 +55,10 @@ def learning_curve(run_dir: str | os.PathLike, out_png: str | os.PathLike, *, wi
         ax.plot(steps[k - 1:], smooth, label="policy (stochastic, training episodes)")
         ax.plot(steps[k - 1:], smooth_dr, "--", color="gray", label="dead reckoning, same episodes")
         ax.set_title(f"training episodes (RMSE over a window of {k})")
+        wall_min = mon[:, 0] / 60.0
+        top = ax.secondary_xaxis("top", functions=(lambda x: np.interp(x, steps, wall_min),
+                                                   lambda m: np.interp(m, wall_min, steps)))
+        top.set_xlabel("wall time (min)")
     ax.set_xlabel("timesteps")
     ax.set_ylabel("RMSE (m)")
     ax.legend()
@@ -66,11 +70,9 @@ def learning_curve(run_dir: str | os.PathLike, out_png: str | os.PathLike, *, wi
             ax.plot(ev["timesteps"], ev["dead_reckoning_rmse_m"], "--", color="gray", label="dead reckoning")
         n = int(ev["episodes"][0]) if "episodes" in ev and len(ev["episodes"]) else 0
         ax.set_title(f"held-out evaluation ({n} fixed seeds, pooled RMSE)")
-        if "wall_s" in ev and len(ev["wall_s"]):
-            top = ax.secondary_xaxis("top", functions=(
-                lambda x: np.interp(x, ev["timesteps"], ev["wall_s"] / 60.0),
-                lambda m: np.interp(m, ev["wall_s"] / 60.0, ev["timesteps"])))
-            top.set_xlabel("wall time (min)")
+        for x, y, w in zip(ev["timesteps"], ev["rmse_m"], ev.get("wall_s", []), strict=False):
+            ax.annotate(f"{w / 60:.0f} min", (x, y), textcoords="offset points", xytext=(0, 6), ha="center",
+                        fontsize=8)
     ax.set_xlabel("timesteps")
     ax.set_ylabel("RMSE (m)")
     ax.set_ylim(bottom=0)

@@ -145,6 +145,8 @@ def _eval_callback(recipe: Recipe, out: Path) -> Any:
             self.t0 = time.monotonic()
             self.last = self.num_timesteps
             self.best = _best_so_far(self.csv_path)
+            if self.num_timesteps == 0:  # the untrained policy: where the learning curve starts
+                self.run()
 
         def _on_step(self) -> bool:
             if self.num_timesteps - self.last >= recipe.eval_freq:
