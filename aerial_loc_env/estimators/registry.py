@@ -42,6 +42,8 @@ ENTRY_POINT_GROUP = "aerial_loc_env.agents"
 SHORT_NAMES: dict[str, str] = {
     "MCLAgent": "aerial_loc_env.estimators.mcl.agent:MCLAgent",
     "DeadReckoningAgent": "aerial_loc_env.estimators.dead_reckoning:DeadReckoningAgent",
+    "TemplateMatchingAgent": "aerial_loc_env.estimators.template_matching:TemplateMatchingAgent",
+    "FeatureMatchingAgent": "aerial_loc_env.estimators.feature_matching:FeatureMatchingAgent",
     "LearnedAgent": "aerial_loc_env.learning.agent:LearnedAgent",
 }
 _SPEC_KEYS = ("class", "description", "params")

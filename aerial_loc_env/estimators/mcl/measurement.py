@@ -77,7 +77,10 @@ def register_model(name: str, cls: type[MeasurementModel], **defaults: Any) -> N
 
 
 #: modules imported (late, to avoid cycles) to register the built-in models
-BUILTIN_MODULES: tuple[str, ...] = ("aerial_loc_env.estimators.mcl.intensity_pairs",)
+BUILTIN_MODULES: tuple[str, ...] = ("aerial_loc_env.estimators.mcl.intensity_pairs",
+                                    "aerial_loc_env.estimators.mcl.dense",
+                                    "aerial_loc_env.estimators.mcl.abbrief",
+                                    "aerial_loc_env.estimators.mcl.edges")
 
 
 def make_model(name: str, mapping: Mapping[str, Any] | None = None, *,
