@@ -12,14 +12,15 @@ an installed wheel), else relative to the current directory (e.g. ``runs/<recipe
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from ..config import rng
 from ..env import action_to_world
-from ..errors import ConfigError
+from ..errors import ConfigError, require_extra
 from ..estimators.protocol import Agent, Estimate, prior_estimate
 from .observations import LocalRegistration, square_image
 from .recipes import algo_class
@@ -33,6 +34,9 @@ _MODELS: dict[tuple[str, float], Any] = {}
 class LearnedParams:
     model: str = "models/ppo-local-registration/model.zip"   # a model saved by `aerial-loc train`
     deterministic: bool = True
+    #: torch intra-op threads for predict (0 = leave torch's setting): one sample per step gains nothing from
+    #: more, and on busy cores 2 threads made a step 300x slower (776 ms vs 2 ms) by spin-waiting
+    torch_threads: int = field(default=1, metadata=rng(0, 256))
 
 
 def resolve_model_path(model: str) -> Path:
@@ -62,6 +66,8 @@ class LearnedAgent(Agent):
     def _model(self) -> Any:
         """The SB3 model, loaded once per process (agents built for many episodes share it)."""
         key = (str(self.path), self.path.stat().st_mtime)
+        if self.params.torch_threads > 0:
+            require_extra("torch", "rl", "Learned policies").set_num_threads(self.params.torch_threads)
         if key not in _MODELS:
             try:
                 _MODELS[key] = algo_class(self.recipe.algo).load(str(self.path), device="cpu")

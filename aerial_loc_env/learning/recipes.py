@@ -107,6 +107,8 @@ class Recipe:
     eval_seed: int = field(default=10_000, metadata=rng(0, 2**31 - 1, doc="first held-out evaluation seed"))
     checkpoint_freq: int = field(default=50_000, metadata=rng(1, 10**9))
     device: str = field(default="cpu", metadata=rng(choices=("cpu", "cuda", "auto")))
+    torch_threads: int = field(default=1, metadata=rng(0, 256, doc=(
+        "torch intra-op threads of the learner (0 = torch's default); 1 beats 2 by 2.5x on 2 busy cores")))
 
     def validate(self, where: str) -> None:
         if self.eval_seed < self.seed + self.n_envs:

@@ -69,7 +69,14 @@ def _vec_env(recipe: Recipe, out: Path | None) -> Any:
         (out / "monitor").mkdir(parents=True, exist_ok=True)
 
     def factory(rank: int):
-        return lambda: make_env(recipe, monitor_file=str(out / "monitor" / str(rank)) if out else None)
+        def make() -> gym.Env:
+            if recipe.subproc and recipe.n_envs > 1:  # a worker process: one thread, the cores are shared
+                import cv2
+
+                cv2.setNumThreads(1)
+            return make_env(recipe, monitor_file=str(out / "monitor" / str(rank)) if out else None)
+
+        return make
 
     fns = [factory(i) for i in range(recipe.n_envs)]
     env = (vec.SubprocVecEnv(fns) if recipe.subproc and recipe.n_envs > 1 else vec.DummyVecEnv(fns))
@@ -241,6 +248,8 @@ def train(spec_name: str | os.PathLike, out_dir: str | os.PathLike | None = None
     logger_mod = require_extra("stable_baselines3.common.logger", "rl", "Training")
     callbacks_mod = require_extra("stable_baselines3.common.callbacks", "rl", "Training")
     cls = algo_class(recipe.algo)
+    if recipe.torch_threads > 0:
+        require_extra("torch", "rl", "Training").set_num_threads(recipe.torch_threads)
 
     env = _vec_env(recipe, out)
     try:
