@@ -210,11 +210,28 @@ def likelihood_surface(agent: AgentEntry, scenario: ScenarioEntry, seed: int, *,
             "shadow_fraction": info["shadow_fraction"], "stats": dict(getattr(model, "last_stats", {}))}
 
 
+def most_shadowed_frame(scenario: ScenarioEntry, seed: int) -> int:
+    """The index of the episode's frame with the largest ground-truth shadow fraction."""
+    from .runner import make_benchmark_env
+
+    env = make_benchmark_env(scenario)
+    _obs, info = env.reset(seed=seed)
+    fractions = [info["shadow_fraction"]]
+    while True:
+        _obs, _r, terminated, truncated, info = env.step(np.zeros(2, np.float32))
+        fractions.append(info["shadow_fraction"])
+        if terminated or truncated:
+            return int(np.argmax(fractions))
+
+
 def likelihood_plot(agents: Sequence[AgentEntry], scenarios: Sequence[ScenarioEntry], seed: int, path: Path,
                     **kwargs: Any) -> Path | None:
     """Figs. 26-34: one panel per (measurement model, scenario), the log-likelihood relative to its maximum
-    around the true position (the cross), colours from its 5th percentile to 0; scenarios side by side."""
+    around the true position (the cross), colours from its 5th percentile to 0; scenarios side by side. The
+    frame (unless ``frame=`` is given) is the first scenario's most shadowed one, the same index in all."""
     plt = _plt()
+    if kwargs.get("frame") is None:
+        kwargs["frame"] = most_shadowed_frame(scenarios[0], seed)
     surfaces = []
     for agent in agents:
         row = [likelihood_surface(agent, s, seed, **kwargs) for s in scenarios]
@@ -235,7 +252,8 @@ def likelihood_plot(agents: Sequence[AgentEntry], scenarios: Sequence[ScenarioEn
                            vmin=min(lo, -1e-6), vmax=0)
             ax.plot(0, 0, "r+", ms=10)
             shade = surf["shadow_fraction"]
-            ax.set_title(f"{agent.display}\n{scenario.display} (shadow {shade:.0%})", fontsize=8)
+            ax.set_title(f"{agent.display}\n{scenario.display} (frame {kwargs['frame']}, shadow {shade:.0%})",
+                         fontsize=8)
             ax.set_xlabel("east offset [m]", fontsize=7)
             ax.set_ylabel("north offset [m]", fontsize=7)
             ax.tick_params(labelsize=7)

@@ -156,8 +156,11 @@ def _table5_one(scenario: str, rows: Sequence[dict]) -> str:
     ks = sorted({k for _, k in cells})
     fams = [f for f in dict.fromkeys(FAMILIES.values()) if any(f == c[0] for c in cells)]
     n_trials = sorted({len(v) for v in cells.values()})
-    lines = [f"## Table 5 ({scenario}): RMSE [m], ours / paper ({'/'.join(map(str, n_trials))} trials per "
-             "cell; paper: N = 700, C = 1, 100 trials)", "",
+    ns = sorted({int(agent_param(r, "n_particles") or 0) for rs in cells.values() for r in rs})
+    cs = sorted({int(agent_param(r, "channels") or 0) for rs in cells.values() for r in rs})
+    lines = [f"## Table 5 ({scenario}): RMSE [m], ours / paper (ours: {'/'.join(map(str, n_trials))} trials "
+             f"per cell, N = {'/'.join(map(str, ns))}, C = {'/'.join(map(str, cs))}; paper: N = 700, C = 1, "
+             "100 trials)", "",
              "| RMSE [m] | " + " | ".join(f"K = {k}" for k in ks) + " |", "|---|" + "---|" * len(ks)]
     for fam in fams:
         vals = []
