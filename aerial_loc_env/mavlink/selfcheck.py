@@ -243,10 +243,14 @@ class LibmavCollector:
         with self._lock:
             return [x for x in self.messages if x[1] == name]
 
-    def close(self) -> None:
+    def close(self, timeout_s: float = 5.0) -> None:
+        """Stop libmav's runtime. Its stop() joins a C++ thread and has been seen to block for good on a
+        loaded machine, so it runs in a daemon thread: a stuck decoder cannot hang the caller."""
         if self._conn is not None:
             self._conn.remove_all_callbacks()
-        self._runtime.stop()
+        stopper = threading.Thread(target=self._runtime.stop, name="libmav-stop", daemon=True)
+        stopper.start()
+        stopper.join(timeout_s)
 
 
 def main(argv: list[str] | None = None) -> int:
