@@ -8,7 +8,8 @@ the store and the reports do not depend on it.
 from __future__ import annotations
 
 import os
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 
 from ..errors import ConfigError, require_extra
 from .runner import EpisodeTask, run_episode
@@ -16,13 +17,33 @@ from .runner import EpisodeTask, run_episode
 OnResult = Callable[[tuple[list[dict], list[dict]]], None]
 
 
+THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+
+
 def _worker_init() -> None:
     # One numeric thread per worker process: the workers are the parallelism.
-    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    for var in THREAD_VARS:
         os.environ.setdefault(var, "1")
     import cv2
 
     cv2.setNumThreads(1)
+
+
+@contextmanager
+def _single_threaded_children() -> Iterator[None]:
+    """Spawned workers inherit these at start, before NumPy's BLAS reads them (an initializer is too late:
+    unpickling the task imports NumPy first); this process's own setting is restored afterwards."""
+    saved = {var: os.environ.get(var) for var in THREAD_VARS}
+    for var in THREAD_VARS:
+        os.environ.setdefault(var, "1")
+    try:
+        yield
+    finally:
+        for var, value in saved.items():
+            if value is None:
+                os.environ.pop(var, None)
+            else:
+                os.environ[var] = value
 
 
 def local_executor(tasks: Sequence[EpisodeTask], on_result: OnResult, workers: int) -> None:
@@ -37,13 +58,14 @@ def local_executor(tasks: Sequence[EpisodeTask], on_result: OnResult, workers: i
     from concurrent.futures import ProcessPoolExecutor, as_completed
 
     ctx = mp.get_context("spawn")
-    pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_worker_init)
-    try:
-        futures = [pool.submit(run_episode, t) for t in tasks]
-        for fut in as_completed(futures):
-            on_result(fut.result())
-    finally:
-        pool.shutdown(wait=True, cancel_futures=True)
+    with _single_threaded_children():
+        pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_worker_init)
+        try:
+            futures = [pool.submit(run_episode, t) for t in tasks]
+            for fut in as_completed(futures):
+                on_result(fut.result())
+        finally:
+            pool.shutdown(wait=True, cancel_futures=True)
 
 
 def ray_executor(tasks: Sequence[EpisodeTask], on_result: OnResult, workers: int) -> None:
