@@ -2,7 +2,8 @@
 
 - the local-registration training env (Small-v0, 64 px camera + database crop at the dead-reckoned pose),
   one call = one whole episode (reset amortized), figures per step;
-- the PPO policy's deterministic ``predict`` on one observation (the deployed agent's cost per step);
+- the PPO policy's (recipe defaults: correlation CNN) deterministic ``predict`` on one observation (the
+  deployed agent's cost per step);
 - one PPO gradient step on a 256-sample minibatch of image pairs (the update's cost, per sample).
 
 A training run's rate is roughly 1 / (env step / n_envs-in-parallel + n_epochs x update per sample).
@@ -94,8 +95,8 @@ def _update_setup() -> Callable[[], object]:
 BENCHMARKS = [
     Benchmark(name="learning: local-registration env Small-v0 64 px (per step, resets amortized)",
               setup=_episode_setup, unit="step", repeats=5, per_call_items=_episode_steps()),
-    Benchmark(name="learning: PPO paired-CNN predict, one 64 px pair", setup=_predict_setup, unit="step",
+    Benchmark(name="learning: PPO correlation-CNN predict, one 64 px pair", setup=_predict_setup, unit="step",
               repeats=50),
-    Benchmark(name=f"learning: PPO paired-CNN gradient step, {BATCH} pairs of 64 px (per sample)",
+    Benchmark(name=f"learning: PPO correlation-CNN gradient step, {BATCH} pairs of 64 px (per sample)",
               setup=_update_setup, unit="sample", repeats=5, per_call_items=BATCH),
 ]
