@@ -36,8 +36,9 @@ def _eval_rows(run_dir: Path) -> dict[str, np.ndarray]:
 
 
 def learning_curve(run_dir: str | os.PathLike, out_png: str | os.PathLike, *, window: int = 50,
-                   title: str | None = None) -> Path:
-    """Write the training curves of ``run_dir`` to ``out_png`` (needs matplotlib, the ``plots`` extra)."""
+                   title: str | None = None, compare: dict[str, str | os.PathLike] | None = None) -> Path:
+    """Write the training curves of ``run_dir`` to ``out_png`` (needs matplotlib, the ``plots`` extra);
+    ``compare`` (label -> run folder) adds other runs' held-out evaluations to the right panel."""
     run_dir, out_png = Path(run_dir), Path(out_png)
     ev = _eval_rows(run_dir)
     mon = _monitor_rows(run_dir)
@@ -65,18 +66,23 @@ def learning_curve(run_dir: str | os.PathLike, out_png: str | os.PathLike, *, wi
     ax.grid(alpha=0.3)
     ax = axes[1]
     if ev:
-        ax.plot(ev["timesteps"], ev["rmse_m"], "o-", label="policy (deterministic)")
-        if "dead_reckoning_rmse_m" in ev:
-            ax.plot(ev["timesteps"], ev["dead_reckoning_rmse_m"], "--", color="gray", label="dead reckoning")
+        ax.plot(ev["timesteps"], ev["rmse_m"], "o-", label=f"{run_dir.name} (deterministic policy)")
+        if "dead_reckoning_rmse_m" in ev:  # the same episodes every time: one level
+            dr = float(np.mean(ev["dead_reckoning_rmse_m"]))
+            ax.axhline(dr, ls="--", color="gray", label="dead reckoning")
         n = int(ev["episodes"][0]) if "episodes" in ev and len(ev["episodes"]) else 0
         ax.set_title(f"held-out evaluation ({n} fixed seeds, pooled RMSE)")
         for x, y, w in zip(ev["timesteps"], ev["rmse_m"], ev.get("wall_s", []), strict=False):
             ax.annotate(f"{w / 60:.0f} min", (x, y), textcoords="offset points", xytext=(0, 6), ha="center",
                         fontsize=8)
+    for label, other in (compare or {}).items():
+        oe = _eval_rows(Path(other))
+        if oe:
+            ax.plot(oe["timesteps"], oe["rmse_m"], ".:", label=label)
     ax.set_xlabel("timesteps")
     ax.set_ylabel("RMSE (m)")
     ax.set_ylim(bottom=0)
-    ax.legend()
+    ax.legend(fontsize=7, loc="lower right")
     ax.grid(alpha=0.3)
     fig.suptitle(title or f"learning curves: {run_dir.name}")
     out_png.parent.mkdir(parents=True, exist_ok=True)
