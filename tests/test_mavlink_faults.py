@@ -228,9 +228,12 @@ def test_ctrl_c_exits_cleanly():
     sock = _udp_socket()
     port = sock.getsockname()[1]
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    # A terminal delivers Ctrl-C to a process whose SIGINT is at its default; a test runner started in the
+    # background (e.g. `make test &` in a script) has SIGINT ignored, and exec keeps ignored signals.
     proc = subprocess.Popen([sys.executable, "-m", "aerial_loc_env.cli", "mavlink", "--demo", "--connect",
                              f"udpout:127.0.0.1:{port}", "--duration-s", "60"], cwd=REPO, env=env,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         deadline = time.monotonic() + 20.0       # the interpreter may start slowly on a loaded machine
         while "GPS_INPUT" not in _names(_collect(sock, 0.2)) and time.monotonic() < deadline:
