@@ -304,7 +304,7 @@ def scenario_spec(recipe: Recipe) -> dict:
 
 
 def _machine() -> str:
-    from ..perf import machine
+    from ..sysinfo import machine
 
     return f"{machine()}, torch threads {require_extra('torch', 'rl', 'Training').get_num_threads()}"
 

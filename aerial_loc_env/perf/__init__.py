@@ -7,12 +7,15 @@ runs them all (or those whose name contains one of the arguments) and prints a t
 from __future__ import annotations
 
 import os
-import platform
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
+
+from ..sysinfo import machine
+
+__all__ = ["Benchmark", "machine", "measure", "single_core"]
 
 
 @dataclass(frozen=True)
@@ -45,19 +48,6 @@ def single_core() -> None:
         cv2.setNumThreads(1)
     except ImportError:  # pragma: no cover
         pass
-
-
-def machine() -> str:
-    cpu = platform.processor() or platform.machine()
-    try:
-        with open("/proc/cpuinfo") as fh:
-            for line in fh:
-                if line.startswith("model name"):
-                    cpu = line.split(":", 1)[1].strip()
-                    break
-    except OSError:
-        pass
-    return f"{cpu}, {os.cpu_count()} cores, Python {platform.python_version()}, numpy {np.__version__}"
 
 
 def measure(bench: Benchmark) -> dict:
