@@ -31,6 +31,17 @@ TREE_COLOURS = np.array([(52, 88, 42), (62, 96, 46), (44, 76, 40), (74, 104, 52)
                          (86, 110, 60)], np.int32)
 
 
+# ground cover kinds: base colour (RGB), colour jitter, material
+GROUND_KINDS: dict[str, tuple[tuple[int, int, int], int, Material]] = {
+    "lawn": ((96, 132, 66), 14, Material.GRASS),
+    "soil": ((150, 124, 96), 14, Material.SOIL),
+    "paving": ((172, 166, 156), 14, Material.PLAZA),
+    "gravel": ((150, 144, 134), 10, Material.GRAVEL),
+    "asphalt": ((92, 92, 94), 10, Material.PARKING),
+    "field": ((140, 146, 82), 18, Material.FIELD),
+}
+
+
 def _jitter(rng: np.random.Generator, colour: np.ndarray, amount: int) -> tuple[int, int, int]:
     c = np.clip(colour + rng.integers(-amount, amount + 1) + rng.integers(-amount // 4, amount // 4 + 1, 3),
                 0, 255)
@@ -114,28 +125,11 @@ class Filler:
 
     # -- primitives ---------------------------------------------------------------------------------------
     def ground(self, poly: np.ndarray, kind: str) -> None:
-        r = self.rng
-        if kind == "lawn":
-            col = _jitter(r, np.array([96, 132, 66]), 14)
-            mat = Material.GRASS
-        elif kind == "soil":
-            col = _jitter(r, np.array([150, 124, 96]), 14)
-            mat = Material.SOIL
-        elif kind == "paving":
-            col = _jitter(r, np.array([172, 166, 156]), 14)
-            mat = Material.PLAZA
-        elif kind == "gravel":
-            col = _jitter(r, np.array([150, 144, 134]), 10)
-            mat = Material.GRAVEL
-        elif kind == "asphalt":
-            col = _jitter(r, np.array([92, 92, 94]), 10)
-            mat = Material.PARKING
-        elif kind == "field":
-            col = _jitter(r, np.array([140, 146, 82]), 18)
-            mat = Material.FIELD
-        else:
-            raise ValueError(kind)
-        self.scene.grounds.append(([poly], col, mat))
+        try:
+            base, spread, mat = GROUND_KINDS[kind]
+        except KeyError:
+            raise ValueError(f"unknown ground kind {kind!r}; use one of {sorted(GROUND_KINDS)}") from None
+        self.scene.grounds.append(([poly], _jitter(self.rng, np.array(base), spread), mat))
 
     def tree(self, p: np.ndarray, r_m: float | None = None) -> None:
         r = self.rng
