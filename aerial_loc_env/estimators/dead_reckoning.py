@@ -32,6 +32,13 @@ class DeadReckoningAgent(Agent):
         self.t = 0
         return est
 
+    def anchor(self, xy_m: Any, cov_xy_m2: Any | None = None) -> None:
+        """Restart the integration from a fix (a baseline's match, a policy's correction); the covariance is
+        replaced when given, else kept."""
+        self.xy = np.array(xy_m, dtype=float).reshape(2)
+        if cov_xy_m2 is not None:
+            self.cov = np.array(cov_xy_m2, dtype=float).reshape(2, 2)
+
     def step(self, observation: Mapping[str, np.ndarray], info: Mapping[str, Any] | None = None) -> Estimate:
         if not hasattr(self, "briefing"):
             raise ConfigError("DeadReckoningAgent.step called before reset(briefing, seed=...)")

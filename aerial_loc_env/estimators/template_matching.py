@@ -129,8 +129,7 @@ class WindowMatchingAgent(Agent):
                                                   f" the {self.params.gate_sigma:g}-sigma gate ({limit:.0f} m)")
         self.gated = 0
         self.has_fix = True
-        self.dr.xy = np.array([fix.x_m, fix.y_m])
-        self.dr.cov = np.eye(2) * self.params.fix_std_m ** 2
+        self.dr.anchor((fix.x_m, fix.y_m), np.eye(2) * self.params.fix_std_m ** 2)
         return Estimate(fix.x_m, fix.y_m, yaw_rad=obs.yaw_rad, cov_xy_m2=self.dr.cov.copy(), status="ok",
                         extras={"match": True, **fix.extras})
 

@@ -80,7 +80,7 @@ class LocalRegistration:
         self._renderer = CameraRenderer(briefing.orthomap, briefing.camera, strict=False)
         self._dr.reset(briefing)
         if start_xy_m is not None:
-            self._dr.xy = np.asarray(start_xy_m, dtype=float).copy()
+            self._dr.anchor(start_xy_m)
 
     def observe(self, observation: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
         """Predict with the odometry (dead reckoning from the last estimate), then build the policy's view of
@@ -103,7 +103,7 @@ class LocalRegistration:
         c, s = math.cos(self.yaw), math.sin(self.yaw)
         xy = self.predicted + a[0] * np.array([c, s]) + a[1] * np.array([s, -c])
         m = self.briefing.orthomap
-        self._dr.xy = np.clip(xy, [0.0, 0.0], [m.width_m, m.height_m])
+        self._dr.anchor(np.clip(xy, [0.0, 0.0], [m.width_m, m.height_m]))
         return self._dr.xy.copy()
 
 
@@ -142,7 +142,7 @@ class LocalRegistrationWrapper(gym.Wrapper):
         self.core.reset(briefing, start)
         self._dr.reset(briefing)
         if start is not None:
-            self._dr.xy = np.asarray(start, dtype=float)
+            self._dr.anchor(start)
         self._dr.step(obs)
         self._sq, self._sq_dr = [], []
         return self.core.observe(obs), info
