@@ -404,10 +404,7 @@ class AerialLocEnv(gym.Env):
         to_map = world_to_map_affine(om)
         view_to_map = to_map[:, :2] @ view_to_world
         view_to_map[:, 2] += to_map[:, 2]
-        level = self._renderer.pyramid_level(view_to_map)
-        img = cv2.warpAffine(self._renderer.map_level(level), view_to_map / (1 << level), (n, n),
-                             flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_CONSTANT)
-        img = np.ascontiguousarray(img[..., :3])       # the renderer may keep an RGBA copy of the map
+        img = self._renderer.warp_map(view_to_map, (n, n))
         world_to_view = np.array([[1 / s, 0.0, -(cx - side / 2) / s - 0.5],
                                   [0.0, -1 / s, (cy + side / 2) / s - 0.5]])
         # the camera frame (with its shadows) pasted into its footprint
