@@ -2,9 +2,9 @@
 
 The simulation and the sender run at their own rates: each env step publishes a fix into the sender's slot and
 the sender thread emits at ``--rate-hz`` whatever the latest fix is. ``--speed`` scales simulated time
-(1 = real time, 4 = four times faster, 0 = as fast as possible, e.g. replay into a logger). ``--demo`` streams
-a synthetic circular track without the env (to test a SITL setup). ``--follow`` makes the simulated camera
-follow the autopilot's own vehicle (GLOBAL_POSITION_INT / ATTITUDE), closing the loop.
+(1 = real time, 4 = four times faster, 0 = each frame's fix once per sender tick, e.g. replay into a
+logger). ``--demo`` streams a synthetic circular track without the env (to test a SITL setup). ``--follow``
+makes the simulated camera follow the autopilot's own vehicle (GLOBAL_POSITION_INT / ATTITUDE), closing the loop.
 """
 
 from __future__ import annotations
@@ -41,7 +41,9 @@ def build_parser() -> argparse.ArgumentParser:
     src.add_argument("--demo", action="store_true", help="synthetic circular track, no env or agent needed")
     src.add_argument("--origin", default=SITL_HOME, help="--demo: LAT,LON,ALT_AMSL of the track centre")
     src.add_argument("--seed", type=int, default=0)
-    src.add_argument("--speed", type=float, default=1.0, help="simulated seconds per real second; 0 = max")
+    src.add_argument("--speed", type=float, default=1.0,
+                     help="simulated seconds per real second; 0 = as fast as the sender takes each frame's "
+                          "fix (one per --rate-hz tick)")
     src.add_argument("--duration-s", type=float, default=0.0,
                      help="stop after N real seconds; 0: at the end")
     src.add_argument("--loop", action="store_true", help="restart the episode when it ends")
@@ -236,6 +238,8 @@ def status_line(t_sim_s: float, stats: SenderStats, error_m: float | None = None
     fix = "none" if q is None else ("3D" if q.fix_type == 3 else "no-fix")
     hacc = "-" if q is None or not q.usable else f"{q.h_acc_m:.1f}m"
     sent = " ".join(f"{k}={v}" for k, v in sorted(stats.sent.items()))
+    if stats.dropped:
+        sent += f" dropped={stats.dropped}"
     link = "up" if stats.link_up else "DOWN"
     err = "" if error_m is None else f"err={error_m:.1f}m "
     return (f"t={t_sim_s:7.1f}s {err}fix={fix} hacc={hacc} rate={stats.rate_hz:5.2f}Hz "
@@ -273,8 +277,10 @@ def run(args: argparse.Namespace, *, out=sys.stdout, should_stop: Callable[[], b
                 delay = t0 + t_sim / args.speed - time.monotonic()
                 if delay > 0:
                     time.sleep(delay)
-            sender.publish(bridge.fix(step.estimate, time_s=step.time_s, altitude_m=step.altitude_m,
-                                      yaw_fallback_rad=step.yaw_fallback_rad))
+            item = sender.publish(bridge.fix(step.estimate, time_s=step.time_s, altitude_m=step.altitude_m,
+                                             yaw_fallback_rad=step.yaw_fallback_rad))
+            while args.speed == 0 and sender.running and not sender.wait_taken(item.seq, 0.1):
+                pass   # as fast as possible, but every frame's fix goes out once (at --rate-hz)
             if args.follow:
                 source.follow = sender.vehicle()
             now = time.monotonic()

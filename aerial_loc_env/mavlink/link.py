@@ -15,7 +15,7 @@ import threading
 import time
 from dataclasses import dataclass
 
-from ..errors import AerialLocError, ConfigError
+from ..errors import AerialLocError, ConfigError, MissingExtraError
 
 NET_KINDS = ("udpout", "udpin", "udp", "tcp", "tcpin")
 EXAMPLES = ("udpout:127.0.0.1:14550, udpin:0.0.0.0:14550, tcp:127.0.0.1:5760, tcpin:0.0.0.0:5760, "
@@ -107,6 +107,13 @@ class Link:
         if ep.kind == "tcp":
             self._try_connect()
             return
+        if ep.kind == "serial":
+            try:
+                import serial  # noqa: F401  (pymavlink opens serial ports through pyserial)
+            except ImportError as exc:
+                raise MissingExtraError(
+                    f"connect: serial device {ep.device!r} needs the optional package 'pyserial', which is not "
+                    "installed. Install it with: pip install 'aerial-loc-env[mavlink]'") from exc
         try:
             self._conn = self._mavutil_open()
         except (OSError, ValueError) as exc:

@@ -26,6 +26,7 @@ from .timebase import MonotonicClock, Schedule, signing_timestamp
 
 ARDUPILOT_GPS_TIMEOUT_S = 0.245   # AP_GPS marks a MAVLink GPS unhealthy after gaps longer than this
 MIN_GPS_INPUT_RATE_HZ = 5.0
+MIN_HEX_KEY_LOOKALIKE = 32        # an all-hex passphrase this long is a mistyped 64-digit key, not a passphrase
 
 
 @dataclass(frozen=True)
@@ -76,7 +77,16 @@ def signing_secret(key: str, where: str = "signing_key") -> bytes | None:
         raise ConfigError(f"{where}: field 'signing_key' must be a string (64 hex digits or a passphrase)")
     if re.fullmatch(r"[0-9a-fA-F]{64}", key):
         return bytes.fromhex(key)
-    return hashlib.sha256(key.encode("utf-8")).digest()
+    if len(key) >= MIN_HEX_KEY_LOOKALIKE and re.fullmatch(r"[0-9a-fA-F]+", key):
+        raise ConfigError(f"{where}: field 'signing_key' has {len(key)} hex digits; a hex key has exactly 64 "
+                          "(32 bytes). Check for a digit lost or added in copying, or use a passphrase that is "
+                          "not all hex digits")
+    try:
+        return hashlib.sha256(key.encode("utf-8")).digest()
+    except UnicodeEncodeError as exc:
+        raise ConfigError(f"{where}: field 'signing_key' is not valid UTF-8 text (byte {exc.start}); the "
+                          "passphrase is hashed as UTF-8 (as MAVProxy's 'signing setup' does): give it in UTF-8 "
+                          "or as 64 hex digits") from None
 
 
 @dataclass(frozen=True)
@@ -167,7 +177,7 @@ class MavlinkSender:
         self.clock = MonotonicClock()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
-        self._lock = threading.Lock()
+        self._lock = threading.Condition()     # guards the stats; notified when a tick takes a new fix
         self._sent: collections.Counter[str] = collections.Counter()
         self._intervals: collections.deque[float] = collections.deque(maxlen=600)
         self._last_tick_s: float | None = None
@@ -208,6 +218,13 @@ class MavlinkSender:
     def publish(self, fix: PoseFix) -> SlotItem:
         """Hand a new estimate to the sender (any thread, any rate)."""
         return self.slot.put(fix)
+
+    def wait_taken(self, seq: int, timeout_s: float) -> bool:
+        """Wait until a tick has taken fix ``seq`` (or a later one) from the slot; False on timeout.
+
+        Replaying faster than real time (``--speed 0``) waits on this so that every fix reaches the wire."""
+        with self._lock:
+            return self._lock.wait_for(lambda: self._item is not None and self._item.seq >= seq, timeout_s)
 
     def vehicle(self) -> VehicleState | None:
         """The autopilot's latest GLOBAL_POSITION_INT (+ ATTITUDE yaw), or None if none was received."""
@@ -274,6 +291,7 @@ class MavlinkSender:
         quality = assess(item.fix, age, self.policy)
         with self._lock:
             self._item, self._age_s, self._quality = item, age, quality
+            self._lock.notify_all()
         unix_s = self.clock.unix_s(now)
         usec = int(unix_s * 1e6)
         cfg = self.config
@@ -291,9 +309,11 @@ class MavlinkSender:
         signing = self._mav.signing
         if signing.sign_outgoing:  # keep signing timestamps >= real time (receivers reject stale streams)
             signing.timestamp = max(signing.timestamp, signing_timestamp(self.clock.unix_s()))
+        dropped = self._file.dropped
         self._mav.send(message)
-        with self._lock:
-            self._sent[kind] += 1
+        if self._file.dropped == dropped:      # counted only if the link took it (dropped frames count there)
+            with self._lock:
+                self._sent[kind] += 1
 
     def _request_vehicle_streams(self) -> None:
         """Ask for GLOBAL_POSITION_INT and ATTITUDE (MAV_CMD_SET_MESSAGE_INTERVAL) until they come."""

@@ -1,0 +1,112 @@
+"""Issue 13, MAVLink inputs: replay at --speed 0, the status line while the link is down, serial without pyserial,
+signing keys that are not UTF-8 or one hex digit short."""
+
+from __future__ import annotations
+
+import io
+import socket
+import sys
+import threading
+import time
+
+import pytest
+from pymavlink.dialects.v20 import common as mavlink2
+
+from aerial_loc_env.errors import ConfigError, MissingExtraError
+from aerial_loc_env.mavlink import cli as mav_cli
+from aerial_loc_env.mavlink.fix import GeoOrigin, PoseFix
+from aerial_loc_env.mavlink.link import Link, parse_connection
+from aerial_loc_env.mavlink.sender import MavlinkSender, SenderConfig, signing_secret
+
+FIX = PoseFix(time_s=0.0, lat_deg=47.4, lon_deg=8.54, alt_amsl_m=600.0, east_m=0.0, north_m=0.0, up_m=100.0,
+              vel_enu_mps=(1.0, 0.0, 0.0), yaw_rad=0.0, cov_en_m2=(4.0, 0.0, 4.0), v_std_m=0.5,
+              yaw_std_rad=0.05, speed_std_mps=0.5)
+
+
+def _free_udp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_speed_zero_delivers_every_frame():
+    """'--speed 0' (replay into a logger) must hand every frame's fix to the wire, not only the last one."""
+    pytest.importorskip("aerial_loc_env.estimators.registry", reason="the agents are not available")
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock.bind(("127.0.0.1", 0))
+    sock.settimeout(0.05)
+    args = mav_cli.build_parser().parse_args([
+        "--scenario", "AerialLoc/Small-v0", "--agent", "dead-reckoning", "--seed", "1", "--speed", "0",
+        "--rate-hz", "200", "--connect", f"udpout:127.0.0.1:{sock.getsockname()[1]}", "--quiet"])
+    out = io.StringIO()
+    result = {}
+    runner = threading.Thread(target=lambda: result.setdefault("rc", mav_cli.run(args, out=out)))
+    runner.start()
+    parser = mavlink2.MAVLink(None)
+    msgs, drain_until = [], None
+    while drain_until is None or time.monotonic() < drain_until:
+        if drain_until is None and not runner.is_alive():
+            drain_until = time.monotonic() + 0.2
+        try:
+            data, _ = sock.recvfrom(65536)
+        except TimeoutError:
+            continue
+        msgs += parser.parse_buffer(data) or []
+    runner.join()
+    sock.close()
+    assert result["rc"] == 0
+    # Small-v0: 15 s at 4 Hz = 60 steps, 61 frames; each frame's fix carries its own GPS time
+    times = {(m.time_week, m.time_week_ms) for m in msgs if m.get_type() == "GPS_INPUT"}
+    positions = {(m.lat, m.lon) for m in msgs if m.get_type() == "GPS_INPUT"}
+    assert len(positions) >= 61, (len(positions), len(times))
+
+
+def test_status_counts_only_messages_the_link_took():
+    """A udpin link nobody has talked to cannot send: nothing may be counted as sent, all as dropped."""
+    cfg = SenderConfig(connect=f"udpin:127.0.0.1:{_free_udp_port()}", rate_hz=50.0, heartbeat_hz=10.0)
+    with MavlinkSender(cfg, origin=GeoOrigin(47.4, 8.54, 500.0)) as sender:
+        sender.publish(FIX)
+        time.sleep(0.3)
+        stats = sender.stats()
+    assert stats.dropped > 0
+    assert sum(stats.sent.values()) == 0, stats.sent
+    line = mav_cli.status_line(0.0, stats)
+    assert "gps_input=" not in line and f"dropped={stats.dropped}" in line
+
+
+def test_serial_without_pyserial_names_the_device_and_the_extra(monkeypatch):
+    monkeypatch.setitem(sys.modules, "serial", None)     # as if pyserial were not installed
+    link = Link(parse_connection("/dev/ttyACM7,921600"))
+    with pytest.raises(MissingExtraError, match=r"/dev/ttyACM7.*pyserial.*aerial-loc-env\[mavlink\]"):
+        link.open()
+
+
+def test_pyserial_is_in_the_mavlink_extra():
+    from pathlib import Path
+
+    import tomllib
+
+    meta = tomllib.loads((Path(__file__).resolve().parents[1] / "pyproject.toml").read_text())
+    extra = meta["project"]["optional-dependencies"]["mavlink"]
+    assert any(req.lower().startswith("pyserial") for req in extra), extra
+
+
+def test_non_utf8_signing_key_is_a_clear_error():
+    key = b"caf\xe9-key".decode("utf-8", "surrogateescape")    # what argv holds for non-UTF-8 bytes
+    with pytest.raises(ConfigError, match="signing_key.*UTF-8"):
+        signing_secret(key)
+    args = mav_cli.build_parser().parse_args(["--demo", "--signing-key", key])
+    with pytest.raises(ConfigError, match="signing_key.*UTF-8"):
+        mav_cli.sender_config(args)
+
+
+@pytest.mark.parametrize("digits", [63, 65, 62])
+def test_almost_hex_signing_key_is_refused_not_hashed(digits):
+    with pytest.raises(ConfigError, match=f"{digits} hex digits.*64"):
+        signing_secret("a" * digits)
+
+
+def test_signing_keys_that_stay_valid():
+    assert signing_secret("ab" * 32) == bytes([0xAB] * 32)
+    assert len(signing_secret("correct horse battery staple")) == 32
+    assert len(signing_secret("cafe")) == 32        # a short passphrase that happens to be hex
