@@ -1,0 +1,443 @@
+"""The appearance gap: how unlike are the camera frame and the map database at the true pose?
+
+A benchmark ranks localization methods the way a real flight would only if its map and camera differ as much
+as real acquisitions do. This module measures that difference with five statistics, on
+
+- a scenario (``scenario_gap``): the env's camera frame against the database patch rendered at the frame's
+  *true* pose (the estimators' map, ``briefing.orthomap``), at every ``stride``-th frame of several seeds;
+- a pair of co-registered real images of the same ground at two dates (``pair_gap``): the later epoch plays the
+  camera, the earlier the database, tiled into camera-sized windows.
+
+Both go through the same per-window function (``window_stats``) at one **analysis ground sampling**
+(``GapConfig.gsd_m``, default 0.5 m/px, the coarsest of the usual sources: the LEVIR-CD pairs' sampling; camera
+frames and database patches are box-filtered down to it, never up) over a **window** the size of the camera
+footprint (scenarios: the camera's footprint at the true altitude; pairs: ``GapConfig.window_m``, default
+150 m x 100 m, the paper's 600 x 400 camera at 200 m). The "database" window carries a margin of
+``search_m`` on every side for the search statistics. All statistics are on luma (ITU-R 601).
+
+Statistics of one window (C = camera window, D = database window at the true alignment, D+ = D with the
+search margin):
+
+``ncc``
+    Pearson correlation of the luma of C and D over the whole window (1 = identical up to gain and offset,
+    0 = unrelated). A constant window gives 0.
+``bit_agreement``
+    The paper's intensity-pair descriptor (eq. 2, c = 1): ``n_bits`` pixel pairs (p1, p2) drawn uniformly over
+    the window (fixed ``seed``, the same pairs for every window of a size); the bit is ``[I(p1) > I(p2)]``;
+    agreement = the fraction of pairs whose bit is the same in C and in D (the XNOR similarity xi of eq. 4 at
+    the true pose). 1 = identical order, 0.5 = unrelated.
+``psr``
+    NCC peak-to-sidelobe ratio over the +-``search_m`` search: the surface S = ``cv2.matchTemplate(D+, C,
+    TM_CCOEFF_NORMED)`` (one value per integer shift up to +-``search_m``); the side lobe is S outside a disc
+    of radius ``success_radius_m`` around S's peak; ``psr = (max S - mean side) / std side`` (the MOSSE
+    tracker's definition). How much the best match stands out of the clutter.
+``peak_margin``
+    ``max S - max side``: the peak's lead over the strongest competing shift (as in the pairs' README).
+``orb_inlier_ratio``
+    ORB keypoints (``orb_features``) on C and on D+, brute-force Hamming matches kept by Lowe's ratio test
+    (``orb_ratio``), a RANSAC similarity (``cv2.estimateAffinePartial2D``, ``ransac_px`` reprojection
+    threshold) as the feature-matching baseline fits; ratio = RANSAC inliers / ratio-test matches; 0 with
+    fewer than 4 matches or no model.
+``template_within``
+    1 when S's peak lies within ``success_radius_m`` (2 m) of the true shift (the centre of S), else 0; its
+    mean over windows is the fraction of frames on which template matching would find the truth.
+
+Summaries (``summarize``) give the median, the quartiles and the mean of each statistic over windows. The
+**spread of the real pairs** is the range (min..max) over pairs of each pair's median (of its mean, for
+``template_within``); ``aerial-loc gap`` marks a scenario's statistic that lies inside it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from ..config import build_config, rng
+from ..errors import ConfigError, MapError
+from ..estimators.feature_matching import make_detector
+from ..estimators.patches import to_gray
+
+#: the statistics of one window, in table order
+STATS = ("ncc", "bit_agreement", "psr", "peak_margin", "orb_inlier_ratio", "template_within")
+#: column titles of the printed table
+TITLES = {"ncc": "NCC", "bit_agreement": "bit agreement", "psr": "PSR", "peak_margin": "peak margin",
+          "orb_inlier_ratio": "ORB inliers", "template_within": "template <= 2 m"}
+
+
+@dataclass(frozen=True)
+class GapConfig:
+    """How the gap is measured (see the module docstring for the definitions)."""
+
+    gsd_m: float = field(default=0.5, metadata=rng(0.01, 100.0, doc="analysis ground sampling, m/px"))
+    window_m: tuple[float, float] = (150.0, 100.0)     # pairs: window width, height in metres
+    search_m: float = field(default=10.0, metadata=rng(0.5, 1000.0, doc="search half-width, m"))
+    success_radius_m: float = field(default=2.0, metadata=rng(0.01, 100.0, doc="template success radius"))
+    n_bits: int = field(default=4000, metadata=rng(10, 10**7, doc="random pixel pairs per window"))
+    orb_features: int = field(default=2000, metadata=rng(10, 100000))
+    orb_ratio: float = field(default=0.8, metadata=rng(0.0, 1.0, lo_open=True, doc="Lowe's ratio test"))
+    ransac_px: float = field(default=3.0, metadata=rng(0.1, 100.0))
+    seed: int = field(default=0, metadata=rng(0, 2**63 - 1, doc="seed of the bit pairs"))
+
+    def validate(self, where: str) -> None:
+        w, h = self.window_m
+        if not (w > 0 and h > 0 and math.isfinite(w) and math.isfinite(h)):
+            raise ConfigError(f"{where}: window_m = {self.window_m} must be two positive sizes in metres")
+
+    def margin_px(self, gsd_m: float) -> int:
+        return int(math.ceil(self.search_m / gsd_m - 1e-9))
+
+
+def gap_config(**overrides: Any) -> GapConfig:
+    """A validated ``GapConfig`` (unknown keys and out-of-range values are ``ConfigError``)."""
+    return build_config(GapConfig, overrides, where="gap config")
+
+
+# ------------------------------------------------------------------------------------------ one window
+def _luma(image: np.ndarray) -> np.ndarray:
+    arr = np.asarray(image)
+    return arr.astype(np.float32) if arr.ndim == 2 else to_gray(arr)
+
+
+def ncc(a: np.ndarray, b: np.ndarray) -> float:
+    """Pearson correlation of two equal-shape grey images (0 when either is constant)."""
+    x = a.astype(np.float64).ravel() - a.mean()
+    y = b.astype(np.float64).ravel() - b.mean()
+    den = math.sqrt(float(x @ x) * float(y @ y))
+    return float(x @ y / den) if den > 0.0 else 0.0
+
+
+def _pairs(shape: tuple[int, int], n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """``n`` random pixel pairs over a window (flat indices of both points), fixed by ``seed``."""
+    gen = np.random.default_rng(seed)
+    size = shape[0] * shape[1]
+    return gen.integers(0, size, n), gen.integers(0, size, n)
+
+
+def bit_agreement(a: np.ndarray, b: np.ndarray, n_bits: int, seed: int) -> float:
+    """The fraction of random pixel pairs whose intensity order (eq. 2) is the same in ``a`` and ``b``."""
+    p1, p2 = _pairs(a.shape[:2], n_bits, seed)
+    fa, fb = a.ravel(), b.ravel()
+    return float(np.mean((fa[p1] > fa[p2]) == (fb[p1] > fb[p2])))
+
+
+def ncc_surface(camera: np.ndarray, database: np.ndarray) -> np.ndarray:
+    """TM_CCOEFF_NORMED of ``camera`` at every shift inside ``database`` (non-finite values -> 0)."""
+    s = cv2.matchTemplate(database.astype(np.float32), camera.astype(np.float32), cv2.TM_CCOEFF_NORMED)
+    return np.nan_to_num(s, nan=0.0, posinf=0.0, neginf=0.0)
+
+
+def surface_stats(surface: np.ndarray, gsd_m: float, radius_m: float) -> dict[str, float]:
+    """PSR, peak margin and whether the peak is within ``radius_m`` of the surface's centre (the truth)."""
+    h, w = surface.shape
+    i, j = np.unravel_index(int(np.argmax(surface)), surface.shape)
+    peak = float(surface[i, j])
+    yy, xx = np.mgrid[0:h, 0:w]
+    side = surface[np.hypot(yy - i, xx - j) * gsd_m > radius_m]
+    if side.size < 2:
+        raise ConfigError(f"gap: the search surface ({w} x {h} shifts) has no side lobe beyond "
+                          f"{radius_m} m; make search_m larger than success_radius_m")
+    std = float(side.std())
+    within = math.hypot(i - (h - 1) / 2, j - (w - 1) / 2) * gsd_m <= radius_m
+    return {"psr": (peak - float(side.mean())) / std if std > 0 else 0.0,
+            "peak_margin": peak - float(side.max()), "template_within": float(within)}
+
+
+def orb_inlier_ratio(camera: np.ndarray, database: np.ndarray, cfg: GapConfig) -> float:
+    """RANSAC-similarity inliers / ratio-test matches of ORB features (0 without 4 matches or a model)."""
+    detector, norm = make_detector("orb", cfg.orb_features)
+    kc, dc = detector.detectAndCompute(np.clip(camera, 0, 255).astype(np.uint8), None)
+    kd, dd = detector.detectAndCompute(np.clip(database, 0, 255).astype(np.uint8), None)
+    if dc is None or dd is None or len(kc) < 2 or len(kd) < 2:
+        return 0.0
+    good = [m[0] for m in cv2.BFMatcher(norm).knnMatch(dc, dd, k=2)
+            if len(m) == 2 and m[0].distance < cfg.orb_ratio * m[1].distance]
+    if len(good) < 4:
+        return 0.0
+    src = np.float32([kc[m.queryIdx].pt for m in good])
+    dst = np.float32([kd[m.trainIdx].pt for m in good])
+    model, inliers = cv2.estimateAffinePartial2D(src, dst, method=cv2.RANSAC, ransacReprojThreshold=cfg.ransac_px)
+    return 0.0 if model is None else float(inliers.sum()) / len(good)
+
+
+def window_stats(camera: np.ndarray, database: np.ndarray, cfg: GapConfig, gsd_m: float | None = None
+                 ) -> dict[str, float]:
+    """The statistics of one window: ``camera`` (h, w) and ``database`` (h + 2m, w + 2m) with the search
+    margin m = ``cfg.margin_px(gsd_m)`` on every side, both at ``gsd_m`` (default ``cfg.gsd_m``) metres per
+    pixel, RGB or grey."""
+    gsd = cfg.gsd_m if gsd_m is None else gsd_m
+    cam, db = _luma(camera), _luma(database)
+    m = cfg.margin_px(gsd)
+    h, w = cam.shape
+    if db.shape != (h + 2 * m, w + 2 * m):
+        raise ConfigError(f"gap: the database window is {db.shape[1]} x {db.shape[0]} px; with a "
+                          f"{w} x {h} camera window and a {m} px search margin it must be "
+                          f"{w + 2 * m} x {h + 2 * m}")
+    core = db[m:m + h, m:m + w]
+    return {"ncc": ncc(cam, core), "bit_agreement": bit_agreement(cam, core, cfg.n_bits, cfg.seed),
+            **surface_stats(ncc_surface(cam, db), gsd, cfg.success_radius_m),
+            "orb_inlier_ratio": orb_inlier_ratio(cam, db, cfg)}
+
+
+# ------------------------------------------------------------------------------------------ summaries
+def summarize(windows: Sequence[Mapping[str, float]]) -> dict[str, dict[str, float]]:
+    """Per statistic over windows: median, p25, p75, mean and the count."""
+    out = {}
+    for s in STATS:
+        v = np.asarray([w[s] for w in windows], dtype=float)
+        out[s] = {"median": float(np.median(v)), "p25": float(np.percentile(v, 25)),
+                  "p75": float(np.percentile(v, 75)), "mean": float(v.mean()), "n": int(v.size)}
+    return out
+
+
+def headline(summary: Mapping[str, Mapping[str, float]], stat: str) -> float:
+    """The one figure of a statistic: the fraction for ``template_within``, the median otherwise."""
+    return summary[stat]["mean" if stat == "template_within" else "median"]
+
+
+def spread(summaries: Iterable[Mapping[str, Mapping[str, float]]]) -> dict[str, tuple[float, float]]:
+    """The spread of several sources (the real pairs): min..max of their headline figures per statistic."""
+    items = list(summaries)
+    if not items:
+        raise ConfigError("gap: no real pairs to take a spread over")
+    return {s: (min(headline(x, s) for x in items), max(headline(x, s) for x in items)) for s in STATS}
+
+
+# ------------------------------------------------------------------------------------------ real pairs
+def _resample(rgb: np.ndarray, scale: float) -> np.ndarray:
+    if abs(scale - 1.0) < 1e-6:
+        return np.asarray(rgb)
+    h, w = rgb.shape[:2]
+    size = (max(1, round(w * scale)), max(1, round(h * scale)))
+    return cv2.resize(np.asarray(rgb), size, interpolation=cv2.INTER_AREA if scale < 1 else cv2.INTER_LINEAR)
+
+
+def pair_windows(earlier: np.ndarray, later: np.ndarray, cfg: GapConfig, src_gsd_m: float
+                 ) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Tile a co-registered pair (same pixel grid, ``src_gsd_m`` m/px) into (camera, database) windows at
+    the analysis sampling: the later epoch is the camera window, the earlier the database window with the
+    search margin; non-overlapping camera windows on a regular grid that keeps every margin inside."""
+    if earlier.shape[:2] != later.shape[:2]:
+        raise ConfigError(f"gap: the pair's images are {earlier.shape[1]} x {earlier.shape[0]} and "
+                          f"{later.shape[1]} x {later.shape[0]} px; co-registered images share one pixel grid")
+    gsd = max(cfg.gsd_m, src_gsd_m)
+    a, b = _resample(earlier, src_gsd_m / gsd), _resample(later, src_gsd_m / gsd)
+    w, h = round(cfg.window_m[0] / gsd), round(cfg.window_m[1] / gsd)
+    m = cfg.margin_px(gsd)
+    H, W = a.shape[:2]
+    nx, ny = (W - 2 * m) // w, (H - 2 * m) // h
+    if nx < 1 or ny < 1:
+        raise ConfigError(f"gap: the pair covers {W * gsd:.0f} x {H * gsd:.0f} m, too small for one "
+                          f"{cfg.window_m[0]:g} x {cfg.window_m[1]:g} m window plus the +-{cfg.search_m:g} m "
+                          "search; use a smaller window_m")
+    x0, y0 = (W - nx * w) // 2, (H - ny * h) // 2
+    return [(b[y:y + h, x:x + w], a[y - m:y + h + m, x - m:x + w + m])
+            for y in range(y0, y0 + ny * h, h) for x in range(x0, x0 + nx * w, w)]
+
+
+def pair_gap(earlier: str | Path, later: str | Path, cfg: GapConfig | None = None, *,
+             gsd_m: float | None = None) -> list[dict[str, float]]:
+    """The statistics of every window of a co-registered real pair given by path (``gsd_m`` for images
+    without a georeference). Windows touching no-data in either image are left out."""
+    from ..world.io import load_orthomap
+
+    cfg = cfg or GapConfig()
+    kw = {} if gsd_m is None else {"gsd_m": gsd_m}
+    maps = [load_orthomap(p, mmap=False, **kw) for p in (earlier, later)]
+    src = math.sqrt(maps[0].gsd_x_m * maps[0].gsd_y_m)
+    # no-data rides along as a fourth channel (255 = valid), so it is tiled exactly like the pixels
+    imgs = [np.dstack([om.rgb, np.where(om.nodata, 0, 255).astype(np.uint8) if om.nodata is not None
+                       else np.full(om.rgb.shape[:2], 255, np.uint8)]) for om in maps]
+    valid = [(c[..., :3], d[..., :3]) for c, d in pair_windows(imgs[0], imgs[1], cfg, src)
+             if c[..., 3].min() == 255 and d[..., 3].min() == 255]
+    if not valid:
+        raise MapError(f"gap: every window of {earlier} / {later} touches no-data")
+    return [window_stats(c, d, cfg, max(cfg.gsd_m, src)) for c, d in valid]
+
+
+def pairs_in(folder: str | Path) -> list[tuple[Path, Path]]:
+    """The pairs of a folder laid out as ``A/<name>`` (earlier) and ``B/<name>`` (later), sorted by name."""
+    root = Path(folder)
+    a, b = root / "A", root / "B"
+    if not a.is_dir() or not b.is_dir():
+        raise ConfigError(f"gap: {root} must hold A/ (earlier epoch) and B/ (later epoch) image folders")
+    out = [(p, b / p.name) for p in sorted(a.iterdir()) if p.is_file() and (b / p.name).is_file()]
+    if not out:
+        raise ConfigError(f"gap: no image in {a} has a namesake in {b}")
+    return out
+
+
+# ------------------------------------------------------------------------------------------ scenarios
+def scenario_gap(scenario: str, overrides: Mapping[str, Any] | None = None, *, seeds: Sequence[int] = range(5),
+                 stride: int = 20, cfg: GapConfig | None = None) -> list[dict[str, float]]:
+    """The statistics of every ``stride``-th frame of ``seeds`` episodes of ``scenario``: the camera frame
+    against the estimators' database rendered at the frame's true pose."""
+    from ..env import AerialLocEnv, load_scenario
+    from ..sensors.camera import Pose
+    from ..sensors.render import CameraRenderer, Photometry
+
+    cfg = cfg or GapConfig()
+    if stride < 1:
+        raise ConfigError(f"gap: stride = {stride} must be >= 1 (every stride-th frame is measured)")
+    env = AerialLocEnv(load_scenario(scenario, dict(overrides or {})))
+    renderers: dict[int, CameraRenderer] = {}
+    out = []
+    try:
+        for seed in seeds:
+            obs, info = env.reset(seed=int(seed))
+            db = env.briefing.orthomap
+            if id(db) not in renderers:
+                renderers[id(db)] = CameraRenderer(db, env.camera, Photometry.ideal(), strict=False)
+            renderer = renderers[id(db)]
+            step, done = 0, False
+            while True:
+                if step % stride == 0:
+                    pose = Pose(*(float(v) for v in info["true_pose"]))
+                    out.append(_frame_stats(obs["image"], pose, env.camera, renderer, cfg))
+                if done:
+                    break
+                obs, _r, terminated, truncated, info = env.step(np.zeros(2, np.float32))
+                done = terminated or truncated
+                step += 1
+    finally:
+        env.close()
+    return out
+
+
+def _frame_stats(image: np.ndarray, pose: Any, camera: Any, renderer: Any, cfg: GapConfig) -> dict[str, float]:
+    fw, fh = camera.footprint_m(pose.altitude_m)
+    gsd = max(cfg.gsd_m, camera.gsd_m(pose.altitude_m))
+    w, h = max(8, round(fw / gsd)), max(8, round(fh / gsd))
+    m = cfg.margin_px(gsd)
+    small = camera.resized(w, h)
+    affine = renderer.camera_to_map(pose, small)
+    affine[:, 2] -= affine[:, :2] @ np.array([m, m], dtype=np.float64)
+    database = renderer.warp_map(affine, (w + 2 * m, h + 2 * m))
+    cam = cv2.resize(np.asarray(image), (w, h), interpolation=cv2.INTER_AREA)
+    return window_stats(cam, database, cfg, gsd)
+
+
+# ------------------------------------------------------------------------------------------ report
+def _cell(summary: Mapping[str, Mapping[str, float]], stat: str, inside: bool | None) -> str:
+    s = summary[stat]
+    mark = "" if inside is None else (" *" if inside else "")
+    if stat == "template_within":
+        return f"{s['mean']:.0%}{mark}"
+    digits = 1 if stat == "psr" else 2
+    return f"{s['median']:.{digits}f} ({s['p25']:.{digits}f}-{s['p75']:.{digits}f}){mark}"
+
+
+def gap_table(rows: Sequence[tuple[str, Mapping[str, Mapping[str, float]]]],
+              real: Mapping[str, tuple[float, float]] | None = None, *, unmarked: Iterable[str] = ()) -> str:
+    """A Markdown table: one row per source (label, summary), median (p25-p75) per statistic (the fraction
+    for template matching); with ``real`` (the real pairs' spread) a spread row, and '*' marks a figure
+    inside it (except on the ``unmarked`` rows: the real pairs themselves)."""
+    unmarked = set(unmarked)
+    head = "| source | windows | " + " | ".join(TITLES[s] for s in STATS) + " |"
+    lines = [head, "|" + "---|" * (len(STATS) + 2)]
+    for label, summary in rows:
+        cells = []
+        for s in STATS:
+            inside = None if real is None or label in unmarked else \
+                real[s][0] <= headline(summary, s) <= real[s][1]
+            cells.append(_cell(summary, s, inside))
+        lines.append(f"| {label} | {summary[STATS[0]]['n']} | " + " | ".join(cells) + " |")
+    if real is not None:
+        def rng_cell(s: str) -> str:
+            lo, hi = real[s]
+            return f"{lo:.0%}-{hi:.0%}" if s == "template_within" else f"{lo:.2f}-{hi:.2f}"
+        lines.append("| **real pairs: spread** | | " + " | ".join(rng_cell(s) for s in STATS) + " |")
+    return "\n".join(lines)
+
+
+def _parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog="aerial-loc gap", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("scenarios", nargs="*", metavar="SCENARIO",
+                    help="scenario ids (or short names) to measure: camera frame vs database at the true pose")
+    ap.add_argument("--pair", nargs=2, action="append", default=[], metavar=("EARLIER", "LATER"),
+                    help="a co-registered real pair by path (repeatable)")
+    ap.add_argument("--pairs-dir", action="append", default=[], metavar="DIR",
+                    help="a folder of pairs laid out as DIR/A/<name> (earlier) and DIR/B/<name> (later)")
+    ap.add_argument("--pair-gsd", type=float, metavar="M",
+                    help="ground metres per pixel of pair images without a georeference (LEVIR-CD: 0.5)")
+    ap.add_argument("--seeds", type=int, default=5, help="episodes per scenario (seeds 0..N-1; default 5)")
+    ap.add_argument("--stride", type=int, default=20, help="measure every N-th frame (default 20)")
+    ap.add_argument("--gsd", type=float, default=0.5, help="analysis ground sampling, m/px (default 0.5)")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="a scenario override for every scenario (JSON value), e.g. flight.altitude_m=150")
+    ap.add_argument("--json", metavar="PATH", help="also write every summary and window as JSON ('-': stdout)")
+    return ap
+
+
+def _overrides(items: Sequence[str]) -> dict[str, Any]:
+    out = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            raise ConfigError(f"gap: --set {item!r} must look like KEY=VALUE (e.g. flight.altitude_m=150)")
+        try:
+            out[key] = json.loads(value)
+        except json.JSONDecodeError:
+            out[key] = value
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = _parser()
+    args = ap.parse_args(argv)
+    pairs = [(Path(a), Path(b)) for a, b in args.pair]
+    for folder in args.pairs_dir:
+        pairs += pairs_in(folder)
+    if not args.scenarios and not pairs:
+        ap.error("give at least one SCENARIO, --pair or --pairs-dir "
+                 "(e.g. aerial-loc gap AerialLoc/PaperShadows-v0 --pairs-dir ../shared/data/pairs/levir-cd "
+                 "--pair-gsd 0.5)")
+    if args.seeds < 1:
+        ap.error("--seeds must be >= 1")
+    cfg = gap_config(gsd_m=args.gsd)
+    result: dict[str, Any] = {"config": asdict(cfg), "pairs": {}, "scenarios": {}}
+    rows: list[tuple[str, Mapping]] = []
+    for a, b in pairs:
+        windows = pair_gap(a, b, cfg, gsd_m=args.pair_gsd)
+        label = f"{a.parent.parent.name}/{a.name}" if a.parent.name == "A" else f"{a.name} -> {b.name}"
+        summary = summarize(windows)
+        result["pairs"][label] = {"earlier": str(a), "later": str(b), "summary": summary, "windows": windows}
+        rows.append((label, summary))
+    real = spread(s["summary"] for s in result["pairs"].values()) if pairs else None
+    overrides = _overrides(args.set)
+    for sid in args.scenarios:
+        windows = scenario_gap(sid, overrides, seeds=range(args.seeds), stride=args.stride, cfg=cfg)
+        summary = summarize(windows)
+        result["scenarios"][sid] = {"overrides": overrides, "seeds": args.seeds, "stride": args.stride,
+                                    "summary": summary, "windows": windows}
+        rows.append((sid, summary))
+    if real is not None:
+        result["real_spread"] = {s: list(v) for s, v in real.items()}
+    print(gap_table(rows, real, unmarked=result["pairs"]))
+    print(f"\nmedian (p25-p75) over windows at {cfg.gsd_m:g} m/px, +-{cfg.search_m:g} m search; "
+          "template <= 2 m: fraction of windows" + ("; * = inside the real pairs' spread" if real else ""))
+    if args.json:
+        text = json.dumps(result, indent=1, sort_keys=True)
+        if args.json == "-":
+            print(text)
+        else:
+            from ..paths import atomic_write_bytes
+
+            if Path(args.json).exists():
+                raise ConfigError(f"gap: --json {args.json} exists; give a new path (results are never "
+                                  "overwritten)")
+            atomic_write_bytes(Path(args.json), (text + "\n").encode())
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())
