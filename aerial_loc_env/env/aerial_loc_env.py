@@ -113,18 +113,29 @@ def load_map(scenario: Scenario) -> Any:
     return _MAPS[key]
 
 
-def database_map(orthomap: Any, shadows: Any) -> Any:
+def database_map(orthomap: Any, shadows: Any, acquisition: Any = None) -> Any:
     """What the estimators get as the map: the scene itself (shadow-free), or, with
-    ``shadows.database_sun_deg``, a copy with the shadows of that other sun baked in (time-of-day mismatch).
-    Baked once per process, map and shadow config."""
-    if shadows.database_sun_deg is None:
+    ``shadows.database_sun_deg``, a copy with the shadows of that other sun baked in (time-of-day mismatch),
+    then, with a ``[database]`` acquisition model that is not the identity, as that sensor acquired it (colour,
+    sampling, blur, JPEG, haze, building lean, georeference bias; ``world/acquisition.py``).
+    Built once per process, map, shadow and acquisition config."""
+    plain = acquisition is None or acquisition.is_identity
+    if shadows.database_sun_deg is None and plain:
         return orthomap
-    key = ("database", id(orthomap), repr(shadows))
+    key = ("database", id(orthomap), repr(shadows), repr(acquisition))
     if key not in _MAPS:
         import dataclasses
 
         rgb = shadows.database_image(orthomap.rgb, orthomap.dsm_m, orthomap.gsd_x_m, orthomap.gsd_y_m)
-        _MAPS[key] = dataclasses.replace(orthomap, rgb=rgb, name=f"{orthomap.name}-database")
+        layers: dict[str, Any] = {}
+        if not plain:
+            from ..world.acquisition import acquire, acquire_layer
+
+            gx, gy = orthomap.gsd_x_m, orthomap.gsd_y_m
+            rgb = acquire(rgb, orthomap.dsm_m, gx, gy, acquisition)
+            layers = {name: acquire_layer(getattr(orthomap, name), gx, gy, acquisition)
+                      for name in ("dsm_m", "classes", "nodata") if getattr(orthomap, name) is not None}
+        _MAPS[key] = dataclasses.replace(orthomap, rgb=rgb, name=f"{orthomap.name}-database", **layers)
     return _MAPS[key]
 
 
@@ -166,7 +177,7 @@ class AerialLocEnv(gym.Env):
         self.render_mode = render_mode
         self.metadata = {**self.metadata, "render_fps": sc.flight.rate_hz}
         self.orthomap = load_map(sc)
-        self.database = database_map(self.orthomap, sc.shadows)
+        self.database = database_map(self.orthomap, sc.shadows, sc.database)
         sensor: CameraModel = sc.camera
         obs = sc.observation
         w = obs.width_px or sensor.width_px

@@ -11,6 +11,7 @@ that map to frozen dataclasses through ``aerial_loc_env.config.build_config``:
 ``[camera]``            ``aerial_loc_env.sensors.camera.CameraModel`` (the sensor)
 ``[odometry]``          ``aerial_loc_env.env.briefing.OdometryNoise``
 ``[shadows]``           ``aerial_loc_env.world.shadows.ShadowConfig``
+``[database]``          ``aerial_loc_env.world.acquisition.AcquisitionConfig`` (how the map was acquired)
 ``[photometry]``        ``aerial_loc_env.sensors.render.Photometry`` (exposure, noise, vignetting, blur)
 ``[observation]``       ``ObservationConfig``: the observation image size (the camera image resized)
 ``[episode]``           ``EpisodeConfig``: start mode, prior, failure rule
@@ -124,6 +125,7 @@ SECTIONS: dict[str, Any] = {
     "camera": _lazy("..sensors.camera", "CameraModel"),
     "odometry": _lazy(".briefing", "OdometryNoise"),
     "shadows": _lazy("..world.shadows", "ShadowConfig"),
+    "database": _lazy("..world.acquisition", "AcquisitionConfig"),
     "photometry": _lazy("..sensors.render", "Photometry"),
     "observation": lambda: ObservationConfig,
     "episode": lambda: EpisodeConfig,

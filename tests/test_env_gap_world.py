@@ -1,0 +1,63 @@
+"""The env's world and database under the appearance-gap sections: [database] (acquisition) and [epoch].
+
+Off by default: the existing ids keep their episodes bit for bit (the database *is* the scene, the camera world
+*is* the cached city); turned on, the database differs from the camera's world as the section says.
+"""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+import aerial_loc_env  # noqa: F401  (registers the scenarios)
+from aerial_loc_env.env.aerial_loc_env import load_map
+
+SMALL = "AerialLoc/Small-v0"
+SHORT = {"duration_s": 3.0}
+
+
+def _episode(env, seed: int) -> list[np.ndarray]:
+    obs, _ = env.reset(seed=seed)
+    frames = [obs["image"].copy()]
+    while True:
+        obs, _, term, trunc, _ = env.step(np.zeros(2, np.float32))
+        frames.append(obs["image"].copy())
+        if term or trunc:
+            return frames
+
+
+def test_defaults_keep_the_scene_as_database_and_world():
+    env = gym.make(SMALL, **SHORT).unwrapped
+    city = load_map(env.scenario)
+    assert env.database is city and env.orthomap is city
+    explicit = gym.make(SMALL, **SHORT, database={"lean_deg": 0.0, "haze": 0.0, "georef_bias_m": [0.0, 0.0]}).unwrapped
+    assert explicit.database is city
+    for a, b in zip(_episode(env, 3), _episode(explicit, 3), strict=True):
+        assert np.array_equal(a, b)
+
+
+def test_acquisition_section_changes_only_the_database():
+    plain = gym.make(SMALL, **SHORT).unwrapped
+    acq = gym.make(SMALL, **SHORT, database={"gsd_m": 1.0, "jpeg_quality": 60, "haze": 0.15,
+                                             "georef_bias_m": [3.0, -2.0], "lean_deg": 12.0,
+                                             "lean_azimuth_deg": 250.0}).unwrapped
+    assert acq.orthomap is plain.orthomap                     # the camera's world is untouched
+    assert acq.database is not acq.orthomap
+    assert acq.database.rgb.shape == acq.orthomap.rgb.shape
+    assert acq.database.georef.to_dict() == acq.orthomap.georef.to_dict()       # the *stated* georeference
+    diff = np.abs(acq.database.rgb.astype(np.int16) - acq.orthomap.rgb.astype(np.int16)).mean()
+    assert diff > 5.0
+    # the layers carry the same bias: at 0.5 m/px, 6 px east and 4 px south of the truth
+    c0, c1 = acq.orthomap.classes, acq.database.classes
+    assert np.array_equal(c1[40:-40, 40:-40], c0[36:-44, 34:-46])
+    for a, b in zip(_episode(plain, 5), _episode(acq, 5), strict=True):   # same camera frames
+        assert np.array_equal(a, b)
+    assert acq.briefing.orthomap is acq.database
+
+
+def test_acquisition_errors_name_the_field():
+    from aerial_loc_env.errors import ConfigError
+
+    with pytest.raises(ConfigError, match=r"database.*lean_deg"):
+        gym.make(SMALL, database={"lean_deg": 75.0})
