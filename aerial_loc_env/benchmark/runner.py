@@ -58,13 +58,19 @@ def resolve_agent(entry: AgentEntry) -> dict[str, Any]:
 
 
 def resolve_scenario(entry: ScenarioEntry) -> dict[str, Any]:
-    """The full validated scenario spec of ``entry`` (every section with every default), as a plain dict."""
+    """The full validated scenario spec of ``entry`` (every section with every default), as a plain dict,
+    with the simulator's ``generators`` versions and the ``fingerprint`` of both (``env.fingerprint``)."""
     import aerial_loc_env  # noqa: F401  (registers the scenarios)
 
     from ..env import load_scenario
+    from ..env.fingerprint import fingerprint, generator_versions
 
     out = load_scenario(entry.id, entry.overrides).to_dict()
     out.pop("description", None)
+    # the generation of the simulator is part of the trial key: a resumed run never mixes generations
+    versions = generator_versions()
+    out["fingerprint"] = fingerprint(out, versions)
+    out["generators"] = versions
     return out
 
 

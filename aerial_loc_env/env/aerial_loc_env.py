@@ -160,7 +160,17 @@ def _coarse_dsm(orthomap: Any, factor: int) -> np.ndarray:
 
 
 class AerialLocEnv(gym.Env):
-    """See the module docstring. Build with ``gym.make("AerialLoc/<Name>-v0", **overrides)``."""
+    """See the module docstring. Build with ``gym.make("AerialLoc/<Name>-v0", **overrides)``.
+
+    ## Version History
+
+    An id's version is bumped whenever what it renders changes for the same seed (a new generator, a changed
+    spec); the benchmark's trial keys also carry the generator versions (``env.fingerprint``), so rows of two
+    generations never mix.
+
+    * v0: the paper's setting (``PaperShadows``, ``PaperNoShadows``, ...): shadow-free database, the camera is
+      the map plus shadows and sensor effects, city generator 4.
+    """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 4}
 

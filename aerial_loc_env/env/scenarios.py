@@ -1,6 +1,7 @@
 """Scenarios: one TOML spec per registered Gymnasium id, read at ``import aerial_loc_env``.
 
-A spec (``envs/<name>.toml``) has a top-level ``id`` (``AerialLoc/<Name>-v0``) and ``description``, and sections
+A spec (``envs/<name>.toml``) has a top-level ``id`` (``AerialLoc/<Name>-v<N>``, the version bumped whenever the
+scenario's behaviour changes: see the Version History of ``AerialLocEnv``) and ``description``, and sections
 that map to frozen dataclasses through ``aerial_loc_env.config.build_config``:
 
 ======================  =====================================================================
@@ -34,6 +35,7 @@ import argparse
 import dataclasses
 import importlib
 import json
+import re
 import sys
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -195,8 +197,9 @@ def build_scenario(spec: Mapping[str, Any], overrides: Mapping[str, Any] | None 
         raise ConfigError(f"{where}: unknown key(s) {', '.join(map(repr, unknown))}; "
                           f"allowed: {', '.join(TOP_KEYS + tuple(SECTIONS))}")
     sid = spec.get("id")
-    if not isinstance(sid, str) or not sid.startswith(f"{NAMESPACE}/") or not sid.endswith("-v0"):
-        raise ConfigError(f"{where}: 'id' = {sid!r} must look like '{NAMESPACE}/<Name>-v0'")
+    if not isinstance(sid, str) or not re.fullmatch(rf"{NAMESPACE}/[A-Za-z0-9_]+-v\d+", sid):
+        raise ConfigError(f"{where}: 'id' = {sid!r} must look like '{NAMESPACE}/<Name>-v<version>' "
+                          "(e.g. 'AerialLoc/Small-v0'; bump the version when the scenario's behaviour changes)")
     extra = split_overrides(overrides or {}, where=f"{sid} overrides")
     sections = {}
     for name, cls_fn in SECTIONS.items():

@@ -1,0 +1,47 @@
+"""Which generation of the simulator a result came from: generator versions and a scenario fingerprint.
+
+A scenario id names a *setting*; what the env renders for it also depends on the code that generates the world
+and the frames (the city generator changed four times under the same ids). Every module of ``world/`` and
+``sensors/`` whose output is data (a map, an epoch, an acquisition, a camera model) declares an integer
+``GENERATOR_VERSION`` and bumps it whenever its output changes for the same inputs; ``generator_versions``
+collects them all (a new module that declares one joins without being listed anywhere).
+``scenario_fingerprint`` hashes them with the fully resolved spec: the benchmark puts it in every trial key,
+so a resumed run can never mix rows of two generations (docs/ARCHITECTURE.md, "Versions").
+"""
+
+from __future__ import annotations
+
+import hashlib
+import importlib
+import json
+import pkgutil
+from typing import Any
+
+#: the packages whose modules may declare GENERATOR_VERSION
+GENERATOR_PACKAGES = ("aerial_loc_env.world", "aerial_loc_env.sensors")
+
+
+def generator_versions() -> dict[str, int]:
+    """``{"world.city": 4, ...}``: the ``GENERATOR_VERSION`` of every world/sensors module declaring one."""
+    out: dict[str, int] = {}
+    for package in GENERATOR_PACKAGES:
+        pkg = importlib.import_module(package)
+        for info in pkgutil.iter_modules(pkg.__path__):
+            module = importlib.import_module(f"{package}.{info.name}")
+            version = getattr(module, "GENERATOR_VERSION", None)
+            if version is not None:
+                out[f"{package.rsplit('.', 1)[1]}.{info.name}"] = int(version)
+    return dict(sorted(out.items()))
+
+
+def fingerprint(spec: dict[str, Any], versions: dict[str, int] | None = None) -> str:
+    """A short hash of a resolved scenario spec (its description left out) and the generator versions."""
+    body = {k: v for k, v in spec.items() if k != "description"}
+    blob = json.dumps({"spec": body, "generators": generator_versions() if versions is None else versions},
+                      sort_keys=True, default=str)
+    return hashlib.sha256(blob.encode()).hexdigest()[:16]
+
+
+def scenario_fingerprint(scenario: Any) -> str:
+    """The fingerprint of a ``Scenario`` (``env.scenarios``): its resolved spec and today's generators."""
+    return fingerprint(scenario.to_dict())
