@@ -15,7 +15,7 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
-from ..perf import machine
+from ..sysinfo import machine
 from .grid import Grid, ScenarioEntry, available_experiments, load_grid
 from .report import markdown_report, paper_sections, summarize, summary_table
 from .runner import run_grid

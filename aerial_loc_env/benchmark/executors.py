@@ -12,7 +12,7 @@ from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 
 from ..errors import ConfigError, require_extra
-from .runner import EpisodeTask, run_episode
+from .episodes import EpisodeTask, run_episode
 
 OnResult = Callable[[tuple[list[dict], list[dict]]], None]
 

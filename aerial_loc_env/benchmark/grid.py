@@ -40,6 +40,8 @@ else:  # pragma: no cover
 
 EXPERIMENT_DIR = Path(__file__).resolve().parent / "experiments"
 PLOTS = ("error_vs_time", "track", "likelihood", "shadow_pairs")  # plus "rmse_vs_<param>"
+#: the paper's tables an experiment may ask for (``paper = [...]``); report.PAPER_SECTIONS builds each
+PAPER_SECTION_NAMES = ("table5", "table9", "sweeps", "global")
 
 
 def nest_params(params: Mapping[str, Any]) -> dict[str, Any]:
@@ -214,12 +216,10 @@ def grid_from_dict(data: Mapping[str, Any], where: str = "experiment") -> Grid:
     bad = [p for p in plots if p not in PLOTS and not p.startswith("rmse_vs_")]
     if bad:
         raise ConfigError(f"{where}: unknown plot(s) {bad}; use {', '.join(PLOTS)} or rmse_vs_<parameter>")
-    from .report import PAPER_SECTIONS
-
     paper = tuple(data.get("paper", ()))
-    bad = [p for p in paper if p not in PAPER_SECTIONS]
+    bad = [p for p in paper if p not in PAPER_SECTION_NAMES]
     if bad:
-        raise ConfigError(f"{where}: unknown paper section(s) {bad}; use {', '.join(PAPER_SECTIONS)}")
+        raise ConfigError(f"{where}: unknown paper section(s) {bad}; use {', '.join(PAPER_SECTION_NAMES)}")
     converge = float(data.get("converge_threshold_m", 10.0))
     diverge = float(data.get("diverge_threshold_m", 50.0))
     if not 0.0 < converge <= diverge:

@@ -126,7 +126,7 @@ def track_plot(scenario: ScenarioEntry, seed: int, agent: AgentEntry, path: Path
     frame's ground-truth shadow (its outline projected onto the map)."""
     import cv2
 
-    from .runner import record_episode
+    from .episodes import record_episode
 
     plt = _plt()
     rec = record_episode(scenario, seed, agent)
@@ -179,14 +179,15 @@ def likelihood_surface(agent: AgentEntry, scenario: ScenarioEntry, seed: int, *,
                        step_m: float = 1.0, frame: int | None = None) -> dict[str, Any] | None:
     """The agent's measurement model's log-likelihood on a grid of positions around the true pose (true yaw
     and altitude) for one frame (default: the middle of the episode); None for agents without one."""
+    from ..estimators.episode import oracle_info, uses_ground_truth
     from ..estimators.registry import make_agent
-    from .runner import make_benchmark_env
+    from .episodes import make_benchmark_env
 
     ag = make_agent(agent.name, **agent.params)
     model = getattr(ag, "measurement", None)
     if model is None:
         return None
-    env = make_benchmark_env(scenario, shadow_mask=bool(getattr(model, "uses_ground_truth", False)))
+    env = make_benchmark_env(scenario, shadow_mask=uses_ground_truth(model))
     obs, info = env.reset(seed=seed)
     n_frames = int(round(env.scenario.flight.duration_s * env.scenario.flight.rate_hz))
     target = n_frames // 2 if frame is None else frame
@@ -196,7 +197,7 @@ def likelihood_surface(agent: AgentEntry, scenario: ScenarioEntry, seed: int, *,
             break
     rng = np.random.default_rng(seed)
     model.reset(env.briefing, rng)
-    prepared = model.prepare(obs, rng, info if getattr(model, "uses_ground_truth", False) else None)
+    prepared = model.prepare(obs, rng, oracle_info(model, info))
     x, y, yaw, alt = (float(v) for v in info["true_pose"])
     offs = np.arange(-radius_m, radius_m + step_m / 2, step_m)
     gx, gy = np.meshgrid(x + offs, y + offs)
@@ -212,7 +213,7 @@ def likelihood_surface(agent: AgentEntry, scenario: ScenarioEntry, seed: int, *,
 
 def most_shadowed_frame(scenario: ScenarioEntry, seed: int) -> int:
     """The index of the episode's frame with the largest ground-truth shadow fraction."""
-    from .runner import make_benchmark_env
+    from .episodes import make_benchmark_env
 
     env = make_benchmark_env(scenario)
     _obs, info = env.reset(seed=seed)

@@ -12,7 +12,7 @@ from collections.abc import Callable, Iterable, Sequence
 
 import numpy as np
 
-from .grid import param_value
+from .grid import PAPER_SECTION_NAMES, param_value
 
 # Choi & Park (2020), Table 5 (RMSE [m], simulation with shadows, N = 700, 100 trials).
 PAPER_TABLE5 = {
@@ -257,9 +257,9 @@ def global_table(rows: Sequence[dict]) -> str:
     return "\n".join(lines) + "\n"
 
 
-#: paper-section name -> builder; experiment specs list the ones they reproduce (``paper = [...]``)
-PAPER_SECTIONS: dict[str, Callable[[Sequence[dict]], str]] = {
-    "table5": table5, "table9": table9, "sweeps": sweep_tables, "global": global_table}
+#: paper-section name (grid.PAPER_SECTION_NAMES, which experiment specs list) -> builder
+PAPER_SECTIONS: dict[str, Callable[[Sequence[dict]], str]] = dict(zip(
+    PAPER_SECTION_NAMES, (table5, table9, sweep_tables, global_table), strict=True))
 
 
 def paper_sections(names: Iterable[str], rows: Sequence[dict]) -> list[str]:

@@ -1,46 +1,24 @@
-"""Run a grid: each episode is rendered once and every agent of the grid runs on it in lockstep.
+"""Run a grid: resolve its specs, plan the episodes still to run, hand them to an executor, store the rows.
 
-The unit of work is one (scenario, seed) episode with the agents that still lack a row for it, so that
-resuming after an interruption re-renders only what is needed and never repeats a finished trial.
-
-Every agent sees the same frames (read-only views: an agent that writes into its observation fails loudly
-instead of corrupting its neighbours'). The env's early-failure termination is switched off for benchmark
-episodes (it would depend on whichever agent's estimate is passed as the action), so every trial runs to the
-end of the track; the action passed is the first agent's estimate, clipped to the map. Agents are reset with
-the episode's seed, so a trial is fully determined by (agent spec, scenario spec, seed).
+Each episode is rendered once and every agent of the grid runs on it in lockstep (``episodes.run_episode``);
+a re-run plans only the trials without a row, so an interrupted run resumes where it stopped.
 """
 
 from __future__ import annotations
 
 import json
-import math
 import sys
 import time
-import traceback
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-import numpy as np
-
-from .. import __version__
 from ..errors import ConfigError
+from .episodes import EpisodeTask, run_episode
+from .executors import get_executor
 from .grid import AgentEntry, Grid, ScenarioEntry
-from .metrics import MetricConfig, trial_metrics
+from .metrics import MetricConfig
 from .store import TrialStore, trial_key, write_summaries
-
-
-@dataclass(frozen=True)
-class EpisodeTask:
-    """One episode to render and the agents (with their trial keys) to run on it."""
-
-    scenario: ScenarioEntry
-    seed: int
-    agents: tuple[AgentEntry, ...]
-    keys: tuple[str, ...]
-    metric: MetricConfig
-    agent_configs: tuple[dict, ...] = ()   # the resolved specs (stored in each row, so any row can be re-run)
-    scenario_config: dict | None = None
 
 
 # ----------------------------------------------------------------------------------------- spec resolution
@@ -76,158 +54,6 @@ def resolve_scenario(entry: ScenarioEntry) -> dict[str, Any]:
 
 def _jsonable(value: Any) -> Any:
     return json.loads(json.dumps(value, sort_keys=True, default=str))
-
-
-# ----------------------------------------------------------------------------------------- one episode
-_ENV_CACHE: dict[str, Any] = {}
-
-
-def make_benchmark_env(scenario: ScenarioEntry, *, shadow_mask: bool = False) -> Any:
-    """The env of ``scenario`` for benchmark episodes: failure termination off (every trial runs to the end);
-    ``shadow_mask`` adds the ground-truth mask to ``info`` (oracles, plots). Cached per process."""
-    import aerial_loc_env  # noqa: F401
-
-    from ..env import AerialLocEnv, load_scenario
-
-    overrides = dict(scenario.overrides)
-    sc = load_scenario(scenario.id, overrides)
-    if sc.episode.failure_error_m > 0.0:
-        overrides["episode.failure_error_m"] = 0.0
-    if shadow_mask and not sc.observation.info_shadow_mask:
-        overrides["observation.info_shadow_mask"] = True
-    cache_key = json.dumps({"id": scenario.id, "o": overrides}, sort_keys=True, default=str)
-    env = _ENV_CACHE.get(cache_key)
-    if env is None:
-        if len(_ENV_CACHE) >= 4:
-            _ENV_CACHE.pop(next(iter(_ENV_CACHE))).close()
-        env = _ENV_CACHE[cache_key] = AerialLocEnv(load_scenario(scenario.id, overrides))
-    return env
-
-
-def _read_only(obs: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
-    out = {}
-    for k, v in obs.items():
-        view = np.asarray(v).view()
-        view.flags.writeable = False
-        out[k] = view
-    return out
-
-
-def run_episode(task: EpisodeTask) -> tuple[list[dict], list[dict]]:
-    """Render one episode and run every agent of ``task`` on it.
-
-    Returns (rows, failures): one row per agent that finished, one failure record per agent that raised
-    (the others go on; a failure is not a finished trial, so a re-run tries it again).
-    """
-    from ..env import world_to_action
-    from ..estimators.registry import make_agent
-
-    agents = [make_agent(a.name, **a.params) for a in task.agents]
-    n = len(agents)
-    alive = [True] * n
-    failures: list[dict] = []
-    errors: list[list[float]] = [[] for _ in range(n)]
-    step_times: list[list[float]] = [[] for _ in range(n)]
-    # CPU seconds of this thread (the workers run one numeric thread each): unlike wall time, not inflated by
-    # other load on the machine. thread_time, not process_time: that one costs 0.1-5 ms a call on some VMs.
-    cpu_times = [0.0] * n
-    env_cpu_s = 0.0
-    shadow_pairs: list[list[float]] = [[] for _ in range(n)]
-    t_s: list[float] = []
-    shadow_fraction: list[float] = []
-
-    def fail(i: int, stage: str, exc: BaseException) -> None:
-        alive[i] = False
-        failures.append({"key": task.keys[i], "agent": task.agents[i].display,
-                         "scenario": task.scenario.display, "seed": task.seed, "stage": stage,
-                         "error": f"{type(exc).__name__}: {exc}", "traceback": traceback.format_exc(limit=8)})
-
-    oracle = any(getattr(a, "uses_ground_truth", False) for a in agents)
-    try:
-        env = make_benchmark_env(task.scenario, shadow_mask=oracle)
-        obs, info = env.reset(seed=task.seed)
-    except Exception as exc:  # noqa: BLE001 (a bad episode fails its trials, not the whole grid)
-        for i in range(n):
-            fail(i, "env reset", exc)
-        return [], failures
-    briefing = env.briefing
-    for i, agent in enumerate(agents):
-        try:
-            agent.reset(briefing, seed=task.seed)
-        except Exception as exc:  # noqa: BLE001 (one broken agent must not sink the others' trials)
-            fail(i, "reset", exc)
-
-    def step_all(obs: Mapping[str, np.ndarray], info: Mapping[str, Any]) -> np.ndarray:
-        """Every live agent estimates on this frame; returns the action (the first agent's estimate)."""
-        truth = info["true_pose"]
-        t_s.append(float(info.get("time_s", len(t_s) * briefing.dt_s)))
-        shadow_fraction.append(float(info.get("shadow_fraction", 0.0)))
-        frame = _read_only(obs)
-        action = None
-        for i, agent in enumerate(agents):
-            if not alive[i]:
-                continue
-            try:
-                c0 = time.thread_time()
-                t0 = time.perf_counter()
-                est = agent.step(frame, info if getattr(agent, "uses_ground_truth", False) else None)
-                step_times[i].append(time.perf_counter() - t0)
-                cpu_times[i] += time.thread_time() - c0
-            except Exception as exc:  # noqa: BLE001
-                fail(i, f"step {len(t_s) - 1}", exc)
-                continue
-            errors[i].append(math.hypot(est.x_m - truth[0], est.y_m - truth[1]))
-            stats = est.extras.get("stats", {}) if est.extras else {}
-            k = stats.get("num_pairs", stats.get("K"))
-            if "shadow_pairs" in stats and k:
-                shadow_pairs[i].append(stats["shadow_pairs"] / k)
-            if action is None:
-                action = world_to_action(briefing.orthomap, est.x_m, est.y_m)
-        if action is None:
-            return np.zeros(2, np.float32)
-        return np.clip(np.asarray(action, np.float32), -1.0, 1.0)
-
-    done = False
-    while any(alive):
-        action = step_all(obs, info)  # the last frame is an observation too: agents estimate on it
-        if done:
-            break
-        c0 = time.thread_time()
-        try:
-            obs, _reward, terminated, truncated, info = env.step(action)
-        except Exception as exc:  # noqa: BLE001
-            for i in range(n):
-                if alive[i]:
-                    fail(i, f"env step {len(t_s)}", exc)
-            break
-        env_cpu_s += time.thread_time() - c0
-        done = terminated or truncated
-    rows = []
-    t_arr = np.asarray(t_s)
-    for i, entry in enumerate(task.agents):
-        if not alive[i]:
-            continue
-        m = trial_metrics(np.asarray(errors[i]), t_arr, np.asarray(step_times[i]), task.metric)
-        rows.append({
-            "key": task.keys[i],
-            "agent": entry.display,
-            "scenario": task.scenario.display,
-            "seed": task.seed,
-            "agent_spec": entry.spec(),
-            "scenario_spec": task.scenario.spec(),
-            "agent_config": task.agent_configs[i] if task.agent_configs else None,
-            "scenario_config": task.scenario_config,
-            "version": __version__,
-            **m,
-            "cpu_time_total_s": cpu_times[i],
-            "episode_render_cpu_s": env_cpu_s,
-            "shadow_pairs_normalized": float(np.mean(shadow_pairs[i])) if shadow_pairs[i] else float("nan"),
-            "shadow_fraction_mean": float(np.mean(shadow_fraction)),
-            "t_s": [round(x, 4) for x in t_s],
-            "errors_m": [round(float(x), 4) for x in errors[i]],
-            "shadow_pairs_series": [round(float(x), 4) for x in shadow_pairs[i]],
-        })
-    return rows, failures
 
 
 # ----------------------------------------------------------------------------------------- the grid
@@ -305,8 +131,6 @@ def run_grid(grid: Grid, out_dir: str, *, workers: int = 1, executor: str | Exec
     logged in ``failures.jsonl`` (and retried by a re-run). Raises ``ConfigError`` up front for a bad agent
     or scenario spec, before any rendering.
     """
-    from .executors import get_executor
-
     store = TrialStore(out_dir)
     resolved = resolve_grid(grid)
     keys = resolved.keys
@@ -358,31 +182,3 @@ def rerun_row(row: Mapping[str, Any]) -> dict:
     if failures:
         raise ConfigError(f"re-running trial {row['key']} failed: {failures[0]['error']}")
     return rows[0]
-
-
-# ----------------------------------------------------------------------------------------- recorded episodes
-def record_episode(scenario: ScenarioEntry, seed: int, agent: AgentEntry) -> dict[str, Any]:
-    """One agent on one episode, keeping what the track figure needs: the true and estimated tracks, the
-    final particles and weights, the last frame's ground-truth shadow mask, pose and the env (for the map)."""
-    from ..estimators.registry import make_agent
-
-    env = make_benchmark_env(scenario, shadow_mask=True)
-    obs, info = env.reset(seed=seed)
-    ag = make_agent(agent.name, **agent.params)
-    ag.reset(env.briefing, seed=seed)
-    truth: list[np.ndarray] = []
-    est_xy: list[tuple[float, float]] = []
-    done = False
-    while True:
-        est = ag.step(_read_only(obs), info if getattr(ag, "uses_ground_truth", False) else None)
-        truth.append(np.asarray(info["true_pose"], float))
-        est_xy.append((est.x_m, est.y_m))
-        if done:
-            break
-        obs, _r, terminated, truncated, info = env.step(np.zeros(2, np.float32))
-        done = terminated or truncated
-    extras = est.extras or {}
-    return {"env": env, "truth": np.array(truth), "estimates": np.array(est_xy),
-            "particles": extras.get("particles"), "weights": extras.get("weights"),
-            "shadow_mask": info.get("shadow_mask"), "image": obs["image"], "info": info,
-            "briefing": env.briefing}

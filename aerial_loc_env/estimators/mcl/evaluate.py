@@ -25,11 +25,15 @@ import numpy as np
 def run_episodes(scenario: str, agents: Sequence[str], seeds: Sequence[int], *, overrides: dict | None = None,
                  agent_overrides: dict[str, dict] | None = None, detector_quality: bool = True,
                  max_steps: int | None = None) -> dict[str, Any]:
-    """Errors (seeds x steps) per agent, times, and the detector's mask quality, on ``scenario``."""
+    """Errors (seeds x frames) per agent, times, and the detector's mask quality, on ``scenario``.
+
+    The episode driver runs the agents (the benchmark's time line: the last frame is estimated too);
+    ``max_steps`` ends each episode after that many env steps."""
     import gymnasium as gym
 
     import aerial_loc_env  # noqa: F401  (registers the scenarios)
 
+    from ..episode import EpisodeDriver
     from ..registry import make_agent
     from ..shadow_detection import ShadowDetector, mask_quality
 
@@ -45,34 +49,20 @@ def run_episodes(scenario: str, agents: Sequence[str], seeds: Sequence[int], *, 
     t_s: list[float] = []
     try:
         for seed in seeds:
-            obs, info = env.reset(seed=seed)
-            briefing = env.unwrapped.briefing
-            built = {a: make_agent(a, **(agent_overrides or {}).get(a, {})) for a in agents}
-            for ag in built.values():
-                ag.reset(briefing, seed=seed)
-            errs: dict[str, list[float]] = {a: [] for a in agents}
+            built = [make_agent(a, **(agent_overrides or {}).get(a, {})) for a in agents]
+            errs: list[list[float]] = [[] for _ in agents]
             t_s = []
-            k = 0
-            while True:
-                truth = info["true_pose"]
-                t_s.append(float(info.get("time_s", k * briefing.dt_s)))
-                if detector_quality and "shadow_mask" in info:
-                    quality.append(mask_quality(detector.detect(obs["image"]).full(), info["shadow_mask"]))
-                first = None
-                for a, ag in built.items():
-                    t0 = time.perf_counter()
-                    est = ag.step(obs, info if getattr(ag, "uses_ground_truth", False) else None)
-                    step_s[a].append(time.perf_counter() - t0)
-                    errs[a].append(math.hypot(est.x_m - truth[0], est.y_m - truth[1]))
-                    first = first or est
-                from ...env import world_to_action
-
-                obs, _r, term, trunc, info = env.step(world_to_action(briefing.orthomap, first.x_m, first.y_m))
-                k += 1
-                if term or trunc or (max_steps is not None and k >= max_steps):
-                    break
-            for a in agents:
-                errors[a].append(errs[a])
+            with EpisodeDriver(env, built) as driver:
+                for rec in driver.episode(seed, max_steps=max_steps):
+                    t_s.append(rec.time_s)
+                    if detector_quality and "shadow_mask" in rec.info:
+                        quality.append(mask_quality(detector.detect(rec.observation["image"]).full(),
+                                                    rec.info["shadow_mask"]))
+                    for i, a in enumerate(agents):
+                        step_s[a].append(rec.wall_s[i])
+                        errs[i].append(rec.error_m(i))
+            for a, e in zip(agents, errs, strict=True):
+                errors[a].append(e)
     finally:
         env.close()
     return {"errors": {a: np.array(e) for a, e in errors.items()}, "step_s": step_s, "quality": quality,
