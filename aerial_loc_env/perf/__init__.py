@@ -1,7 +1,13 @@
-"""Speed benchmarks (never timed assertions in tests): medians on one core, with the machine noted.
+"""Speed benchmarks (never timed assertions in tests): medians on one core, as ratios to a floor, machine noted.
 
 Each module in this package defines ``BENCHMARKS``: a list of ``Benchmark``. ``python -m aerial_loc_env.perf``
 runs them all (or those whose name contains one of the arguments) and prints a table.
+
+Absolute milliseconds do not travel between machines (nor between a quiet and a loaded one); ratios do. Every
+benchmark is reported as a ratio to the *floor*: one bare bilinear warp of a 600 x 400 camera frame from the map
+(``FLOOR_NAME``, ``CameraRenderer.database_patch``), the least any frame costs. The floor is timed interleaved
+with each benchmark (a few floor calls after every benchmark call), so load that comes and goes during a run
+slows both alike and the ratio stays put. Targets are ratios (``target_ratio``).
 """
 
 from __future__ import annotations
@@ -15,15 +21,18 @@ import numpy as np
 
 from ..sysinfo import machine
 
-__all__ = ["Benchmark", "machine", "measure", "single_core"]
+__all__ = ["FLOOR_NAME", "Benchmark", "load", "machine", "measure", "single_core"]
+
+FLOOR_NAME = "database patch 600x400 (200 m)"   # the floor benchmark (perf/render.py)
+_FLOOR_CALLS_PER_CALL = 3                        # floor calls interleaved after each benchmark call
 
 
 @dataclass(frozen=True)
 class Benchmark:
     name: str                        # e.g. "render 600x400 + cast shadows + noise"
     setup: Callable[[], Callable[[], object]]  # returns the function to time (setup excluded)
-    target_s: float | None = None    # target median in seconds per call, or None
-    unit: str = "call"               # what one call is ("frame", "step", ...)
+    target_ratio: float | None = None  # target: median per item / the floor's median in the same run, or None
+    unit: str = "call"               # what one item is ("frame", "step", ...)
     repeats: int = 30
     per_call_items: int = 1          # e.g. steps per call, to report per-item figures and rates
 
@@ -50,22 +59,43 @@ def single_core() -> None:
         pass
 
 
-def measure(bench: Benchmark) -> dict:
+def load() -> str:
+    """The machine's load averages (1, 5, 15 min) and core count, noted beside every run's figures."""
+    try:
+        one, five, fifteen = os.getloadavg()
+    except OSError:  # pragma: no cover - not on this platform
+        return "load unknown"
+    return f"load {one:.2f} {five:.2f} {fifteen:.2f} on {os.cpu_count()} cores"
+
+
+def _timed(fn: Callable[[], object]) -> float:
+    t0 = time.perf_counter()
+    fn()
+    return time.perf_counter() - t0
+
+
+def measure(bench: Benchmark, floor_fn: Callable[[], object] | None = None) -> dict:
+    """Median (and p95) seconds per item of ``bench``; with ``floor_fn``, the floor timed interleaved with it and
+    the ratio of the two medians (``ratio``), judged against ``bench.target_ratio`` (``ok``)."""
     fn = bench.setup()
     fn()  # warm-up
-    times = []
+    times, floor_times = [], []
     for _ in range(bench.repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    arr = np.asarray(times)
-    med = float(np.median(arr)) / bench.per_call_items
+        times.append(_timed(fn))
+        if floor_fn is not None:
+            floor_times.extend(_timed(floor_fn) for _ in range(_FLOOR_CALLS_PER_CALL))
+    arr = np.asarray(times) / bench.per_call_items
+    med = float(np.median(arr))
+    floor_s = float(np.median(floor_times)) if floor_times else None
+    ratio = med / floor_s if floor_s else None
     return {
         "name": bench.name,
         "median_s": med,
-        "p95_s": float(np.percentile(arr, 95)) / bench.per_call_items,
+        "p95_s": float(np.percentile(arr, 95)),
         "rate_per_s": 1.0 / med if med > 0 else float("inf"),
         "unit": bench.unit,
-        "target_s": bench.target_s,
-        "ok": None if bench.target_s is None else med <= bench.target_s,
+        "floor_s": floor_s,
+        "ratio": ratio,
+        "target_ratio": bench.target_ratio,
+        "ok": None if bench.target_ratio is None or ratio is None else ratio <= bench.target_ratio,
     }
