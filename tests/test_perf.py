@@ -1,0 +1,46 @@
+"""The speed-benchmark harness: ratios to the interleaved floor (no timings asserted, the clock is faked)."""
+
+from __future__ import annotations
+
+import itertools
+
+import pytest
+
+from aerial_loc_env import perf
+from aerial_loc_env.perf import FLOOR_NAME, Benchmark, measure
+from aerial_loc_env.perf.__main__ import collect
+
+
+def test_registry_has_one_floor_and_unique_names():
+    names = [b.name for b in collect()]
+    assert names.count(FLOOR_NAME) == 1
+    assert len(names) == len(set(names))
+    assert all(b.target_ratio is None or b.target_ratio > 0 for b in collect())
+
+
+@pytest.mark.parametrize("target, ok", [(5.5, True), (4.5, False), (None, None)])
+def test_ratio_is_median_over_interleaved_floor_median(monkeypatch, target, ok):
+    calls: list[str] = []
+    # benchmark calls take 10, 20, 30 ms (two items each); every floor call takes 2 ms, then one slow 50 ms outlier
+    bench_times = iter([0.010, 0.020, 0.030])
+    floor_times = itertools.chain([0.002] * 8, [0.050])
+
+    def fake_timed(fn):
+        name = fn()
+        calls.append(name)
+        return next(bench_times) if name == "bench" else next(floor_times)
+
+    monkeypatch.setattr(perf, "_timed", fake_timed)
+    bench = Benchmark("b", lambda: (lambda: "bench"), target_ratio=target, repeats=3, per_call_items=2)
+    r = measure(bench, lambda: "floor")
+    assert calls == ["bench", "floor", "floor", "floor"] * 3     # the warm-up call is not timed
+    assert r["median_s"] == pytest.approx(0.010)                 # 20 ms / 2 items
+    assert r["floor_s"] == pytest.approx(0.002)                  # the outlier does not move the median
+    assert r["ratio"] == pytest.approx(0.010 / 0.002)
+    assert r["ok"] is ok
+
+
+def test_without_floor_there_is_no_ratio(monkeypatch):
+    monkeypatch.setattr(perf, "_timed", lambda fn: (fn(), 0.004)[1])
+    r = measure(Benchmark("b", lambda: (lambda: None), target_ratio=1.0, repeats=4))
+    assert r["ratio"] is None and r["ok"] is None and r["median_s"] == pytest.approx(0.004)
