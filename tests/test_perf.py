@@ -20,20 +20,25 @@ def test_registry_has_one_floor_and_unique_names():
 
 @pytest.mark.parametrize("target, ok", [(5.5, True), (4.5, False), (None, None)])
 def test_ratio_is_median_over_interleaved_floor_median(monkeypatch, target, ok):
-    calls: list[str] = []
+    calls: list[str] = []       # every call, timed or not
+    timed: list[str] = []
     # benchmark calls take 10, 20, 30 ms (two items each); every floor call takes 2 ms, then one slow 50 ms outlier
     bench_times = iter([0.010, 0.020, 0.030])
     floor_times = itertools.chain([0.002] * 8, [0.050])
 
     def fake_timed(fn):
-        name = fn()
-        calls.append(name)
-        return next(bench_times) if name == "bench" else next(floor_times)
+        timed.append(fn())
+        return next(bench_times) if timed[-1] == "bench" else next(floor_times)
+
+    def call(name):
+        return lambda: (calls.append(name), name)[1]
 
     monkeypatch.setattr(perf, "_timed", fake_timed)
-    bench = Benchmark("b", lambda: (lambda: "bench"), target_ratio=target, repeats=3, per_call_items=2)
-    r = measure(bench, lambda: "floor")
-    assert calls == ["bench", "floor", "floor", "floor"] * 3     # the warm-up call is not timed
+    bench = Benchmark("b", lambda: call("bench"), target_ratio=target, repeats=3, per_call_items=2)
+    r = measure(bench, call("floor"))
+    warm, n = perf._FLOOR_WARMUP_CALLS, perf._FLOOR_CALLS_PER_CALL
+    assert calls == ["bench"] + (["bench"] + ["floor"] * (warm + n)) * 3  # one untimed warm-up of the benchmark
+    assert timed == (["bench"] + ["floor"] * n) * 3                        # floor warm-up calls are not timed
     assert r["median_s"] == pytest.approx(0.010)                 # 20 ms / 2 items
     assert r["floor_s"] == pytest.approx(0.002)                  # the outlier does not move the median
     assert r["ratio"] == pytest.approx(0.010 / 0.002)

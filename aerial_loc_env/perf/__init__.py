@@ -7,7 +7,9 @@ Absolute milliseconds do not travel between machines (nor between a quiet and a 
 benchmark is reported as a ratio to the *floor*: one bare bilinear warp of a 600 x 400 camera frame from the map
 (``FLOOR_NAME``, ``CameraRenderer.database_patch``), the least any frame costs. The floor is timed interleaved
 with each benchmark (a few floor calls after every benchmark call), so load that comes and goes during a run
-slows both alike and the ratio stays put. Targets are ratios (``target_ratio``).
+slows both alike and the ratio stays put. The first floor calls after a heavy benchmark are several times slower
+(its freed memory faults back in, caches are cold), so each batch starts with untimed warm-up calls: the floor is
+always the warm, bare warp. Targets are ratios (``target_ratio``).
 """
 
 from __future__ import annotations
@@ -24,7 +26,8 @@ from ..sysinfo import machine
 __all__ = ["FLOOR_NAME", "Benchmark", "load", "machine", "measure", "single_core"]
 
 FLOOR_NAME = "database patch 600x400 (200 m)"   # the floor benchmark (perf/render.py)
-_FLOOR_CALLS_PER_CALL = 3                        # floor calls interleaved after each benchmark call
+_FLOOR_WARMUP_CALLS = 2                          # untimed floor calls after each benchmark call, then
+_FLOOR_CALLS_PER_CALL = 3                        # timed floor calls interleaved after each benchmark call
 
 
 @dataclass(frozen=True)
@@ -83,6 +86,8 @@ def measure(bench: Benchmark, floor_fn: Callable[[], object] | None = None) -> d
     for _ in range(bench.repeats):
         times.append(_timed(fn))
         if floor_fn is not None:
+            for _ in range(_FLOOR_WARMUP_CALLS):
+                floor_fn()
             floor_times.extend(_timed(floor_fn) for _ in range(_FLOOR_CALLS_PER_CALL))
     arr = np.asarray(times) / bench.per_call_items
     med = float(np.median(arr))
