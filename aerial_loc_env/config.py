@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import numbers
+import sys
 import types
 import typing
 from collections.abc import Mapping
@@ -15,7 +17,36 @@ from typing import Any, TypeVar
 
 from .errors import ConfigError
 
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib
+
 T = TypeVar("T")
+
+
+def read_toml(path, what: str = "spec") -> dict:
+    """A TOML file as a dict; unreadable, non-UTF-8 or invalid files are ConfigErrors naming the file."""
+    try:
+        with open(path, "rb") as fh:
+            data = fh.read()
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read the {what}: {exc}") from exc
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        line = data[: exc.start].count(b"\n") + 1
+        raise ConfigError(f"{path}: the {what} is not UTF-8 text (byte 0x{data[exc.start]:02x} on line {line}); "
+                          "TOML files must be UTF-8: re-save it as UTF-8") from None
+    try:
+        return tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path}: invalid TOML: {exc}") from exc
+
+
+def is_number(value: Any) -> bool:
+    """A real number (Python or NumPy), not a bool."""
+    return isinstance(value, numbers.Real) and not isinstance(value, bool)   # np.bool_ is not Real
 
 
 def rng(lo: float | None = None, hi: float | None = None, *, choices: tuple | None = None,
@@ -46,7 +77,7 @@ def check_value(name: str, value: Any, meta: Mapping, where: str) -> None:
         return
     values = value if isinstance(value, (tuple, list)) else (value,)
     for v in values:
-        if isinstance(v, bool) or not isinstance(v, (int, float)):
+        if not is_number(v):
             raise ConfigError(f"{where}: field '{name}' must be a number, got {v!r}")
         if not math.isfinite(v):
             raise ConfigError(f"{where}: field '{name}' = {v!r} must be finite, in {_describe_range(meta)}")
@@ -67,12 +98,12 @@ def _coerce(name: str, value: Any, annotation: Any, where: str) -> Any:
         if len(non_none) == 1:
             return _coerce(name, value, non_none[0], where)
         return value
-    if annotation is float and isinstance(value, int) and not isinstance(value, bool):
+    if annotation is float:   # NumPy scalars too (np.float32(120) is a number)
+        if not is_number(value):
+            raise ConfigError(f"{where}: field '{name}' must be a number, got {value!r}")
         return float(value)
-    if annotation is float and not isinstance(value, float):
-        raise ConfigError(f"{where}: field '{name}' must be a number, got {value!r}")
-    if annotation is int and (isinstance(value, bool) or not isinstance(value, int)):
-        if isinstance(value, float) and value.is_integer():
+    if annotation is int:
+        if is_number(value) and float(value).is_integer():
             return int(value)
         raise ConfigError(f"{where}: field '{name}' must be an integer, got {value!r}")
     if annotation is bool and not isinstance(value, bool):

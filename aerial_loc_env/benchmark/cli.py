@@ -15,8 +15,9 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
+from ..errors import ConfigError
 from ..sysinfo import machine
-from .grid import Grid, ScenarioEntry, available_experiments, load_grid
+from .grid import Grid, ScenarioEntry, available_experiments, check_scenarios, load_grid
 from .report import markdown_report, paper_sections, summarize, summary_table
 from .runner import run_grid
 
@@ -57,6 +58,12 @@ def main(argv: list[str] | None = None) -> int:
             ap.error("--seeds must be >= 1")
         grid = dataclasses.replace(grid, seeds=grid.seeds[: args.seeds])
     out = Path(args.out or Path("results") / grid.name)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ConfigError(f"--out '{out}': cannot create the results folder ({exc.strerror}); choose a folder "
+                          "you can write to") from None
+    check_scenarios(grid)
     print(f"{grid.name}: {len(grid.agents)} agents x {len(grid.scenarios)} scenarios x "
           f"{len(grid.seeds)} seeds = {grid.trials()} trials -> {out}/", flush=True)
     t0 = time.monotonic()

@@ -25,18 +25,14 @@ stored nested, so the dotted and the nested spelling name the same trial.
 from __future__ import annotations
 
 import itertools
-import sys
+import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from ..config import is_number, read_toml
 from ..errors import ConfigError
-
-if sys.version_info >= (3, 11):
-    import tomllib
-else:  # pragma: no cover
-    import tomli as tomllib
 
 EXPERIMENT_DIR = Path(__file__).resolve().parent / "experiments"
 PLOTS = ("error_vs_time", "track", "likelihood", "shadow_pairs")  # plus "rmse_vs_<param>"
@@ -176,26 +172,54 @@ def _expand_agents(items: Sequence[Any], where: str) -> list[AgentEntry]:
     return out
 
 
+def _integer(value: Any, field: str, where: str) -> int:
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise ConfigError(f"{where}: {field} = {value!r} must be an integer")
+    return value
+
+
 def _seeds(value: Any, where: str) -> tuple[int, ...]:
     if isinstance(value, Mapping):
         if set(value) - {"start", "count"} or "count" not in value:
             raise ConfigError(f"{where}: seeds must be a list of integers or {{start = 0, count = N}}")
-        start, count = int(value.get("start", 0)), int(value["count"])
+        start = _integer(value.get("start", 0), "seeds.start", where)
+        count = _integer(value["count"], "seeds.count", where)
         if count < 1:
             raise ConfigError(f"{where}: seeds.count = {count} must be >= 1")
         return tuple(range(start, start + count))
     if isinstance(value, int) and not isinstance(value, bool) and value >= 1:
         return tuple(range(value))
-    if isinstance(value, (list, tuple)) and value and all(isinstance(s, int) for s in value):
+    if isinstance(value, (list, tuple)) and value and \
+            all(isinstance(s, int) and not isinstance(s, bool) for s in value):
         if len(set(value)) != len(value):
             raise ConfigError(f"{where}: seeds {list(value)} has duplicates")
         return tuple(value)
-    raise ConfigError(f"{where}: seeds must be a count >= 1, a non-empty list of integers or "
-                      "{start = 0, count = N}")
+    raise ConfigError(f"{where}: seeds = {value!r}: seeds must be a count >= 1, a non-empty list of integers "
+                      "or {start = 0, count = N}")
 
 
-def grid_from_dict(data: Mapping[str, Any], where: str = "experiment") -> Grid:
-    """A grid from a mapping laid out like an experiment spec (see the module docstring)."""
+def _threshold(data: Mapping[str, Any], key: str, default: float, where: str) -> float:
+    value = data.get(key, default)
+    if not is_number(value) or not math.isfinite(value):
+        raise ConfigError(f"{where}: {key} = {value!r} must be a finite number of metres")
+    return float(value)
+
+
+def _resolve_map_paths(overrides: Mapping[str, Any], base: Path) -> dict[str, Any]:
+    """Overrides with a relative ``map.path`` made absolute against ``base`` (the experiment file's folder)."""
+    out = dict(overrides)
+    for key, value in overrides.items():
+        if key in ("map.path", "path") and isinstance(value, str):
+            out[key] = str(base / value) if not Path(value).expanduser().is_absolute() else value
+        elif key == "map" and isinstance(value, Mapping) and isinstance(value.get("path"), str):
+            p = value["path"]
+            out[key] = {**value, "path": p if Path(p).expanduser().is_absolute() else str(base / p)}
+    return out
+
+
+def grid_from_dict(data: Mapping[str, Any], where: str = "experiment", base_dir: Path | None = None) -> Grid:
+    """A grid from a mapping laid out like an experiment spec (see the module docstring); a relative
+    ``map.path`` in scenario overrides is relative to ``base_dir`` (the experiment file's folder) when given."""
     allowed = {"name", "description", "agents", "scenarios", "seeds", "converge_threshold_m",
                "diverge_threshold_m", "plots", "paper"}
     unknown = set(data) - allowed
@@ -211,7 +235,12 @@ def grid_from_dict(data: Mapping[str, Any], where: str = "experiment") -> Grid:
         s = {"id": s} if isinstance(s, str) else dict(s)
         if not isinstance(s.get("id"), str) or set(s) - {"id", "overrides", "label"}:
             raise ConfigError(f"{where}: scenarios[{i}] needs 'id' and may have 'overrides', 'label'")
-        scenarios.append(ScenarioEntry(s["id"], dict(s.get("overrides") or {}), s.get("label", "")))
+        overrides = s.get("overrides") or {}
+        if not isinstance(overrides, Mapping):
+            raise ConfigError(f"{where}: scenarios[{i}].overrides must be a table, got {overrides!r}")
+        if base_dir is not None:
+            overrides = _resolve_map_paths(overrides, base_dir)
+        scenarios.append(ScenarioEntry(s["id"], dict(overrides), s.get("label", "")))
     plots = tuple(data.get("plots", ("error_vs_time",)))
     bad = [p for p in plots if p not in PLOTS and not p.startswith("rmse_vs_")]
     if bad:
@@ -220,8 +249,8 @@ def grid_from_dict(data: Mapping[str, Any], where: str = "experiment") -> Grid:
     bad = [p for p in paper if p not in PAPER_SECTION_NAMES]
     if bad:
         raise ConfigError(f"{where}: unknown paper section(s) {bad}; use {', '.join(PAPER_SECTION_NAMES)}")
-    converge = float(data.get("converge_threshold_m", 10.0))
-    diverge = float(data.get("diverge_threshold_m", 50.0))
+    converge = _threshold(data, "converge_threshold_m", 10.0, where)
+    diverge = _threshold(data, "diverge_threshold_m", 50.0, where)
     if not 0.0 < converge <= diverge:
         raise ConfigError(f"{where}: need 0 < converge_threshold_m ({converge}) <= "
                           f"diverge_threshold_m ({diverge})")
@@ -236,6 +265,23 @@ def grid_from_dict(data: Mapping[str, Any], where: str = "experiment") -> Grid:
         plots=plots,
         paper=paper,
     )
+
+
+def check_scenarios(grid: Grid) -> None:
+    """Build each scenario's env once (spec, overrides, map file, flyable area) so that a bad map is one clear
+    error before any trial starts, not one failure per trial and an empty table."""
+    import gymnasium as gym
+
+    from ..env import register_all
+    from ..errors import AerialLocError
+
+    register_all()
+    for entry in grid.scenarios:
+        try:
+            gym.make(entry.id, **entry.overrides).close()
+        except (AerialLocError, gym.error.Error) as exc:
+            raise ConfigError(f"experiment '{grid.name}': scenario '{entry.display}' ({entry.id}, overrides "
+                              f"{entry.overrides}) cannot run: {exc}. Fix it first; no trial was started") from None
 
 
 def make_grid(name: str, agents: Sequence[Any], scenarios: Sequence[Any], seeds: Any, **options: Any) -> Grid:
@@ -256,8 +302,4 @@ def load_grid(name_or_path: str | Path) -> Grid:
     if not path.is_file():
         raise ConfigError(f"experiment '{name_or_path}' not found (looked for {path}); "
                           f"available: {', '.join(available_experiments())}")
-    try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{path}: not valid TOML: {exc}") from exc
-    return grid_from_dict(data, where=str(path))
+    return grid_from_dict(read_toml(path, "experiment"), where=str(path), base_dir=path.resolve().parent)

@@ -45,7 +45,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from ..errors import AerialLocError, MapError
+from ..errors import AerialLocError, ConfigError, MapError
 from ..sensors.camera import CameraModel, Pose, apply_affine, world_to_map_affine
 from ..sensors.flight import FlyableRegion, Measurements, Track, footprint_radius_m, measure, sample_track
 from .briefing import Briefing, Prior
@@ -235,7 +235,10 @@ class AerialLocEnv(gym.Env):
 
     # ------------------------------------------------------------------ episode
     def reset(self, *, seed: int | None = None, options: Mapping[str, Any] | None = None):
-        super().reset(seed=seed)
+        if seed is not None and (isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0):
+            raise ConfigError(f"{self.scenario.id}: reset(seed={seed!r}): the seed must be a non-negative "
+                                 "integer (or None for a fresh random episode)")
+        super().reset(seed=None if seed is None else int(seed))
         if options:
             raise AerialLocError(f"{self.scenario.id}: reset options {sorted(options)} are not supported; "
                                  "configure the scenario with gym.make overrides instead")

@@ -36,21 +36,15 @@ import dataclasses
 import importlib
 import json
 import re
-import sys
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from functools import cache
 from pathlib import Path
 from typing import Any
 
-from ..config import build_config, check_value, config_to_dict, rng
+from ..config import build_config, check_value, config_to_dict, read_toml, rng
 from ..errors import ConfigError
 from ..paths import spec_dir
-
-if sys.version_info >= (3, 11):
-    import tomllib
-else:  # pragma: no cover
-    import tomli as tomllib
 
 ENTRY_POINT = "aerial_loc_env.env.aerial_loc_env:AerialLocEnv"
 NAMESPACE = "AerialLoc"
@@ -167,7 +161,10 @@ def split_overrides(overrides: Mapping[str, Any], where: str = "gym.make overrid
     """Turn the three override forms (section dict, dotted key, unique bare field) into section dicts."""
     out: dict[str, dict] = {}
     for key, value in overrides.items():
-        if key in SECTIONS and isinstance(value, Mapping):
+        if key in SECTIONS:
+            if not isinstance(value, Mapping):
+                raise ConfigError(f"{where}: section {key!r} must be a table (a dict of its fields, e.g. "
+                                  f"{key}={{...}}), got {value!r}; or set one field with '{key}.<field>'")
             out.setdefault(key, {}).update(value)
             continue
         if "." in key:
@@ -216,24 +213,53 @@ def build_scenario(spec: Mapping[str, Any], overrides: Mapping[str, Any] | None 
 
 
 def _read(path: Path) -> dict:
-    try:
-        with open(path, "rb") as fh:
-            return tomllib.load(fh)
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{path}: not valid TOML: {exc}") from exc
+    return read_toml(path, "scenario spec")
+
+
+@dataclass(frozen=True)
+class BrokenSpec:
+    """A spec file in envs/ that cannot be used: reported when used or listed, never fatal for the others."""
+
+    path: Path
+    id: str | None          # the id the file seems to declare, if it can be read at all
+    error: str
+
+
+_ID_LINE = re.compile(rb'^[ \t]*id[ \t]*=[ \t]*"([^"\r\n]+)"', re.MULTILINE)
 
 
 @cache
-def specs() -> dict[str, tuple[Path, dict]]:
-    """Registered id -> (spec file, raw spec), read once from ``spec_dir('envs')``."""
-    out: dict[str, tuple[Path, dict]] = {}
+def _scan() -> tuple[dict[str, tuple[Path, dict]], tuple[BrokenSpec, ...]]:
+    good: dict[str, tuple[Path, dict]] = {}
+    broken: list[BrokenSpec] = []
     for path in sorted(spec_dir("envs").glob("*.toml")):
-        raw = _read(path)
-        sid = raw.get("id")
-        if sid in out:
-            raise ConfigError(f"{path}: id {sid!r} is already used by {out[sid][0]}")
-        out[str(sid)] = (path, raw)
-    return out
+        try:
+            raw = _read(path)
+            sid = raw.get("id")
+            if not isinstance(sid, str) or not sid.startswith(f"{NAMESPACE}/"):
+                raise ConfigError(f"{path}: 'id' = {sid!r} must look like '{NAMESPACE}/<Name>-v0'")
+            if sid in good:
+                raise ConfigError(f"{path}: id {sid!r} is already used by {good[sid][0]}")
+        except ConfigError as exc:
+            try:
+                found = _ID_LINE.search(path.read_bytes())
+            except OSError:
+                found = None
+            broken.append(BrokenSpec(path, found.group(1).decode("utf-8", "replace") if found else None,
+                                     str(exc)))
+            continue
+        good[sid] = (path, raw)
+    return good, tuple(broken)
+
+
+def specs() -> dict[str, tuple[Path, dict]]:
+    """Registered id -> (spec file, raw spec), read once from ``spec_dir('envs')`` (broken files left out)."""
+    return _scan()[0]
+
+
+def broken_specs() -> tuple[BrokenSpec, ...]:
+    """The spec files of ``spec_dir('envs')`` that could not be read or validated."""
+    return _scan()[1]
 
 
 def resolve(scenario: str) -> tuple[Path, dict]:
@@ -245,6 +271,12 @@ def resolve(scenario: str) -> tuple[Path, dict]:
         short = sid.split("/", 1)[1].rsplit("-v", 1)[0]
         if scenario in (short, path.stem):
             return path, raw
+    for bad in broken_specs():
+        names = {bad.path.stem, bad.id}
+        if bad.id and "/" in bad.id:
+            names.add(bad.id.split("/", 1)[1].rsplit("-v", 1)[0])
+        if scenario in names:
+            raise ConfigError(f"scenario {scenario!r} cannot be used: {bad.error}")
     raise ConfigError(f"unknown scenario {scenario!r}; registered: {', '.join(table)} "
                       "(`aerial-loc scenarios` lists them)")
 
@@ -256,17 +288,18 @@ def load_scenario(scenario: str, overrides: Mapping[str, Any] | None = None) -> 
 
 
 def register_all() -> list[str]:
-    """Register every spec with Gymnasium (idempotent); returns the ids."""
+    """Register every spec with Gymnasium (idempotent); returns the ids. A broken spec whose id can be read
+    is registered too, so that ``gym.make`` of it reports the problem (the others are not affected)."""
     import gymnasium as gym
 
     ids = []
-    for sid, (path, _raw) in specs().items():
-        if not isinstance(sid, str) or not sid.startswith(f"{NAMESPACE}/"):
-            raise ConfigError(f"{path}: 'id' = {sid!r} must look like '{NAMESPACE}/<Name>-v0'")
+    broken = [b.id for b in broken_specs() if b.id and b.id.startswith(f"{NAMESPACE}/") and b.id not in specs()]
+    for sid in list(specs()) + broken:
         if sid not in gym.registry:
             gym.register(id=sid, entry_point=ENTRY_POINT, kwargs={"scenario": sid},
                          disable_env_checker=False)
-        ids.append(sid)
+        if sid in specs():
+            ids.append(sid)
     return ids
 
 
@@ -287,6 +320,8 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     for sid, (_path, raw) in specs().items():
         print(f"{sid:36s} {raw.get('description', '')}")
+    for bad in broken_specs():
+        print(f"{(bad.id or bad.path.name) + ' (BROKEN)':36s} {bad.error}")
     return 0
 
 

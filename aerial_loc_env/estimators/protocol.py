@@ -75,8 +75,9 @@ class Observation(NamedTuple):
     altitude_m: float          # measured altitude above ground
 
 
-def parse_observation(observation: Mapping[str, np.ndarray]) -> Observation:
-    """Unpack ``observation`` (keys image/odometry/yaw/altitude) with a clear error for a malformed one."""
+def parse_observation(observation: Mapping[str, np.ndarray], briefing: Briefing | None = None) -> Observation:
+    """Unpack ``observation`` (keys image/odometry/yaw/altitude) with a clear error for a malformed one, and,
+    given the ``briefing`` the agent was reset with, for frames that come from another scenario."""
     missing = [k for k in ("image", "odometry", "yaw", "altitude") if k not in observation]
     if missing:
         raise ConfigError(f"observation: missing key(s) {missing}; expected image, odometry, yaw, altitude")
@@ -92,7 +93,29 @@ def parse_observation(observation: Mapping[str, np.ndarray]) -> Observation:
     image = np.asarray(observation["image"])
     if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
         raise ConfigError(f"observation['image'] must be (H, W, 3) uint8, got {image.shape} {image.dtype}")
+    if briefing is not None:
+        check_against_briefing(image, alt, briefing)
     return Observation(image, float(odo[0]), float(odo[1]), yaw, alt)
+
+
+#: measured altitude beyond this factor of the briefing's nominal altitude: not the briefed flight
+ALTITUDE_MISMATCH_FACTOR = 2.0
+
+
+def check_against_briefing(image: np.ndarray, altitude_m: float, briefing: Briefing) -> None:
+    """Refuse an observation that cannot come from the briefed scenario (image size, altitude), instead of
+    estimating on with a camera model that does not describe the frames."""
+    cam = briefing.camera
+    h, w = image.shape[:2]
+    fix = ("the agent was reset with another scenario's briefing than the one producing the frames; reset it "
+           "with env.unwrapped.briefing of the env that renders them")
+    if (w, h) != (cam.width_px, cam.height_px):
+        raise ConfigError(f"observation image is {w} x {h} px but the briefing's camera "
+                          f"({briefing.scenario_id}) is {cam.width_px} x {cam.height_px} px: {fix}")
+    nominal = float(briefing.altitude_m)
+    if not nominal / ALTITUDE_MISMATCH_FACTOR <= altitude_m <= nominal * ALTITUDE_MISMATCH_FACTOR:
+        raise ConfigError(f"observation altitude {altitude_m:.1f} m is far from the briefing's nominal "
+                          f"{nominal:.1f} m ({briefing.scenario_id}): {fix}")
 
 
 class Agent(ABC):

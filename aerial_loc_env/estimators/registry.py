@@ -20,21 +20,16 @@ from __future__ import annotations
 import argparse
 import importlib
 import json
-import sys
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from importlib.metadata import entry_points
 from pathlib import Path
 from typing import Any
 
+from ..config import read_toml
 from ..errors import ConfigError
 from ..paths import spec_dir
 from .protocol import Agent
-
-if sys.version_info >= (3, 11):
-    import tomllib
-else:  # pragma: no cover
-    import tomli as tomllib
 
 ENTRY_POINT_GROUP = "aerial_loc_env.agents"
 
@@ -144,13 +139,7 @@ def load_spec(name_or_path: str | Path) -> AgentSpec:
         path = spec_dir("agents") / f"{name_or_path}.toml"
         if not path.is_file():
             raise ConfigError(f"unknown agent spec {str(name_or_path)!r}; known: {', '.join(spec_names())}")
-    try:
-        with open(path, "rb") as fh:
-            data = tomllib.load(fh)
-    except OSError as exc:
-        raise ConfigError(f"{path}: cannot read the agent spec: {exc}") from exc
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{path}: invalid TOML: {exc}") from exc
+    data = read_toml(path, "agent spec")
     return parse_spec(data, name=path.stem, path=path)
 
 

@@ -24,7 +24,7 @@ from ..errors import ConfigError, require_extra
 from ..estimators.protocol import Agent, Estimate, prior_estimate
 from .observations import LocalRegistration, square_image
 from .recipes import algo_class
-from .train import load_training_meta
+from .train import check_model_zip, load_training_meta
 
 PACKAGE_DIR = Path(__file__).resolve().parent.parent
 _MODELS: dict[tuple[str, float], Any] = {}
@@ -69,6 +69,7 @@ class LearnedAgent(Agent):
         if self.params.torch_threads > 0:
             require_extra("torch", "rl", "Learned policies").set_num_threads(self.params.torch_threads)
         if key not in _MODELS:
+            check_model_zip(self.path, f"learned agent: params.model ({self.recipe.algo})")
             try:
                 _MODELS[key] = algo_class(self.recipe.algo).load(str(self.path), device="cpu")
             except (ValueError, KeyError, OSError, RuntimeError) as exc:

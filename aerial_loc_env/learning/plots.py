@@ -11,17 +11,22 @@ import numpy as np
 
 from ..errors import ConfigError, require_extra
 
+EVAL_COLUMNS = ("timesteps", "rmse_m")
+
 
 def _monitor_rows(run_dir: Path) -> np.ndarray:
     """(N, 4) [wall_s, length, episode_rmse_m, dead_reckoning_rmse_m] of the training episodes, by time."""
     rows = []
     for path in sorted((run_dir / "monitor").glob("*.monitor.csv")):
-        with open(path, newline="") as fh:
-            fh.readline()  # the JSON header line
-            for r in csv.DictReader(fh):
-                if r.get("episode_rmse_m"):
-                    rows.append((float(r["t"]), float(r["l"]), float(r["episode_rmse_m"]),
-                                 float(r["dead_reckoning_rmse_m"])))
+        try:
+            with open(path, newline="", encoding="utf-8") as fh:
+                fh.readline()  # the JSON header line
+                for r in csv.DictReader(fh):
+                    if r.get("episode_rmse_m"):
+                        rows.append((float(r["t"]), float(r["l"]), float(r["episode_rmse_m"]),
+                                     float(r["dead_reckoning_rmse_m"])))
+        except (ValueError, KeyError, TypeError, UnicodeDecodeError, csv.Error) as exc:
+            raise ConfigError(f"'{path}': not a monitor file written by `aerial-loc train` ({exc!r})") from None
     arr = np.asarray(rows, dtype=float).reshape(-1, 4)
     return arr[np.argsort(arr[:, 0], kind="stable")]
 
@@ -30,9 +35,18 @@ def _eval_rows(run_dir: Path) -> dict[str, np.ndarray]:
     path = run_dir / "eval.csv"
     if not path.is_file():
         raise ConfigError(f"'{path}' is missing: not a run folder written by `aerial-loc train`")
-    with open(path, newline="") as fh:
-        rows = list(csv.DictReader(fh))
-    return {k: np.array([float(r[k]) for r in rows if r.get(k)]) for k in rows[0]} if rows else {}
+    try:
+        with open(path, newline="", encoding="utf-8") as fh:
+            reader = csv.DictReader(fh)
+            header = list(reader.fieldnames or [])
+            rows = list(reader)
+        missing = [k for k in EVAL_COLUMNS if k not in header]
+        if missing:
+            raise ValueError(f"no column(s) {missing} in its header {header[:6]}")
+        return {k: np.array([float(r[k]) for r in rows if r.get(k)]) for k in header}
+    except (ValueError, UnicodeDecodeError, csv.Error) as exc:
+        raise ConfigError(f"'{path}': not an eval.csv written by `aerial-loc train` ({exc}); expected the "
+                          f"columns {', '.join(EVAL_COLUMNS)}, ... with numbers") from None
 
 
 def learning_curve(run_dir: str | os.PathLike, out_png: str | os.PathLike, *, window: int = 50,

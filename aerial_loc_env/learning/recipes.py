@@ -32,6 +32,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from ..config import build_config, config_to_dict, rng
+from ..env.scenarios import load_scenario
 from ..errors import ConfigError, require_extra
 
 ALGOS = ("PPO", "SAC")
@@ -144,6 +145,11 @@ def recipe_from_table(table: Mapping[str, Any], where: str) -> Recipe:
                           f"{recipe.observation_params.image_px} is too small for SB3's nature CNN "
                           "(8x8/4, 4x4/2, 3x3/1 needs >= 36 px)")
     check_hyperparameters(recipe, where)
+    try:   # here, not 16 s later inside a subprocess worker
+        load_scenario(recipe.scenario, recipe.scenario_overrides)
+    except ConfigError as exc:
+        raise ConfigError(f"{where} [train]: scenario = {recipe.scenario!r} with scenario_overrides "
+                          f"{dict(recipe.scenario_overrides)}: {exc}") from None
     return recipe
 
 
@@ -161,9 +167,60 @@ def check_hyperparameters(recipe: Recipe, where: str) -> None:
     if unknown:
         raise ConfigError(f"{where} [train.hyperparameters]: {recipe.algo} has no parameter(s) {unknown}; "
                           f"allowed: {', '.join(sorted(allowed))}")
+    params = inspect.signature(cls.__init__).parameters
     for key, value in recipe.hyperparameters.items():
         if isinstance(value, Mapping) and key != "replay_buffer_kwargs":
             raise ConfigError(f"{where} [train.hyperparameters]: '{key}' must be a value, not a table")
+        _check_hyperparameter(key, value, params[key].annotation, f"{where} [train.hyperparameters]")
+    if recipe.algo == "PPO":
+        n_steps = int(recipe.hyperparameters.get("n_steps", params["n_steps"].default))
+        if n_steps * recipe.n_envs < 2:
+            raise ConfigError(f"{where} [train.hyperparameters]: PPO needs n_steps * n_envs > 1 "
+                              f"(got {n_steps} * {recipe.n_envs}); raise n_steps")
+
+
+#: value ranges of the SB3 hyperparameters (lo, hi, lo_open); SB3 itself fails late or not at all on these
+HYPER_RANGES: dict[str, tuple[float | None, float | None, bool]] = {
+    "learning_rate": (0.0, None, True), "n_steps": (1, None, False), "batch_size": (1, None, False),
+    "n_epochs": (1, None, False), "gamma": (0.0, 1.0, False), "gae_lambda": (0.0, 1.0, False),
+    "clip_range": (0.0, None, True), "clip_range_vf": (0.0, None, True), "ent_coef": (0.0, None, False),
+    "vf_coef": (0.0, None, False), "max_grad_norm": (0.0, None, True), "target_kl": (0.0, None, True),
+    "buffer_size": (1, None, False), "learning_starts": (0, None, False), "tau": (0.0, 1.0, False),
+    "stats_window_size": (1, None, False), "target_update_interval": (1, None, False),
+    "sde_sample_freq": (-1, None, False), "train_freq": (1, None, False),
+}
+
+
+def _check_hyperparameter(key: str, value: Any, annotation: Any, where: str) -> None:
+    """``value`` against the SB3 signature's type (int, float, bool, str) and HYPER_RANGES."""
+    text = str(annotation)
+    takes = {t for t in ("int", "float", "bool", "str", "None", "tuple", "dict") if t in text}
+    if annotation in (int, float, bool, str):
+        takes = {annotation.__name__}
+    if key == "ent_coef" and "str" in takes and isinstance(value, str):
+        if value != "auto" and not value.startswith("auto_"):
+            raise ConfigError(f"{where}: '{key}' = {value!r} must be a number >= 0, 'auto' or 'auto_<init>'")
+        return
+    if isinstance(value, bool):
+        ok = "bool" in takes
+    elif isinstance(value, int):
+        ok = bool(takes & {"int", "float"})
+    elif isinstance(value, float):
+        ok = "float" in takes
+    elif isinstance(value, str):
+        ok = "str" in takes
+    else:
+        ok = isinstance(value, list) and "tuple" in takes or isinstance(value, Mapping) and "dict" in takes
+    if not ok and takes & {"int", "float", "bool", "str"}:
+        kind = ("an integer" if takes & {"int", "float"} == {"int"} else "a number") \
+            if takes & {"int", "float"} else ("true or false" if "bool" in takes else "a string")
+        raise ConfigError(f"{where}: '{key}' = {value!r} must be {kind}")
+    if key in HYPER_RANGES and isinstance(value, (int, float)) and not isinstance(value, bool):
+        lo, hi, lo_open = HYPER_RANGES[key]
+        bad = lo is not None and (value <= lo if lo_open else value < lo) or hi is not None and value > hi
+        if bad or value != value:
+            allowed = f"in [{lo:g}, {hi:g}]" if hi is not None else f"{'>' if lo_open else '>='} {lo:g}"
+            raise ConfigError(f"{where}: '{key}' = {value!r} is out of range; it must be {allowed}")
 
 
 def recipe_to_dict(recipe: Recipe) -> dict:

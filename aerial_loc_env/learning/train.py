@@ -235,8 +235,13 @@ def train(spec_name: str | os.PathLike, out_dir: str | os.PathLike | None = None
     if model_path.exists() and not overwrite:
         raise ConfigError(f"model '{model_path}' already exists and would be overwritten; choose another "
                           "--out or pass --overwrite (with --resume to continue training it)")
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"--out '{out}' is a file, not a folder; choose a folder for the run (it is created "
+                          "if missing)")
     if resume is not None and not Path(resume).is_file():
         raise ConfigError(f"--resume: checkpoint '{resume}' does not exist")
+    if resume is not None:
+        check_model_zip(resume, "--resume: checkpoint")
     if not resume and out.exists() and (out / "eval.csv").exists():
         if not overwrite:
             raise ConfigError(f"'{out}' holds an unfinished run (eval.csv, no model.zip); continue it with "
@@ -294,6 +299,27 @@ def train(spec_name: str | os.PathLike, out_dir: str | os.PathLike | None = None
             if (out / name).is_file():
                 shutil.copyfile(out / name, out / "best" / name)
     return TrainResult(model_path, out, wall, int(model.num_timesteps))
+
+
+def check_model_zip(path: str | os.PathLike, what: str) -> None:
+    """Refuse a file that is not a complete SB3 model zip (truncated download, wrong file) with a clear error,
+    before SB3 fails on it with a bare AssertionError or BadZipFile."""
+    import zipfile
+
+    problem = None
+    try:
+        with zipfile.ZipFile(path) as zf:
+            names = set(zf.namelist())
+            bad = zf.testzip()
+        if bad is not None:
+            problem = f"member {bad!r} fails its CRC check"
+        elif not {"data", "policy.pth"} <= names:
+            problem = f"it lacks {sorted({'data', 'policy.pth'} - names)}"
+    except (zipfile.BadZipFile, OSError, EOFError) as exc:
+        problem = f"{type(exc).__name__}: {exc}"
+    if problem is not None:
+        raise ConfigError(f"{what} '{path}' is not a model saved by stable-baselines3 ({problem}): the file is "
+                          "truncated or corrupt; copy it again, or use another checkpoint")
 
 
 def scenario_spec(recipe: Recipe) -> dict:

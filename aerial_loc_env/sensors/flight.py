@@ -21,7 +21,7 @@ import cv2
 import numpy as np
 
 from ..config import rng
-from ..errors import MapError
+from ..errors import ConfigError, MapError
 
 
 @dataclass(frozen=True)
@@ -46,6 +46,13 @@ class FlightConfig:
                                                                      "(room for particles: 3 x 15 m)"))
     min_steps: int = field(default=8, metadata=rng(1, 100000, doc="shortest acceptable track (steps)"))
     max_tries: int = field(default=40, metadata=rng(1, 10000, doc="rejection-sampling attempts"))
+
+    def validate(self, where: str) -> None:
+        if self.steps < self.min_steps:
+            raise ConfigError(
+                f"{where}: field 'duration_s' = {self.duration_s:g} s at rate_hz = {self.rate_hz:g} gives "
+                f"{self.steps} step(s), fewer than min_steps = {self.min_steps} (the shortest track accepted); "
+                f"lengthen duration_s to >= {self.min_steps / self.rate_hz:g} s or lower min_steps")
 
     @property
     def dt_s(self) -> float:

@@ -77,6 +77,7 @@ class Projection(ABC):
     """A projected (or geographic) CRS: lat/lon degrees <-> CRS coordinates (x east-ish, y north-ish)."""
 
     crs: str
+    unit: str = "metre"      # the unit of the CRS coordinates (of a world file's pixel size)
 
     @abstractmethod
     def forward(self, lat_deg: np.ndarray, lon_deg: np.ndarray) -> tuple[np.ndarray, np.ndarray]: ...
@@ -144,6 +145,8 @@ class WebMercatorProjection(Projection):
 
 class GeographicProjection(Projection):
     """EPSG:4326 with x = longitude, y = latitude in degrees (the axis order of GeoTIFFs and world files)."""
+
+    unit = "degree"
 
     crs = "EPSG:4326"
 
@@ -236,6 +239,8 @@ class PyprojProjection(Projection):
         except pyproj.exceptions.CRSError as exc:
             raise MapError(f"unknown CRS {crs!r}: {exc}") from exc
         self.crs = crs
+        axes = self._crs_obj.axis_info
+        self.unit = axes[0].unit_name if axes else "unknown unit"
         self._fwd = pyproj.Transformer.from_crs("EPSG:4326", self._crs_obj, always_xy=True)
         self._inv = pyproj.Transformer.from_crs(self._crs_obj, "EPSG:4326", always_xy=True)
 

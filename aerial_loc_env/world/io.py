@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -91,7 +92,7 @@ def load_orthomap(path: str | os.PathLike, *, gsd_m: float | tuple[float, float]
         georef = LocalTangentGeoref.centered(*origin_latlon_deg, w, h, gx, gy)
         how = f"no georeference, gsd {gx:g} x {gy:g} m, nominal origin {origin_latlon_deg}"
     else:
-        gx_a, gy_a = (float(x) for x in georef.ground_gsd_m((w - 1) / 2.0, (h - 1) / 2.0))
+        gx_a, gy_a = check_plausible_pixel(path, georef, how, w, h)
         if gsd_m is not None:
             gx, gy = _gsd_pair(path, gsd_m)
             if abs(gx / gx_a - 1) > 0.01 or abs(gy / gy_a - 1) > 0.01:
@@ -124,12 +125,41 @@ def _read_raster(path: Path) -> _Raster:
     if head[:8] == b"\x89PNG\r\n\x1a\n" and len(head) >= 26 and head[24] == 1:
         raise MapError(f"{path}: 1-bit PNG images are not supported; supported: {SUPPORTED}")
     buf = np.fromfile(path, dtype=np.uint8)
-    img = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED) if buf.size else None
+    try:
+        img = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED) if buf.size else None
+    except cv2.error as exc:   # e.g. over OpenCV's pixel limit (OPENCV_IO_MAX_IMAGE_PIXELS, 2**30 by default)
+        size = _image_size(path, buf)
+        raise MapError(
+            f"{path}: OpenCV refuses to decode this image{size}: {str(exc).strip().splitlines()[-1]}. "
+            f"Images over OpenCV's limit of {_opencv_max_pixels()} pixels: convert it to a (tiled) GeoTIFF, "
+            "which is read without that limit, or raise the limit with the environment variable "
+            "OPENCV_IO_MAX_IMAGE_PIXELS") from None
     if img is None:
         raise MapError(f"{path}: not a readable image (PNG, JPEG or TIFF expected)")
     if img.ndim == 3 and img.shape[2] in (3, 4):   # OpenCV gives BGR(A)
         img = img[..., [2, 1, 0, 3][: img.shape[2]]]
     return _Raster(_check_raster(path, img))
+
+
+def _opencv_max_pixels() -> int:
+    return int(os.environ.get("OPENCV_IO_MAX_IMAGE_PIXELS", 2**30))
+
+
+def _image_size(path: Path, buf: np.ndarray) -> str:
+    """' (W x H = N pixels)' from a PNG/JPEG header, or '' when it cannot be read cheaply."""
+    head = bytes(buf[:65536])
+    w = h = None
+    if head[:8] == b"\x89PNG\r\n\x1a\n" and len(head) >= 24:
+        w, h = int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
+    elif head[:2] == b"\xff\xd8":
+        i = 2
+        while i + 9 < len(head) and head[i] == 0xFF:
+            marker, seg = head[i + 1], int.from_bytes(head[i + 2:i + 4], "big")
+            if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):
+                h, w = int.from_bytes(head[i + 5:i + 7], "big"), int.from_bytes(head[i + 7:i + 9], "big")
+                break
+            i += 2 + seg
+    return "" if w is None else f" ({w} x {h} = {w * h} pixels)"
 
 
 def _read_tiff(path: Path) -> _Raster:
@@ -257,10 +287,123 @@ def _from_world_file(path: Path, wf: Path, crs: str | int | None) -> tuple[Geore
         raise MapError(f"{wf}: unreadable world file for {path.name} (6 numbers expected): {exc}") from exc
     if len(vals) != 6:
         raise MapError(f"{wf}: a world file has 6 numbers (A D B E C F), found {len(vals)}")
-    if crs is None:
-        raise MapError(f"{path}: world file {wf.name} has no CRS; pass crs=, e.g. crs='EPSG:3395'")
     a, d, b, e, c, f = vals
-    return _north_up(path, (a, b, c, d, e, f), crs, f"world file {wf.name}, {normalize_crs(crs)}")
+    found = crs_beside(path)
+    if crs is None and found is None:
+        raise MapError(f"{path}: world file {wf.name} has no CRS and no .prj / .aux.xml beside the image names "
+                       f"one; {_crs_hint(a, e, c, f)}")
+    if crs is not None and found is not None and not _same_crs(crs, found[0]):
+        raise MapError(f"{path}: crs={crs!r} was given but {found[1].name} beside the image says "
+                       f"{_short(found[0])}; drop crs (the file's CRS is used) or fix the file")
+    use = crs if crs is not None else found[0]
+    where = f"world file {wf.name}, {_short(normalize_crs(use))}" + (f" from {found[1].name}" if crs is None else "")
+    return _north_up(path, (a, b, c, d, e, f), use, where)
+
+
+# --- the CRS of a world file -------------------------------------------------------------------------------
+
+_EPSG_AUTHORITY = re.compile(r'AUTHORITY\[\s*"EPSG"\s*,\s*"?(\d+)"?\s*\]\s*\]\s*$|^\s*EPSG:(\d+)\s*$',
+                             re.IGNORECASE)
+
+
+def crs_beside(path: Path) -> tuple[str, Path] | None:
+    """The CRS named by a ``.prj`` (ESRI/WKT) or a GDAL ``.aux.xml`` (its <SRS>) beside the image, if any:
+    ('EPSG:<code>' when the text names its EPSG code, else the WKT for pyproj) and the file it came from."""
+    for cand in (path.with_suffix(".prj"), path.with_name(path.name + ".prj"), path.with_name(path.name + ".aux.xml")):
+        if not cand.is_file():
+            continue
+        try:
+            text = cand.read_text(encoding="utf-8", errors="replace").strip()
+        except OSError as exc:
+            raise MapError(f"{cand}: cannot read the CRS file beside {path.name}: {exc}") from exc
+        if cand.name.endswith(".aux.xml"):
+            import xml.etree.ElementTree as ET
+
+            try:
+                srs = ET.fromstring(text).find(".//SRS")
+            except ET.ParseError as exc:
+                raise MapError(f"{cand}: not a readable GDAL .aux.xml ({exc}); fix or delete it") from exc
+            if srs is None or not (srs.text or "").strip():
+                continue
+            text = srs.text.strip()
+        if not text:
+            raise MapError(f"{cand}: empty CRS file beside {path.name}; fix or delete it")
+        m = _EPSG_AUTHORITY.search(text)
+        if m:
+            return f"EPSG:{int(m.group(1) or m.group(2))}", cand
+        return _wkt_to_crs(text, cand), cand
+    return None
+
+
+def _wkt_to_crs(text: str, source: Path) -> str:
+    """A WKT without an EPSG authority: its EPSG code through pyproj when it identifies one, else the WKT."""
+    from ..errors import require_extra
+
+    pyproj = require_extra("pyproj", "geo", f"Reading the CRS in {source.name}")
+    try:
+        obj = pyproj.CRS.from_user_input(text)
+    except pyproj.exceptions.CRSError as exc:
+        raise MapError(f"{source}: not a CRS pyproj can read ({exc}); fix it or pass crs='EPSG:<code>'") from exc
+    code = obj.to_epsg(min_confidence=70)
+    return f"EPSG:{code}" if code else obj.to_wkt()
+
+
+def _same_crs(a: str | int, b: str) -> bool:
+    a, b = normalize_crs(a), normalize_crs(b)
+    if a == b:
+        return True
+    if a.startswith("EPSG:") and b.startswith("EPSG:"):
+        return False
+    try:
+        import pyproj
+
+        return pyproj.CRS.from_user_input(a).equals(pyproj.CRS.from_user_input(b), ignore_axis_order=True)
+    except Exception:  # noqa: BLE001 (cannot compare: treat as different, the message names both)
+        return False
+
+
+def _short(crs: str) -> str:
+    return crs if len(crs) <= 40 else crs[:37] + "..."
+
+
+def _crs_hint(a: float, e: float, c: float, f: float) -> str:
+    """How to find the CRS, with a guess from the numbers (never a fixed example that may be wrong)."""
+    how = ("find the CRS the world file was written in: a .prj or .aux.xml from the same source, the original "
+           "GeoTIFF's `gdalsrsinfo` / `gdalinfo`, or the data provider's description; then pass crs='EPSG:<code>' "
+           "(or put the .prj beside the image).")
+    if abs(c) <= 180 and abs(f) <= 90 and abs(a) < 0.01:
+        return how + f" The numbers (x {c:.6g}, y {f:.6g}, pixel {a:.3g}) look like degrees: EPSG:4326?"
+    if 100_000 <= c <= 900_000 and 0 <= f <= 10_000_000:
+        return how + (f" The numbers (easting {c:.0f}, northing {f:.0f}) fit a UTM zone (EPSG:326xx north, "
+                      "327xx south) but also many national grids, some in US survey feet")
+    return how + f" The numbers (x {c:.6g}, y {f:.6g}, pixel {a:.3g}) are projected coordinates"
+
+
+#: ground metres per pixel an aerial or satellite map can have: beyond this the georeference or its CRS is wrong
+GSD_PLAUSIBLE_M = (1e-3, 1e3)
+
+
+def check_plausible_pixel(path: Path, georef: Georeference, how: str, w: int, h: int) -> tuple[float, float]:
+    """Ground metres per pixel at the map centre, after checking that the georeference makes sense: corners on
+    the Earth, a pixel between 1 mm and 1 km (a pixel size in the wrong unit or CRS fails this)."""
+    with np.errstate(all="ignore"):
+        lat, lon = georef.pixel_to_latlon(np.array([0.0, w - 1.0, 0.0, w - 1.0]),
+                                          np.array([0.0, 0.0, h - 1.0, h - 1.0]))
+        gx, gy = (float(np.ravel(x)[0]) for x in georef.ground_gsd_m((w - 1) / 2.0, (h - 1) / 2.0))
+    lo, hi = GSD_PLAUSIBLE_M
+    on_earth = bool(np.all(np.isfinite(lat)) and np.all(np.isfinite(lon)) and np.all(np.abs(lat) <= 90.0))
+    if on_earth and all(math.isfinite(g) and lo <= g <= hi for g in (gx, gy)):
+        return gx, gy
+    t = getattr(georef, "pixel_to_crs", None)
+    proj = getattr(georef, "projection", None)
+    unit = getattr(proj, "unit", "CRS unit")
+    size = f"{abs(t[0]):g} x {abs(t[4]):g} {unit}(s)" if t is not None else "the pixel size"
+    where = "its corners fall outside the CRS's valid area" if not on_earth else \
+        f"that is {gx:.3g} x {gy:.3g} m on the ground"
+    raise MapError(f"{path}: {how}: pixel size {size} is implausible for an aerial map ({where}; allowed "
+                   f"{lo:g} to {hi:g} m per pixel). The pixel size is in the CRS's unit ({unit}): check that the "
+                   "CRS is the one the georeference was written in and that the world file belongs to this image")
+
 
 
 def _from_geotiff(path: Path, geo: dict, crs: str | int | None) -> tuple[Georeference, str] | None:

@@ -228,6 +228,10 @@ class Orthomap:
         meta = read_bundle_meta(path)
         arrays: dict[str, np.ndarray] = {}
         for n, info in meta["layers"].items():
+            if not isinstance(info, dict) or not isinstance(info.get("file"), str) or \
+                    not isinstance(info.get("dtype"), str) or not isinstance(info.get("shape"), list):
+                raise MapError(f"{path / 'meta.json'}: layers[{n!r}] = {info!r} must be a table with 'file', "
+                               "'dtype' and 'shape'; the bundle is corrupt, rebuild it with save_bundle")
             if n not in _LAYERS:
                 raise MapError(f"{path}: unknown layer {n!r} in meta.json; known: {', '.join(_LAYERS)}")
             f = path / info["file"]
@@ -279,6 +283,9 @@ def read_bundle_meta(path: str | os.PathLike) -> dict:
     missing = [k for k in ("bundle_id", "name", "gsd_x_m", "gsd_y_m", "georef", "layers") if k not in meta]
     if missing:
         raise MapError(f"{meta_file}: missing key(s) {', '.join(missing)}; the bundle is corrupt, rebuild it")
+    if not isinstance(meta["layers"], dict):
+        raise MapError(f"{meta_file}: 'layers' must map layer names to tables (file, dtype, shape), got "
+                       f"{type(meta['layers']).__name__} {meta['layers']!r:.60}; the bundle is corrupt, rebuild it")
     return meta
 
 

@@ -120,7 +120,7 @@ class ParticleFilter:
     # ---------------------------------------------------------------- one step
     def step(self, observation: Mapping[str, np.ndarray], info: Mapping[str, Any] | None = None) -> StepResult:
         cfg, rng = self.config, self.rng
-        obs = protocol.parse_observation(observation)
+        obs = protocol.parse_observation(observation, self.briefing)
         if not self.yaw_initialized:
             self.states[:, 2] = self.motion.init_yaw(self.states.shape[0], obs.yaw_rad, rng)
             self.yaw_initialized = True
