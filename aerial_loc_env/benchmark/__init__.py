@@ -18,14 +18,15 @@ __all__ = ["AgentEntry", "Grid", "ScenarioEntry", "available_experiments", "grid
 
 
 def run_experiment(experiment: "str | Grid", out_dir: str, *, workers: int = 1, executor: str = "local",
-                   plots: bool = True, progress: bool = True) -> list[dict]:
+                   plots: bool = True, progress: bool = True, add: bool = False) -> list[dict]:
     """Run an experiment (a name, a TOML path or a ``Grid``) into ``out_dir`` and write its report and plots;
-    returns the rows (finished trials already in ``out_dir`` are kept and skipped)."""
+    returns the rows (finished trials already in ``out_dir`` are kept and skipped). ``add`` lets it write
+    into a folder that holds another experiment's results."""
     from pathlib import Path
 
     from .cli import write_report
 
     grid = experiment if isinstance(experiment, Grid) else load_grid(experiment)
-    rows = run_grid(grid, out_dir, workers=workers, executor=executor, progress=progress)
+    rows = run_grid(grid, out_dir, workers=workers, executor=executor, progress=progress, add=add)
     write_report(grid, rows, Path(out_dir), plots=plots)
     return rows

@@ -3,7 +3,11 @@ report and plots. With no argument it runs the default comparison on the embedde
 
 Results go to ``results/<experiment>/`` (``--out``): ``trials.jsonl`` (the source of truth, appended as each
 episode ends), ``trials.csv`` / ``trials.json`` (derived), ``report.md`` and PNG plots. A re-run skips the
-trials already there, so an interrupted run resumes where it stopped."""
+trials already there, so an interrupted run resumes where it stopped. One run at a time per folder; a folder
+holding another experiment's results is refused unless ``--add``.
+
+Exit status: 0 when every trial of the experiment has a row, 1 when trials failed (see failures.jsonl; a
+re-run retries them), 2 for a bad experiment, option or folder."""
 
 from __future__ import annotations
 
@@ -36,6 +40,8 @@ def main(argv: list[str] | None = None) -> int:
                     help=f"an experiment name ({', '.join(available_experiments())}) or a TOML path")
     ap.add_argument("--out", help="results folder (default results/<experiment>); finished trials there are "
                                   "kept and skipped, never overwritten")
+    ap.add_argument("--add", action="store_true",
+                    help="add this experiment's trials to an --out folder that holds another experiment's results")
     ap.add_argument("--workers", type=int, default=_default_workers(),
                     help="parallel processes (default: the usable cores)")
     ap.add_argument("--executor", default="local", choices=("local", "ray"),
@@ -67,7 +73,8 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{grid.name}: {len(grid.agents)} agents x {len(grid.scenarios)} scenarios x "
           f"{len(grid.seeds)} seeds = {grid.trials()} trials -> {out}/", flush=True)
     t0 = time.monotonic()
-    rows = run_grid(grid, str(out), workers=args.workers, executor=args.executor, progress=not args.quiet)
+    rows = run_grid(grid, str(out), workers=args.workers, executor=args.executor, progress=not args.quiet,
+                    add=args.add)
     elapsed = time.monotonic() - t0
     print()
     print(summary_table(summarize(rows)))
@@ -78,6 +85,11 @@ def main(argv: list[str] | None = None) -> int:
                         note=f"Run time of this invocation: {elapsed:.0f} s with {args.workers} "
                              f"{args.executor} worker(s) (trials already on disk were skipped).")
     print(f"\nreport: {path}; rows: {out / 'trials.csv'}; {elapsed:.0f} s", flush=True)
+    missing = grid.trials() - len(rows)
+    if missing:
+        print(f"aerial-loc bench: {missing} of {grid.trials()} trial(s) have no result (they failed: see "
+              f"{out / 'failures.jsonl'}; a re-run retries them)", file=sys.stderr)
+        return 1
     return 0
 
 

@@ -8,6 +8,10 @@ the store and the reports do not depend on it.
 from __future__ import annotations
 
 import os
+import signal
+import sys
+import threading
+import time
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 
@@ -20,13 +24,41 @@ OnResult = Callable[[tuple[list[dict], list[dict]]], None]
 THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 
 
-def _worker_init() -> None:
+def _worker_init(parent_pid: int | None = None) -> None:
     # One numeric thread per worker process: the workers are the parallelism.
     for var in THREAD_VARS:
         os.environ.setdefault(var, "1")
     import cv2
 
     cv2.setNumThreads(1)
+    if parent_pid is not None:
+        exit_with_parent(parent_pid)
+
+
+PR_SET_PDEATHSIG = 1   # linux/prctl.h
+
+
+def exit_with_parent(parent_pid: int, poll_s: float = 1.0) -> None:
+    """End this worker when the run that started it dies, even by SIGKILL (it would otherwise wait on its
+    task queue for ever). Linux: the kernel sends SIGTERM at the parent's death (prctl PR_SET_PDEATHSIG);
+    everywhere: a daemon thread checks every ``poll_s`` that the parent is still ours."""
+    if sys.platform.startswith("linux"):
+        try:
+            import ctypes
+
+            libc = ctypes.CDLL(None, use_errno=True)
+            libc.prctl(PR_SET_PDEATHSIG, signal.SIGTERM, 0, 0, 0)
+        except (OSError, AttributeError):  # pragma: no cover (no prctl: the thread below still watches)
+            pass
+    if os.getppid() != parent_pid:   # the parent died before the signal was armed
+        os._exit(1)
+
+    def watch() -> None:
+        while os.getppid() == parent_pid:
+            time.sleep(poll_s)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="exit-with-parent", daemon=True).start()
 
 
 @contextmanager
@@ -59,7 +91,8 @@ def local_executor(tasks: Sequence[EpisodeTask], on_result: OnResult, workers: i
 
     ctx = mp.get_context("spawn")
     with _single_threaded_children():
-        pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_worker_init)
+        pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_worker_init,
+                                   initargs=(os.getpid(),))
         try:
             futures = [pool.submit(run_episode, t) for t in tasks]
             for fut in as_completed(futures):

@@ -124,15 +124,23 @@ Executor = Callable[[Sequence[EpisodeTask], Callable[[tuple[list[dict], list[dic
 
 
 def run_grid(grid: Grid, out_dir: str, *, workers: int = 1, executor: str | Executor = "local",
-             progress: bool = True) -> list[dict]:
+             progress: bool = True, add: bool = False) -> list[dict]:
     """Run what is not done yet of ``grid`` into ``out_dir``; return all rows of this grid (in grid order).
 
     Finished trials are appended to ``out_dir/trials.jsonl`` as each episode ends; agents that raised are
     logged in ``failures.jsonl`` (and retried by a re-run). Raises ``ConfigError`` up front for a bad agent
-    or scenario spec, before any rendering.
+    or scenario spec, before any rendering; for a folder another run is using (it names that run's PID); and
+    for a folder holding another experiment's results, unless ``add``.
     """
     store = TrialStore(out_dir)
     resolved = resolve_grid(grid)
+    with store.lock():
+        store.claim(grid.name, add=add)
+        return _run_locked(grid, store, resolved, workers, executor, progress)
+
+
+def _run_locked(grid: Grid, store: TrialStore, resolved: ResolvedGrid, workers: int,
+                executor: str | Executor, progress: bool) -> list[dict]:
     keys = resolved.keys
     tasks = plan(grid, store.done_keys(), resolved)
     bar = Progress(len(tasks), grid.name) if progress and tasks else None

@@ -3,6 +3,10 @@
 Each finished trial is appended (and fsynced) at once, so an interrupted run loses nothing; a re-run skips
 the trials whose key is already there. Rows already on disk are never rewritten or removed: the CSV/JSON
 summaries are derived files regenerated from the JSON lines.
+
+One run at a time per folder (``RunLock``: an exclusive lock on ``run.lock``, which holds the PID); the folder
+belongs to the experiments named in ``experiment.json`` (``TrialStore.claim``), so another experiment's
+results are never mixed in or have their report replaced unless asked.
 """
 
 from __future__ import annotations
@@ -20,6 +24,8 @@ from ..errors import ConfigError
 
 TRIALS_FILE = "trials.jsonl"
 FAILURES_FILE = "failures.jsonl"
+LOCK_FILE = "run.lock"
+MANIFEST_FILE = "experiment.json"
 
 
 def trial_key(agent: Mapping[str, Any], scenario: Mapping[str, Any], seed: int) -> str:
@@ -51,20 +57,57 @@ class TrialStore:
         self.failures_path = self.out_dir / FAILURES_FILE
 
     def rows(self) -> list[dict]:
-        """All complete rows on disk (a torn last line from a killed run is ignored, and kept on disk)."""
+        """All complete rows on disk, each trial once (the first row of a key: a file doubled by two runs at
+        once, before the lock, counts each trial once). A torn last line from a killed run is ignored, and
+        kept on disk."""
         if not self.path.exists():
             return []
         out = []
+        seen: set[str] = set()
         with open(self.path, encoding="utf-8") as fh:
             for line in fh:
                 line = line.strip()
                 if not line:
                     continue
                 try:
-                    out.append(json.loads(line))
+                    row = json.loads(line)
                 except json.JSONDecodeError:
                     continue
+                key = row.get("key") if isinstance(row, dict) else None
+                if key is not None:
+                    if key in seen:
+                        continue
+                    seen.add(key)
+                out.append(row)
         return out
+
+    def lock(self) -> RunLock:
+        """The folder's run lock (use as a context manager)."""
+        return RunLock(self.out_dir / LOCK_FILE)
+
+    def claim(self, experiment: str, *, add: bool = False) -> None:
+        """Record that ``experiment`` writes here; refuse a folder holding another experiment's results unless
+        ``add`` (then both are named). A folder from before the manifest is judged by its report's title."""
+        manifest = self.out_dir / MANIFEST_FILE
+        if manifest.exists():
+            try:
+                names = list(json.loads(manifest.read_text(encoding="utf-8"))["experiments"])
+            except (ValueError, KeyError, TypeError, UnicodeDecodeError) as exc:
+                raise ConfigError(f"{manifest}: not a results manifest ({exc}); choose another --out") from exc
+        else:
+            names = _report_title(self.out_dir / "report.md")
+        if experiment in names:
+            if manifest.exists():
+                return
+        elif names and not add:
+            raise ConfigError(
+                f"results folder '{self.out_dir}' holds the results of experiment "
+                f"{', '.join(repr(n) for n in names)}, not {experiment!r}; choose another --out, or pass "
+                f"--add (run_experiment(..., add=True)) to add {experiment!r}'s trials to it")
+        from ..paths import atomic_write_bytes
+
+        names = names if experiment in names else [*names, experiment]
+        atomic_write_bytes(manifest, json.dumps({"experiments": names}, indent=1).encode())
 
     def done_keys(self) -> set[str]:
         return {r["key"] for r in self.rows() if "key" in r}
@@ -76,6 +119,98 @@ class TrialStore:
     def append_failure(self, record: Mapping[str, Any]) -> None:
         """Log an agent that raised (not a finished trial: a re-run tries it again)."""
         _append_line(self.failures_path, record)
+
+
+def _report_title(path: Path) -> list[str]:
+    """The experiment a report.md written before the manifest belongs to (its '# title' line), if any."""
+    try:
+        first = path.read_text(encoding="utf-8").splitlines()[0]
+    except (OSError, UnicodeDecodeError, IndexError):
+        return []
+    return [first[2:].strip()] if first.startswith("# ") else []
+
+
+class RunLock:
+    """One benchmark run at a time in a results folder.
+
+    An exclusive ``flock`` on the lock file, which holds the owner's PID: the kernel drops the lock when the
+    owner dies (even by SIGKILL), so a stale file of a dead run is simply taken over. Without ``fcntl``
+    (Windows) the file is created exclusively and a file naming a dead PID is taken over.
+    """
+
+    def __init__(self, path: Path) -> None:
+        self.path = Path(path)
+        self._fd: int | None = None
+        self._portable = False
+
+    def _owner(self) -> str:
+        try:
+            text = self.path.read_text(encoding="utf-8").strip()
+        except (OSError, UnicodeDecodeError):
+            text = ""
+        return text.split()[0] if text else "unknown"
+
+    def _busy(self, pid: str) -> ConfigError:
+        return ConfigError(f"results folder '{self.path.parent}' is in use by another benchmark run (PID {pid}; "
+                           f"lock file {self.path}); wait for it to finish, or choose another --out")
+
+    def acquire(self) -> None:
+        try:
+            import fcntl
+        except ImportError:  # pragma: no cover (not POSIX)
+            self._portable = True
+            self._acquire_portable()
+            return
+        fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o666)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            os.close(fd)
+            raise self._busy(self._owner()) from None
+        os.ftruncate(fd, 0)
+        os.write(fd, f"{os.getpid()}\n".encode())
+        self._fd = fd
+
+    def _acquire_portable(self) -> None:  # pragma: no cover (not POSIX)
+        for _ in range(2):
+            try:
+                fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_EXCL, 0o666)
+            except FileExistsError:
+                pid = self._owner()
+                if pid.isdigit() and _pid_alive(int(pid)):
+                    raise self._busy(pid) from None
+                self.path.unlink(missing_ok=True)    # a dead run's lock: take it over
+                continue
+            os.write(fd, f"{os.getpid()}\n".encode())
+            self._fd = fd
+            return
+        raise self._busy(self._owner())
+
+    def release(self) -> None:
+        if self._fd is None:
+            return
+        fd, self._fd = self._fd, None
+        os.ftruncate(fd, 0)      # with flock the file stays (unlinking a locked file races with a new locker)
+        os.close(fd)
+        if self._portable:  # pragma: no cover (not POSIX)
+            self.path.unlink(missing_ok=True)
+
+    def __enter__(self) -> RunLock:
+        self.acquire()
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        self.release()
+
+
+def _pid_alive(pid: int) -> bool:  # pragma: no cover (the portable fallback)
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
 
 
 def _append_line(path: Path, record: Mapping[str, Any]) -> None:

@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import MapError
+from ..paths import umask_mode
 from .geo import Georeference, georeference_from_dict
 
 BUNDLE_FORMAT = "aerial_loc_env.orthomap"
@@ -199,6 +200,7 @@ class Orthomap:
             "provenance": dict(provenance or {}),
         }
         tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.tmp-", dir=path.parent))
+        tmp.chmod(umask_mode(0o777))   # the bundle folder as mkdir would make it (mkdtemp gives 0700)
         try:
             for n, a in layers.items():
                 np.save(tmp / f"{n}.npy", np.ascontiguousarray(a), allow_pickle=False)
