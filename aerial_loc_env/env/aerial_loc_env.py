@@ -220,7 +220,9 @@ class AerialLocEnv(gym.Env):
     def _build_renderer(self) -> None:
         from ..sensors.render import CameraRenderer
 
-        self._renderer = CameraRenderer(self.orthomap, self.camera, self.scenario.photometry, strict=True)
+        sc = self.scenario
+        self._renderer = CameraRenderer(self.orthomap, self.camera, sc.photometry, strict=True,
+                                        perspective=sc.perspective if sc.map.use_dsm else None)
 
     def __getstate__(self) -> dict:
         state = self.__dict__.copy()

@@ -14,6 +14,7 @@ that map to frozen dataclasses through ``aerial_loc_env.config.build_config``:
 ``[shadows]``           ``aerial_loc_env.world.shadows.ShadowConfig``
 ``[database]``          ``aerial_loc_env.world.acquisition.AcquisitionConfig`` (how the map was acquired)
 ``[photometry]``        ``aerial_loc_env.sensors.render.Photometry`` (exposure, noise, vignetting, blur)
+``[perspective]``       ``aerial_loc_env.sensors.perspective.PerspectiveConfig``: the height model in perspective
 ``[observation]``       ``ObservationConfig``: the observation image size (the camera image resized)
 ``[episode]``           ``EpisodeConfig``: start mode, prior, failure rule
 ``[reward]``            ``RewardConfig``
@@ -123,6 +124,7 @@ SECTIONS: dict[str, Any] = {
     "shadows": _lazy("..world.shadows", "ShadowConfig"),
     "database": _lazy("..world.acquisition", "AcquisitionConfig"),
     "photometry": _lazy("..sensors.render", "Photometry"),
+    "perspective": _lazy("..sensors.perspective", "PerspectiveConfig"),
     "observation": lambda: ObservationConfig,
     "episode": lambda: EpisodeConfig,
     "reward": lambda: RewardConfig,

@@ -32,17 +32,19 @@ def _scene(seed: int = 0):
         rgb[v:v + h, u:u + w] = rng.integers(60, 200, 3)
     grid = sun_occlusion(dsm, _GSD_M, _GSD_M, Sun(azimuth_deg=200.0, elevation_deg=40.0), downsample=2)
     orthomap = SimpleNamespace(rgb=rgb, gsd_x_m=_GSD_M, gsd_y_m=_GSD_M, height_px=_MAP_PX, width_px=_MAP_PX,
-                               nodata=None, name="bench-scene")
+                               nodata=None, name="bench-scene", dsm_m=dsm)
     return orthomap, grid
 
 
-def _render_setup(altitude_m: float, shadows: bool) -> Callable[[], Callable[[], object]]:
+def _render_setup(altitude_m: float, shadows: bool, perspective: bool = False,
+                  tilt_rad: tuple[float, float] = (0.0, 0.0)) -> Callable[[], Callable[[], object]]:
     def setup() -> Callable[[], object]:
         from ..sensors.camera import Pose
+        from ..sensors.perspective import PerspectiveConfig
         from ..sensors.render import CameraRenderer
 
         orthomap, grid = _scene()
-        renderer = CameraRenderer(orthomap)
+        renderer = CameraRenderer(orthomap, perspective=PerspectiveConfig(enabled=True) if perspective else None)
         rng = np.random.default_rng(1)
         poses = [Pose(x, y, yaw, altitude_m) for x, y, yaw in zip(rng.uniform(170, 598, 64),
                                                                     rng.uniform(170, 598, 64),
@@ -53,7 +55,7 @@ def _render_setup(altitude_m: float, shadows: bool) -> Callable[[], Callable[[],
 
         def run() -> object:
             state["i"] = (state["i"] + 1) % len(poses)
-            return renderer.render(poses[state["i"]], rng, occlusion, shading, speed_mps=12.0)
+            return renderer.render(poses[state["i"]], rng, occlusion, shading, speed_mps=12.0, tilt_rad=tilt_rad)
 
         return run
 
@@ -88,6 +90,11 @@ BENCHMARKS = [
               repeats=200),
     Benchmark("render 600x400 + cast shadows + noise (350 m, pyramid level 1)", _render_setup(350.0, True),
               target_ratio=2.0, unit="frame", repeats=200),
+    Benchmark("render 600x400 perspective of the height model + cast shadows + noise (200 m)",
+              _render_setup(200.0, True, perspective=True), target_ratio=3.0, unit="frame", repeats=200),
+    Benchmark("render 600x400 perspective + gimbal tilt + cast shadows + noise (200 m)",
+              _render_setup(200.0, True, perspective=True, tilt_rad=(0.004, -0.003)), target_ratio=3.0,
+              unit="frame", repeats=200),
     Benchmark(FLOOR_NAME, _patch_setup, unit="patch", repeats=200),
     Benchmark("camera.project_pixels: 5000 poses x 256 pixels (eq. 3)", _project_setup, unit="call", repeats=50),
 ]

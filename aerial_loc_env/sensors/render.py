@@ -17,7 +17,7 @@ Why it is built this way:
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
@@ -27,6 +27,7 @@ import numpy as np
 from ..config import rng as range_meta
 from ..errors import ConfigError, FootprintError
 from .camera import CameraModel, Pose, apply_affine
+from .perspective import PerspectiveConfig, ReliefView, ViewMaps, sample_grid, tilt_homography, tilted_corners
 
 FootprintStatus = Literal["valid", "outside", "nodata"]
 OcclusionSource = Any  # np.ndarray (map-sized float32) | world.shadows.ShadowGrid | world.shadows.CloudField
@@ -93,7 +94,7 @@ class CameraRenderer:
 
     def __init__(self, orthomap: Any, camera: CameraModel | None = None, photometry: Photometry | None = None,
                  *, strict: bool = True, noise_seed: int | np.random.Generator = 0,
-                 rgba: bool | None = None) -> None:
+                 rgba: bool | None = None, perspective: PerspectiveConfig | None = None) -> None:
         rgb = orthomap.rgb
         if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
             raise ConfigError(f"CameraRenderer: map '{getattr(orthomap, 'name', 'map')}' rgb must be (H, W, 3) "
@@ -102,6 +103,11 @@ class CameraRenderer:
         self.camera = camera or CameraModel()
         self.photometry = photometry or Photometry()
         self.strict = strict
+        # perspective view of the height model (sensors/perspective.py) when configured and the map has one;
+        # a flat view serves tilted (gimbal jitter) frames of maps without one
+        dsm = getattr(orthomap, "dsm_m", None)
+        relief = perspective is not None and perspective.enabled and dsm is not None
+        self._view = ReliefView(dsm if relief else None, perspective)
         # OpenCV's bilinear warp is about twice as fast on 4-channel pixels (same bytes per channel), so maps
         # up to _RGBA_MAX_PX get a private RGBA copy (4 bytes/px, not shared between processes like a
         # memory-mapped map); larger ones are warped as they are. Both give the same bytes.
@@ -149,8 +155,9 @@ class CameraRenderer:
         affine = self.camera_to_map(pose, camera)
         return self._status(affine, self.pyramid_level(affine), camera)
 
-    def _status(self, affine: np.ndarray, level: int, camera: CameraModel) -> FootprintStatus:
-        corners = apply_affine(affine, camera.corners_px())
+    def _status(self, affine: np.ndarray, level: int, camera: CameraModel,
+                corners_px: np.ndarray | None = None) -> FootprintStatus:
+        corners = apply_affine(affine, camera.corners_px() if corners_px is None else corners_px)
         h, w = self.orthomap.rgb.shape[:2]
         tol = 1e-6
         if (np.any(corners < -0.5 - tol) or np.any(corners[:, 0] > w - 0.5 + tol)
@@ -255,14 +262,14 @@ class CameraRenderer:
         return self._occlusion(occlusion, self.camera_to_map(pose, camera), pose, t_s, camera)
 
     def _occlusion(self, occlusion: Any, affine: np.ndarray, pose: Pose, t_s: float,
-                   camera: CameraModel) -> np.ndarray:
+                   camera: CameraModel, view: ViewMaps | None = None) -> np.ndarray:
         from ..world import shadows  # layer 1, imported late: the geometry works without it
 
         size = (camera.width_px, camera.height_px)
         if isinstance(occlusion, (list, tuple)) and not isinstance(occlusion, shadows.ShadowGrid):
             if not occlusion:
                 raise ConfigError("render: the occlusion sequence is empty; pass None for no shadows")
-            fields = [self._occlusion(o, affine, pose, t_s, camera) for o in occlusion]
+            fields = [self._occlusion(o, affine, pose, t_s, camera, view) for o in occlusion]
             return fields[0] if len(fields) == 1 else shadows.combine_occlusion(*fields)
         if isinstance(occlusion, shadows.CloudField):
             to_world = camera.camera_to_world(*_pose_tuple(pose))
@@ -279,6 +286,8 @@ class CameraRenderer:
         if data.shape != expected or data.dtype != np.float32:
             raise ConfigError(f"render: occlusion grid must be float32 of shape {expected} (the map {h}x{w} "
                               f"px at {factor} map px per cell), got {data.dtype} {data.shape}")
+        if view is not None:  # shadows lie on the surfaces the perspective view sees
+            return sample_grid(view, data, factor)
         # map pixel u -> grid pixel (u + 0.5) / f - 0.5
         a = affine / factor
         a[:, 2] += 0.5 / factor - 0.5
@@ -287,27 +296,38 @@ class CameraRenderer:
     def render(self, pose: Pose, rng: np.random.Generator,
                occlusion: OcclusionSource | Sequence[OcclusionSource] | None = None,
                shading_params: Mapping[str, Any] | None = None, *, t_s: float = 0.0, speed_mps: float = 0.0,
-               strict: bool | None = None) -> Frame:
+               strict: bool | None = None, tilt_rad: tuple[float, float] = (0.0, 0.0),
+               pre_sensor: Callable[[np.ndarray], np.ndarray] | None = None) -> Frame:
         """Render the camera frame at ``pose``: map warp, shadows (if ``occlusion``), then photometry.
 
         ``occlusion``: see ``occlusion_in_camera`` (``t_s`` is the time for cloud fields). ``shading_params``
         are the keyword arguments of ``world.shadows.apply_shading`` (``strength`` defaults to 1), e.g.
         ``{"strength": cfg.draw_strength(rng), **cfg.shading_kwargs()}`` for a ``ShadowConfig``.
         ``speed_mps`` sets the motion blur length (``speed * exposure_time`` along the heading).
+        ``tilt_rad``: the gimbal's (roll, pitch) error; with it, or with a perspective view of the height model,
+        the frame is one ``remap`` through per-pixel maps (``sensors.perspective``) instead of the affine warp.
+        ``pre_sensor``: scene-side effects (haze, exposure control) on the shaded image before the photometry.
         """
         pose = Pose(*_pose_tuple(pose))
         strict = self.strict if strict is None else strict
         camera = self.camera
         affine = self.camera_to_map(pose, camera)
         level = self.pyramid_level(affine)
-        status = self._status(affine, level, camera)
+        tilt = tilt_homography(camera, *tilt_rad) if any(tilt_rad) else None
+        status = self._status(affine, level, camera, None if tilt is None else tilted_corners(camera, tilt))
         self._check(pose, status, strict, camera)
-        image = self._warp(affine, level, camera)
+        view = self._view.maps(affine, pose.altitude_m, camera, tilt)
+        if view is None:
+            image = self._warp(affine, level, camera)
+        else:
+            image = view.sample(self.map_level(level), level)
+            image = cv2.cvtColor(image, cv2.COLOR_RGBA2RGB) if self._rgba else image
+            self._view.shade_facades(image, view)
         occ_cam = None
         if occlusion is not None:
             from ..world.shadows import apply_shading
 
-            occ_cam = self._occlusion(occlusion, affine, pose, t_s, camera)
+            occ_cam = self._occlusion(occlusion, affine, pose, t_s, camera, view)
             kwargs = dict(shading_params or {})
             strength = kwargs.pop("strength", 1.0)
             image = apply_shading(image, occ_cam, strength, out=image, **kwargs)
@@ -316,6 +336,8 @@ class CameraRenderer:
         else:
             mask = np.zeros(image.shape[:2], dtype=bool)
             fraction = 0.0
+        if pre_sensor is not None:
+            image = pre_sensor(image)
         image = self._photometry(image, rng, speed_mps, camera.gsd_m(pose.altitude_m) * camera.pixel_aspect)
         return Frame(image=image, shadow_mask=mask, shadow_fraction=float(fraction), valid=status == "valid",
                      status=status, pose=pose, occlusion=occ_cam, pyramid_level=level)

@@ -1,0 +1,178 @@
+"""The perspective camera over the height model: relief displacement against the pinhole geometry, facades,
+occlusion, shadows on the surfaces they fall on, the flat case against the affine warp, and the gimbal tilt."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from aerial_loc_env.sensors.camera import CameraModel, Pose
+from aerial_loc_env.sensors.perspective import PerspectiveConfig, tilt_homography
+from aerial_loc_env.sensors.render import CameraRenderer, Photometry
+from aerial_loc_env.world.geo import LocalTangentGeoref
+from aerial_loc_env.world.orthomap import Orthomap
+
+GSD = 0.25
+SIZE_PX = 1600                     # a 400 m map
+H = 200.0                          # flight height: the 600 x 400 camera sees 0.25 m/px, map level 0
+CAM = CameraModel()
+NADIR = Pose(200.0, 200.0, math.pi / 2, H)   # nose north: image u grows east, v grows south
+GROUND, ROOF = 60, 220
+FACADE = PerspectiveConfig(enabled=True).facade_gain * ROOF
+
+
+def box_map(r_in_m: float, r_out_m: float, height_m: float, half_depth_m: float = 20.0,
+            marker: tuple[float, float] | None = None) -> Orthomap:
+    """Flat grey ground with one box building east of nadir spanning ground distances [r_in, r_out]."""
+    rgb = np.full((SIZE_PX, SIZE_PX, 3), GROUND, np.uint8)
+    dsm = np.zeros((SIZE_PX, SIZE_PX), np.float32)
+    # world x = (u + 0.5) * gsd: the pixel boundary u + 0.5 = x / gsd
+    u0, u1 = round((NADIR.x_m + r_in_m) / GSD), round((NADIR.x_m + r_out_m) / GSD)
+    vc = SIZE_PX - NADIR.y_m / GSD
+    v0, v1 = round(vc - half_depth_m / GSD), round(vc + half_depth_m / GSD)
+    rgb[v0:v1, u0:u1] = ROOF
+    dsm[v0:v1, u0:u1] = height_m
+    if marker is not None:   # a ground stripe (red) at these ground distances
+        m0, m1 = round((NADIR.x_m + marker[0]) / GSD), round((NADIR.x_m + marker[1]) / GSD)
+        rgb[v0:v1, m0:m1] = (255, 0, 0)
+    georef = LocalTangentGeoref(origin_lat_deg=47.0, origin_lon_deg=8.0, gsd_x_m=GSD, gsd_y_m=GSD)
+    return Orthomap(rgb=rgb, gsd_x_m=GSD, gsd_y_m=GSD, georef=georef, dsm_m=dsm, name="box")
+
+
+def renderer(orthomap: Orthomap, perspective: bool = True) -> CameraRenderer:
+    cfg = PerspectiveConfig(enabled=True) if perspective else None
+    return CameraRenderer(orthomap, CAM, Photometry.ideal(), perspective=cfg)
+
+
+def centre_row(image: np.ndarray) -> np.ndarray:
+    """Mean grey of the two rows around the principal point (v = 199.5), as float."""
+    return image[199:201, :, 1].astype(np.float64).mean(axis=0)
+
+
+def crossing(profile: np.ndarray, start: int, level: float, falling: bool) -> float:
+    """Sub-pixel column (pixel centres at integers) where ``profile`` first crosses ``level`` after ``start``."""
+    for j in range(start + 1, profile.size):
+        a, b = profile[j - 1], profile[j]
+        if (a >= level > b) if falling else (a < level <= b):
+            return j - 1 + (a - level) / (a - b)
+    raise AssertionError(f"no crossing of {level} after column {start}")
+
+
+@pytest.mark.parametrize(("r_out", "height"), [(20.0, 50.0), (40.0, 60.0), (50.0, 30.0), (60.0, 20.0),
+                                               (30.0, 10.0)])
+def test_roof_edge_lands_where_the_pinhole_geometry_says(r_out, height):
+    """A roof at height h, ground distance r from nadir, appears at r H / (H - h): displaced by r h / (H - h)."""
+    r_in = r_out - 10.0
+    image = renderer(box_map(r_in, r_out, height)).render(NADIR, np.random.default_rng(0)).image
+    prof = centre_row(image)
+    cu = CAM.center_px[0]
+    scale = H / (H - height)
+    # outer roof edge: roof -> ground (the far wall faces away from the camera)
+    outer = crossing(prof, int(cu + r_in * scale / GSD) + 2, (ROOF + GROUND) / 2, falling=True)
+    assert outer == pytest.approx(cu + r_out * scale / GSD, abs=1.0)
+    # inner side: ground up to the wall's foot at r_in, facade up to the roof's inner edge at r_in H / (H - h)
+    foot = crossing(prof, int(cu), (GROUND + FACADE) / 2, falling=False)
+    assert foot == pytest.approx(cu + r_in / GSD, abs=1.0)
+    inner = crossing(prof, int(foot) + 1, (FACADE + ROOF) / 2, falling=False)
+    assert inner == pytest.approx(cu + r_in * scale / GSD, abs=1.0)
+    mid = int(round(cu + r_in * (1 + scale) / 2 / GSD))
+    assert prof[mid] == pytest.approx(FACADE, abs=2.0)
+    # the affine warp puts the whole roof on its ground footprint
+    flat = centre_row(renderer(box_map(r_in, r_out, height), perspective=False).render(
+        NADIR, np.random.default_rng(0)).image)
+    assert crossing(flat, int(cu + r_in / GSD) + 2, (ROOF + GROUND) / 2, True) == pytest.approx(
+        cu + r_out / GSD, abs=0.6)
+
+
+def test_ground_behind_a_tall_building_is_hidden():
+    """A red ground stripe just beyond a 50 m building's far edge is hidden in perspective, seen when flat."""
+    om = box_map(30.0, 45.0, 50.0, marker=(46.0, 50.0))     # hidden up to 45 * 50 / 150 = 15 m beyond the edge
+    red = [(r.render(NADIR, np.random.default_rng(0)).image[150:250, :, :] == (255, 0, 0)).all(axis=2).sum()
+           for r in (renderer(om), renderer(om, perspective=False))]
+    assert red[0] == 0 and red[1] > 1000
+
+
+def test_shadows_stay_on_the_roof_they_fall_on():
+    """A shadow field covering exactly the roof (map coordinates) shades exactly the displaced roof and facades."""
+    om = box_map(30.0, 50.0, 40.0)
+    occlusion = (om.dsm_m > 0).astype(np.float32)
+    r = renderer(om)
+    plain = r.render(NADIR, np.random.default_rng(0)).image
+    frame = r.render(NADIR, np.random.default_rng(0), occlusion, {"strength": 1.0})
+    building = plain[..., 1] > (GROUND + FACADE) / 2
+    union = (building | frame.shadow_mask).sum()
+    assert (building & frame.shadow_mask).sum() / union > 0.98
+    assert frame.image[building].mean() < 0.6 * plain[building].mean()
+
+
+def test_zero_height_model_gives_the_affine_frame_bit_for_bit():
+    om = box_map(30.0, 50.0, 0.0)
+    occlusion = np.zeros(om.dsm_m.shape, np.float32)
+    occlusion[700:900, 700:900] = 1.0
+    frames = [CameraRenderer(om, CAM, Photometry(), perspective=cfg).render(
+        Pose(190.0, 205.0, 0.3, H), np.random.default_rng(5), occlusion, {"strength": 0.8}, speed_mps=20.0)
+        for cfg in (None, PerspectiveConfig(enabled=True))]
+    assert np.array_equal(frames[0].image, frames[1].image)
+    assert np.array_equal(frames[0].occlusion, frames[1].occlusion)
+
+
+def test_remap_path_with_negligible_relief_matches_the_affine_warp_within_interpolation():
+    """A 1 mm bump forces the per-pixel path; away from it the frame equals the affine warp within 1 DN (both
+    interpolate bilinearly on OpenCV's 1/32-pixel grid)."""
+    rng = np.random.default_rng(3)
+    om = box_map(30.0, 50.0, 0.0)
+    import cv2
+
+    rgb = cv2.resize(rng.integers(0, 256, (200, 200, 3), dtype=np.uint8), (SIZE_PX, SIZE_PX),
+                     interpolation=cv2.INTER_CUBIC)
+    dsm = np.zeros_like(om.dsm_m)
+    dsm[800, 800] = 1e-3
+    om = Orthomap(rgb=rgb, gsd_x_m=GSD, gsd_y_m=GSD, georef=om.georef, dsm_m=dsm, name="bump")
+    pose = Pose(199.0, 201.0, 0.4, H)
+    flat = renderer(om, perspective=False).render(pose, np.random.default_rng(0)).image.astype(int)
+    persp = renderer(om).render(pose, np.random.default_rng(0)).image.astype(int)
+    assert np.abs(flat - persp).max() <= 1
+
+
+@pytest.mark.parametrize(("roll", "pitch"), [(0.0, 0.01), (0.01, 0.0), (-0.005, 0.008)])
+def test_tilt_moves_the_principal_point_by_h_tan_angle(roll, pitch):
+    """Positive pitch looks ahead (north here), positive roll to the right (east): by H tan(angle)."""
+    om = box_map(30.0, 50.0, 0.0)
+    om = Orthomap(rgb=om.rgb, gsd_x_m=GSD, gsd_y_m=GSD, georef=om.georef, dsm_m=None, name="flat")
+    r = renderer(om)
+    tilt = tilt_homography(CAM, roll, pitch)
+    view = r._view.maps(r.camera_to_map(NADIR), H, CAM, tilt)
+    cu, cv = CAM.center_px
+    x, y = view.x[int(cv), int(cu)], view.y[int(cv), int(cu)]   # pixel (299, 199): half a pixel from centre
+    east = (x + 0.5) * GSD - NADIR.x_m + 0.5 * GSD
+    north = SIZE_PX * GSD - (y + 0.5) * GSD - NADIR.y_m - 0.5 * GSD
+    assert east == pytest.approx(H * math.tan(roll), abs=0.02)
+    assert north == pytest.approx(H * math.tan(pitch), abs=0.02)
+
+
+def test_env_perspective_is_deterministic_and_changes_only_the_frames():
+    import gymnasium as gym
+
+    import aerial_loc_env  # noqa: F401
+
+    def episode(**overrides) -> tuple[list[np.ndarray], list[np.ndarray]]:
+        env = gym.make("AerialLoc/Small-v0", flight={"duration_s": 2.0}, **overrides)
+        obs, info = env.reset(seed=11)
+        frames, poses = [obs["image"]], [info["true_pose"]]
+        done = False
+        while not done:
+            obs, _, term, trunc, info = env.step(np.zeros(2, np.float32))
+            frames.append(obs["image"])
+            poses.append(info["true_pose"])
+            done = term or trunc
+        env.close()
+        return frames, poses
+
+    a, pa = episode(perspective={"enabled": True})
+    b, pb = episode(perspective={"enabled": True})
+    flat, pf = episode()
+    assert all(np.array_equal(x, y) for x, y in zip(a, b, strict=True))
+    assert all(np.array_equal(x, y) for x, y in zip(pa, pf, strict=True))   # same track: no extra draws
+    assert any(not np.array_equal(x, y) for x, y in zip(a, flat, strict=True))
