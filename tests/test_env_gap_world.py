@@ -61,3 +61,40 @@ def test_acquisition_errors_name_the_field():
 
     with pytest.raises(ConfigError, match=r"database.*lean_deg"):
         gym.make(SMALL, database={"lean_deg": 75.0})
+
+
+EPOCH = {"seed": 2, "car_turnover": 0.5, "car_arrivals": 0.5, "leaf_off": 0.6, "grass_dryness": 0.5,
+         "roof_change": 0.3, "demolished": 0.2, "built": 0.2, "construction_per_km2": 20.0,
+         "marking_renewal": 0.5, "water_change": 0.5}
+
+
+def test_epoch_section_changes_the_camera_world_not_the_database():
+    from aerial_loc_env.world.epochs import epoch_cache_path
+
+    plain = gym.make(SMALL, **SHORT).unwrapped
+    env = gym.make(SMALL, **SHORT, epoch=EPOCH).unwrapped
+    city = load_map(env.scenario)
+    assert env.database is city and env.orthomap is not city
+    assert epoch_cache_path(env.scenario.city, env.scenario.epoch).is_dir()      # cached beside the city
+    assert env._renderer.orthomap is env.orthomap
+    assert not np.array_equal(env.orthomap.dsm_m, city.dsm_m)                   # buildings came and went
+    assert np.mean(np.any(env.orthomap.rgb != city.rgb, axis=-1)) > 0.05
+    env.reset(seed=4)
+    plain.reset(seed=4)
+    assert np.array_equal(plain._track.x_m, env._track.x_m)                     # same flight, other ground
+    grid_b, grid_a = env._cast_shadows(), plain._cast_shadows()
+    assert not np.array_equal(grid_b.data, grid_a.data)                         # shadows of epoch B's DSM
+    frames_b, frames_a = _episode(env, 4), _episode(plain, 4)
+    assert any(not np.array_equal(a, b) for a, b in zip(frames_a, frames_b, strict=True))
+    again = gym.make(SMALL, **SHORT, epoch=EPOCH).unwrapped                      # same spec, same episode
+    for a, b in zip(frames_b, _episode(again, 4), strict=True):
+        assert np.array_equal(a, b)
+
+
+def test_epoch_and_acquisition_together():
+    env = gym.make(SMALL, **SHORT, epoch={"leaf_off": 0.5}, database={"haze": 0.2, "gsd_m": 1.0}).unwrapped
+    city = load_map(env.scenario)
+    assert env.database is not city and env.orthomap is not city
+    assert np.array_equal(env.database.classes, city.classes)       # epoch A's layers (no georeference bias)
+    obs, _ = env.reset(seed=0)
+    assert env.observation_space.contains(obs)

@@ -113,6 +113,25 @@ def load_map(scenario: Scenario) -> Any:
     return _MAPS[key]
 
 
+def world_map(scenario: Scenario, base: Any) -> Any:
+    """The ground the camera flies over: ``base`` (epoch A, the map's epoch) itself, or with an ``[epoch]``
+    section that changes something, epoch B of it (``world/epochs.py``; the city's is cached on disk)."""
+    cfg = scenario.epoch
+    if cfg.is_identity:
+        return base
+    from ..config import config_to_dict
+
+    key = ("epoch", id(base), repr(sorted(config_to_dict(cfg).items())))
+    if key not in _MAPS:
+        from ..world import epochs
+
+        if scenario.map.kind == "city":
+            _MAPS[key] = epochs.epoch_city(scenario.city, cfg)
+        else:
+            _MAPS[key] = epochs.change_epoch(base, cfg)
+    return _MAPS[key]
+
+
 def database_map(orthomap: Any, shadows: Any, acquisition: Any = None) -> Any:
     """What the estimators get as the map: the scene itself (shadow-free), or, with
     ``shadows.database_sun_deg``, a copy with the shadows of that other sun baked in (time-of-day mismatch),
@@ -186,8 +205,9 @@ class AerialLocEnv(gym.Env):
         sc = self.scenario
         self.render_mode = render_mode
         self.metadata = {**self.metadata, "render_fps": sc.flight.rate_hz}
-        self.orthomap = load_map(sc)
-        self.database = database_map(self.orthomap, sc.shadows, sc.database)
+        surveyed = load_map(sc)                      # epoch A: the ground when the map was made
+        self.orthomap = world_map(sc, surveyed)      # the ground the camera sees (epoch B, or A itself)
+        self.database = database_map(surveyed, sc.shadows, sc.database)
         sensor: CameraModel = sc.camera
         obs = sc.observation
         w = obs.width_px or sensor.width_px

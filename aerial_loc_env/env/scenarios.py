@@ -13,6 +13,7 @@ that map to frozen dataclasses through ``aerial_loc_env.config.build_config``:
 ``[odometry]``          ``aerial_loc_env.env.briefing.OdometryNoise``
 ``[shadows]``           ``aerial_loc_env.world.shadows.ShadowConfig``
 ``[database]``          ``aerial_loc_env.world.acquisition.AcquisitionConfig`` (how the map was acquired)
+``[epoch]``             ``aerial_loc_env.world.epochs.EpochConfig`` (what changed between map and flight)
 ``[photometry]``        ``aerial_loc_env.sensors.render.Photometry`` (exposure, noise, vignetting, blur)
 ``[perspective]``       ``aerial_loc_env.sensors.perspective.PerspectiveConfig``: the height model in perspective
 ``[observation]``       ``ObservationConfig``: the observation image size (the camera image resized)
@@ -123,6 +124,7 @@ SECTIONS: dict[str, Any] = {
     "odometry": _lazy(".briefing", "OdometryNoise"),
     "shadows": _lazy("..world.shadows", "ShadowConfig"),
     "database": _lazy("..world.acquisition", "AcquisitionConfig"),
+    "epoch": _lazy("..world.epochs", "EpochConfig"),
     "photometry": _lazy("..sensors.render", "Photometry"),
     "perspective": _lazy("..sensors.perspective", "PerspectiveConfig"),
     "observation": lambda: ObservationConfig,

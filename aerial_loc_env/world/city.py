@@ -163,8 +163,8 @@ def generate_city(config: CityConfig | None = None) -> Orthomap:
                     source=f"procedural city v{GENERATOR_VERSION} seed={cfg.seed}")
 
 
-def _check_cached(om: Orthomap, cfg: CityConfig) -> None:
-    w_px, h_px = cfg.size_px
+def _check_cached(om: Orthomap, size_px: tuple[int, int]) -> None:
+    w_px, h_px = size_px
     if (om.width_px, om.height_px) != (w_px, h_px) or om.dsm_m is None or om.classes is None:
         raise MapError(f"cached city has size {om.width_px}x{om.height_px} or missing layers; expected "
                        f"{w_px}x{h_px} with dsm_m and classes")
@@ -186,31 +186,40 @@ def city_cache_path(config: CityConfig | None = None) -> Path:
     return cache_dir("maps") / f"{cfg.name}-{cfg.cache_key()}.alm"
 
 
-def default_city(config: CityConfig | None = None) -> Orthomap:
-    """The procedural city for ``config`` (default: the paper-sized default city), memory-mapped from the cache.
+def cached_bundle(path: Path, make, provenance: dict, size_px: tuple[int, int]) -> Orthomap:
+    """The bundle at ``path``, memory-mapped; built with ``make()`` and saved atomically when absent or bad.
 
-    The first call generates and saves the bundle atomically; later calls (any process) only map it. A cache
-    entry that cannot be read or does not match the config is discarded and regenerated. Two processes that
-    race on the first call both generate; one rename wins and the other loads the winner's bundle.
+    A cache entry that cannot be read or does not have ``size_px`` and the dsm_m/classes layers is discarded
+    and rebuilt. Two processes that race on the first call both build; one rename wins and the other loads the
+    winner's bundle.
     """
-    cfg = config if config is not None else CityConfig()
-    path = city_cache_path(cfg)
     if path.exists():
         try:
             om = Orthomap.load_bundle(path, mmap=True)
-            _check_cached(om, cfg)
+            _check_cached(om, size_px)
             return om
         except (MapError, OSError, ValueError, KeyError, TypeError):
             _discard(path)
-    om = generate_city(cfg)
+    om = make()
     try:
-        om.save_bundle(path, provenance={"generator": "aerial_loc_env.world.city",
-                                         "generator_version": GENERATOR_VERSION, "config": config_to_dict(cfg)})
+        om.save_bundle(path, provenance=provenance)
     except (MapError, OSError):
         if not path.exists():       # not a lost race but a real failure (disk full, permissions)
             raise
     return Orthomap.load_bundle(path, mmap=True)
 
 
-__all__ = ["CityConfig", "GENERATOR_VERSION", "city_cache_path", "default_city",
+def default_city(config: CityConfig | None = None) -> Orthomap:
+    """The procedural city for ``config`` (default: the paper-sized default city), memory-mapped from the cache.
+
+    The first call generates and saves the bundle atomically; later calls (any process) only map it
+    (``cached_bundle``).
+    """
+    cfg = config if config is not None else CityConfig()
+    return cached_bundle(city_cache_path(cfg), lambda: generate_city(cfg),
+                         {"generator": "aerial_loc_env.world.city", "generator_version": GENERATOR_VERSION,
+                          "config": config_to_dict(cfg)}, cfg.size_px)
+
+
+__all__ = ["CityConfig", "GENERATOR_VERSION", "cached_bundle", "city_cache_path", "default_city",
            "generate_city", "height_ranges_m", "small_city_config"]
