@@ -1,37 +1,7 @@
 """``AerialLocEnv``: image-based absolute localization of a drone over an orthomap, as a Gymnasium env.
 
-One episode is one flight (``sensors.flight``): a track over valid map drawn from the episode seed, a nadir
-camera frame per step rendered with shadows the database lacks, and the vehicle's noisy odometry, heading and
-altitude. The agent answers each observation with its position estimate.
-
-Time line: ``reset`` returns the frame taken at pose 0; ``step(action)`` scores ``action`` as the estimate of
-the pose where the *last returned* frame was taken, then returns the next frame. A track of ``n`` steps has
-``n + 1`` poses; the last frame ends the episode (``truncated``) and is not scored.
-
-Spaces (docs/ARCHITECTURE.md, "Environment <-> agent contract"):
-
-- observation ``Dict``: ``image`` uint8 (H, W, 3) (the top of the image points along the heading);
-  ``odometry`` float32 ``[forward_speed_mps, yaw_rate_radps]`` measured over the last step;
-  ``yaw`` float32 measured heading (ENU, rad); ``altitude`` float32 measured altitude above ground (m).
-  Bounds are finite (speed +-``ODOMETRY_SPEED_MAX_MPS``, yaw rate +-``ODOMETRY_YAW_RATE_MAX_RADPS``,
-  altitude ``[0, ALTITUDE_MAX_M]``; measurements are clipped to them) so that both checkers stay silent.
-- action ``Box(-1, 1, (2,), float32)``: the position estimate normalized over the map extent,
-  ``a = 2 * (x_m / width_m, y_m / height_m) - 1`` (``world_to_action`` / ``action_to_world``). Wrong shapes or
-  dtypes, NaN/inf and values outside [-1, 1] raise ``InvalidActionError``.
-- reward: ``-position_error_m / reward.scale_m`` (horizontal error of the action).
-- termination: a documented failure, the error above ``episode.failure_error_m`` for ``episode.failure_steps``
-  consecutive steps (off by default); truncation: the end of the track.
-
-``info`` (ground truth, for scoring, reports and oracles; agents must not read it): ``true_pose``
-(x_m, y_m, yaw_rad, altitude_m) of the returned frame, ``time_s``, ``step``, ``prior``, ``shadow_fraction`` of
-the returned frame, ``sun_azimuth_deg``, ``sun_elevation_deg``, ``shadow_strength``; after a step also
-``position_error_m`` and ``estimate_xy_m`` of the scored action; with ``observation.info_shadow_mask`` the
-frame's ground-truth ``shadow_mask`` (H, W) bool. What an estimator may use is ``env.unwrapped.briefing``;
-its map is the shadow-free scene, or with ``shadows.database_sun_deg`` the scene with another sun's shadows.
-
-``render_mode="rgb_array"``: a north-up overview around the vehicle with the camera frame (and its shadows) in
-its footprint, the true track so far (green), the estimates (red), the prior (cyan) and the points an agent
-hands to ``set_overlay`` (e.g. particles, magenta).
+The class docstring is the env's documentation, in Gymnasium's sections (Description, Action Space,
+Observation Space, Rewards, Starting State, Episode End, Arguments, Version History).
 """
 
 from __future__ import annotations
@@ -179,7 +149,90 @@ def _coarse_dsm(orthomap: Any, factor: int) -> np.ndarray:
 
 
 class AerialLocEnv(gym.Env):
-    """See the module docstring. Build with ``gym.make("AerialLoc/<Name>-v0", **overrides)``.
+    """A drone flies over an orthomap; from its camera frames and odometry, estimate where it is.
+
+    ## Description
+
+    Image-based absolute localization without GNSS. One episode is one flight (``sensors.flight``): a track at
+    constant altitude over valid map, drawn from the episode seed; per step a nadir, gimbaled camera frame
+    rendered from the map with shadows (cast by buildings, or clouds) that the map database lacks, and the
+    vehicle's noisy odometry, heading and altitude. The agent answers each frame with its position estimate.
+
+    Time line: ``reset`` returns the frame taken at pose 0; ``step(action)`` scores ``action`` as the estimate
+    of the pose where the *last returned* frame was taken, then returns the next frame. A track of ``n`` steps
+    has ``n + 1`` poses; the last frame ends the episode and is not scored (the episode driver,
+    ``aerial_loc_env.estimators.episode``, still lets agents estimate on it).
+
+    What an estimator may know besides the observations is ``env.unwrapped.briefing`` (a ``Briefing``: the
+    database map, the camera model, the prior, the odometry noise model, the time step): its map is the
+    shadow-free scene, or with ``shadows.database_sun_deg`` the scene under another sun, or with
+    ``[database]`` the scene as a real map was acquired. ``info`` is the simulator's ground truth, for scoring,
+    reports and oracles; agents must not read it: ``true_pose`` (x_m, y_m, yaw_rad, altitude_m) of the
+    returned frame, ``time_s``, ``step``, ``prior``, ``shadow_fraction``, ``sun_azimuth_deg``,
+    ``sun_elevation_deg``, ``shadow_strength``; after a step ``position_error_m`` and ``estimate_xy_m`` of the
+    scored action; with ``observation.info_shadow_mask`` the frame's ground-truth ``shadow_mask`` (H, W) bool.
+
+    ``render_mode="rgb_array"``: a north-up overview around the vehicle with the camera frame (and its shadows)
+    in its footprint, the true track so far (green), the estimates (red), the prior (cyan) and the points an
+    agent hands to ``set_overlay`` (e.g. particles, magenta).
+
+    ## Action Space
+
+    ``Box(-1, 1, (2,), float32)``: the position estimate normalized over the map extent,
+    ``a = 2 * (x_m / width_m, y_m / height_m) - 1`` in the world frame (x east, y north, origin at the map's
+    south-west corner); convert with ``aerial_loc_env.env.world_to_action`` / ``action_to_world``. Wrong
+    shapes or dtypes, NaN/inf and values outside [-1, 1] raise ``InvalidActionError``.
+
+    ## Observation Space
+
+    A flat ``Dict`` (SB3's ``MultiInputPolicy`` takes it as is):
+
+    | key | space | meaning |
+    |---|---|---|
+    | ``image`` | ``Box(0, 255, (H, W, 3), uint8)`` | the camera frame; the top of the image points along the heading |
+    | ``odometry`` | ``Box((2,), float32)`` | measured ``[forward_speed_mps, yaw_rate_radps]`` over the last step |
+    | ``yaw`` | ``Box(-pi, pi, (1,), float32)`` | measured heading ``yaw_rad`` (ENU, counter-clockwise from east) |
+    | ``altitude`` | ``Box(0, ALTITUDE_MAX_M, (1,), float32)`` | measured altitude above ground, metres |
+
+    ``H, W`` are ``observation.height_px/width_px`` (default: the camera's). Bounds are finite (speed
+    +-``ODOMETRY_SPEED_MAX_MPS``, yaw rate +-``ODOMETRY_YAW_RATE_MAX_RADPS``, altitude ``[0, ALTITUDE_MAX_M]``;
+    measurements are clipped to them) so that both checkers stay silent.
+
+    ## Rewards
+
+    ``-position_error_m / reward.scale_m`` per step (default scale 100 m): the horizontal error of the action
+    against the true position of the frame it answers. The benchmark reports errors in metres instead (RMSE,
+    convergence, final error); the reward is for learned policies.
+
+    ## Starting State
+
+    ``reset(seed=...)`` draws everything from ``self.np_random``: the track (start uniformly over the flyable
+    region, the part of the map whose footprint clearance ``flight.margin_m`` stays on valid data; waypoint
+    legs at ``flight.speed_mps`` and ``flight.altitude_m``), the odometry noise, the sun and the shadow
+    strength, the clouds, and the renderer's noise. The prior: with ``episode.start = "tracking"`` a Gaussian
+    whose mean is drawn ``episode.prior_std_m`` (1-sigma per axis) around the true start; with ``"global"``
+    uniform over the map. Same seed, same episode, bit for bit.
+
+    ## Episode End
+
+    Truncation at the end of the track (``flight.duration_s`` at ``flight.rate_hz``; shorter only when the
+    region cannot hold the full track, never below ``flight.min_steps``). Termination only on the documented
+    failure: the error above ``episode.failure_error_m`` for ``episode.failure_steps`` consecutive steps (off
+    by default, ``failure_error_m = 0``); ``info["failure"]`` then says why. No time limit wrapper is needed.
+
+    ## Arguments
+
+    ``gym.make("AerialLoc/<Name>-v0", render_mode=None, **overrides)`` or
+    ``AerialLocEnv(scenario, render_mode=None, **overrides)``:
+
+    - ``scenario``: a registered id (one spec file in ``envs/``; ``aerial-loc scenarios`` lists them,
+      ``--show ID`` prints one in full) or a ``Scenario``;
+    - ``render_mode``: None or ``"rgb_array"``;
+    - ``overrides``: any field of the spec's sections (``map``, ``city``, ``flight``, ``camera``, ``odometry``,
+      ``shadows``, ``database``, ``photometry``, ``observation``, ``episode``, ``reward``; see
+      ``aerial_loc_env.env.scenarios``) as a section dict (``flight={"altitude_m": 150}``), a dotted key
+      (``**{"flight.altitude_m": 150}``) or a bare field owned by one section (``altitude_m=150``). Unknown keys
+      and out-of-range values raise ``ConfigError`` naming the key and the allowed values.
 
     ## Version History
 
