@@ -228,9 +228,9 @@ class AerialLocEnv(gym.Env):
     - ``scenario``: a registered id (one spec file in ``envs/``; ``aerial-loc scenarios`` lists them,
       ``--show ID`` prints one in full) or a ``Scenario``;
     - ``render_mode``: None or ``"rgb_array"``;
-    - ``overrides``: any field of the spec's sections (``map``, ``city``, ``flight``, ``camera``, ``odometry``,
-      ``shadows``, ``database``, ``photometry``, ``observation``, ``episode``, ``reward``; see
-      ``aerial_loc_env.env.scenarios``) as a section dict (``flight={"altitude_m": 150}``), a dotted key
+    - ``overrides``: any field of the spec's sections (``map``, ``city``, ``epoch``, ``flight``, ``camera``,
+      ``perspective``, ``odometry``, ``shadows``, ``database``, ``photometry``, ``observation``, ``episode``,
+      ``reward``; see ``aerial_loc_env.env.scenarios``) as a section dict (``flight={"altitude_m": 150}``), a dotted key
       (``**{"flight.altitude_m": 150}``) or a bare field owned by one section (``altitude_m=150``). Unknown keys
       and out-of-range values raise ``ConfigError`` naming the key and the allowed values.
 
