@@ -28,7 +28,8 @@ def test_ratio_is_median_over_interleaved_floor_median(monkeypatch, target, ok):
 
     def fake_timed(fn):
         timed.append(fn())
-        return next(bench_times) if timed[-1] == "bench" else next(floor_times)
+        cpu = next(bench_times) if timed[-1] == "bench" else next(floor_times)
+        return cpu, 2.0 * cpu     # wall clock: descheduled half of the time
 
     def call(name):
         return lambda: (calls.append(name), name)[1]
@@ -40,12 +41,13 @@ def test_ratio_is_median_over_interleaved_floor_median(monkeypatch, target, ok):
     assert calls == ["bench"] + (["bench"] + ["floor"] * (warm + n)) * 3  # one untimed warm-up of the benchmark
     assert timed == (["bench"] + ["floor"] * n) * 3                        # floor warm-up calls are not timed
     assert r["median_s"] == pytest.approx(0.010)                 # 20 ms / 2 items
+    assert r["wall_median_s"] == pytest.approx(0.020)
     assert r["floor_s"] == pytest.approx(0.002)                  # the outlier does not move the median
     assert r["ratio"] == pytest.approx(0.010 / 0.002)
     assert r["ok"] is ok
 
 
 def test_without_floor_there_is_no_ratio(monkeypatch):
-    monkeypatch.setattr(perf, "_timed", lambda fn: (fn(), 0.004)[1])
+    monkeypatch.setattr(perf, "_timed", lambda fn: (fn(), (0.004, 0.005))[1])
     r = measure(Benchmark("b", lambda: (lambda: None), target_ratio=1.0, repeats=4))
     assert r["ratio"] is None and r["ok"] is None and r["median_s"] == pytest.approx(0.004)

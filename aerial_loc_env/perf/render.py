@@ -5,6 +5,7 @@ projections for many particles."""
 from __future__ import annotations
 
 from collections.abc import Callable
+from functools import lru_cache
 
 import cv2
 import numpy as np
@@ -15,6 +16,7 @@ _MAP_PX = 3072
 _GSD_M = 0.25
 
 
+@lru_cache(maxsize=1)
 def _scene(seed: int = 0):
     """A 768 m synthetic scene: textured ground, box buildings 5-30 m tall, soft cast shadows (sun 40 deg)."""
     from types import SimpleNamespace
@@ -62,7 +64,10 @@ def _render_setup(altitude_m: float, shadows: bool, perspective: bool = False,
     return setup
 
 
+@lru_cache(maxsize=1)
 def _patch_setup() -> Callable[[], object]:
+    """The floor: one renderer (its private RGBA map copy) shared by the floor row and the interleaved floor calls,
+    so that the row times the same warm warp as the ratios' denominator."""
     from ..sensors.camera import Pose
     from ..sensors.render import CameraRenderer
 
