@@ -36,6 +36,9 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument("--out", required=True, help="output folder (created if missing)")
     ap.add_argument("--map", help="an orthomap (GeoTIFF, image with world file, or .alm bundle); "
                                   "default: the procedural default city")
+    ap.add_argument("--crs", help="--map: the CRS of its world file when no .prj / .aux.xml names it, "
+                                  "e.g. EPSG:32633")
+    ap.add_argument("--gsd", type=float, help="--map: ground metres per pixel of an image without georeference")
     ap.add_argument("--seed", type=int, default=0, help="seed of the track, sun, clouds and sensor noise")
     ap.add_argument("--altitude", type=float, default=200.0, help="flight altitude above ground, metres")
     ap.add_argument("--frames", type=int, default=4, help="number of camera frames along the track (1-12)")
@@ -45,8 +48,10 @@ def _parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     try:
+        if (args.crs or args.gsd is not None) and not args.map:
+            raise ConfigError("pictures: --crs and --gsd describe the file given with --map; give --map too")
         written = write_pictures(Path(args.out), map_path=args.map, seed=args.seed, altitude_m=args.altitude,
-                                 n_frames=args.frames)
+                                 n_frames=args.frames, map_crs=args.crs, map_gsd_m=args.gsd)
     except AerialLocError as exc:
         print(f"aerial-loc pictures: {exc}", file=sys.stderr)
         return 2
@@ -56,7 +61,8 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def write_pictures(out: Path, *, map_path: str | None = None, seed: int = 0, altitude_m: float = 200.0,
-                   n_frames: int = 4, orthomap=None) -> list[Path]:
+                   n_frames: int = 4, orthomap=None, map_crs: str | None = None,
+                   map_gsd_m: float | None = None) -> list[Path]:
     """Render the pictures (see the module doc) and return the written paths."""
     from .sensors.flight import FlightConfig, FlyableRegion, footprint_radius_m, sample_track
     from .world.shadows import ShadowConfig, apply_shading, sun_occlusion, upsample
@@ -70,7 +76,7 @@ def write_pictures(out: Path, *, map_path: str | None = None, seed: int = 0, alt
     except OSError as exc:
         raise ConfigError(f"pictures: cannot create the output folder {out}: {exc.strerror}") from exc
     if orthomap is None:
-        orthomap = _load_map(map_path)
+        orthomap = _load_map(map_path, crs=map_crs, gsd_m=map_gsd_m)
     rng = np.random.default_rng(seed)
     camera = CameraModel()
     flight = FlightConfig(altitude_m=altitude_m, duration_s=60.0)
@@ -133,7 +139,7 @@ def write_pictures(out: Path, *, map_path: str | None = None, seed: int = 0, alt
     return written
 
 
-def _load_map(map_path: str | None):
+def _load_map(map_path: str | None, crs: str | None = None, gsd_m: float | None = None):
     if map_path is None:
         from .world.city import default_city
 
@@ -142,7 +148,7 @@ def _load_map(map_path: str | None):
 
     if not Path(map_path).exists():
         raise ConfigError(f"pictures: --map {map_path} does not exist")
-    return load_orthomap(map_path)
+    return load_orthomap(map_path, crs=crs, gsd_m=gsd_m)
 
 
 def _world_to_small(orthomap, scale: float, xy: np.ndarray) -> np.ndarray:

@@ -307,20 +307,28 @@ def register_all() -> list[str]:
     return ids
 
 
+_REQUIRED = "<required>"
+
+
 def main(argv: list[str] | None = None) -> int:
     """``aerial-loc scenarios``: list the registered ids (``--show ID`` prints one validated spec as TOML)."""
     parser = argparse.ArgumentParser(prog="aerial-loc scenarios", description="list the registered scenarios")
     parser.add_argument("--show", metavar="ID", help="print the full validated spec of one scenario")
     args = parser.parse_args(argv)
     if args.show:
-        sc = load_scenario(args.show)
+        _path, raw = resolve(args.show)
+        needs_path = isinstance(raw.get("map"), Mapping) and raw["map"].get("kind") == "file" \
+            and not raw["map"].get("path")
+        # a file scenario names its map at gym.make: show the spec with that one field marked as required
+        sc = load_scenario(args.show, {"map.path": _REQUIRED} if needs_path else None)
         for key in TOP_KEYS:
             print(f"{key} = {json.dumps(getattr(sc, key))}")
         for name, table in sc.to_dict().items():
             if isinstance(table, dict):
                 print(f"\n[{name}]")
                 for k, v in table.items():
-                    print(f"{k} = {json.dumps(v)}")
+                    print(f"# {k} = (required: gym.make(id, path='tile.tif'), or map.path in an experiment's "
+                          "overrides)" if v == _REQUIRED else f"{k} = {json.dumps(v)}")
         return 0
     for sid, (_path, raw) in specs().items():
         print(f"{sid:36s} {raw.get('description', '')}")
