@@ -84,7 +84,8 @@ def test_grid_rejects_duplicate_labels_bad_plots_and_thresholds():
     with pytest.raises(ConfigError, match="paper section"):
         grid_from_dict({"agents": ["a"], "scenarios": ["s"], "seeds": 1, "paper": ["table99"]})
     with pytest.raises(ConfigError, match="converge_threshold_m"):
-        grid_from_dict({"agents": ["a"], "scenarios": ["s"], "seeds": 1, "converge_threshold_m": 80.0})
+        grid_from_dict({"agents": ["a"], "scenarios": ["s"], "seeds": 1, "converge_threshold_m": 80.0,
+                        "diverge_threshold_m": 50.0})
 
 
 def test_every_shipped_experiment_parses():

@@ -21,7 +21,7 @@ import numpy as np
 
 from .. import __version__
 from .grid import AgentEntry, ScenarioEntry
-from .metrics import MetricConfig, trial_metrics
+from .metrics import MetricConfig, fix_rate, trial_metrics
 
 
 @dataclass(frozen=True)
@@ -89,6 +89,7 @@ def run_episode(task: EpisodeTask) -> tuple[list[dict], list[dict]]:
     # other load on the machine.
     cpu_times = [0.0] * n
     shadow_pairs: list[list[float]] = [[] for _ in range(n)]
+    statuses: list[list[str]] = [[] for _ in range(n)]
     t_s: list[float] = []
     shadow_fraction: list[float] = []
     env_cpu_s = 0.0
@@ -101,6 +102,7 @@ def run_episode(task: EpisodeTask) -> tuple[list[dict], list[dict]]:
                 if est is None:
                     continue
                 errors[i].append(rec.error_m(i))
+                statuses[i].append(est.status)
                 step_times[i].append(rec.wall_s[i])
                 cpu_times[i] += rec.cpu_s[i]
                 stats = est.extras.get("stats", {}) if est.extras else {}
@@ -108,12 +110,13 @@ def run_episode(task: EpisodeTask) -> tuple[list[dict], list[dict]]:
                 if "shadow_pairs" in stats and k:
                     shadow_pairs[i].append(stats["shadow_pairs"] / k)
     failures = [failure(f.agent, f.stage, f.error, f.traceback) for f in driver.failures]
+    metric = task.metric.for_scenario(env.scenario)   # thresholds scaled with the scenario unless fixed
     rows = []
     t_arr = np.asarray(t_s)
     for i, entry in enumerate(task.agents):
         if not driver.alive[i]:
             continue
-        m = trial_metrics(np.asarray(errors[i]), t_arr, np.asarray(step_times[i]), task.metric)
+        m = trial_metrics(np.asarray(errors[i]), t_arr, np.asarray(step_times[i]), metric)
         rows.append({
             "key": task.keys[i],
             "agent": entry.display,
@@ -125,6 +128,7 @@ def run_episode(task: EpisodeTask) -> tuple[list[dict], list[dict]]:
             "scenario_config": task.scenario_config,
             "version": __version__,
             **m,
+            "fix_rate": fix_rate(statuses[i]),
             "cpu_time_total_s": cpu_times[i],
             "episode_render_cpu_s": env_cpu_s,
             "shadow_pairs_normalized": float(np.mean(shadow_pairs[i])) if shadow_pairs[i] else float("nan"),

@@ -7,6 +7,8 @@ An experiment spec::
     seeds = {start = 0, count = 100}          # or a list of integers
     paper = ["table5"]                        # report sections beside the paper's (report.PAPER_SECTIONS)
     plots = ["error_vs_time", "rmse_vs_n_pairs"]
+    converge_threshold_m = "auto"             # the default: min(footprint width / 15, prior sigma) per
+                                              # scenario (the paper's 10 m); diverge_threshold_m: 5x that
 
     [[agents]]
     name = "mcl-conventional"                 # agents/<name>.toml
@@ -130,8 +132,8 @@ class Grid:
     scenarios: tuple[ScenarioEntry, ...]
     seeds: tuple[int, ...]
     description: str = ""
-    converge_threshold_m: float = 10.0
-    diverge_threshold_m: float = 50.0
+    converge_threshold_m: float | None = None   # None: scaled per scenario (metrics.MetricConfig.for_scenario)
+    diverge_threshold_m: float | None = None
     plots: tuple[str, ...] = ("error_vs_time",)
     paper: tuple[str, ...] = ()
 
@@ -198,10 +200,14 @@ def _seeds(value: Any, where: str) -> tuple[int, ...]:
                       "or {start = 0, count = N}")
 
 
-def _threshold(data: Mapping[str, Any], key: str, default: float, where: str) -> float:
-    value = data.get(key, default)
+def _threshold(data: Mapping[str, Any], key: str, where: str) -> float | None:
+    """A fixed threshold in metres, or None (absent or "auto"): scaled with each scenario."""
+    value = data.get(key, "auto")
+    if value == "auto":
+        return None
     if not is_number(value) or not math.isfinite(value):
-        raise ConfigError(f"{where}: {key} = {value!r} must be a finite number of metres")
+        raise ConfigError(f"{where}: {key} = {value!r} must be a finite number of metres, or \"auto\" (the "
+                          "default: scaled with each scenario's footprint and prior)")
     return float(value)
 
 
@@ -249,9 +255,10 @@ def grid_from_dict(data: Mapping[str, Any], where: str = "experiment", base_dir:
     bad = [p for p in paper if p not in PAPER_SECTION_NAMES]
     if bad:
         raise ConfigError(f"{where}: unknown paper section(s) {bad}; use {', '.join(PAPER_SECTION_NAMES)}")
-    converge = _threshold(data, "converge_threshold_m", 10.0, where)
-    diverge = _threshold(data, "diverge_threshold_m", 50.0, where)
-    if not 0.0 < converge <= diverge:
+    converge = _threshold(data, "converge_threshold_m", where)
+    diverge = _threshold(data, "diverge_threshold_m", where)
+    low = [v for v in (converge, diverge) if v is not None and v <= 0.0]
+    if low or (converge is not None and diverge is not None and converge > diverge):
         raise ConfigError(f"{where}: need 0 < converge_threshold_m ({converge}) <= "
                           f"diverge_threshold_m ({diverge})")
     return Grid(
