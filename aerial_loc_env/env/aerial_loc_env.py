@@ -16,8 +16,8 @@ import numpy as np
 from gymnasium import spaces
 
 from ..errors import AerialLocError, ConfigError, MapError
-from ..sensors.camera import CameraModel, Pose, apply_affine, world_to_map_affine
-from ..sensors.flight import FlyableRegion, Measurements, Track, footprint_radius_m, measure, sample_track
+from ..sensors.camera import CameraModel, Pose, SceneExposure, apply_affine, world_to_map_affine
+from ..sensors.flight import FlyableRegion, Measurements, Track, footprint_radius_m, measure, sample_track, wrap_angle
 from .briefing import Briefing, Prior
 from .scenarios import Scenario, build_scenario, load_scenario
 
@@ -296,6 +296,7 @@ class AerialLocEnv(gym.Env):
         sc = self.scenario
         self._renderer = CameraRenderer(self.orthomap, self.camera, sc.photometry, strict=True,
                                         perspective=sc.perspective if sc.map.use_dsm else None)
+        self._scene_exposure = SceneExposure(sc.haze, sc.exposure, sc.flight.dt_s)
 
     def __getstate__(self) -> dict:
         state = self.__dict__.copy()
@@ -334,6 +335,7 @@ class AerialLocEnv(gym.Env):
             self._prior = Prior("gaussian", (float(mean[0]), float(mean[1])), float(std))
         else:
             self._prior = Prior("uniform")
+        self._draw_sensor_errors(rng)
         self.briefing = Briefing(orthomap=self.database, camera=self.camera, prior=self._prior,
                                  dt_s=sc.flight.dt_s, altitude_m=sc.flight.altitude_m,
                                  odometry_noise=sc.odometry, scenario_id=sc.id)
@@ -343,6 +345,23 @@ class AerialLocEnv(gym.Env):
         self._overlay = {}
         obs, info = self._observe(0)
         return obs, info
+
+    def _draw_sensor_errors(self, rng: np.random.Generator) -> None:
+        """Gimbal attitude jitter (rendered, unknown to the vehicle), the heading offset and the barometric
+        bias/drift (in the measurements). Draws nothing when the sections are off: same episodes as before."""
+        sc, track = self.scenario, self._track
+        gimbal = sc.gimbal
+        self._attitude = (gimbal.draw_attitude(rng, len(track), sc.flight.dt_s)
+                          if gimbal.roll_pitch_std_deg > 0.0 else None)
+        bias = gimbal.draw_heading_bias(rng)
+        alt_err = sc.altimeter.draw_error(rng, track.t_s)
+        if bias or alt_err.any():
+            m = self._meas
+            yaw = np.clip(wrap_angle(m.yaw_rad.astype(np.float64) + bias), -math.pi, math.pi)
+            alt = np.maximum(m.altitude_m.astype(np.float64) + alt_err, 0.0)
+            self._meas = Measurements(odometry=m.odometry, yaw_rad=yaw.astype(np.float32),
+                                      altitude_m=alt.astype(np.float32))
+        self._scene_exposure.reset()
 
     def _episode_occlusion(self, rng: np.random.Generator) -> list | None:
         """The episode's occluders for the renderer: cast shadows (a ``ShadowGrid``) and/or a ``CloudField``.
@@ -401,8 +420,12 @@ class AerialLocEnv(gym.Env):
         pose = self._pose(i)
         sc = self.scenario
         shading = {"strength": self._strength, **sc.shadows.shading_kwargs()}
+        tilt = (0.0, 0.0) if self._attitude is None else (float(self._attitude[i, 0]), float(self._attitude[i, 1]))
+        exposure = self._scene_exposure
         frame = self._renderer.render(pose, self.np_random, self._occlusion, shading,
-                                      t_s=float(self._track.t_s[i]), speed_mps=float(self._track.speed_mps[i]))
+                                      t_s=float(self._track.t_s[i]), speed_mps=float(self._track.speed_mps[i]),
+                                      tilt_rad=tilt, pre_sensor=(lambda image: exposure(image, pose.altitude_m))
+                                      if exposure.active else None)
         self._frame = frame
         m = self._meas
         obs = {
@@ -424,6 +447,10 @@ class AerialLocEnv(gym.Env):
         }
         if sc.observation.info_shadow_mask:
             info["shadow_mask"] = frame.shadow_mask
+        if self._attitude is not None:
+            info["gimbal_roll_pitch_rad"] = np.array(tilt)
+        if exposure.gain is not None:
+            info["exposure_gain"] = exposure.gain
         return obs, info
 
     def _check_action(self, action: Any) -> np.ndarray:

@@ -16,6 +16,10 @@ that map to frozen dataclasses through ``aerial_loc_env.config.build_config``:
 ``[epoch]``             ``aerial_loc_env.world.epochs.EpochConfig`` (what changed between map and flight)
 ``[photometry]``        ``aerial_loc_env.sensors.render.Photometry`` (exposure, noise, vignetting, blur)
 ``[perspective]``       ``aerial_loc_env.sensors.perspective.PerspectiveConfig``: the height model in perspective
+``[gimbal]``            ``aerial_loc_env.sensors.camera.GimbalConfig``: roll/pitch jitter, heading offset
+``[altimeter]``         ``aerial_loc_env.sensors.flight.AltimeterConfig``: barometric bias and drift
+``[exposure]``          ``aerial_loc_env.sensors.camera.ExposureConfig``: auto-exposure
+``[haze]``              ``aerial_loc_env.sensors.camera.HazeConfig``: airlight growing with altitude
 ``[observation]``       ``ObservationConfig``: the observation image size (the camera image resized)
 ``[episode]``           ``EpisodeConfig``: start mode, prior, failure rule
 ``[reward]``            ``RewardConfig``
@@ -127,6 +131,10 @@ SECTIONS: dict[str, Any] = {
     "epoch": _lazy("..world.epochs", "EpochConfig"),
     "photometry": _lazy("..sensors.render", "Photometry"),
     "perspective": _lazy("..sensors.perspective", "PerspectiveConfig"),
+    "gimbal": _lazy("..sensors.camera", "GimbalConfig"),
+    "altimeter": _lazy("..sensors.flight", "AltimeterConfig"),
+    "exposure": _lazy("..sensors.camera", "ExposureConfig"),
+    "haze": _lazy("..sensors.camera", "HazeConfig"),
     "observation": lambda: ObservationConfig,
     "episode": lambda: EpisodeConfig,
     "reward": lambda: RewardConfig,

@@ -225,3 +225,127 @@ def _positive_altitude(altitude_m: ArrayLike) -> np.ndarray | float:
         bad = alt[~(np.isfinite(alt) & (alt > 0))].ravel()[:3]
         raise ConfigError(f"camera: altitude_m must be finite and > 0 m above ground, got {bad.tolist()}")
     return alt
+
+
+# ---------------------------------------------------------------------- camera errors (scenario sections)
+@dataclass(frozen=True)
+class GimbalConfig:
+    """The [gimbal] section: the stabilized camera's attitude errors. All zero by default (a perfect gimbal).
+
+    Roll and pitch errors (each) follow a first-order Gauss-Markov process, stationary with standard deviation
+    ``roll_pitch_std_deg`` and correlation time ``correlation_time_s`` (0: independent per frame); the frame is
+    rendered tilted by them (``sensors.perspective.tilt_homography``), the vehicle does not know them. The
+    reported heading carries a per-episode offset drawn from ``N(0, heading_bias_std_deg^2)`` (compass
+    calibration, camera mount yaw) on top of the per-frame noise of ``odometry.heading_std_rad``.
+    """
+
+    roll_pitch_std_deg: float = field(default=0.0, metadata=rng(0.0, 10.0, doc="roll/pitch error std (each)"))
+    correlation_time_s: float = field(default=1.0, metadata=rng(0.0, 3600.0,
+                                                                 doc="Gauss-Markov time constant (0: white)"))
+    heading_bias_std_deg: float = field(default=0.0, metadata=rng(0.0, 45.0, doc="per-episode heading offset std"))
+
+    def draw_attitude(self, rng: np.random.Generator, n: int, dt_s: float) -> np.ndarray:
+        """(n, 2) roll and pitch errors (rad) at ``n`` frames ``dt_s`` apart; nothing drawn when off."""
+        sigma = math.radians(self.roll_pitch_std_deg)
+        if sigma == 0.0:
+            return np.zeros((n, 2))
+        return gauss_markov(rng, n, sigma, dt_s, self.correlation_time_s, size=(2,))
+
+    def draw_heading_bias(self, rng: np.random.Generator) -> float:
+        """The episode's heading offset (rad); 0 without a draw when off."""
+        return float(rng.normal(0.0, math.radians(self.heading_bias_std_deg))) if self.heading_bias_std_deg else 0.0
+
+
+def gauss_markov(rng: np.random.Generator, n: int, sigma: float, dt_s: float, tau_s: float,
+                 size: tuple[int, ...] = ()) -> np.ndarray:
+    """``n`` steps (n, *size) of a stationary first-order Gauss-Markov process: ``x_0 ~ N(0, sigma^2)``,
+    ``x_{k+1} = phi x_k + sqrt(1 - phi^2) sigma w_k`` with ``phi = exp(-dt / tau)`` (``tau = 0``: white)."""
+    phi = math.exp(-dt_s / tau_s) if tau_s > 0.0 else 0.0
+    w = rng.standard_normal((n, *size)) * sigma
+    out = np.empty_like(w)
+    out[0] = w[0]
+    q = math.sqrt(1.0 - phi * phi)
+    for k in range(1, n):
+        out[k] = phi * out[k - 1] + q * w[k]
+    return out
+
+
+@dataclass(frozen=True)
+class HazeConfig:
+    """The [haze] section: aerial perspective between the ground and the camera. Off by default.
+
+    A fraction ``1 - exp(-extinction_per_km * altitude_km)`` of every pixel is replaced by the airlight colour
+    (Koschmieder's law over the nadir path, so haze grows with altitude): lower contrast, a bluish veil.
+    """
+
+    extinction_per_km: float = field(default=0.0, metadata=rng(0.0, 50.0, doc="0 disables haze"))
+    airlight_rgb: tuple[float, float, float] = field(default=(200.0, 208.0, 222.0),
+                                                     metadata=rng(0.0, 255.0, doc="veil colour, 8-bit"))
+
+    def validate(self, where: str) -> None:
+        if len(self.airlight_rgb) != 3:
+            raise ConfigError(f"{where}: field 'airlight_rgb' must have three values (R, G, B) in [0, 255]")
+
+    def transmission(self, altitude_m: float) -> float:
+        return math.exp(-self.extinction_per_km * altitude_m / 1000.0)
+
+
+@dataclass(frozen=True)
+class ExposureConfig:
+    """The [exposure] section: auto-exposure. Off by default (``strength = 0``: a fixed exposure).
+
+    The camera meters the frame's mean luma (after haze) and sets the gain ``(target_luma / mean) ** strength``
+    within ``gain_range``; the gain follows that setpoint with time constant ``time_constant_s`` (0: at once),
+    so dark scenes (shadowed streets, water) come out brighter and bright ones darker, with a lag.
+    """
+
+    strength: float = field(default=0.0, metadata=rng(0.0, 1.0, doc="0 = fixed exposure, 1 = full correction"))
+    target_luma: float = field(default=118.0, metadata=rng(1.0, 254.0, doc="mean luma the camera aims at"))
+    time_constant_s: float = field(default=0.5, metadata=rng(0.0, 600.0, doc="lag of the gain"))
+    gain_range: tuple[float, float] = field(default=(0.25, 4.0), metadata=rng(0.01, 100.0))
+
+    def validate(self, where: str) -> None:
+        if len(self.gain_range) != 2 or self.gain_range[0] > self.gain_range[1]:
+            raise ConfigError(f"{where}: field 'gain_range' = {self.gain_range!r} must be (lo, hi) with lo <= hi")
+
+
+_LUMA = np.array([0.2126, 0.7152, 0.0722])   # Rec. 709
+
+
+class SceneExposure:
+    """Haze and auto-exposure of one episode's frames: ``__call__(image, altitude_m)`` is one per-channel LUT.
+
+    Stateful (the exposure gain's lag): ``reset()`` at each episode. Deterministic (no random draws).
+    """
+
+    def __init__(self, haze: HazeConfig, exposure: ExposureConfig, dt_s: float) -> None:
+        self.haze, self.exposure = haze, exposure
+        tau = exposure.time_constant_s
+        self._alpha = 1.0 - math.exp(-dt_s / tau) if tau > 0.0 else 1.0
+        self.gain: float | None = None
+
+    @property
+    def active(self) -> bool:
+        return self.haze.extinction_per_km > 0.0 or self.exposure.strength > 0.0
+
+    def reset(self) -> None:
+        self.gain = None
+
+    def __call__(self, image: np.ndarray, altitude_m: float) -> np.ndarray:
+        import cv2
+
+        t = self.haze.transmission(altitude_m)
+        air = np.asarray(self.haze.airlight_rgb, dtype=np.float64)
+        gain = 1.0
+        ex = self.exposure
+        if ex.strength > 0.0:
+            mean = t * float(np.dot(_LUMA, cv2.mean(image)[:3])) + (1.0 - t) * float(np.dot(_LUMA, air))
+            want = (ex.target_luma / max(mean, 1.0)) ** ex.strength
+            want = min(max(want, ex.gain_range[0]), ex.gain_range[1])
+            self.gain = want if self.gain is None else self.gain + self._alpha * (want - self.gain)
+            gain = self.gain
+        if t == 1.0 and gain == 1.0:
+            return image
+        x = np.arange(256, dtype=np.float64)[:, None]
+        lut = np.clip(np.rint(gain * (t * x + (1.0 - t) * air[None, :])), 0, 255).astype(np.uint8)
+        return cv2.LUT(image, lut.reshape(1, 256, 3))

@@ -243,6 +243,30 @@ def _next_waypoint(region: FlyableRegion, rng: np.random.Generator, here, min_le
 
 
 @dataclass(frozen=True)
+class AltimeterConfig:
+    """The [altimeter] section: barometric altitude errors. All zero by default (only ``odometry.altitude_std_m``).
+
+    The measured altitude carries a per-episode bias drawn from ``N(0, bias_std_m^2)`` (QNH, ground elevation
+    unknown to the vehicle) plus a random-walk drift of ``drift_std_m_per_sqrt_s`` per square-root second
+    (pressure changes, temperature), starting at zero at the first frame.
+    """
+
+    bias_std_m: float = field(default=0.0, metadata=rng(0.0, 500.0, doc="per-episode bias std"))
+    drift_std_m_per_sqrt_s: float = field(default=0.0, metadata=rng(0.0, 10.0, doc="random-walk drift"))
+
+    def draw_error(self, rng: np.random.Generator, t_s: np.ndarray) -> np.ndarray:
+        """The altitude error (m) at the frame times ``t_s``; zeros without a draw when off."""
+        t = np.asarray(t_s, dtype=np.float64)
+        err = np.zeros(t.shape)
+        if self.bias_std_m > 0.0:
+            err += rng.normal(0.0, self.bias_std_m)
+        if self.drift_std_m_per_sqrt_s > 0.0 and t.size > 1:
+            steps = rng.standard_normal(t.size - 1) * self.drift_std_m_per_sqrt_s * np.sqrt(np.diff(t))
+            err[1:] += np.cumsum(steps)
+        return err
+
+
+@dataclass(frozen=True)
 class Measurements:
     """What the vehicle's own sensors report at each pose of a track (float32, ready for observations)."""
 
