@@ -102,6 +102,13 @@ class PatchSampler:
             level[bad > 0] = np.nan                 # (all channels; level is a copy of the layer)
         self.level = np.ascontiguousarray(level)
         self.has_nan = bool(np.isnan(self.level).any())
+        # OpenCV's remap has vectorized paths for 1 and 4 float channels only: a 2- or 3-channel level is
+        # sampled as 4 channels (zero padding) and cut back, the same values 4x faster (2 channels)
+        self._channels = 1 if self.level.ndim == 2 else self.level.shape[2]
+        self._remap_level = self.level
+        if self._channels in (2, 3):
+            pad = np.zeros(self.level.shape[:2] + (4 - self._channels,), np.float32)
+            self._remap_level = np.ascontiguousarray(np.concatenate([self.level, pad], axis=2))
         self.level_size = (lw, lh)
         # full map pixel -> level pixel (pixel centres at integers on both)
         fx, fy = w / lw, h / lh
@@ -125,9 +132,42 @@ class PatchSampler:
         a3[:, 2, 2] = 1.0
         return (self._to_level @ a3 @ self._from_grid)[:, :2]
 
-    def sample(self, states: np.ndarray, altitude_m: float) -> tuple[np.ndarray, np.ndarray]:
-        """Patches (N, h, w[, C]) float32 and validity (N,) bool (footprint inside the map, no no-data)."""
+    def sample_nodes(self, states: np.ndarray, altitude_m: float,
+                     nodes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Only the grid nodes ``nodes`` (flat indices ``row * w + col``) of every patch: (N, len(nodes)[, S])
+        float32 with ``S = node_channels`` (a 2- or 3-channel level comes back with its zero padding to 4
+        channels, the real ones first: no copy to cut it), the same values as
+        ``sample(...)[0].reshape(N, h * w, ...)[:, nodes]`` bit for bit (the same float32 map arithmetic per
+        node), and the same validity. For models that read a few nodes of the grid (abBRIEF's test points).
+        With no-data in the database the whole patch decides the validity, so the whole patch is sampled."""
+        nodes = np.asarray(nodes, dtype=np.intp)
+        if self.has_nan:
+            patches, valid = self.sample(states, altitude_m)
+            n = patches.shape[0]
+            values = patches.reshape((n, -1) + patches.shape[3:])[:, nodes]
+            if self.node_channels != self._channels:
+                values = np.concatenate([values, np.zeros(values.shape[:2] + (4 - self._channels,),
+                                                          np.float32)], axis=2)
+            return np.ascontiguousarray(values), valid
         e = self.grid_to_level(states, altitude_m).astype(np.float32)
+        gw = self.geometry.width_px
+        cols, rows = self._cols[nodes % gw], self._rows[nodes // gw]
+        mx = (e[:, 0, 0, None] * cols) + (e[:, 0, 1, None] * rows + e[:, 0, 2, None])
+        my = (e[:, 1, 0, None] * cols) + (e[:, 1, 1, None] * rows + e[:, 1, 2, None])
+        chans = () if self._remap_level.ndim == 2 else (self._remap_level.shape[2],)
+        out = np.empty((e.shape[0], nodes.size) + chans, np.float32)
+        for start in range(0, e.shape[0], _MAX_REMAP_ROWS):
+            stop = min(e.shape[0], start + _MAX_REMAP_ROWS)
+            self._remap_into(out[start:stop], mx[start:stop], my[start:stop])
+        return out, self._footprint_valid(e)
+
+    @property
+    def node_channels(self) -> int:
+        """Channels of ``sample_nodes``' values: the level's, or 4 where it is padded (2 or 3 channels)."""
+        return 1 if self._remap_level.ndim == 2 else self._remap_level.shape[2]
+
+    def _maps(self, e: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Level-pixel coordinates (N, h, w) of every grid node, float32: two broadcast additions."""
         n = e.shape[0]
         gh, gw = self.geometry.height_px, self.geometry.width_px
         mx = np.empty((n, gh, gw), np.float32)
@@ -136,19 +176,45 @@ class PatchSampler:
                (e[:, 0, 1, None] * self._rows + e[:, 0, 2, None])[:, :, None], out=mx)
         np.add((e[:, 1, 0, None] * self._cols)[:, None, :],
                (e[:, 1, 1, None] * self._rows + e[:, 1, 2, None])[:, :, None], out=my)
+        return mx, my
+
+    def _remap_into(self, out: np.ndarray, mx: np.ndarray, my: np.ndarray) -> None:
+        """Bilinear samples of the level at (mx, my) (any (M, ...) shape, at most 32000 rows once flattened to
+        2-D) written straight into ``out`` (dst=): no second copy of the samples."""
+        cols = mx.shape[-1]
+        dst = out.reshape((-1, cols) + out.shape[mx.ndim:])
+        level = self._remap_level
+        direct = level.ndim == dst.ndim and (level.ndim == 2 or level.shape[2] == dst.shape[2])
+        res = cv2.remap(level, mx.reshape(-1, cols), my.reshape(-1, cols), cv2.INTER_LINEAR,
+                        dst=dst if direct else None, borderMode=cv2.BORDER_CONSTANT, borderValue=float("nan"))
+        if not direct:                       # a padded level: keep the real channels
+            dst[...] = res[..., :dst.shape[-1]]
+        elif not np.shares_memory(res, dst):   # OpenCV reallocated (never expected): copy instead
+            dst[...] = res.reshape(dst.shape)
+
+    def _footprint_valid(self, e: np.ndarray) -> np.ndarray:
+        """Footprint inside the level: an affine image of the grid has its extremes at the grid corners (the
+        corner coordinates computed as ``_maps`` computes them, so the same floats)."""
+        gh, gw = self.geometry.height_px, self.geometry.width_px
+        cols, rows = self._cols[[0, gw - 1, 0, gw - 1]], self._rows[[0, 0, gh - 1, gh - 1]]
+        cu = (e[:, 0, 0, None] * cols) + (e[:, 0, 1, None] * rows + e[:, 0, 2, None])
+        cv = (e[:, 1, 0, None] * cols) + (e[:, 1, 1, None] * rows + e[:, 1, 2, None])
+        lw, lh = self.level_size
+        return (cu.min(1) >= 0) & (cu.max(1) <= lw - 1) & (cv.min(1) >= 0) & (cv.max(1) <= lh - 1)
+
+    def sample(self, states: np.ndarray, altitude_m: float) -> tuple[np.ndarray, np.ndarray]:
+        """Patches (N, h, w[, C]) float32 and validity (N,) bool (footprint inside the map, no no-data)."""
+        e = self.grid_to_level(states, altitude_m).astype(np.float32)
+        n = e.shape[0]
+        gh, gw = self.geometry.height_px, self.geometry.width_px
+        mx, my = self._maps(e)
         chans = () if self.level.ndim == 2 else (self.level.shape[2],)
         out = np.empty((n, gh, gw) + chans, np.float32)
         per = max(1, _MAX_REMAP_ROWS // gh)
         for start in range(0, n, per):  # one remap for N <= 32000 / h particles (800 at h = 40)
             stop = min(n, start + per)
-            res = cv2.remap(self.level, mx[start:stop].reshape(-1, gw), my[start:stop].reshape(-1, gw),
-                            cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=float("nan"))
-            out[start:stop] = res.reshape((stop - start, gh, gw) + chans)
-        # an affine image of the grid has its extremes at the grid corners
-        lw, lh = self.level_size
-        cu = np.stack([mx[:, 0, 0], mx[:, 0, -1], mx[:, -1, 0], mx[:, -1, -1]], axis=1)
-        cv = np.stack([my[:, 0, 0], my[:, 0, -1], my[:, -1, 0], my[:, -1, -1]], axis=1)
-        valid = ((cu.min(1) >= 0) & (cu.max(1) <= lw - 1) & (cv.min(1) >= 0) & (cv.max(1) <= lh - 1))
+            self._remap_into(out[start:stop], mx[start:stop], my[start:stop])
+        valid = self._footprint_valid(e)
         if self.has_nan:
             valid &= ~np.isnan(out.reshape(n, -1)).any(axis=1)
         return out, valid

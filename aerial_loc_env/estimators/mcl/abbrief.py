@@ -95,6 +95,19 @@ def lab_channels(rgb: np.ndarray, channels: str) -> np.ndarray:
 
 class PreparedBrief(NamedTuple):
     bits: np.ndarray          # (P c,) bool: the camera's descriptor
+    packed: np.ndarray        # the same bits, np.packbits (eight to a byte, zero-padded)
+
+
+#: set bits of every byte value, for numpy < 2 (no np.bitwise_count)
+_POPCOUNT8 = np.array([bin(i).count("1") for i in range(256)], dtype=np.uint8)
+
+
+def popcount(a: np.ndarray) -> np.ndarray:
+    """Set bits of every byte of a uint8 array (``np.bitwise_count`` on numpy >= 2, a table lookup before)."""
+    a = np.asarray(a, dtype=np.uint8)
+    if hasattr(np, "bitwise_count"):
+        return np.bitwise_count(a)
+    return _POPCOUNT8[a]
 
 
 class ABBriefModel(MeasurementModel):
@@ -118,6 +131,12 @@ class ABBriefModel(MeasurementModel):
         # indices into (h w c) rows: test i on channel j is column i c + j
         self._i1 = (idx1[:, None] * c + np.arange(c)).ravel()
         self._i2 = (idx2[:, None] * c + np.arange(c)).ravel()
+        # the particles' views are sampled at the test points only (the distinct nodes of the pattern)
+        self._nodes, inverse = np.unique(np.concatenate([idx1, idx2]), return_inverse=True)
+        j1, j2 = inverse[:idx1.size], inverse[idx1.size:]
+        stride = self.sampler.node_channels      # columns of sample_nodes' (N, nodes * stride) values
+        self._k1 = (j1[:, None] * stride + np.arange(c)).ravel()
+        self._k2 = (j2[:, None] * stride + np.arange(c)).ravel()
 
     def _descriptor(self, values: np.ndarray) -> np.ndarray:
         """Bits (M, P c) of grid values (M, h w c) (nodes x channels flattened, channel fastest)."""
@@ -132,15 +151,29 @@ class ABBriefModel(MeasurementModel):
         small = reduce_image(lab_channels(obs.image, self.config.channels), g.width_px, g.height_px)
         bits = self._descriptor(small.reshape(1, -1))[0]
         self.last_stats = {"bits": int(bits.size)}
-        return PreparedBrief(bits)
+        return PreparedBrief(bits, np.packbits(bits))
 
     def similarity(self, prepared: PreparedBrief, states: np.ndarray, altitude_m: float) -> np.ndarray:
-        """xi (N,): fraction of the camera's bits that the view at each particle reproduces."""
+        """xi (N,): fraction of the camera's bits that the view at each particle reproduces.
+
+        The views are sampled at the pattern's nodes only (``PatchSampler.sample_nodes``: the same values as
+        the whole patch's), the bits packed eight to a byte and the disagreements counted by popcount of the
+        XOR (an exact integer count: the same xi as comparing the bool descriptors)."""
         if self.sampler is None:
             raise ConfigError("abBRIEF: call reset(briefing, rng) before scoring particles")
+        values, valid = self.sampler.sample_nodes(states, altitude_m, self._nodes)
+        values = values.reshape(len(values), -1)
+        db_bits = np.take(values, self._k1, axis=1) > np.take(values, self._k2, axis=1)
+        # eq. (4): XNOR count over all bits (keypoints x tests x channels) = bits - popcount(XOR)
+        n_bits = prepared.bits.size
+        disagree = popcount(np.packbits(db_bits, axis=1) ^ prepared.packed).sum(axis=1, dtype=np.int64)
+        xi = (n_bits - disagree) / float(n_bits)
+        return np.where(valid, xi, 0.5)
+
+    def similarity_reference(self, prepared: PreparedBrief, states: np.ndarray, altitude_m: float) -> np.ndarray:
+        """The direct form (whole patches, bool descriptors, XNOR count): the tests' reference."""
         patches, valid = self.sampler.sample(states, altitude_m)
         db_bits = self._descriptor(patches.reshape(len(patches), -1))
-        # eq. (4): XNOR count over all bits (keypoints x tests x channels)
         xi = np.count_nonzero(db_bits == prepared.bits, axis=1) / float(prepared.bits.size)
         return np.where(valid, xi, 0.5)
 

@@ -165,10 +165,9 @@ def xnor_similarity(cam_bits: np.ndarray, db_bits: np.ndarray, keep: np.ndarray 
         pair_weights = None if pair_weights is None else pair_weights[keep]
     n, k, c_all = db_bits.shape
     c = c_all if channels is None else channels
-    agree = (db_bits == cam_bits[None])
     if valid is None and pair_weights is None:
-        total = agree.reshape(n, k * c_all).view(np.uint8).sum(axis=1, dtype=np.int64) - k * (c_all - c)
-        return total / (k * c)
+        return (k * c - _count_disagreements(db_bits, cam_bits, c)) / (k * c)
+    agree = (db_bits == cam_bits[None])
     counts = _count_channels(agree) - (c_all - c)                               # (N, K) agreements of c
     if valid is not None:
         counts = np.where(valid, counts, 0.5 * c)
@@ -178,6 +177,24 @@ def xnor_similarity(cam_bits: np.ndarray, db_bits: np.ndarray, keep: np.ndarray 
     if total_w <= 0:
         return np.full(n, 0.5)
     return (counts @ pair_weights) / (total_w * c)
+
+
+def _count_disagreements(db_bits: np.ndarray, cam_bits: np.ndarray, c: int) -> np.ndarray:
+    """Disagreeing bits (N,) int64 of the first ``c`` channels of ``db_bits`` (N, K, C) against ``cam_bits``
+    (K, C): an exact integer count, so the similarity is the same float whichever way it is counted.
+
+    For C = 4 (packed RGBA words) and K < 256 the K words of a particle are added as uint32: each byte then
+    holds the count of one channel (at most K, no carry between bytes), read back byte by byte. Half the
+    time of a uint8 reduction over the (N, 4K) bytes. Padding channels (beyond ``c``) agree by construction."""
+    n, k, c_all = db_bits.shape
+    dis = np.not_equal(db_bits, cam_bits[None])
+    if c_all == 4 and k < 256 and dis.flags.c_contiguous:
+        per_byte = dis.view(np.uint32).reshape(n, k).sum(axis=1, dtype=np.uint32)
+        total = (per_byte & np.uint32(0xFF)).astype(np.int64)
+        for shift in (8, 16, 24):     # all four bytes (padding bytes agree): no byte-order assumption
+            total += (per_byte >> np.uint32(shift)) & np.uint32(0xFF)
+        return total
+    return np.count_nonzero(dis[..., :c].reshape(n, k * c), axis=1).astype(np.int64)
 
 
 def _count_channels(agree: np.ndarray) -> np.ndarray:

@@ -1,0 +1,174 @@
+"""The faster measurement-model code paths (issue 12) against the straightforward forms they replaced.
+
+Where the arithmetic is unchanged (integer bit counts, the same float32 map arithmetic per sample, the same
+remap per sample) the outputs must be bit-identical; where it changes (MI's entropies from integer counts with
+a ``c log c`` table instead of probabilities and their logs) the tolerance is derived in the test.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+from test_dense_models import ALT_M, briefing_standin, observation, render_frame, textured_map
+
+from aerial_loc_env.estimators.mcl.abbrief import _POPCOUNT8, ABBriefConfig, ABBriefModel, popcount
+from aerial_loc_env.estimators.mcl.dense import (
+    MIModel,
+    mutual_information,
+    mutual_information_reference,
+)
+from aerial_loc_env.estimators.mcl.intensity_pairs import xnor_similarity
+from aerial_loc_env.estimators.patches import PatchGeometry, PatchSampler
+
+
+def _states(m, n: int = 150, seed: int = 4) -> np.ndarray:
+    """Particles around the map centre plus some whose footprint leaves the map."""
+    g = np.random.default_rng(seed)
+    cx, cy = m.width_m / 2, m.height_m / 2
+    near = np.column_stack([cx + g.normal(0, 15, n), cy + g.normal(0, 15, n), g.uniform(-np.pi, np.pi, n)])
+    far = np.array([[-40.0, cy, 0.3], [m.width_m + 5, cy, 1.0], [cx, 3.0, -2.0]])
+    return np.concatenate([near, far])
+
+
+# ---------------------------------------------------------------------- patches
+def _sample_reference(sampler: PatchSampler, states: np.ndarray, altitude_m: float):
+    """The sampler as it was before issue 12, one channel at a time: a remap into a fresh array, validity from
+    the grid corners and the NaNs of the whole patch. Per channel because OpenCV's remap interpolates a
+    2-channel float image differently (weights rounded to 1/32 px, up to range/32 off) from 1-, 3- and
+    4-channel ones (exact weights, vectorized); the sampler now pads 2 and 3 channels to 4, so every channel is
+    interpolated as a 1-channel level would be: the same as before for 1 and 3 channels, bit for bit."""
+    e = sampler.grid_to_level(states, altitude_m).astype(np.float32)
+    n = e.shape[0]
+    gh, gw = sampler.geometry.height_px, sampler.geometry.width_px
+    mx, my = sampler._maps(e)                              # the (unchanged) two broadcast additions
+    level = sampler.level if sampler.level.ndim == 3 else sampler.level[..., None]
+    # borderValue=nan is the Scalar (nan, 0, 0, 0): outside the level only the first channel is NaN
+    res = np.stack([cv2.remap(np.ascontiguousarray(level[..., ch]), mx.reshape(-1, gw), my.reshape(-1, gw),
+                              cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                              borderValue=float("nan") if ch == 0 else 0.0)
+                    for ch in range(level.shape[2])], axis=-1)
+    out = res.reshape((n, gh, gw) + sampler.level.shape[2:])
+    lw, lh = sampler.level_size
+    cu = np.stack([mx[:, 0, 0], mx[:, 0, -1], mx[:, -1, 0], mx[:, -1, -1]], axis=1)
+    cv = np.stack([my[:, 0, 0], my[:, 0, -1], my[:, -1, 0], my[:, -1, -1]], axis=1)
+    valid = (cu.min(1) >= 0) & (cu.max(1) <= lw - 1) & (cv.min(1) >= 0) & (cv.max(1) <= lh - 1)
+    if sampler.has_nan:
+        valid &= ~np.isnan(out.reshape(n, -1)).any(axis=1)
+    return out, valid
+
+
+@pytest.mark.parametrize("channels", [1, 2, 3])
+@pytest.mark.parametrize("with_nodata", [False, True])
+def test_patch_sampler_is_bit_identical_to_the_reference_and_nodes_to_the_patch(channels, with_nodata):
+    m = textured_map(300, seed=1)
+    nodata = None
+    if with_nodata:
+        nodata = np.zeros((m.height_px, m.width_px), bool)
+        nodata[100:130, 140:200] = True
+        m.nodata = nodata
+    layer = m.rgb[..., :channels].astype(np.float32) if channels > 1 else m.rgb[..., 0]
+    sampler = PatchSampler(m, briefing_standin(m).camera, PatchGeometry(24, 16), layer, ALT_M, nodata=nodata)
+    states = _states(m)
+    patches, valid = sampler.sample(states, ALT_M)
+    ref, ref_valid = _sample_reference(sampler, states, ALT_M)
+    assert patches.shape == ref.shape
+    np.testing.assert_array_equal(patches, ref)          # NaN-aware, bit for bit
+    np.testing.assert_array_equal(valid, ref_valid)
+    assert 0 < valid.sum() < len(states)
+    nodes = np.unique(np.random.default_rng(0).integers(0, 24 * 16, 150))
+    values, node_valid = sampler.sample_nodes(states, ALT_M, nodes)
+    assert values.shape[:2] == (len(states), nodes.size)
+    assert sampler.node_channels == (1 if channels == 1 else 4)
+    flat = ref.reshape((len(states), -1) + ref.shape[3:])[:, nodes]
+    real = values if channels == 1 else values[..., :channels]
+    np.testing.assert_array_equal(real, flat)
+    if channels > 1:
+        assert not np.any(values[np.isfinite(values[..., 0]), channels:])   # the zero padding
+    np.testing.assert_array_equal(node_valid, ref_valid)
+
+
+# ---------------------------------------------------------------------- intensity pairs
+def _xnor_reference(cam_bits: np.ndarray, db_bits: np.ndarray, channels: int) -> np.ndarray:
+    """Eq. (4) counted the direct way: agreements over all C (padding agreeing) minus the padding."""
+    n, k, c_all = db_bits.shape
+    agree = db_bits == cam_bits[None]
+    return (agree.reshape(n, -1).sum(axis=1) - k * (c_all - channels)) / (k * channels)
+
+
+@pytest.mark.parametrize("k, c_all, c", [(70, 4, 3), (255, 4, 3), (300, 4, 3), (30, 1, 1), (12, 3, 3)])
+def test_xnor_count_is_exact(k, c_all, c):
+    g = np.random.default_rng(k)
+    cam = g.random((k, c_all)) < 0.5
+    db = g.random((200, k, c_all)) < 0.5
+    cam[:, c:] = False
+    db[..., c:] = False                                    # padding agrees, as the packed RGBA alpha byte
+    out = xnor_similarity(cam, db, channels=c)
+    np.testing.assert_array_equal(out, _xnor_reference(cam, db, c))   # the same integers / the same divisor
+    keep = g.random(k) < 0.7
+    np.testing.assert_array_equal(xnor_similarity(cam, db, keep, channels=c),
+                                  _xnor_reference(cam[keep], db[:, keep], c))
+
+
+# ---------------------------------------------------------------------- MI
+def test_mi_from_counts_matches_the_probability_form():
+    """Tolerance: each entropy is a float64 sum of at most B^2 = 256 terms; in the count form the terms are
+    c log c <= K log K and the sum is divided by K, so the rounding is <= 256 K log K eps / K = 256 log K eps
+    (~2.3e-13 nats at K = 2400); the probability form errs alike. 1e-12 nats covers both, 4x over."""
+    g = np.random.default_rng(3)
+    k = 2400
+    ref = cv2.GaussianBlur(g.uniform(0, 255, (40, 60)).astype(np.float32), (0, 0), 1.5).ravel()
+    rows = np.concatenate([ref[None] + g.normal(0, s, (20, k)) for s in (0.0, 5.0, 30.0, 200.0)])
+    rows = np.clip(rows, 0, 255).astype(np.float32)
+    rows[-1] = 0.0                                          # a constant row (an invalid particle's zeros)
+    for bins in (2, 16, 17, 64):
+        np.testing.assert_allclose(mutual_information(rows, ref, bins), mutual_information_reference(rows, ref, bins),
+                                   rtol=0, atol=1e-12)
+    # beyond the gray range: quantization clips to the edge bins alike
+    wild = np.concatenate([rows[:5], rows[:5] * 3 - 300])
+    np.testing.assert_allclose(mutual_information(wild, ref), mutual_information_reference(wild, ref),
+                               rtol=0, atol=1e-12)
+
+
+def test_mi_model_log_likelihoods_match_the_reference():
+    """log L = -(1 - xi)^2 / (2 sigma^2) with xi = MI / H: |d log L| <= |1 - xi| / sigma^2 * dMI / H
+    <= 100 * 1e-12 / H (sigma = 0.1, H ~ 2 nats here): 1e-9 is generous."""
+    m = textured_map(300, seed=2)
+    model = MIModel()
+    model.reset(briefing_standin(m), np.random.default_rng(0))
+    x, y, yaw = m.width_m / 2, m.height_m / 2, 0.4
+    prep = model.prepare(observation(render_frame(m, x, y, yaw), yaw), np.random.default_rng(0))
+    states = _states(m)
+    ll = model.log_likelihood(prep, states, ALT_M)
+    patches, valid = model.sampler.sample(states, ALT_M)
+    flat = patches.reshape(len(states), -1)
+    flat[~valid] = 0.0
+    xi = np.where(valid, mutual_information_reference(flat, prep.ref, model.config.bins) / prep.extra, 0.0)
+    np.testing.assert_allclose(ll, -np.square(1.0 - xi) / (2.0 * model.config.sigma ** 2), rtol=0, atol=1e-9)
+    assert int(np.argmax(ll)) != len(states) - 1 and np.isfinite(ll).all()
+
+
+# ---------------------------------------------------------------------- abBRIEF
+def test_popcount_table_matches_bitwise_count():
+    b = np.arange(256, dtype=np.uint8)
+    expected = np.array([bin(i).count("1") for i in range(256)])
+    np.testing.assert_array_equal(_POPCOUNT8[b], expected)
+    np.testing.assert_array_equal(popcount(b), expected)
+
+
+@pytest.mark.parametrize("channels", ["ab", "L", "Lab"])
+@pytest.mark.parametrize("with_nodata", [False, True])
+def test_abbrief_packed_popcount_is_bit_identical_to_the_bool_descriptor(channels, with_nodata):
+    m = textured_map(300, seed=5)
+    if with_nodata:
+        m.nodata = np.zeros((m.height_px, m.width_px), bool)
+        m.nodata[20:60, 30:90] = True            # near the corner: the true pose keeps its data
+    model = ABBriefModel(ABBriefConfig(channels=channels, grid_width_px=30, grid_height_px=20))
+    model.reset(briefing_standin(m), np.random.default_rng(1))
+    x, y, yaw = m.width_m / 2, m.height_m / 2, -0.7
+    prep = model.prepare(observation(render_frame(m, x, y, yaw), yaw), np.random.default_rng(0))
+    states = np.concatenate([[[x, y, yaw]], _states(m)])
+    xi = model.similarity(prep, states, ALT_M)
+    ref = model.similarity_reference(prep, states, ALT_M)
+    np.testing.assert_array_equal(xi, ref)                 # exact integer counts over the same bits
+    assert np.any(xi == 0.5) and xi[0] > 0.8 and int(np.argmax(xi)) == 0
