@@ -250,8 +250,18 @@ def test_ctrl_c_exits_cleanly():
     assert out.strip().splitlines()[-1].startswith("interrupted:")
 
 
-def test_follow_mode_closes_the_loop_with_the_autopilot():
-    """A fake autopilot answers the stream request with GLOBAL_POSITION_INT; the demo follows that vehicle."""
+def _sim_state(lat_deg: float, lon_deg: float, alt_m: float, yaw_rad: float, *, ardupilot: bool = True):
+    """SIM_STATE as ArduPilot SITL fills it: degE7 in the float fields too, and in lat_int/lon_int."""
+    lat, lon = (lat_deg * 1e7, lon_deg * 1e7) if ardupilot else (lat_deg, lon_deg)
+    return mavlink2.MAVLink_sim_state_message(
+        1.0, 0.0, 0.0, 0.0, 0.0, 0.0, yaw_rad, 0.0, 0.0, -9.8, 0.0, 0.0, 0.0, lat, lon, alt_m, 0.0, 0.0,
+        1.0, 2.0, -0.5, round(lat_deg * 1e7) if ardupilot else 0, round(lon_deg * 1e7) if ardupilot else 0)
+
+
+def test_follow_mode_follows_sitl_truth_not_the_ekf():
+    """A fake SITL answers the stream request with SIM_STATE (truth) and a far-away GLOBAL_POSITION_INT (its
+    EKF): the demo follows the truth, and the placeholder (0, 0) SITL sends before it has a position is ignored.
+    """
     sock = _udp_socket()
     port = sock.getsockname()[1]
     lat, lon, heading_deg = -35.36, 149.17, 30.0          # ~ 600 m from the demo track's centre
@@ -269,19 +279,56 @@ def test_follow_mode_closes_the_loop_with_the_autopilot():
         seen += frames
         if frames:
             addr = frames[-1][2]
-            sock.sendto(mavlink2.MAVLink_attitude_message(0, 0.0, 0.0, math.radians(heading_deg), 0, 0, 0)
-                        .pack(ap), addr)
-            sock.sendto(mavlink2.MAVLink_global_position_int_message(
-                0, round(lat * 1e7), round(lon * 1e7), 684_000, 100_000, 500, 0, 0, 3000).pack(ap), addr)
+            sock.sendto(mavlink2.MAVLink_global_position_int_message(      # the EKF, 1 km off: never followed
+                0, round((lat + 0.01) * 1e7), round(lon * 1e7), 684_000, 100_000, 500, 0, 0, 3000).pack(ap), addr)
+            sock.sendto(_sim_state(lat, lon, 684.0, math.radians(heading_deg)).pack(ap), addr)
+            sock.sendto(_sim_state(0.0, 0.0, 0.0, 0.0).pack(ap), addr)    # placeholder: ignored
     runner.join(10)
     sock.close()
     assert result.get("rc") == 0
     requests = {int(m.param1) for _, m, _ in seen if m.get_type() == "COMMAND_LONG"
                 and m.command == mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL}
-    assert requests == {mavlink2.MAVLINK_MSG_ID_GLOBAL_POSITION_INT, mavlink2.MAVLINK_MSG_ID_ATTITUDE}
+    assert requests == {mavlink2.MAVLINK_MSG_ID_SIM_STATE}
     last = [m for _, m, _ in seen if m.get_type() == "GPS_INPUT"][-1]
-    # the demo's estimate noise is 2 m per axis: 5 sigma is 1e-4 deg
-    assert last.lat / 1e7 == pytest.approx(lat, abs=1e-4) and last.lon / 1e7 == pytest.approx(lon, abs=1.3e-4)
+    # the demo's estimate noise is 0.5 m per axis: 5 sigma is 2.3e-5 deg of latitude, 2.8e-5 of longitude
+    assert last.lat / 1e7 == pytest.approx(lat, abs=2.5e-5) and last.lon / 1e7 == pytest.approx(lon, abs=3e-5)
+    assert last.alt == pytest.approx(684.0, abs=0.01)       # the truth's altitude (ground 584 m + 100 m)
+
+
+def test_vehicle_state_units_and_placeholder():
+    from aerial_loc_env.mavlink.sender import vehicle_state
+
+    ap = mavlink2.MAVLink(None, srcSystem=7, srcComponent=1)
+    # degE7 (ArduPilot: int32 extensions, exact) or degrees in the float32 fields (the documented unit: float32
+    # resolves 149 deg to 1.5e-5 deg)
+    for ardupilot, tol in ((True, 1e-7), (False, 1.6e-5)):
+        m = ap.decode(bytearray(_sim_state(-35.3632608, 149.1652299, 584.09, -0.12, ardupilot=ardupilot).pack(ap)))
+        v = vehicle_state(m, 5.0)
+        assert (v.lat_deg, v.lon_deg) == (pytest.approx(-35.3632608, abs=tol), pytest.approx(149.1652299, abs=tol))
+        assert (v.alt_amsl_m, v.heading_rad, v.vel_ned_mps, v.system_id) == (
+            pytest.approx(584.09, abs=1e-4), pytest.approx(-0.12), pytest.approx((1.0, 2.0, -0.5)), 7)
+    assert vehicle_state(ap.decode(bytearray(_sim_state(0.0, 0.0, 0.0, 0.0).pack(ap))), 5.0) is None
+
+
+def test_origin_on_udpin_is_sent_as_soon_as_the_autopilot_speaks():
+    """On udpin nothing can be sent before the peer speaks: the origin must follow its first HEARTBEAT at once
+    (not 5 s later) and target that autopilot."""
+    port = free_udp_port()
+    cfg = SenderConfig(connect=f"udpin:127.0.0.1:{port}", messages=("odometry",), origin_period_s=5.0)
+    sock = _udp_socket()
+    ap = mavlink2.MAVLink(None, srcSystem=3, srcComponent=1)
+    beat = mavlink2.MAVLink_heartbeat_message(mavlink2.MAV_TYPE_QUADROTOR, mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA,
+                                              0, 0, mavlink2.MAV_STATE_STANDBY, 3)
+    with MavlinkSender(cfg, origin=GeoOrigin(-35.0, 149.0, 584.0)) as sender:
+        time.sleep(1.2)                                     # the sender's first origins went nowhere
+        t_spoke = time.monotonic()
+        sock.sendto(beat.pack(ap), ("127.0.0.1", port))
+        frames = _collect(sock, 0.6)
+        assert sender.autopilot_sysid == 3
+    sock.close()
+    origins = [(t, m) for t, m, _ in frames if m.get_type() == "SET_GPS_GLOBAL_ORIGIN"]
+    assert origins and origins[0][0] - t_spoke < 0.3
+    assert origins[0][1].target_system == 3 and origins[0][1].altitude == 584_000
 
 
 def test_origin_message_targets_and_repeats():

@@ -7,6 +7,7 @@ import math
 
 import numpy as np
 import pytest
+from pymavlink.dialects.v20 import common as mavlink2
 
 from aerial_loc_env.errors import ConfigError
 from aerial_loc_env.mavlink import messages as msgs
@@ -209,3 +210,50 @@ def test_bridge_georeference_local_frame_and_velocity():
     assert lost.status == "lost"
     f3 = br.fix(Est(414.0, 73.0), time_s=2.0, altitude_m=200.0)         # velocity from the last good fix
     assert f3.vel_enu_mps[:2] == pytest.approx((2.0, 0.0))
+
+
+def test_gps_input_flags_an_unmeasured_vertical_speed():
+    """The bridge's fixes carry no measured vertical speed: GPS_INPUT must say so (ignore flag VEL_VERT),
+    not send vd = 0 as measured (with EK3_SRC1_VELZ 3 the EKF's altitude then lags every climb)."""
+    br = EstimateBridge(lambda x, y: (47.0 + y * 1e-5, 8.0 + x * 1e-5), (0.0, 0.0), ground_amsl_m=400.0)
+
+    class Est:
+        x_m, y_m, yaw_rad, status, cov_xy_m2 = 1.0, 2.0, None, "ok", np.eye(2)
+
+    fix = br.fix(Est(), time_s=0.0, altitude_m=100.0)
+    q = assess(fix, 0.0, FixPolicy())
+    assert msgs.gps_input(fix, q, 1.7e9).ignore_flags == mavlink2.GPS_INPUT_IGNORE_FLAG_VEL_VERT
+    measured = _fix(vel_up_valid=True)
+    m = msgs.gps_input(measured, assess(measured, 0.0, FixPolicy()), 1.7e9)
+    assert m.ignore_flags == 0 and m.vd == pytest.approx(0.5)
+
+
+def test_demo_fix_passes_ardupilot_default_gps_checks():
+    """ArduPilot's defaults: EKF3 pre-arm needs horizontal accuracy < 5 m and speed accuracy < 1 m/s
+    (EK3_CHECK_SCALE 100 %), arming hdop < GPS_HDOP_GOOD 140 (1.4). Every demo fix after the first must pass."""
+    from aerial_loc_env.mavlink.cli import SITL_HOME, DemoTrack
+
+    demo = DemoTrack(SITL_HOME, seed=0)
+    br = EstimateBridge(demo.world_to_latlon, (0.0, 0.0), ground_amsl_m=demo.ground_amsl_m)
+    steps = demo.steps()
+    qualities = []
+    for _ in range(200):
+        step = next(steps)
+        fix = br.fix(step.estimate, time_s=step.time_s, altitude_m=step.altitude_m)
+        qualities.append(assess(fix, 0.0, FixPolicy()))
+    assert all(q.h_acc_m < 5.0 and q.speed_acc_mps < 1.0 and q.hdop < 1.4 for q in qualities[1:])
+
+
+def test_scenario_ground_height_is_never_silently_sea_level():
+    from aerial_loc_env.mavlink.cli import ground_amsl_m
+
+    class Map:
+        pass
+
+    with pytest.raises(ConfigError, match="--ground-amsl-m"):
+        ground_amsl_m(None, Map(), "AerialLoc/Small-v0")
+    declared = Map()
+    declared.ground_amsl_m = 37.5
+    assert ground_amsl_m(None, declared, "x") == 37.5 and ground_amsl_m(584.0, declared, "x") == 584.0
+    with pytest.raises(ConfigError, match="-500, 9000"):
+        ground_amsl_m(float("nan"), Map(), "x")

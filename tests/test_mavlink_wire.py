@@ -25,7 +25,7 @@ JUMP_AT_S = 1.5
 SYSID, COMPID, GPS_ID = 42, 197, 1
 ORIGIN = GeoOrigin(47.3977419, 8.5455938, 408.5)
 FIX_A = PoseFix(time_s=0.0, lat_deg=47.4008, lon_deg=8.5440, alt_amsl_m=608.25, east_m=-120.5,
-                north_m=340.25, up_m=200.0, vel_enu_mps=(3.0, -4.0, 0.5), yaw_rad=2.5,
+                north_m=340.25, up_m=200.0, vel_enu_mps=(3.0, -4.0, 0.5), vel_up_valid=True, yaw_rad=2.5,
                 cov_en_m2=(4.0, -1.0, 6.25), v_std_m=0.5, yaw_std_rad=0.05, speed_std_mps=0.8)
 # 60 m east of where A's velocity predicts B: a jump, so reset_counter must go 0 -> 1
 FIX_B = PoseFix(**{**FIX_A.__dict__, "time_s": JUMP_AT_S, "east_m": -120.5 + 4.5 + 60.0,
@@ -111,7 +111,7 @@ def test_c_gps_input_fields_and_units(c_session):
         assert (f["lat"], f["lon"]) == (round(fix.lat_deg * 1e7), round(fix.lon_deg * 1e7))     # degE7
         assert f["alt"] == pytest.approx(fix.alt_amsl_m, abs=1e-4)                              # m AMSL
         assert (f["vn"], f["ve"], f["vd"]) == pytest.approx((-4.0, 3.0, -0.5))                  # NED m/s
-        assert f["ignore_flags"] == 0                  # velocities (and everything else) never ignored
+        assert f["ignore_flags"] == 0                  # a measured vertical speed: nothing ignored
         assert (f["gps_id"], f["fix_type"], f["satellites_visible"]) == (GPS_ID, 3, FRESH.satellites_ok)
         assert f["horiz_accuracy"] == pytest.approx(H_ACC, rel=1e-6)
         assert f["hdop"] == pytest.approx(H_ACC / FRESH.hdop_ref_m, rel=1e-6)

@@ -106,12 +106,15 @@ def heartbeat() -> mavlink2.MAVLink_heartbeat_message:
 
 def gps_input(fix: PoseFix, quality: FixQuality, unix_s: float, *, gps_id: int = 0,
               send_yaw: bool = False) -> mavlink2.MAVLink_gps_input_message:
-    """GPS_INPUT for ArduPilot's MAVLink GPS driver: no field flagged as ignored, velocities always filled."""
+    """GPS_INPUT for ArduPilot's MAVLink GPS driver: horizontal velocity always filled; the vertical speed is
+    flagged as ignored unless the fix measured it (``vel_up_valid``): a vd of 0 sent as measured makes an EKF
+    fusing GPS vertical velocity (``EK3_SRC1_VELZ 3``) lag every climb."""
     week, week_ms = gps_week_ms(unix_s)
+    ignore = 0 if fix.vel_up_valid else mavlink2.GPS_INPUT_IGNORE_FLAG_VEL_VERT
     vn, ve, vd = enu_to_ned(*fix.vel_enu_mps)
     yaw_cdeg = heading_to_cdeg(yaw_enu_to_heading(fix.yaw_rad)) if send_yaw and fix.yaw_rad is not None else 0
     return mavlink2.MAVLink_gps_input_message(
-        int(unix_s * 1e6), gps_id, 0, week_ms, week, quality.fix_type,
+        int(unix_s * 1e6), gps_id, ignore, week_ms, week, quality.fix_type,
         deg_e7(fix.lat_deg), deg_e7(fix.lon_deg), float(fix.alt_amsl_m),
         quality.hdop, quality.vdop, vn, ve, vd,
         quality.speed_acc_mps, quality.h_acc_m, quality.v_acc_m, quality.satellites, yaw_cdeg)

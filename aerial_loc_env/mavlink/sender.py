@@ -48,7 +48,7 @@ class SenderConfig:
     signing_link_id: int = field(default=0, metadata=rng(0, 255))
     reconnect_s: float = field(default=1.0, metadata=rng(0.05, 60.0))
     baud: int = field(default=57600, metadata=rng(1, 10_000_000))
-    request_vehicle_hz: float = field(default=0.0, metadata=rng(0.0, 50.0))  # >0: request vehicle state
+    request_vehicle_hz: float = field(default=0.0, metadata=rng(0.0, 50.0))  # >0: request SIM_STATE (truth)
     allow_slow_gps: bool = False                                      # permit GPS_INPUT below 5 Hz (replay)
 
     def validate(self, where: str) -> None:
@@ -91,16 +91,43 @@ def signing_secret(key: str, where: str = "signing_key") -> bytes | None:
 
 @dataclass(frozen=True)
 class VehicleState:
-    """The autopilot's own estimate (GLOBAL_POSITION_INT / ATTITUDE), for follow mode."""
+    """The simulated vehicle's true state as SITL reports it (SIM_STATE), for follow mode.
+
+    Why SIM_STATE and never GLOBAL_POSITION_INT: the latter is the autopilot's EKF estimate, which is built from
+    the very fixes the bridge sends; rendering the camera there would close the loop on itself.
+    """
 
     lat_deg: float
     lon_deg: float
     alt_amsl_m: float
-    rel_alt_m: float
     vel_ned_mps: tuple[float, float, float]
-    heading_rad: float          # MAVLink yaw (CW from north); from ATTITUDE when available, else hdg
+    heading_rad: float          # MAVLink yaw (CW from north)
+    roll_rad: float
+    pitch_rad: float
     received_mono_s: float
     system_id: int
+
+
+def vehicle_state(m, now_s: float) -> VehicleState | None:
+    """VehicleState of a SIM_STATE message, or None for SITL's placeholder before it has a position (0, 0).
+
+    ArduPilot fills the float lat/lon fields in degE7 and the int32 extensions ``lat_int``/``lon_int`` in degE7;
+    other simulators send degrees in the float fields: both are accepted.
+    """
+    lat_i, lon_i = getattr(m, "lat_int", 0) or 0, getattr(m, "lon_int", 0) or 0
+    if lat_i or lon_i:
+        lat, lon = lat_i / 1e7, lon_i / 1e7
+    else:
+        lat, lon = float(m.lat), float(m.lon)
+        if abs(lat) > 90.0 or abs(lon) > 180.0:
+            lat, lon = lat / 1e7, lon / 1e7
+    values = (lat, lon, m.alt, m.vn, m.ve, m.vd, m.yaw, m.roll, m.pitch)
+    if (lat == 0.0 and lon == 0.0) or not all(math.isfinite(v) for v in values) or abs(lat) > 90.0:
+        return None
+    return VehicleState(lat_deg=lat, lon_deg=lon, alt_amsl_m=float(m.alt),
+                        vel_ned_mps=(float(m.vn), float(m.ve), float(m.vd)),
+                        heading_rad=msgs.wrap_pi(float(m.yaw)), roll_rad=float(m.roll), pitch_rad=float(m.pitch),
+                        received_mono_s=now_s, system_id=m.get_srcSystem())
 
 
 @dataclass(frozen=True)
@@ -185,7 +212,8 @@ class MavlinkSender:
         self._item: SlotItem | None = None
         self._age_s: float | None = None
         self._vehicle: VehicleState | None = None
-        self._attitude_heading: float | None = None
+        self._autopilot_sysid: int | None = None   # who answered: the origin's target, and "heard" for udpin
+        self._origin_now = False
         self._skipped = 0
         self.error: BaseException | None = None
 
@@ -227,9 +255,15 @@ class MavlinkSender:
             return self._lock.wait_for(lambda: self._item is not None and self._item.seq >= seq, timeout_s)
 
     def vehicle(self) -> VehicleState | None:
-        """The autopilot's latest GLOBAL_POSITION_INT (+ ATTITUDE yaw), or None if none was received."""
+        """The simulator's latest true vehicle state (SIM_STATE), or None if none was received."""
         with self._lock:
             return self._vehicle
+
+    @property
+    def autopilot_sysid(self) -> int | None:
+        """System id of the autopilot once its HEARTBEAT was received (None before)."""
+        with self._lock:
+            return self._autopilot_sysid
 
     def stats(self) -> SenderStats:
         with self._lock:
@@ -254,6 +288,9 @@ class MavlinkSender:
         t0 = time.monotonic()
         main = Schedule(cfg.rate_hz, t0)
         beat = Schedule(cfg.heartbeat_hz, t0)
+        # the origin: every second until the autopilot has spoken (on udpin nothing can be sent before, and an
+        # autopilot that boots late missed the first), at once when it first speaks, then every origin_period_s
+        origin_early = Schedule(1.0 / min(1.0, cfg.origin_period_s), t0) if self.origin is not None else None
         origin = Schedule(1.0 / cfg.origin_period_s, t0) if self.origin is not None else None
         request = Schedule(0.5, t0) if cfg.request_vehicle_hz > 0 else None
         while not self._stop.is_set():
@@ -261,10 +298,15 @@ class MavlinkSender:
             if beat.due(now):
                 self._send("heartbeat", msgs.heartbeat())
                 beat.advance(now)
-            if origin is not None and origin.due(now):
-                self._send("set_gps_global_origin", msgs.set_gps_global_origin(
-                    self.origin, self.clock.unix_us(now), cfg.target_system))
-                origin.advance(now)
+            if origin is not None:
+                heard = self.autopilot_sysid is not None
+                sched = origin if heard else origin_early
+                if sched.due(now) or self._origin_now:
+                    self._origin_now = False
+                    target = cfg.target_system or (self.autopilot_sysid or 0)
+                    self._send("set_gps_global_origin", msgs.set_gps_global_origin(
+                        self.origin, self.clock.unix_us(now), target))
+                    sched.advance(now)
             if request is not None and request.due(now):
                 self._request_vehicle_streams()
                 request.advance(now)
@@ -274,9 +316,11 @@ class MavlinkSender:
                 with self._lock:
                     self._skipped = main.skipped
             self._receive()
-            schedules = [s for s in (main, beat, origin, request) if s is not None]
+            schedules = [s for s in (main, beat, request) if s is not None]
+            if origin is not None:
+                schedules.append(origin if self.autopilot_sysid is not None else origin_early)
             wait = min(s.deadline_s for s in schedules) - time.monotonic()
-            if wait > 0:
+            if wait > 0 and not self._origin_now:
                 self._stop.wait(wait)
 
     def _tick(self, now: float) -> None:
@@ -316,15 +360,14 @@ class MavlinkSender:
                 self._sent[kind] += 1
 
     def _request_vehicle_streams(self) -> None:
-        """Ask for GLOBAL_POSITION_INT and ATTITUDE (MAV_CMD_SET_MESSAGE_INTERVAL) until they come."""
+        """Ask for SIM_STATE, the simulator's truth (MAV_CMD_SET_MESSAGE_INTERVAL), until it comes."""
         vehicle = self.vehicle()
         if vehicle is not None and time.monotonic() - vehicle.received_mono_s < 2.0:
             return
-        interval_us = 1e6 / self.config.request_vehicle_hz
-        for msg_id in (mavlink2.MAVLINK_MSG_ID_GLOBAL_POSITION_INT, mavlink2.MAVLINK_MSG_ID_ATTITUDE):
-            self._send("command_long", mavlink2.MAVLink_command_long_message(
-                self.config.target_system, 1, mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL, 0,
-                float(msg_id), interval_us, 0, 0, 0, 0, 0))
+        target = self.config.target_system or (self.autopilot_sysid or 0)
+        self._send("command_long", mavlink2.MAVLink_command_long_message(
+            target, 1, mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL, 0,
+            float(mavlink2.MAVLINK_MSG_ID_SIM_STATE), 1e6 / self.config.request_vehicle_hz, 0, 0, 0, 0, 0))
 
     def _receive(self) -> None:
         data = self.link.read()
@@ -337,19 +380,18 @@ class MavlinkSender:
         now = time.monotonic()
         for m in received:
             name = m.get_type()
-            if name == "ATTITUDE":
-                self._attitude_heading = float(m.yaw)
-            elif name == "GLOBAL_POSITION_INT":
-                heading = self._attitude_heading
-                if heading is None:
-                    heading = math.radians(m.hdg / 100.0) if m.hdg != 65535 else 0.0
-                state = VehicleState(
-                    lat_deg=m.lat / 1e7, lon_deg=m.lon / 1e7, alt_amsl_m=m.alt / 1000.0,
-                    rel_alt_m=m.relative_alt / 1000.0, vel_ned_mps=(m.vx / 100.0, m.vy / 100.0, m.vz / 100.0),
-                    heading_rad=msgs.wrap_pi(heading), received_mono_s=now, system_id=m.get_srcSystem())
+            if name == "HEARTBEAT" and m.autopilot != mavlink2.MAV_AUTOPILOT_INVALID:
                 with self._lock:
-                    self._vehicle = state
+                    first = self._autopilot_sysid is None
+                    self._autopilot_sysid = m.get_srcSystem()
+                if first and self.origin is not None:
+                    self._origin_now = True       # the link can reach it now: announce the origin at once
+            elif name == "SIM_STATE":
+                state = vehicle_state(m, now)
+                if state is not None:
+                    with self._lock:
+                        self._vehicle = state
 
 
-__all__ = ["MavlinkSender", "SenderConfig", "SenderStats", "VehicleState", "PoseFix", "GeoOrigin",
+__all__ = ["MavlinkSender", "SenderConfig", "SenderStats", "VehicleState", "vehicle_state", "PoseFix", "GeoOrigin",
            "FixPolicy", "signing_secret"]
