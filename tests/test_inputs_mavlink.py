@@ -37,7 +37,8 @@ def test_speed_zero_delivers_every_frame():
     sock.settimeout(0.05)
     args = mav_cli.build_parser().parse_args([
         "--scenario", "AerialLoc/Small-v0", "--agent", "dead-reckoning", "--seed", "1", "--speed", "0",
-        "--rate-hz", "200", "--connect", f"udpout:127.0.0.1:{sock.getsockname()[1]}", "--quiet"])
+        "--rate-hz", "200", "--ground-amsl-m", "30", "--connect", f"udpout:127.0.0.1:{sock.getsockname()[1]}",
+        "--quiet"])
     out = io.StringIO()
     result = {}
     runner = threading.Thread(target=lambda: result.setdefault("rc", mav_cli.run(args, out=out)))
