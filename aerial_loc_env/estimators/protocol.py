@@ -3,8 +3,8 @@
 An agent is reset with the environment's ``Briefing`` (everything it may know besides the observations)
 and a seed, then gives one ``Estimate`` per observation. Optional extras (particles, weights, an uncertainty)
 feed the renderer and the MAVLink sender's fix quality. Agents never see the simulator's state; the only
-exception is a class (or instance) with ``uses_ground_truth = True``, to which the runner also passes the
-env's ``info``.
+exception is a class (or instance) with ``uses_ground_truth = True``, to which the episode driver
+(``estimators/episode.py``, the one oracle gate) also passes the env's ``info``.
 
 A new agent is a subclass of ``Agent`` with an optional frozen-dataclass ``Params`` (built by
 ``aerial_loc_env.config.build_config`` from a spec's ``[params]`` table); see ``registry.py`` for the specs.
@@ -126,7 +126,7 @@ class Agent(ABC):
     """
 
     Params: ClassVar[type | None] = None
-    #: True for oracles (ablations only): the runner then passes the env's ``info`` to ``step``.
+    #: True for oracles (ablations only): the episode driver then passes the env's ``info`` to ``step``.
     uses_ground_truth: bool = False
     #: the spec name this agent was built from (set by the registry), for reports
     name: str = ""
