@@ -21,7 +21,7 @@ import pytest
 
 from aerial_loc_env.benchmark.episodes import make_benchmark_env, record_episode, run_episode
 from aerial_loc_env.benchmark.grid import AgentEntry, ScenarioEntry, make_grid
-from aerial_loc_env.benchmark.metrics import TIMING_COLUMNS, trial_metrics
+from aerial_loc_env.benchmark.metrics import trial_metrics
 from aerial_loc_env.benchmark.runner import plan
 from aerial_loc_env.estimators.episode import EpisodeDriver, oracle_info, read_only
 from aerial_loc_env.estimators.protocol import Agent, Estimate, prior_estimate
@@ -32,9 +32,10 @@ AGENTS = [{"name": "mcl-shadow-aware", "params": {"n_particles": 150}, "label": 
           {"name": "mcl-shadow-aware-oracle", "params": {"n_particles": 150}, "label": "oracle"}]
 TINY = {"id": "AerialLoc/Small-v0", "overrides": {"flight.duration_s": 3.0}, "label": "tiny"}
 SEEDS = [0, 1, 2]
-#: columns that are not results of the episode: wall/CPU time, and what other work legitimately changes
-#: (the package version, the trial key's recipe, the resolved configs gaining new default fields)
-NOT_COMPARED = set(TIMING_COLUMNS) | {"key", "version", "agent_config", "scenario_config"}
+#: what the episode loop produces (the metrics derived from it, the timing, the key and the configs may change
+#: for other reasons: a new metric definition, a key recipe, new default fields)
+COMPARED = ("agent", "scenario", "seed", "agent_spec", "scenario_spec", "steps", "t_s", "errors_m",
+            "shadow_pairs_series", "shadow_pairs_normalized", "shadow_fraction_mean")
 N_FRAMES = 13   # 3 s at 4 Hz: 12 steps, 13 frames
 
 
@@ -45,7 +46,7 @@ def _plain(value):
 
 
 def _comparable(rows: list[dict]) -> list[dict]:
-    return _plain([{k: v for k, v in r.items() if k not in NOT_COMPARED} for r in rows])
+    return _plain([{k: r[k] for k in COMPARED} for r in rows])
 
 
 def _tasks():
@@ -108,8 +109,9 @@ def _reference_rows(task) -> list[dict]:
         obs, _r, terminated, truncated, info = env.step(np.asarray(action, np.float32))
         done = terminated or truncated
     out = []
+    metric = task.metric.for_scenario(env.scenario)
     for i, entry in enumerate(task.agents):
-        m = trial_metrics(np.asarray(errors[i]), np.asarray(t_s), np.zeros(len(t_s)), task.metric)
+        m = trial_metrics(np.asarray(errors[i]), np.asarray(t_s), np.zeros(len(t_s)), metric)
         out.append({"agent": entry.display, "seed": task.seed, "steps": m["steps"], "rmse_m": m["rmse_m"],
                     "final_error_m": m["final_error_m"], "time_to_converge_s": m["time_to_converge_s"],
                     "errors_m": [round(float(x), 4) for x in errors[i]], "t_s": [round(x, 4) for x in t_s],
@@ -125,7 +127,7 @@ def test_benchmark_rows_are_those_of_the_loop_before_the_driver():
     assert _plain([{k: r[k] for k in ref} for r, ref in zip(rows, reference, strict=True)]) == _plain(reference)
     fixture = json.loads(FIXTURE.read_text())
     if fixture["frames_sha256"] == _frames_digest():
-        assert _comparable(rows) == _plain(fixture["rows"])
+        assert _comparable(rows) == _comparable(fixture["rows"])
     else:  # the episodes themselves changed (world, renderer): the reference loop above is the check
         warnings.warn(f"{FIXTURE.name} was written for other frames; regenerate it: python {__file__}",
                       stacklevel=1)
@@ -227,6 +229,18 @@ def test_record_episode_uses_the_driver_time_line():
                          AgentEntry("dead-reckoning", {}, "dr"))
     assert rec["truth"].shape == (N_FRAMES, 4) and rec["estimates"].shape == (N_FRAMES, 2)
     assert rec["shadow_mask"] is not None and rec["image"].flags.writeable
+
+
+def test_the_evaluation_script_runs_the_benchmarks_time_line():
+    """evaluate.run_episodes and the benchmark give the same per-frame errors (the last frame included)."""
+    from aerial_loc_env.estimators.mcl.evaluate import run_episodes
+
+    res = run_episodes(TINY["id"], ["dead-reckoning"], [1], overrides={"flight": {"duration_s": 3.0}},
+                       detector_quality=False)
+    assert res["errors"]["dead-reckoning"].shape == (1, N_FRAMES)
+    (task,) = plan(make_grid("dr", [{"name": "dead-reckoning"}], [TINY], seeds=[1]), set())
+    (row,), _ = run_episode(task)
+    assert np.round(res["errors"]["dead-reckoning"][0], 4).tolist() == row["errors_m"]
 
 
 def test_read_only_views_share_memory():
