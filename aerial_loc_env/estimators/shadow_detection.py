@@ -193,8 +193,9 @@ def restore(image: np.ndarray, mask: ShadowMask, method: str, small: np.ndarray 
 def mask_quality(predicted: np.ndarray, truth: np.ndarray) -> dict[str, float]:
     """IoU, precision and recall of a predicted boolean mask against the ground truth (same shape).
 
-    Conventions for empty sets: IoU = 1 when both are empty; precision = 1 with no predicted pixel; recall = 1
-    with no true shadow pixel.
+    Conventions for empty sets: IoU, precision and recall are 1 when both masks are empty. An empty prediction
+    of a frame with shadows scores precision 0 (not 1: a detector that gives up must not look precise), and a
+    frame without shadows scores recall 1 (nothing was missed; its false detections show in the precision).
     """
     p, t = np.asarray(predicted, bool), np.asarray(truth, bool)
     if p.shape != t.shape:
@@ -203,7 +204,7 @@ def mask_quality(predicted: np.ndarray, truth: np.ndarray) -> dict[str, float]:
     n_p, n_t = int(np.count_nonzero(p)), int(np.count_nonzero(t))
     union = n_p + n_t - tp
     return {"iou": tp / union if union else 1.0,
-            "precision": tp / n_p if n_p else 1.0,
+            "precision": tp / n_p if n_p else (0.0 if n_t else 1.0),
             "recall": tp / n_t if n_t else 1.0,
             "fraction_true": n_t / t.size, "fraction_predicted": n_p / p.size}
 
