@@ -379,7 +379,13 @@ class AerialLocEnv(gym.Env):
         sources: list = []
         if sc.map.use_dsm and om.dsm_m is not None:
             sources.append(self._cast_shadows())
-        clouds = cfg.draw_clouds(rng, om.width_m, om.height_m)
+        # clouds only over the window the episode sees (the track's box plus the footprint): the field is
+        # periodic, so a field that size (plus the drift, added by draw_clouds) covers it without repeating
+        x0, y0, x1, y1 = self._track.bounds_m()
+        fw, fh = self.camera.footprint_m(float(self._track.altitude_m.max()))
+        pad = 2.0 * footprint_radius_m(fw, fh)
+        clouds = cfg.draw_clouds(rng, min(om.width_m, x1 - x0 + pad), min(om.height_m, y1 - y0 + pad),
+                                 duration_s=float(self._track.t_s[-1]))
         if clouds is not None:
             sources.append(clouds)
         return sources or None

@@ -30,6 +30,10 @@ from ..config import check_value
 from ..config import rng as rng_meta
 from ..errors import ConfigError, MapError
 
+#: bumped when the output changes for the same inputs (env.fingerprint); 2: an episode's cloud field spans the
+#: window it flies plus the drift, not the whole map
+GENERATOR_VERSION = 2
+
 SUN_ANGULAR_DIAMETER_DEG = 0.53
 """Apparent diameter of the solar disc; sets the physical penumbra width (about 9.3 mm per metre)."""
 
@@ -666,15 +670,20 @@ class ShadowConfig:
         lo, hi = self.strength_range
         return float(lo + (hi - lo) * rng.random())
 
-    def draw_clouds(self, rng: np.random.Generator, extent_x_m: float, extent_y_m: float) -> CloudField | None:
-        """A cloud field with a random drift direction and speed, or None when cloud_cover is 0."""
+    def draw_clouds(self, rng: np.random.Generator, extent_x_m: float, extent_y_m: float,
+                    duration_s: float = 0.0) -> CloudField | None:
+        """A cloud field with a random drift direction and speed, or None when cloud_cover is 0.
+
+        The (periodic) field spans at least the extent plus the drift over ``duration_s``, so that a window of
+        that extent (where an episode flies, not the whole map) sees no repeat while the clouds drift."""
         if self.cloud_cover <= 0.0:
             return None
         lo, hi = self.cloud_speed_range_mps
         speed = lo + (hi - lo) * rng.random()
         heading = 2.0 * math.pi * rng.random()
-        return CloudField(rng, extent_x_m, extent_y_m, cover=self.cloud_cover, scale_m=self.cloud_scale_m,
-                          drift_mps=(speed * math.cos(heading), speed * math.sin(heading)),
+        vx, vy = speed * math.cos(heading), speed * math.sin(heading)
+        return CloudField(rng, extent_x_m + abs(vx) * duration_s, extent_y_m + abs(vy) * duration_s,
+                          cover=self.cloud_cover, scale_m=self.cloud_scale_m, drift_mps=(vx, vy),
                           edge_m=self.cloud_edge_m, cell_m=self.cloud_cell_m)
 
     def database_image(self, rgb: np.ndarray, dsm_m: np.ndarray | None, gsd_x_m: float,
