@@ -229,8 +229,9 @@ class AerialLocEnv(gym.Env):
       ``--show ID`` prints one in full) or a ``Scenario``;
     - ``render_mode``: None or ``"rgb_array"``;
     - ``overrides``: any field of the spec's sections (``map``, ``city``, ``epoch``, ``flight``, ``camera``,
-      ``perspective``, ``odometry``, ``shadows``, ``database``, ``photometry``, ``observation``, ``episode``,
-      ``reward``; see ``aerial_loc_env.env.scenarios``) as a section dict (``flight={"altitude_m": 150}``), a dotted key
+      ``perspective``, ``gimbal``, ``altimeter``, ``exposure``, ``haze``, ``odometry``, ``shadows``,
+      ``database``, ``photometry``, ``observation``, ``episode``, ``reward``; see
+      ``aerial_loc_env.env.scenarios``) as a section dict (``flight={"altitude_m": 150}``), a dotted key
       (``**{"flight.altitude_m": 150}``) or a bare field owned by one section (``altitude_m=150``). Unknown keys
       and out-of-range values raise ``ConfigError`` naming the key and the allowed values.
 
