@@ -10,8 +10,12 @@ Why it is built this way:
   pose gives the same picture minus shadows and sensor effects.
 - Footprints that leave the map or touch no-data are detected, never silently padded: strict mode raises
   ``FootprintError``; the non-strict path fills with black and flags the frame invalid.
-- Sensor noise is fast: a per-episode bank of standard normals, read at a random offset per frame, scaled by a
-  per-intensity sigma LUT (read + shot noise); exposure/white-balance/gamma jitter is one uint8 LUT.
+- Photometry stays in integers, uint8 in and uint8 out, one full-frame pass per effect (``_photometry``): the
+  shading gain image is three 1-channel LUTs of the quantized occlusion, gamma one uint8 LUT, the white-balance
+  and exposure gains one ``cv2.transform`` (all bit-identical to float arithmetic), vignetting one multiply by a
+  precomputed uint8 gain, and sensor noise a per-episode int16 bank of standard normals (fixed point, 2**-11)
+  read at a random offset per frame and scaled by an int16 sigma LUT (read + shot noise): within 2 grey levels of
+  the float arithmetic (tests/test_render.py derives the bound).
 """
 
 from __future__ import annotations
@@ -36,6 +40,8 @@ _WARP_FLAGS = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
 _RGBA_MAX_PX = 32_000_000  # maps up to this many pixels get an RGBA copy (faster warps; the default city: 27 Mpx)
 _NOISE_MARGIN_PX = 97  # the noise bank is this much larger than a frame in each direction (random offsets)
 _BLOCK_PX = 16  # no-data screening block (map pixels)
+_NOISE_BITS = 11  # the int16 noise bank holds round(z * 2**11), |z| <= 16
+_SIGMA_BITS = 8   # the int16 sigma LUT holds round(sigma * 2**8); sigma <= 71.1 DN within Photometry's ranges
 
 
 @dataclass(frozen=True)
@@ -124,19 +130,20 @@ class CameraRenderer:
             blocks = padded.reshape(padded.shape[0] // _BLOCK_PX, _BLOCK_PX, padded.shape[1] // _BLOCK_PX,
                                     _BLOCK_PX).max(axis=(1, 3))
             self._nodata_blocks = cv2.integral((blocks > 0).astype(np.uint8))
-        self._vignette = self._vignetting_map(self.camera, self.photometry.vignetting)
+        vignette = self._vignetting_map(self.camera, self.photometry.vignetting)
+        self._vignette = None if vignette is None else np.rint(vignette * 255.0).astype(np.uint8)
         self._noise_bank: np.ndarray | None = None
-        self._buffers: dict[int, np.ndarray] = {}
-        self._sigma_lut = np.sqrt(self.photometry.read_noise_dn ** 2 + self.photometry.shot_noise_gain
-                                  * np.arange(256, dtype=np.float32)).astype(np.float32)
+        self._noise_scratch: np.ndarray | None = None
+        sigma = np.sqrt(self.photometry.read_noise_dn ** 2 + self.photometry.shot_noise_gain
+                        * np.arange(256, dtype=np.float64))
+        self._sigma_lut = np.rint(sigma * (1 << _SIGMA_BITS)).astype(np.int16)
         self.reset(noise_seed if isinstance(noise_seed, np.random.Generator) else np.random.default_rng(noise_seed))
 
     # ------------------------------------------------------------------ per-episode state
     def reset(self, rng: np.random.Generator) -> None:
         """Redraw the noise bank (once per episode) from ``rng``."""
         if self.photometry.has_noise:
-            h, w = self.camera.height_px + _NOISE_MARGIN_PX, self.camera.width_px + _NOISE_MARGIN_PX
-            self._noise_bank = rng.standard_normal((h, w, 3), dtype=np.float32)
+            self._noise_bank = noise_bank(rng, self.camera)
 
     # ------------------------------------------------------------------ geometry
     def camera_to_map(self, pose: Pose, camera: CameraModel | None = None) -> np.ndarray:
@@ -306,7 +313,8 @@ class CameraRenderer:
         ``speed_mps`` sets the motion blur length (``speed * exposure_time`` along the heading).
         ``tilt_rad``: the gimbal's (roll, pitch) error; with it, or with a perspective view of the height model,
         the frame is one ``remap`` through per-pixel maps (``sensors.perspective``) instead of the affine warp.
-        ``pre_sensor``: scene-side effects (haze, exposure control) on the shaded image before the photometry.
+        ``pre_sensor``: scene-side effects (haze, exposure control) on the shaded image before the photometry
+        (which then works in place on the uint8 image it returns).
         """
         pose = Pose(*_pose_tuple(pose))
         strict = self.strict if strict is None else strict
@@ -325,12 +333,14 @@ class CameraRenderer:
             self._view.shade_facades(image, view)
         occ_cam = None
         if occlusion is not None:
-            from ..world.shadows import apply_shading
+            from ..world.shadows import shade, shading_lut
 
             occ_cam = self._occlusion(occlusion, affine, pose, t_s, camera, view)
             kwargs = dict(shading_params or {})
-            strength = kwargs.pop("strength", 1.0)
-            image = apply_shading(image, occ_cam, strength, out=image, **kwargs)
+            strength = float(kwargs.pop("strength", 1.0))
+            if "sky_tint_rgb" in kwargs:
+                kwargs["sky_tint_rgb"] = tuple(float(t) for t in kwargs["sky_tint_rgb"])
+            shade(image, cv2.convertScaleAbs(occ_cam, alpha=255.0), shading_lut(strength, **kwargs), out=image)
             mask = occ_cam >= 0.5
             fraction = cv2.countNonZero(mask.view(np.uint8)) / mask.size
         else:
@@ -345,42 +355,34 @@ class CameraRenderer:
     # ------------------------------------------------------------------ photometry
     def _photometry(self, image: np.ndarray, rng: np.random.Generator, speed_mps: float,
                     gsd_along_m: float) -> np.ndarray:
+        """Motion blur, gamma, gains, vignetting and noise on a fresh uint8 frame (modified in place where it can).
+
+        The random draws and their order: ``photometry_draws``, then the noise bank offsets."""
         p = self.photometry
         blur_px = speed_mps * p.exposure_time_s / gsd_along_m
         if blur_px >= 1.0:
             image = cv2.filter2D(image, -1, _motion_kernel(blur_px), borderType=cv2.BORDER_REPLICATE)
-        if p.gamma != 1.0 or p.gamma_std > 0.0:
-            gamma = p.gamma * math.exp(p.gamma_std * rng.standard_normal())
-            lut = np.rint(255.0 * (np.arange(256) / 255.0) ** gamma).astype(np.uint8)
-            image = cv2.LUT(image, lut)
-        if p.gain != 1.0 or p.exposure_std > 0.0 or p.white_balance_std > 0.0:
-            gains = p.gain * np.exp(p.exposure_std * rng.standard_normal() + p.white_balance_std
-                                    * rng.standard_normal(3))
-            image = cv2.transform(image, np.diag(gains).astype(np.float32))  # saturating per-channel gain
-        if not p.has_noise and self._vignette is None:
-            return image
-        # float32 scratch buffers are reused: fresh multi-MB arrays per frame cost more than the arithmetic
-        h, w = image.shape[:2]
-        signal, sigma = self._scratch(0, (h, w, 3)), self._scratch(1, (h, w, 3))
+        gamma, gains = photometry_draws(p, rng)
+        if gamma is not None:
+            cv2.LUT(image, gamma_lut(gamma), dst=image)
+        if gains is not None:
+            cv2.transform(image, np.diag(gains).astype(np.float32), dst=image)  # saturating per-channel gain
+        noise = None
+        if p.has_noise:
+            assert self._noise_bank is not None
+            h, w = image.shape[:2]
+            dy, dx = rng.integers(0, _NOISE_MARGIN_PX + 1, size=2)
+            if self._noise_scratch is None or self._noise_scratch.shape != image.shape:
+                self._noise_scratch = np.empty(image.shape, np.int16)
+            # sigma from the level before vignetting (a few % off in the corners; one LUT pass instead of two)
+            sigma = cv2.LUT(image, self._sigma_lut, dst=self._noise_scratch)
+            noise = cv2.multiply(sigma, self._noise_bank[dy:dy + h, dx:dx + w], dst=sigma,
+                                 scale=2.0 ** -(_SIGMA_BITS + _NOISE_BITS))
         if self._vignette is not None:
-            cv2.multiply(image, self._vignette, dst=signal, dtype=cv2.CV_32F)
-            if not p.has_noise:
-                return cv2.convertScaleAbs(signal)
-        else:
-            signal = image
-        assert self._noise_bank is not None
-        dy, dx = rng.integers(0, _NOISE_MARGIN_PX + 1, size=2)
-        z = self._noise_bank[dy:dy + h, dx:dx + w]
-        # sigma from the level before vignetting (a few % off in the corners; one LUT pass instead of two)
-        cv2.LUT(image.reshape(h, w * 3), self._sigma_lut, dst=sigma.reshape(h, w * 3))
-        cv2.multiply(sigma, z, dst=sigma)
-        return cv2.add(signal, sigma, dtype=cv2.CV_8U)
-
-    def _scratch(self, key: int, shape: tuple[int, ...]) -> np.ndarray:
-        buf = self._buffers.get(key)
-        if buf is None or buf.shape != shape:
-            buf = self._buffers[key] = np.empty(shape, np.float32)
-        return buf
+            cv2.multiply(image, self._vignette, dst=image, scale=1.0 / 255.0)
+        if noise is not None:
+            cv2.add(image, noise, dst=image, dtype=cv2.CV_8U)
+        return image
 
     @staticmethod
     def _vignetting_map(camera: CameraModel, strength: float) -> np.ndarray | None:
@@ -413,3 +415,31 @@ def _pose_tuple(pose: Any) -> tuple[float, float, float, float]:
     if not all(math.isfinite(v) for v in (x, y, yaw, alt)):
         raise ConfigError(f"render: pose values must be finite, got {pose!r}")
     return x, y, yaw, alt
+
+
+def photometry_draws(p: Photometry, rng: np.random.Generator) -> tuple[float | None, np.ndarray | None]:
+    """The frame's gamma and per-channel gains (None where the photometry has no such effect), drawn in this order
+    from ``rng``; the noise bank offsets are drawn after them."""
+    gamma = gains = None
+    if p.gamma != 1.0 or p.gamma_std > 0.0:
+        gamma = p.gamma * math.exp(p.gamma_std * rng.standard_normal())
+    if p.gain != 1.0 or p.exposure_std > 0.0 or p.white_balance_std > 0.0:
+        gains = p.gain * np.exp(p.exposure_std * rng.standard_normal() + p.white_balance_std
+                                * rng.standard_normal(3))
+    return gamma, gains
+
+
+def gamma_lut(gamma: float) -> np.ndarray:
+    """uint8 tone curve ``round(255 (v / 255) ** gamma)``."""
+    return np.rint(255.0 * (np.arange(256) / 255.0) ** gamma).astype(np.uint8)
+
+
+def noise_bank(rng: np.random.Generator, camera: CameraModel) -> np.ndarray:
+    """A frame-plus-margin of standard normals (one ``standard_normal`` float32 draw) in int16 fixed point,
+    ``round(z * 2**_NOISE_BITS)`` (resolution 0.0005 sigma; |z| > 16, p < 1e-57, would clip)."""
+    h, w = camera.height_px + _NOISE_MARGIN_PX, camera.width_px + _NOISE_MARGIN_PX
+    z = rng.standard_normal((h, w, 3), dtype=np.float32)
+    np.multiply(z, np.float32(1 << _NOISE_BITS), out=z)
+    np.rint(z, out=z)
+    np.clip(z, -32767, 32767, out=z)
+    return z.astype(np.int16)

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from functools import lru_cache
 from typing import NamedTuple
 
 import cv2
@@ -459,6 +460,8 @@ def apply_shading(rgb: np.ndarray, occlusion: np.ndarray, strength: float, *, sh
     The sRGB linear toe below 1 % is ignored (error below one grey level).
     """
     _check_shading(strength, shadow_ratio, sky_tint_rgb, gamma, "apply_shading")
+    lut = shading_lut(float(strength), shadow_ratio=float(shadow_ratio),
+                      sky_tint_rgb=tuple(float(t) for t in sky_tint_rgb), gamma=float(gamma))
     img = np.asarray(rgb)
     if img.dtype != np.uint8 or img.ndim != 3 or img.shape[2] != 3:
         raise ConfigError(f"apply_shading: rgb must be an (H, W, 3) uint8 image, got {img.shape} {img.dtype}")
@@ -469,14 +472,30 @@ def apply_shading(rgb: np.ndarray, occlusion: np.ndarray, strength: float, *, sh
         if not np.issubdtype(occ.dtype, np.floating):
             raise ConfigError(f"apply_shading: occlusion must be float in [0, 1] or uint8, got {occ.dtype}")
         occ = cv2.convertScaleAbs(occ.astype(np.float32, copy=False), alpha=255.0)
+    return shade(img, occ, lut, out=out)
+
+
+@lru_cache(maxsize=64)
+def shading_lut(strength: float, *, shadow_ratio: float = 0.15,
+                sky_tint_rgb: tuple[float, float, float] = (0.55, 0.65, 0.85), gamma: float = 2.2) -> np.ndarray:
+    """The encoded per-channel shading gains of ``apply_shading`` (read-only (3, 256) uint8, 255 = unchanged):
+    row c, column q is channel c's gain at occlusion q / 255. Cached: an episode draws one strength."""
+    _check_shading(strength, shadow_ratio, sky_tint_rgb, gamma, "shading_lut")
     q = np.arange(256, dtype=np.float64) / 255.0
     gains = _shadow_gains(strength, shadow_ratio, sky_tint_rgb)
-    lin = 1.0 - q[:, None] * (1.0 - gains[None, :])          # (256, 3) linear-light gains
-    lut = np.clip(np.rint(255.0 * lin ** (1.0 / gamma)), 0, 255).astype(np.uint8).reshape(256, 1, 3)
-    gain_img = cv2.LUT(cv2.cvtColor(occ, cv2.COLOR_GRAY2RGB), lut)
-    if out is None:
-        return cv2.multiply(img, gain_img, scale=1.0 / 255.0)
-    return cv2.multiply(img, gain_img, dst=out, scale=1.0 / 255.0)
+    lin = 1.0 - q[None, :] * (1.0 - gains[:, None])          # (3, 256) linear-light gains
+    lut = np.clip(np.rint(255.0 * lin ** (1.0 / gamma)), 0, 255).astype(np.uint8)
+    lut.flags.writeable = False
+    return lut
+
+
+def shade(rgb: np.ndarray, occ_q: np.ndarray, lut: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    """``rgb * lut[c, occ_q] / 255`` per channel, rounded (uint8 (H, W, 3) in, uint8 out; ``out`` may be ``rgb``).
+
+    The gain image is three 1-channel ``cv2.LUT`` merged: twice as fast as one 3-channel LUT of the grey image,
+    and the same bytes. ``occ_q`` is the occlusion quantized to uint8 (255 = no direct sun)."""
+    gain_img = cv2.merge([cv2.LUT(occ_q, lut[c]) for c in range(3)])
+    return cv2.multiply(rgb, gain_img, dst=out, scale=1.0 / 255.0)
 
 
 def combine_occlusion(*fields: np.ndarray) -> np.ndarray:
