@@ -166,7 +166,8 @@ class AerialLocEnv(gym.Env):
     What an estimator may know besides the observations is ``env.unwrapped.briefing`` (a ``Briefing``: the
     database map, the camera model, the prior, the odometry noise model, the time step): its map is the
     shadow-free scene, or with ``shadows.database_sun_deg`` the scene under another sun, or with
-    ``[database]`` the scene as a real map was acquired. ``info`` is the simulator's ground truth, for scoring,
+    ``[database]`` the scene as a real map was acquired; with ``[epoch]`` the camera flies over epoch B of the
+    ground (``env.orthomap``) while the map shows epoch A (``env.database``). ``info`` is the simulator's ground truth, for scoring,
     reports and oracles; agents must not read it: ``true_pose`` (x_m, y_m, yaw_rad, altitude_m) of the
     returned frame, ``time_s``, ``step``, ``prior``, ``shadow_fraction``, ``sun_azimuth_deg``,
     ``sun_elevation_deg``, ``shadow_strength``; after a step ``position_error_m`` and ``estimate_xy_m`` of the

@@ -93,6 +93,25 @@ def lean_offsets_px(gsd_x_m: float, gsd_y_m: float, lean_deg: float, lean_azimut
     return d * math.sin(az) / gsd_x_m, -d * math.cos(az) / gsd_y_m
 
 
+def _march_tile(dsm: np.ndarray, best: np.ndarray, wall: np.ndarray, tile: tuple[int, int, int, int], ux: float,
+                uy: float, dz: float, top_m: float) -> None:
+    """The ray march of ``lean_buildings`` over one tile of the output, up to the height ``top_m`` it can meet."""
+    h, w = dsm.shape
+    y0, y1, x0, x1 = tile
+    for k in range(1, int(math.ceil(top_m / dz + 0.5)) + 1):
+        du, dv = int(round(k * ux)), int(round(k * uy))
+        # the point k steps back towards the sensor: dst[v, u] looks at dsm[v - dv, u - du] (off the map: nothing)
+        a0, a1 = max(y0, dv), min(y1, h + dv)
+        b0, b1 = max(x0, du), min(x1, w + du)
+        if a0 >= a1 or b0 >= b1:
+            break
+        src = dsm[a0 - dv:a1 - dv, b0 - du:b1 - du]
+        z = k * dz
+        c = src >= z - 0.5 * dz
+        np.copyto(best[a0:a1, b0:b1], k, where=c)
+        np.copyto(wall[a0:a1, b0:b1], src >= z + 0.5 * dz, where=c)
+
+
 def lean_buildings(rgb: np.ndarray, dsm_m: np.ndarray, gsd_x_m: float, gsd_y_m: float, lean_deg: float,
                    lean_azimuth_deg: float, *, facade_gain: float = 0.62,
                    floor_m: float = 3.0) -> tuple[np.ndarray, np.ndarray]:
@@ -119,23 +138,22 @@ def lean_buildings(rgb: np.ndarray, dsm_m: np.ndarray, gsd_x_m: float, gsd_y_m: 
     h, w = dsm.shape
     best = np.zeros((h, w), np.int32)
     wall = dsm >= 0.5 * dz           # met at the ground by no higher surface: the ray ends inside a wall
-    for k in range(1, n_steps + 1):
-        du, dv = int(round(k * ux)), int(round(k * uy))
-        if abs(du) >= w or abs(dv) >= h:
-            break
-        # src[v, u] = dsm[v - dv, u - du] (the point k steps back towards the sensor), 0 off the map
-        src = np.zeros_like(dsm)
-        src[max(dv, 0):h + min(dv, 0), max(du, 0):w + min(du, 0)] = \
-            dsm[max(-dv, 0):h - max(dv, 0), max(-du, 0):w - max(du, 0)]
-        z = k * dz
-        hit = src >= z - 0.5 * dz
-        best[hit] = k
-        wall[hit] = src[hit] >= z + 0.5 * dz
-    ks = best.astype(np.float64)
-    vv, uu = np.indices((h, w), dtype=np.int32)
-    su = np.clip(uu - np.rint(ks * ux).astype(np.int32), 0, w - 1)
-    sv = np.clip(vv - np.rint(ks * uy).astype(np.int32), 0, h - 1)
-    out = img[sv, su]
+    tile = 256
+    reach_u, reach_v = int(round(n_steps * ux)), int(round(n_steps * uy))
+    for y0 in range(0, h, tile):
+        for x0 in range(0, w, tile):
+            y1, x1 = min(h, y0 + tile), min(w, x0 + tile)
+            # the tallest thing a ray into this tile can meet (the tile and its reach towards the sensor)
+            box = dsm[max(0, min(y0, y0 - reach_v)):min(h, max(y1, y1 - reach_v)),
+                      max(0, min(x0, x0 - reach_u)):min(w, max(x1, x1 - reach_u))]
+            _march_tile(dsm, best, wall, (y0, y1, x0, x1), ux, uy, dz, float(box.max(initial=0.0)))
+    steps = np.arange(n_steps + 1)
+    du_k = np.array([round(k * ux) for k in steps], np.float32)      # the march's own rounding, per step
+    dv_k = np.array([round(k * uy) for k in steps], np.float32)
+    map_u = np.arange(w, dtype=np.float32)[None, :] - du_k[best]
+    map_v = np.arange(h, dtype=np.float32)[:, None] - dv_k[best]
+    out = cv2.remap(np.ascontiguousarray(img), map_u, map_v, cv2.INTER_NEAREST, borderMode=cv2.BORDER_REPLICATE)
+    ks = best
     if np.any(wall):
         z = np.maximum(ks * dz, 0.5 * floor_m)[wall]
         banded = np.where(np.mod(z, floor_m) < 0.35 * floor_m, 0.72, 1.0)
