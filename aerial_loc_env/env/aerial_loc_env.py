@@ -167,9 +167,9 @@ class AerialLocEnv(gym.Env):
     database map, the camera model, the prior, the odometry noise model, the time step): its map is the
     shadow-free scene, or with ``shadows.database_sun_deg`` the scene under another sun, or with
     ``[database]`` the scene as a real map was acquired; with ``[epoch]`` the camera flies over epoch B of the
-    ground (``env.orthomap``) while the map shows epoch A (``env.database``). ``info`` is the simulator's ground truth, for scoring,
-    reports and oracles; agents must not read it: ``true_pose`` (x_m, y_m, yaw_rad, altitude_m) of the
-    returned frame, ``time_s``, ``step``, ``prior``, ``shadow_fraction``, ``sun_azimuth_deg``,
+    ground (``env.orthomap``) while the map shows epoch A (``env.database``). ``info`` is the simulator's
+    ground truth, for scoring, reports and oracles; agents must not read it: ``true_pose`` (x_m, y_m, yaw_rad,
+    altitude_m) of the returned frame, ``time_s``, ``step``, ``prior``, ``shadow_fraction``, ``sun_azimuth_deg``,
     ``sun_elevation_deg``, ``shadow_strength``; after a step ``position_error_m`` and ``estimate_xy_m`` of the
     scored action; with ``observation.info_shadow_mask`` the frame's ground-truth ``shadow_mask`` (H, W) bool.
 
