@@ -145,7 +145,7 @@ def test_tilt_moves_the_principal_point_by_h_tan_angle(roll, pitch):
     tilt = tilt_homography(CAM, roll, pitch)
     view = r._view.maps(r.camera_to_map(NADIR), H, CAM, tilt)
     cu, cv = CAM.center_px
-    x, y = view.x[int(cv), int(cu)], view.y[int(cv), int(cu)]   # pixel (299, 199): half a pixel from centre
+    x, y = view.xy[int(cv), int(cu)]   # pixel (299, 199): half a pixel from centre
     east = (x + 0.5) * GSD - NADIR.x_m + 0.5 * GSD
     north = SIZE_PX * GSD - (y + 0.5) * GSD - NADIR.y_m - 0.5 * GSD
     assert east == pytest.approx(H * math.tan(roll), abs=0.02)

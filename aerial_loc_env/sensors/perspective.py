@@ -12,14 +12,16 @@ intersection from above, the largest ``z`` with ``h(m(z)) >= z``.
 
 1. March: for ``N`` heights ``z_i`` from the footprint's tallest point down, the points ``m(z_i)`` of all rays
    form the (nadir) camera grid scaled by ``1 - z_i / H`` about the principal point, so each step is one small
-   ``warpAffine`` of the height model sampled on a half-resolution camera grid, thresholded at ``z_i`` and
-   max-combined: the first hit from the top, to within one step (dilated by a pixel so that no roof edge is
-   lost to the half resolution; the next step verifies).
-2. Refine at full resolution on the map's own height model: ``z1 = h(m(z_hit))`` is the exact height of the
-   surface the ray entered (a flat roof: its height, the ground: 0). Where the next fixed-point step
-   ``h(m(z_k))`` agrees with ``z_k`` (two steps are allowed) the ray sees that surface at ``m(z_k)``; where the
-   steps keep jumping between the street and the roof the ray entered through a wall: a facade pixel, coloured
-   from the building where the ray meets the ground (inside its footprint) and darkened by ``facade_gain``.
+   ``warpAffine`` of the height model's 2 x 2 block maximum sampled on a half-resolution camera grid,
+   thresholded at ``z_i`` and max-combined: the highest ``z_i`` at which the ray is at or below the surface,
+   i.e. the first hit from the top to within one step (dilated by a pixel so that no roof edge is lost to
+   the half resolution; the next step verifies).
+2. Refine at full resolution on the map's own height model with fixed-point steps ``z_{k+1} = h(m(z_k))``:
+   ``z1 = h(m(z0))`` is the height of the surface the ray is in; where the next step leaves it unchanged the ray
+   sees that surface at ``m(z1)`` (flat roofs and open ground: most pixels). The rest (walls, roof edges, trees,
+   low objects such as cars) get one more step on that subset; where ``z`` keeps jumping between the street and
+   the roof the ray entered through a wall: a facade pixel, coloured from the building where the ray meets the
+   ground (inside its footprint) and darkened by ``facade_gain``.
 
 The result is a pair of per-pixel map coordinates for one ``cv2.remap`` of the map (and of the cast-shadow
 field, which lives in map coordinates on the ground and roofs, so shadows stay on the surfaces they fall on).
@@ -27,7 +29,7 @@ Heights are clipped below ``0.95 H`` (a camera below the roofs has no downward v
 march step (about ``H_max / N`` of height, ``r H_max / (N H)`` on the ground) may be missed at the frame edge.
 
 Gimbal attitude errors (roll, pitch) rotate the camera about its centre: an image homography ``K R K^-1``
-independent of the scene, composed into the same maps (or, for flat ground, into one ``warpPerspective``).
+independent of the scene, composed into the same maps (flat ground: the homography's maps).
 """
 
 from __future__ import annotations
@@ -43,6 +45,8 @@ from .camera import CameraModel, apply_affine
 
 _NEAREST = cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP
 _MAX_HEIGHT_FRACTION = 0.95
+_MARCH_FACTOR = 2      # the march runs on a half-resolution camera grid over the 2 x 2 block maximum of the heights
+_REMAP_MAX_PX = 32767  # cv2.remap's limit on the source's sides
 _SURFACE_TOL_M = 0.3    # h(m(z1)) within this of z1: the ray sees the surface (ridged roofs vary by less per px)
 
 
@@ -54,7 +58,7 @@ class PerspectiveConfig:
     """
 
     enabled: bool = False
-    march_steps: int = field(default=12, metadata=rng(2, 64, doc="heights probed per ray (first-hit search)"))
+    march_steps: int = field(default=10, metadata=rng(2, 64, doc="heights probed per ray (first-hit search)"))
     facade_gain: float = field(default=0.55, metadata=rng(0.0, 1.0, lo_open=True,
                                                            doc="facade brightness relative to its roof"))
 
@@ -87,38 +91,43 @@ def tilted_corners(camera: CameraModel, tilt: np.ndarray | None) -> np.ndarray:
 
 @dataclass(frozen=True, eq=False)
 class ViewMaps:
-    """Per-pixel level-0 map coordinates of one frame (``x``, ``y`` float32 (h, w)) and its facade pixels
-    (bool (h, w), or None when there are none)."""
+    """Where each pixel of one frame looks on the map.
 
-    x: np.ndarray
-    y: np.ndarray
+    ``ray`` (h, w, 2) float32: the pixel's nadir-camera offset from the principal point scaled by ``1 - z / H``
+    (``z`` the height of the point it sees), so that its level-0 map pixel is ``xy = to_map @ (ray, 1)``; ``xy``
+    (h, w, 2) float32 that product; ``facade``: flat indices of facade pixels, or None.
+    """
+
+    xy: np.ndarray
+    ray: np.ndarray
+    to_map: np.ndarray
     facade: np.ndarray | None
     bbox: tuple[float, float, float, float]   # (x0, y0, x1, y1) level-0 map pixels holding every sample
 
     def sample(self, image: np.ndarray, level: int = 0, *, border: int = cv2.BORDER_CONSTANT,
                scale: float = 1.0, offset: float = 0.0) -> np.ndarray:
         """``image`` sampled (bilinear) at the maps: pyramid level ``level`` (``u_L = u_0 / 2**L``), or any grid
-        with ``u_g = u_0 * scale + offset`` (e.g. a coarse shadow field). Only the window under the footprint
-        is handed to ``cv2.remap`` (its sources must stay below 32767 px a side)."""
+        with ``u_g = u_0 * scale + offset`` (e.g. a coarse shadow field). Sources beyond remap's 32767 px limit
+        are cut to the window under the footprint (a view)."""
         f = scale / (1 << level)
-        return remap_window(image, self.x, self.y, self.bbox, f, offset, cv2.INTER_LINEAR, border)
+        h, w = image.shape[:2]
+        if f == 1.0 and offset == 0.0 and max(h, w) < _REMAP_MAX_PX:
+            return cv2.remap(image, self.xy, None, cv2.INTER_LINEAR, borderMode=border, borderValue=0)
+        c0, r0, c1, r1 = _window(self.bbox, f, offset, w, h)
+        if c1 <= c0 or r1 <= r0:
+            return np.zeros(self.xy.shape[:2] + image.shape[2:], image.dtype)
+        m = self.to_map * f
+        m[:, 2] += (offset - c0, offset - r0)
+        return cv2.remap(image[r0:r1, c0:c1], cv2.transform(self.ray, m), None, cv2.INTER_LINEAR,
+                         borderMode=border, borderValue=0)
 
 
-def remap_window(image: np.ndarray, x: np.ndarray, y: np.ndarray, bbox: tuple[float, float, float, float],
-                 scale: float, offset: float, interpolation: int, border: int) -> np.ndarray:
-    """``image`` at ``(x, y) * scale + offset``, remapped from the window of ``image`` under ``bbox`` (level-0
-    map pixels, before the scaling): a view, so large maps cost nothing and stay within remap's limits."""
-    h, w = image.shape[:2]
-    c0 = max(0, int(math.floor(bbox[0] * scale + offset)) - 2)
-    r0 = max(0, int(math.floor(bbox[1] * scale + offset)) - 2)
-    c1 = min(w, int(math.ceil(bbox[2] * scale + offset)) + 3)
-    r1 = min(h, int(math.ceil(bbox[3] * scale + offset)) + 3)
-    if c1 <= c0 or r1 <= r0:
-        return np.zeros(x.shape + image.shape[2:], image.dtype)
-    if scale != 1.0 or offset != 0.0 or c0 or r0:
-        x = x * np.float32(scale) + np.float32(offset - c0)
-        y = y * np.float32(scale) + np.float32(offset - r0)
-    return cv2.remap(image[r0:r1, c0:c1], x, y, interpolation, borderMode=border, borderValue=0)
+def _window(bbox: tuple[float, float, float, float], scale: float, offset: float, w: int,
+            h: int) -> tuple[int, int, int, int]:
+    """The pixel window (c0, r0, c1, r1) of a grid ``u_g = u_0 * scale + offset`` holding ``bbox`` (+2 px)."""
+    lo = [int(math.floor(b * scale + offset)) - 2 for b in bbox[:2]]
+    hi = [int(math.ceil(b * scale + offset)) + 3 for b in bbox[2:]]
+    return max(0, lo[0]), max(0, lo[1]), min(w, hi[0]), min(h, hi[1])
 
 
 class ReliefView:
@@ -132,13 +141,25 @@ class ReliefView:
         self.dsm = None if dsm_m is None else np.ascontiguousarray(dsm_m, dtype=np.float32)
         self.config = config or PerspectiveConfig(enabled=True)
         self._grids: dict[tuple[int, int], np.ndarray] = {}
+        self._pooled: np.ndarray | None = None
 
-    def _grid(self, w: int, h: int) -> np.ndarray:
-        key = (w, h)
+    def _centred_grid(self, camera: CameraModel) -> np.ndarray:
+        """(h, w, 2) float32 pixel offsets from the principal point."""
+        key = (camera.width_px, camera.height_px)
         if key not in self._grids:
-            u, v = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
+            cu, cv = camera.center_px
+            u, v = np.meshgrid(np.arange(key[0], dtype=np.float32) - np.float32(cu),
+                               np.arange(key[1], dtype=np.float32) - np.float32(cv))
             self._grids[key] = np.dstack([u, v])
         return self._grids[key]
+
+    def _march_heights(self) -> np.ndarray:
+        """The height model's block maximum over ``_MARCH_FACTOR`` px (once): the coarse march misses nothing."""
+        if self._pooled is None:
+            from ..world.shadows import max_pool  # layer 1
+
+            self._pooled = max_pool(self.dsm, _MARCH_FACTOR)
+        return self._pooled
 
     def maps(self, affine: np.ndarray, altitude_m: float, camera: CameraModel,
              tilt: np.ndarray | None = None) -> ViewMaps | None:
@@ -147,25 +168,35 @@ class ReliefView:
         untilted (the affine warp is exact then)."""
         w, h = camera.width_px, camera.height_px
         a = np.asarray(affine, dtype=np.float64)
+        cu, cv = camera.center_px
+        to_map = a.copy()
+        to_map[:, 2] = a[:, :2] @ np.array([cu, cv]) + a[:, 2]       # (offset from principal point, 1) -> map
+        corners = apply_affine(a, tilted_corners(camera, tilt))
+        bbox = (*corners.min(axis=0), *corners.max(axis=0))
+        rays = self._centred_grid(camera)
+        if tilt is not None:
+            rays = cv2.perspectiveTransform(rays.reshape(1, -1, 2) + np.float32([cu, cv]), tilt).reshape(h, w, 2)
+            rays -= np.float32([cu, cv])
         if self.dsm is None:
-            return None if tilt is None else self._flat(a, camera, tilt)
+            return None if tilt is None else ViewMaps(cv2.transform(rays, to_map), rays, to_map, None, bbox)
         big_h = float(altitude_m)
         margin = 0
         if tilt is not None:
-            shift = np.abs(tilted_corners(camera, tilt) - camera.corners_px()).max()
-            margin = int(math.ceil(shift)) + 2
-        # the nadir camera grid (with a margin for tilted rays) at half resolution: q_full = 2 q_half + 0.5 - m
-        wh, hh = (w + 2 * margin + 1) // 2, (h + 2 * margin + 1) // 2
-        half = a.copy()
-        half[:, :2] = a[:, :2] * 2.0
-        half[:, 2] = a[:, 2] + (0.5 - margin) * (a[:, 0] + a[:, 1])
-        heights = cv2.warpAffine(self.dsm, half, (wh, hh), flags=_NEAREST, borderMode=cv2.BORDER_CONSTANT)
+            margin = int(math.ceil(np.abs(tilted_corners(camera, tilt) - camera.corners_px()).max())) + 2
+        # coarse grid (1 px = F camera px, with a margin for tilted rays): q = F q_c + (F - 1) / 2 - margin, on
+        # the F x F block maximum of the heights (map px u -> pooled px (u + 0.5) / F - 0.5)
+        f = _MARCH_FACTOR
+        wc, hc = -(-(w + 2 * margin) // f), -(-(h + 2 * margin) // f)
+        grid_to_cam = np.array([[f, 0.0, (f - 1) / 2.0 - margin], [0.0, f, (f - 1) / 2.0 - margin], [0, 0, 1]])
+        map_to_pool = np.array([[1.0 / f, 0.0, 0.5 / f - 0.5], [0.0, 1.0 / f, 0.5 / f - 0.5], [0, 0, 1]])
+        coarse = (map_to_pool @ np.vstack([a, [0.0, 0.0, 1.0]]) @ grid_to_cam)[:2]
+        heights = cv2.warpAffine(self._march_heights(), coarse, (wc, hc), flags=_NEAREST,
+                                 borderMode=cv2.BORDER_CONSTANT)
         z_raw = float(cv2.minMaxLoc(heights)[1])
         z_top = min(z_raw, _MAX_HEIGHT_FRACTION * big_h)
         if z_top <= 0.0:
-            return None if tilt is None else self._flat(a, camera, tilt)
-        cu, cv = camera.center_px
-        chu, chv = (cu + margin - 0.5) / 2.0, (cv + margin - 0.5) / 2.0
+            return None if tilt is None else ViewMaps(cv2.transform(rays, to_map), rays, to_map, None, bbox)
+        chu, chv = (cu + margin - (f - 1) / 2.0) / f, (cv + margin - (f - 1) / 2.0) / f
         z_hit = np.zeros_like(heights)
         probe = np.empty_like(heights)
         steps = self.config.march_steps
@@ -173,89 +204,82 @@ class ReliefView:
             z = z_top * (steps - i) / steps
             s = 1.0 - z / big_h
             m = np.float64([[s, 0.0, chu * (1.0 - s)], [0.0, s, chv * (1.0 - s)]])
-            cv2.warpAffine(heights, m, (wh, hh), dst=probe, flags=_NEAREST, borderMode=cv2.BORDER_REPLICATE)
-            cv2.threshold(probe, z - 1e-4, z, cv2.THRESH_BINARY, dst=probe)
+            cv2.warpAffine(heights, m, (wc, hc), dst=probe, flags=_NEAREST, borderMode=cv2.BORDER_REPLICATE)
+            cv2.threshold(probe, z - 1e-4, z, cv2.THRESH_BINARY, dst=probe)   # hit: the ray is at/below the surface
             cv2.max(z_hit, probe, dst=z_hit)
         z_hit = cv2.dilate(z_hit, np.ones((3, 3), np.uint8))
-        # full resolution: nadir pixel of every camera pixel, its ray's ground point g0 and direction to nadir
-        grid = self._grid(w, h)
-        if tilt is None:
-            nadir = grid
-            z0 = cv2.resize(z_hit, (w, h), interpolation=cv2.INTER_NEAREST) if margin == 0 else None
-        else:
-            nadir = cv2.perspectiveTransform(grid.reshape(1, -1, 2), tilt).reshape(h, w, 2)
-            z0 = None
-        if z0 is None:   # nadir pixel -> half-grid pixel: (q + m - 0.5) / 2
-            z0 = cv2.remap(z_hit, (nadir + np.float32(margin - 0.5)) * np.float32(0.5), None, cv2.INTER_NEAREST,
+        if tilt is None and margin == 0 and (wc * f, hc * f) == (w, h):
+            z0 = cv2.resize(z_hit, (w, h), interpolation=cv2.INTER_NEAREST)
+        else:   # camera pixel -> coarse pixel (q + margin - (F - 1) / 2) / F
+            shift = np.float32([cu + margin - (f - 1) / 2.0, cv + margin - (f - 1) / 2.0])
+            z0 = cv2.remap(z_hit, (rays + shift) * np.float32(1.0 / f), None, cv2.INTER_NEAREST,
                            borderMode=cv2.BORDER_REPLICATE)
-        c_map = a[:, :2] @ np.array([cu, cv]) + a[:, 2]
-        if tilt is None:   # separable: a row plus a column
-            u, v = grid[0, :, 0] - np.float32(cu), grid[:, 0, 1] - np.float32(cv)
-            dx = (np.float32(a[0, 0]) * u)[None, :] + (np.float32(a[0, 1]) * v)[:, None]
-            dy = (np.float32(a[1, 0]) * u)[None, :] + (np.float32(a[1, 1]) * v)[:, None]
-        else:
-            nu, nv = nadir[..., 0] - np.float32(cu), nadir[..., 1] - np.float32(cv)
-            dx = nu * np.float32(a[0, 0]) + nv * np.float32(a[0, 1])
-            dy = nu * np.float32(a[1, 0]) + nv * np.float32(a[1, 1])
-        # the ray of a pixel: m(z) = c + (g0 - c) (1 - z / H) = g0 + k z, with g0 - c = (dx, dy), k = -(dx, dy) / H
-        gx, gy = dx + np.float32(c_map[0]), dy + np.float32(c_map[1])
-        kx, ky = dx * np.float32(-1.0 / big_h), dy * np.float32(-1.0 / big_h)
-        cap = _MAX_HEIGHT_FRACTION * big_h if z_raw > _MAX_HEIGHT_FRACTION * big_h else None
+        cap = np.float32(_MAX_HEIGHT_FRACTION * big_h) if z_raw > _MAX_HEIGHT_FRACTION * big_h else None
 
-        def along(z: np.ndarray, sel: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-            if sel is None:
-                return gx + kx * z, gy + ky * z
-            return gx.ravel()[sel] + kx.ravel()[sel] * z, gy.ravel()[sel] + ky.ravel()[sel] * z
+        def height(x: np.ndarray, y: np.ndarray | None = None) -> np.ndarray:
+            if max(self.dsm.shape) < _REMAP_MAX_PX:
+                hz = cv2.remap(self.dsm, x, y, cv2.INTER_NEAREST)
+            else:
+                c0, r0, c1, r1 = _window(bbox, 1.0, 0.0, self.dsm.shape[1], self.dsm.shape[0])
+                if y is None:
+                    x, y = x[..., 0], x[..., 1]
+                hz = cv2.remap(self.dsm[r0:r1, c0:c1], x - np.float32(c0), y - np.float32(r0), cv2.INTER_NEAREST,
+                               borderMode=cv2.BORDER_REPLICATE)
+            return hz if cap is None else np.minimum(hz, cap, out=hz)
 
-        corners = apply_affine(a, tilted_corners(camera, tilt))
-        bbox = (*corners.min(axis=0), *corners.max(axis=0))
+        # Fixed-point steps z_{k+1} = h(m(z_k)) from the march's z0 (just below the first hit): z1 is the height
+        # of the surface the ray is in there; where the next step leaves it unchanged the ray sees that surface
+        # (a flat roof, the ground: most pixels). The others (walls, roof edges, trees, low objects) get one
+        # more step on their own; where z keeps jumping between the street and the roof the ray crosses a wall.
+        def along(z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            scale = cv2.addWeighted(z, -1.0 / big_h, z, 0.0, 1.0)            # 1 - z / H
+            ray = cv2.multiply(rays, cv2.merge([scale, scale]))      # (numpy is slow on a trailing axis of 2)
+            return ray, cv2.transform(ray, to_map)
 
-        def height(mx: np.ndarray, my: np.ndarray) -> np.ndarray:
-            hz = remap_window(self.dsm, mx, my, bbox, 1.0, 0.0, cv2.INTER_NEAREST, cv2.BORDER_REPLICATE)
-            return hz if cap is None else np.minimum(hz, np.float32(cap), out=hz)
+        z1 = height(along(z0)[1])
+        ray, xy = along(z1)
+        z2 = height(xy)
+        sel = np.flatnonzero(z2 != z1)
+        if sel.size == 0:
+            return ViewMaps(xy, ray, to_map, None, bbox)
+        m = to_map.astype(np.float32)
+        rs = rays.reshape(-1, 2)[sel]
+        ru, rv = rs[:, 0].copy(), rs[:, 1].copy()
+        du, dv = m[0, 0] * ru + m[0, 1] * rv, m[1, 0] * ru + m[1, 1] * rv     # ground point - nadir, map px
 
-        # fixed-point steps z_{k+1} = h(m(z_k)) from the march's z0: where two agree (within the tolerance) the
-        # ray sees that surface; where they keep moving it crosses a wall, coloured from a sample inside it
-        tol = _SURFACE_TOL_M
-        z1 = height(*along(z0))
-        mx, my = along(z1)
-        z2 = height(mx, my)
-        moving = cv2.absdiff(z2, z1) > tol
-        if not moving.any():
-            return ViewMaps(x=mx, y=my, facade=None, bbox=bbox)
-        sel = np.flatnonzero(moving)
-        z2s = z2.ravel()[sel]
-        z3s = height(*(_rows(c) for c in along(z2s, sel))).ravel()[:sel.size]
-        seen = np.abs(z3s - z2s) <= tol
-        xs, ys = along(z2s, sel)
-        mx.ravel()[sel[seen]], my.ravel()[sel[seen]] = xs[seen], ys[seen]
-        if seen.all():
-            return ViewMaps(x=mx, y=my, facade=None, bbox=bbox)
-        # a wall: the ray entered the building through it and runs inside down to the ground (unless the building
-        # is thinner than its horizontal travel). The facade takes the colour of the building where the ray meets
-        # the ground, one pixel further from the wall so that bilinear sampling does not mix in the street.
-        wall = sel[~seen]
-        dxw, dyw = dx.ravel()[wall], dy.ravel()[wall]
-        push = 1.0 / np.maximum(np.hypot(dxw, dyw), np.float32(1e-3))
-        mx.ravel()[wall] = gx.ravel()[wall] + dxw * push
-        my.ravel()[wall] = gy.ravel()[wall] + dyw * push
-        facade = np.zeros(moving.shape, bool)
-        facade.ravel()[wall] = True
-        return ViewMaps(x=mx, y=my, facade=facade, bbox=bbox)
+        def on_map(k: np.ndarray) -> tuple[np.ndarray, np.ndarray]:   # map pixel of the subset's rays scaled by k
+            return du * k + m[0, 2], dv * k + m[1, 2]
 
-    def _flat(self, a: np.ndarray, camera: CameraModel, tilt: np.ndarray) -> ViewMaps:
-        """Flat ground seen by a tilted camera: map pixel = affine(tilt(q)), a homography."""
-        grid = self._grid(camera.width_px, camera.height_px)
-        hom = np.vstack([a, [0.0, 0.0, 1.0]]) @ tilt
-        x, y = cv2.split(cv2.perspectiveTransform(grid.reshape(1, -1, 2), hom).reshape(grid.shape))
-        corners = apply_affine(a, tilted_corners(camera, tilt))
-        return ViewMaps(x=x, y=y, facade=None, bbox=(*corners.min(axis=0), *corners.max(axis=0)))
+        def height_subset(z: np.ndarray) -> np.ndarray:
+            x, y = on_map(1.0 - z / np.float32(big_h))
+            return height(_rows(x), _rows(y)).ravel()[:sel.size]
+
+        tol = np.float32(_SURFACE_TOL_M)
+        z1s, z2s = z1.ravel()[sel], z2.ravel()[sel]
+        seen1 = np.abs(z2s - z1s) <= tol
+        z3s = height_subset(z2s)
+        seen2 = ~seen1 & (np.abs(z3s - z2s) <= tol)
+        scale_s = 1.0 - np.where(seen1, z1s, z2s) / np.float32(big_h)
+        wall = ~(seen1 | seen2)
+        facade = None
+        if wall.any():
+            # the ray entered the building through a wall and runs inside down to the ground (unless the
+            # building is thinner than its horizontal travel): the facade takes the building's colour where the
+            # ray meets the ground, one map pixel further from the wall so that bilinear sampling skips the street
+            dist = np.hypot(du[wall], dv[wall])
+            scale_s[wall] = 1.0 + 1.0 / np.maximum(dist, np.float32(1e-3))
+            facade = sel[wall]
+        fx, fy = on_map(scale_s)
+        flat_xy, flat_ray = xy.reshape(-1, 2), ray.reshape(-1, 2)
+        flat_xy[sel, 0], flat_xy[sel, 1] = fx, fy
+        flat_ray[sel, 0], flat_ray[sel, 1] = ru * scale_s, rv * scale_s
+        return ViewMaps(xy, ray, to_map, facade, bbox)
 
     def shade_facades(self, image: np.ndarray, view: ViewMaps) -> np.ndarray:
         """Darken facade pixels in place (uint8 (h, w, 3)) by ``facade_gain``; returns ``image``."""
         if view.facade is not None:
-            gain = np.where(view.facade, np.float32(self.config.facade_gain), np.float32(1.0))
-            cv2.multiply(image, cv2.merge([gain, gain, gain]), dst=image, dtype=cv2.CV_8U)
+            flat = image.reshape(-1, image.shape[-1])
+            flat[view.facade] = np.rint(flat[view.facade] * np.float32(self.config.facade_gain)).astype(np.uint8)
         return image
 
 
