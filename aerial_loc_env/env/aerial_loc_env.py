@@ -171,7 +171,13 @@ class AerialLocEnv(gym.Env):
     ground truth, for scoring, reports and oracles; agents must not read it: ``true_pose`` (x_m, y_m, yaw_rad,
     altitude_m) of the returned frame, ``time_s``, ``step``, ``prior``, ``shadow_fraction``, ``sun_azimuth_deg``,
     ``sun_elevation_deg``, ``shadow_strength``; after a step ``position_error_m`` and ``estimate_xy_m`` of the
-    scored action; with ``observation.info_shadow_mask`` the frame's ground-truth ``shadow_mask`` (H, W) bool.
+    scored action; with ``observation.info_shadow_mask`` the frame's ground-truth ``shadow_mask`` (H, W) bool;
+    with ``[gimbal]`` jitter the frame's ``gimbal_roll_pitch_rad``, with auto-exposure its ``exposure_gain``.
+
+    The camera is the map re-projected by one affine warp unless ``[perspective]`` renders the height model as
+    a pinhole camera sees it (relief displacement, facades, occlusion); ``[gimbal]``, ``[altimeter]``,
+    ``[exposure]`` and ``[haze]`` add attitude jitter and a heading offset, barometric bias and drift,
+    auto-exposure and haze. All are off by default.
 
     ``render_mode="rgb_array"``: a north-up overview around the vehicle with the camera frame (and its shadows)
     in its footprint, the true track so far (green), the estimates (red), the prior (cyan) and the points an
@@ -210,9 +216,10 @@ class AerialLocEnv(gym.Env):
     ``reset(seed=...)`` draws everything from ``self.np_random``: the track (start uniformly over the flyable
     region, the part of the map whose footprint clearance ``flight.margin_m`` stays on valid data; waypoint
     legs at ``flight.speed_mps`` and ``flight.altitude_m``), the odometry noise, the sun and the shadow
-    strength, the clouds, and the renderer's noise. The prior: with ``episode.start = "tracking"`` a Gaussian
-    whose mean is drawn ``episode.prior_std_m`` (1-sigma per axis) around the true start; with ``"global"``
-    uniform over the map. Same seed, same episode, bit for bit.
+    strength, the clouds, and the renderer's noise; then the prior and, when their sections are on, the gimbal
+    jitter, the heading offset and the altimeter's bias and drift (off, they draw nothing). The prior: with
+    ``episode.start = "tracking"`` a Gaussian whose mean is drawn ``episode.prior_std_m`` (1-sigma per axis)
+    around the true start; with ``"global"`` uniform over the map. Same seed, same episode, bit for bit.
 
     ## Episode End
 
