@@ -34,7 +34,8 @@ class AcquisitionConfig:
     """How the map database was acquired (the ``[database]`` section); every default means "as the ground is".
 
     - ``gsd_m``: ground sampling distance of the acquiring sensor (metres/pixel); the image is sampled there and
-      resampled back onto the map grid (bicubic). None = the map's own.
+      resampled back onto the map grid (bicubic). None = the map's own; a value at or below the map's own
+      changes nothing (the map cannot gain detail it does not have).
     - ``blur_m``: Gaussian blur sigma on the ground (optics, motion, atmosphere), metres.
     - ``jpeg_quality``: JPEG quality of the delivered product at the sensor's resolution (0 = no JPEG).
     - ``gain_rgb``: white balance, a gain per channel; ``tone_gamma``: output = 255 (input / 255) ** tone_gamma.

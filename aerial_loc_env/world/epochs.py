@@ -32,7 +32,7 @@ from .landcover import LandCover as LC
 from .orthomap import Orthomap
 
 #: Bump whenever change_epoch's output changes for a given input and config: it is part of the cache key.
-EPOCH_VERSION = 1
+EPOCH_VERSION = 2
 
 ROOF_COLOURS = np.array([(152, 150, 146), (96, 98, 102), (168, 92, 70), (74, 104, 142), (84, 118, 92),
                          (206, 204, 198), (140, 56, 48), (120, 112, 100), (182, 170, 150)], np.float32)
@@ -71,7 +71,7 @@ class EpochConfig:
     grass_dryness: float = field(default=0.0, metadata=rng(0.0, 1.0))
     roof_change: float = field(default=0.0, metadata=rng(0.0, 1.0))
     demolished: float = field(default=0.0, metadata=rng(0.0, 0.5))
-    built: float = field(default=0.0, metadata=rng(0.0, 0.5))
+    built: float = field(default=0.0, metadata=rng(0.0, 2.0))
     construction_per_km2: float = field(default=0.0, metadata=rng(0.0, 100.0))
     marking_renewal: float = field(default=0.0, metadata=rng(0.0, 1.0))
     water_change: float = field(default=0.0, metadata=rng(0.0, 1.0))
@@ -198,8 +198,9 @@ class _Buildings:
 
 def _place(L: _Layers, rng: np.random.Generator, n: int, allowed: np.ndarray, size_m: tuple[float, float, float,
            float], margin_m: float, orient: Callable[[float, float], float], tries: int = 25):
-    """Yield (mask, slices, centre_px) of up to ``n`` rectangles (a x b metres in the given ranges, ``margin_m``
-    clear around) on pixels where ``allowed``; placed rectangles are taken out of ``allowed``."""
+    """Yield (mask, slices, (cx, cy, a, b, angle)) of up to ``n`` rectangles (pixels, radians; a x b metres
+    in the given ranges, ``margin_m`` clear around) on pixels where ``allowed``; placed rectangles are taken out
+    of ``allowed``."""
     cand = np.flatnonzero(allowed)
     if cand.size == 0:
         return
@@ -221,7 +222,7 @@ def _place(L: _Layers, rng: np.random.Generator, n: int, allowed: np.ndarray, si
             continue
         allowed[outer[1]][outer[0]] = False
         placed += 1
-        yield inner[0], inner[1], (cx, cy)
+        yield inner[0], inner[1], (cx, cy, a, b, ang)
 
 
 # ------------------------------------------------------------------------------------------- change kinds
@@ -370,16 +371,28 @@ def _built(L: _Layers, rng: np.random.Generator, rate: float, bl: _Buildings) ->
     def orient(x: float, y: float) -> float:
         return bl.frame(bl.nearest(x, y))[0] + (math.pi / 2 if rng.random() < 0.5 else 0.0)
 
-    for m, (sy, sx), (cx, cy) in list(_place(L, rng, n, allowed, (8.0, 24.0, 8.0, 16.0), 2.0, orient)):
+    for m, (sy, sx), (cx, cy, a, b, ang) in list(_place(L, rng, n, allowed, (8.0, 24.0, 8.0, 16.0), 2.0,
+                                                        orient)):
         like = bl.frame(bl.nearest(cx, cy))[1]                          # as tall as its neighbour, roughly
         h = float(np.clip(like * rng.uniform(0.7, 1.3), 3.0, 40.0))
         col = ROOF_COLOURS[rng.integers(len(ROOF_COLOURS))]
-        tex = 0.92 + 0.16 * _noise(rng, m.shape[0], m.shape[1], L.px(1.0))
-        edge = m & ~cv2.erode(m.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
-        roof = np.clip(col * tex[..., None] * np.where(edge, 1.15, 1.0)[..., None], 0, 255).astype(np.uint8)
+        gain = 0.92 + 0.16 * _noise(rng, m.shape[0], m.shape[1], L.px(1.0))
+        height = np.full(m.shape, h, np.float32)
+        if rng.random() < 0.5:                  # a gable roof: two slopes lit differently, the ridge higher
+            yy, xx = np.mgrid[sy, sx]
+            along_b = (xx - cx) * -math.sin(ang) + (yy - cy) * math.cos(ang)      # across the side a
+            if b > a:
+                along_b = (xx - cx) * math.cos(ang) + (yy - cy) * math.sin(ang)
+            half = 0.5 * min(a, b)
+            gain *= np.where(along_b > 0, 1.12, 0.86)
+            height += (0.3 * L.gsd * half * (1.0 - np.abs(along_b) / half)).clip(0.0)
+        else:                                   # a flat roof with a lighter parapet
+            edge = m & ~cv2.erode(m.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+            gain *= np.where(edge, 1.15, 1.0)
+        roof = np.clip(col * gain[..., None], 0, 255).astype(np.uint8)
         L.rgb[sy, sx][m] = roof[m]
         L.cls[sy, sx][m] = LC.BUILDING
-        L.dsm[sy, sx][m] = h
+        L.dsm[sy, sx][m] = height[m]
 
 
 def _cars_gone(L: _Layers, rng: np.random.Generator, rate: float) -> None:
