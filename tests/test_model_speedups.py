@@ -18,8 +18,9 @@ from aerial_loc_env.estimators.mcl.dense import (
     mutual_information,
     mutual_information_reference,
 )
-from aerial_loc_env.estimators.mcl.intensity_pairs import xnor_similarity
+from aerial_loc_env.estimators.mcl.intensity_pairs import IntensityPairsConfig, IntensityPairsModel, xnor_similarity
 from aerial_loc_env.estimators.patches import PatchGeometry, PatchSampler
+from aerial_loc_env.estimators.shadow_detection import restoration_lut, restoration_lut_reference
 
 
 def _states(m, n: int = 150, seed: int = 4) -> np.ndarray:
@@ -172,3 +173,37 @@ def test_abbrief_packed_popcount_is_bit_identical_to_the_bool_descriptor(channel
     ref = model.similarity_reference(prep, states, ALT_M)
     np.testing.assert_array_equal(xi, ref)                 # exact integer counts over the same bits
     assert np.any(xi == 0.5) and xi[0] > 0.8 and int(np.argmax(xi)) == 0
+
+
+# ---------------------------------------------------------------------- shadow restoration, database words
+@pytest.mark.parametrize("method", ["gain", "equalize"])
+def test_restoration_lut_is_bit_identical_to_the_reference(method):
+    """Exact integer sums and counts (8-bit values, fewer than 2^24 / 255 pixels) divided as NumPy divides."""
+    g = np.random.default_rng(8)
+    for trial in range(200):
+        h, w = g.integers(3, 110, 2)
+        img = g.integers(0, 256, (h, w, 3)).astype(np.uint8)
+        if trial % 2:
+            img //= np.uint8(g.integers(2, 40))            # dark, narrow histograms
+        mask = g.random((h, w)) < g.random()
+        np.testing.assert_array_equal(restoration_lut(img, mask, method), restoration_lut_reference(img, mask, method))
+
+
+def test_database_words_are_converted_once_per_map_and_read_only():
+    m = textured_map(120, seed=9)
+    a, b = IntensityPairsModel(IntensityPairsConfig(channels=1)), IntensityPairsModel(IntensityPairsConfig())
+    briefing = briefing_standin(m)
+    a.reset(briefing, np.random.default_rng(0))
+    a2 = IntensityPairsModel(IntensityPairsConfig(channels=1))
+    a2.reset(briefing, np.random.default_rng(0))
+    b.reset(briefing, np.random.default_rng(0))
+    assert a2._db is a._db and b._db is not a._db and not a._db.flags.writeable
+    np.testing.assert_array_equal(a._db, cv2.cvtColor(m.rgb, cv2.COLOR_RGB2GRAY).ravel())
+    np.testing.assert_array_equal(b._db.view(np.uint8).reshape(-1, 4)[:, :3], m.rgb.reshape(-1, 3))
+    # another map layer (or the same pixels with no-data added) is converted anew
+    other = textured_map(120, seed=9)
+    other.nodata = np.zeros((120, 120), bool)
+    other.nodata[:10] = True
+    c = IntensityPairsModel(IntensityPairsConfig(channels=1))
+    c.reset(briefing_standin(other), np.random.default_rng(0))
+    assert c._db is not a._db and c._nodata is not None and c._nodata[:1200].all() and not c._nodata[1200:].any()

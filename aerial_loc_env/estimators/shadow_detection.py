@@ -165,7 +165,32 @@ def restoration_lut(small_rgb: np.ndarray, mask: np.ndarray, method: str) -> np.
     lut = np.tile(np.arange(256, dtype=np.float32), (3, 1))
     if not mask.any() or mask.all():
         return lut
-    shadow = small_rgb[mask].astype(np.float32)          # (n, 3)
+    if method == "equalize":   # all three channel histograms of the shadow pixels in one bincount
+        shadow8 = small_rgb.reshape(-1, 3)[mask.reshape(-1)].astype(np.intp)
+        shadow8 += np.arange(0, 768, 256)
+        hist = np.bincount(shadow8.ravel(), minlength=768).reshape(3, 256).astype(np.float64)
+        cdf = np.cumsum(hist, axis=1) / hist.sum(axis=1, keepdims=True)   # exact counts: the same floats
+        return np.round(255.0 * cdf).astype(np.float32)
+    if small_rgb.shape[0] * small_rgb.shape[1] * 255 < 2 ** 24:
+        lit_mean, shadow_mean = _masked_channel_means(small_rgb, mask)
+        for ch in range(3):
+            gain = float(lit_mean[ch]) / max(float(shadow_mean[ch]), 1.0)
+            lut[ch] = np.clip(lut[ch] * gain, 0.0, 255.0)
+        return lut
+    shadow = small_rgb[mask].astype(np.float32)          # (n, 3); large images: NumPy's float32 means
+    lit = small_rgb[~mask].astype(np.float32)
+    for ch in range(3):
+        gain = float(lit[:, ch].mean()) / max(float(shadow[:, ch].mean()), 1.0)
+        lut[ch] = np.clip(lut[ch] * gain, 0.0, 255.0)
+    return lut
+
+
+def restoration_lut_reference(small_rgb: np.ndarray, mask: np.ndarray, method: str) -> np.ndarray:
+    """``restoration_lut`` the direct way (masked copies, one channel at a time): the tests' reference."""
+    lut = np.tile(np.arange(256, dtype=np.float32), (3, 1))
+    if not mask.any() or mask.all():
+        return lut
+    shadow = small_rgb[mask].astype(np.float32)
     lit = small_rgb[~mask].astype(np.float32)
     for ch in range(3):
         if method == "equalize":
@@ -176,6 +201,28 @@ def restoration_lut(small_rgb: np.ndarray, mask: np.ndarray, method: str) -> np.
             gain = float(lit[:, ch].mean()) / max(float(shadow[:, ch].mean()), 1.0)
             lut[ch] = np.clip(lut[ch] * gain, 0.0, 255.0)
     return lut
+
+
+def _masked_channel_means(small_rgb: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-channel float32 means outside and inside ``mask``, the same floats as
+    ``small_rgb[~mask].astype(np.float32).mean(axis=0)`` (and ``[mask]``) without the two masked copies: the
+    sums of 8-bit values below 2^24 are exact integers in any order (float64 products here, float32 pairwise
+    sums in NumPy), then divided as NumPy's mean divides (a float32 sum by the count)."""
+    flat = small_rgb.reshape(-1, 3).astype(np.float64)
+    inside = mask.reshape(-1)
+    n_in = int(np.count_nonzero(inside))
+    s_in = inside.astype(np.float64) @ flat
+    s_out = flat.sum(axis=0) - s_in
+    return _f32_mean(s_out, inside.size - n_in), _f32_mean(s_in, n_in)
+
+
+def _f32_mean(exact_sums: np.ndarray, count: int) -> np.ndarray:
+    """NumPy's float32 mean from an exact float32 sum: ``ret.dtype.type(ret / count)`` as ``_methods._mean``."""
+    out = np.empty(len(exact_sums), np.float32)
+    for i, s in enumerate(exact_sums):
+        ret = np.float32(s)
+        out[i] = ret.dtype.type(ret / count)
+    return out
 
 
 def restore(image: np.ndarray, mask: ShadowMask, method: str, small: np.ndarray | None = None) -> np.ndarray:

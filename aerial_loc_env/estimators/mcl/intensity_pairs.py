@@ -80,6 +80,7 @@ Points that fall outside the database or on no-data count as half an agreement (
 from __future__ import annotations
 
 import math
+import weakref
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
@@ -206,6 +207,46 @@ def _count_channels(agree: np.ndarray) -> np.ndarray:
     return agree.sum(axis=2, dtype=np.float32)
 
 
+#: id(rgb layer) -> (weak reference to it, the no-data layer it was read with, {channels: (words, nodata)})
+_DATABASE_CACHE: dict[int, tuple[weakref.ref, Any, dict[int, tuple[np.ndarray, np.ndarray | None]]]] = {}
+
+
+def _database_words(rgb: np.ndarray, nodata: np.ndarray | None,
+                    channels: int) -> tuple[np.ndarray, np.ndarray | None]:
+    """The database as one gatherable word per pixel (RGB packed in a uint32, read back as 4 bytes, so one 1-D
+    gather fetches all channels; or the luma byte for c = 1) and the flat no-data mask (None when there is
+    none), read-only. Computed once per map layer and shared by every model on it: the 12 agents of a Table 5
+    episode would otherwise convert the same map 12 times (38 ms each on the paper's map)."""
+    key = id(rgb)
+    entry = _DATABASE_CACHE.get(key)
+    if entry is None or entry[0]() is not rgb or entry[1] is not nodata:
+        for k in [k for k, (ref, _, _) in _DATABASE_CACHE.items() if ref() is None]:
+            del _DATABASE_CACHE[k]               # layers that are gone
+        try:
+            ref = weakref.ref(rgb)
+        except TypeError:                        # not weak-referenceable: no caching
+            return _convert_database(rgb, nodata, channels)
+        entry = _DATABASE_CACHE[key] = (ref, nodata, {})
+    if channels not in entry[2]:
+        entry[2][channels] = _convert_database(rgb, nodata, channels)
+    return entry[2][channels]
+
+
+def _convert_database(rgb: np.ndarray, nodata: np.ndarray | None,
+                      channels: int) -> tuple[np.ndarray, np.ndarray | None]:
+    arr = np.ascontiguousarray(rgb)
+    if channels == 1:
+        words = cv2.cvtColor(arr, cv2.COLOR_RGB2GRAY).reshape(-1)
+    else:
+        words = cv2.cvtColor(arr, cv2.COLOR_RGB2RGBA).reshape(-1).view(np.uint32)
+    flat_nodata = None if nodata is None or not np.any(nodata) else \
+        np.array(nodata, dtype=bool).reshape(-1)
+    for a in (words, flat_nodata):
+        if a is not None:
+            a.flags.writeable = False
+    return words, flat_nodata
+
+
 @dataclass(frozen=True)
 class PreparedPairs:
     """What one frame leaves for all particles."""
@@ -262,13 +303,7 @@ class IntensityPairsModel(MeasurementModel):
         if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
             raise ConfigError(f"{m.name}: the database must be (H, W, 3) uint8 RGB, got {rgb.shape} {rgb.dtype}")
         self._H, self._W = rgb.shape[:2]
-        if self.config.channels == 1:
-            self._db = cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2GRAY).reshape(-1)
-        else:
-            rgba = cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2RGBA)
-            self._db = rgba.reshape(-1).view(np.uint32)
-        self._nodata = None if m.nodata is None or not np.any(m.nodata) else \
-            np.asarray(m.nodata, dtype=bool).reshape(-1)
+        self._db, self._nodata = _database_words(m.rgb, m.nodata, self.config.channels)
         if self.config.detector == "map" and self.config.shadow != "ignore":
             self.map_detector.reset(briefing)
 
