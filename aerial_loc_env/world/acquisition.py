@@ -28,6 +28,9 @@ import numpy as np
 from ..config import rng
 from ..errors import ConfigError, MapError
 
+#: Bump whenever ``acquire``'s output changes for the same inputs (the benchmark's fingerprint, env/fingerprint.py).
+GENERATOR_VERSION = 1
+
 
 @dataclass(frozen=True)
 class AcquisitionConfig:

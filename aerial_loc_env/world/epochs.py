@@ -10,7 +10,8 @@ change of height is written to the DSM, so the camera's cast shadows, computed f
 Each change kind has a rate in ``EpochConfig`` (the scenario's ``[epoch]`` section); all rates 0 means the same
 epoch (``change_epoch`` returns its input). Every kind draws from its own generator spawned from
 ``(seed, config.seed)``, so turning one rate up never reshuffles another kind's changes. ``epoch_city`` caches
-epoch B of the procedural city on disk beside the city, keyed by the city's key, ``EPOCH_VERSION`` and the config.
+epoch B of the procedural city on disk beside the city, keyed by the city's key, this module's
+``GENERATOR_VERSION`` and the config.
 """
 
 from __future__ import annotations
@@ -31,8 +32,9 @@ from ..errors import ConfigError, MapError
 from .landcover import LandCover as LC
 from .orthomap import Orthomap
 
-#: Bump whenever change_epoch's output changes for a given input and config: it is part of the cache key.
-EPOCH_VERSION = 2
+#: Bump whenever change_epoch's output changes for a given input and config: it is part of the cache key and of
+#: the benchmark's scenario fingerprint (env/fingerprint.py).
+GENERATOR_VERSION = 2
 
 ROOF_COLOURS = np.array([(152, 150, 146), (96, 98, 102), (168, 92, 70), (74, 104, 142), (84, 118, 92),
                          (206, 204, 198), (140, 56, 48), (120, 112, 100), (182, 170, 150)], np.float32)
@@ -82,7 +84,7 @@ class EpochConfig:
         return all(getattr(self, f.name) == 0 for f in dataclasses.fields(self) if f.name != "seed")
 
     def cache_key(self) -> str:
-        blob = json.dumps({"epoch_version": EPOCH_VERSION, **config_to_dict(self)}, sort_keys=True)
+        blob = json.dumps({"epoch_version": GENERATOR_VERSION, **config_to_dict(self)}, sort_keys=True)
         return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
 
@@ -508,8 +510,9 @@ def change_epoch(orthomap: Orthomap, config: EpochConfig, seed: int = 0) -> Orth
         _cars_gone(L, gens["cars_gone"], cfg.car_turnover)
     if cfg.car_arrivals:
         _cars_new(L, gens["cars_new"], cfg.car_arrivals)
+    source = f"{orthomap.source or orthomap.name} epoch B v{GENERATOR_VERSION} seed={cfg.seed}"
     return dataclasses.replace(orthomap, rgb=L.rgb, dsm_m=L.dsm, classes=L.cls, name=f"{orthomap.name}-epoch-b",
-                               source=f"{orthomap.source or orthomap.name} epoch B v{EPOCH_VERSION} seed={cfg.seed}")
+                               source=source)
 
 
 def epoch_cache_path(city_config, config: EpochConfig) -> Path:
@@ -520,7 +523,8 @@ def epoch_cache_path(city_config, config: EpochConfig) -> Path:
 
 def epoch_city(city_config, config: EpochConfig) -> Orthomap:
     """Epoch B of the procedural city ``city_config``, memory-mapped from the cache (built on first use)."""
-    from .city import GENERATOR_VERSION, cached_bundle, default_city
+    from .city import GENERATOR_VERSION as CITY_VERSION
+    from .city import cached_bundle, default_city
 
     if not isinstance(config, EpochConfig):
         raise ConfigError(f"epoch_city: expected an EpochConfig, got {type(config).__name__}")
@@ -530,9 +534,9 @@ def epoch_city(city_config, config: EpochConfig) -> Orthomap:
     return cached_bundle(epoch_cache_path(city_config, config),
                          lambda: change_epoch(base, config, seed=city_config.seed),
                          {"generator": "aerial_loc_env.world.epochs", "generator_version": GENERATOR_VERSION,
-                          "epoch_version": EPOCH_VERSION, "city": config_to_dict(city_config),
+                          "city_generator_version": CITY_VERSION, "city": config_to_dict(city_config),
                           "epoch": config_to_dict(config)},
                          size_px=(base.width_px, base.height_px))
 
 
-__all__ = ["EPOCH_VERSION", "EpochConfig", "change_epoch", "epoch_cache_path", "epoch_city"]
+__all__ = ["GENERATOR_VERSION", "EpochConfig", "change_epoch", "epoch_cache_path", "epoch_city"]
