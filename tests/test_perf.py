@@ -43,7 +43,7 @@ def test_ratio_is_median_over_interleaved_floor_median(monkeypatch, target, ok):
     assert r["median_s"] == pytest.approx(0.010)                 # 20 ms / 2 items
     assert r["wall_median_s"] == pytest.approx(0.020)
     assert r["floor_s"] == pytest.approx(0.002)                  # the outlier does not move the median
-    assert r["ratio"] == pytest.approx(0.010 / 0.002)
+    assert r["ratio"] == pytest.approx(0.010 / 0.002)            # median of 2.5, 5 and 7.5
     assert r["ok"] is ok
 
 
@@ -51,3 +51,18 @@ def test_without_floor_there_is_no_ratio(monkeypatch):
     monkeypatch.setattr(perf, "_timed", lambda fn: (fn(), (0.004, 0.005))[1])
     r = measure(Benchmark("b", lambda: (lambda: None), target_ratio=1.0, repeats=4))
     assert r["ratio"] is None and r["ok"] is None and r["median_s"] == pytest.approx(0.004)
+
+
+def test_ratio_pairs_each_call_with_the_floor_right_after_it(monkeypatch):
+    """Load doubles midway: calls and floors both slow down; per-call ratios stay 3, a ratio of medians would not."""
+    seq = iter([0.003, *[0.001] * 3, 0.003, *[0.001] * 3, 0.006, *[0.002] * 3, 0.006, *[0.002] * 3,
+                0.006, *[0.002] * 3])
+    monkeypatch.setattr(perf, "_timed", lambda fn: (fn(), (t := next(seq), t))[1])
+    r = measure(Benchmark("b", lambda: (lambda: None), repeats=5), lambda: None)
+    assert r["ratio"] == pytest.approx(3.0)
+    assert r["median_s"] / r["floor_s"] == pytest.approx(3.0)   # here both agree; now make the floor lag the load
+    seq = iter([0.003, *[0.001] * 3, 0.003, *[0.001] * 3, 0.006, *[0.002] * 3, 0.006, *[0.002] * 3,
+                0.006, *[0.001] * 3])
+    r = measure(Benchmark("b", lambda: (lambda: None), repeats=5), lambda: None)
+    assert r["ratio"] == pytest.approx(3.0)
+    assert r["median_s"] / r["floor_s"] == pytest.approx(6.0)

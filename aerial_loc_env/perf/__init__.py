@@ -6,13 +6,15 @@ runs them all (or those whose name contains one of the arguments) and prints a t
 Absolute milliseconds do not travel between machines (nor between a quiet and a loaded one); ratios do. Every
 benchmark is reported as a ratio to the *floor*: one bare bilinear warp of a 600 x 400 camera frame from the map
 (``FLOOR_NAME``, ``CameraRenderer.database_patch``), the least any frame costs. The floor is timed interleaved
-with each benchmark (a few floor calls after every benchmark call), so load that comes and goes during a run
-slows both alike and the ratio stays put. The first floor calls after a heavy benchmark are several times slower
-(its freed memory faults back in, caches are cold), so each batch starts with untimed warm-up calls: the floor is
-always the warm, bare warp. Times are the process's CPU time (``time.process_time``): on a shared machine a
-long call is descheduled many times while a 1 ms floor call mostly runs whole, so wall-clock ratios of long
-benchmarks grow with the load; CPU times do not (the wall-clock median is reported beside them). Targets are
-ratios (``target_ratio``).
+with each benchmark (a few floor calls after every benchmark call) and the ratio is the median over the calls of
+(the call's time / the median of the floor calls right after it), so load that comes and goes during a run slows
+both sides of each ratio alike and the ratio stays put. The first floor calls after a heavy benchmark are
+several times slower (its freed memory faults back in, caches are cold), so each batch starts with untimed warm-up
+calls: the floor is always the warm, bare warp. Times are the process's CPU time (``time.process_time``): on a
+shared machine a long call is descheduled many times while a 1 ms floor call mostly runs whole, so wall-clock
+ratios of long benchmarks grow with the load; CPU times do not (the wall-clock median is reported beside them).
+Memory-bound work still slows when other processes share the caches: take figures from a quiet machine where
+possible, and always note the load (printed at the start and end). Targets are ratios (``target_ratio``).
 """
 
 from __future__ import annotations
@@ -83,20 +85,21 @@ def _timed(fn: Callable[[], object]) -> tuple[float, float]:
 
 def measure(bench: Benchmark, floor_fn: Callable[[], object] | None = None) -> dict:
     """Median (and p95) seconds per item of ``bench``; with ``floor_fn``, the floor timed interleaved with it and
-    the ratio of the two medians (``ratio``), judged against ``bench.target_ratio`` (``ok``)."""
+    the median over the calls of (call / the floor calls right after it) (``ratio``), judged against
+    ``bench.target_ratio`` (``ok``)."""
     fn = bench.setup()
     fn()  # warm-up
-    times, floor_times = [], []
+    times, floors = [], []
     for _ in range(bench.repeats):
         times.append(_timed(fn))
         if floor_fn is not None:
             for _ in range(_FLOOR_WARMUP_CALLS):
                 floor_fn()
-            floor_times.extend(_timed(floor_fn)[0] for _ in range(_FLOOR_CALLS_PER_CALL))
+            floors.append(float(np.median([_timed(floor_fn)[0] for _ in range(_FLOOR_CALLS_PER_CALL)])))
     arr = np.asarray(times) / bench.per_call_items       # (repeats, 2): CPU, wall
     med = float(np.median(arr[:, 0]))
-    floor_s = float(np.median(floor_times)) if floor_times else None
-    ratio = med / floor_s if floor_s else None
+    floor_s = float(np.median(floors)) if floors else None
+    ratio = float(np.median(arr[:, 0] / np.maximum(floors, 1e-9))) if floors else None
     return {
         "name": bench.name,
         "median_s": med,
