@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import io
+import math
 import socket
 import threading
 import time
@@ -69,3 +70,70 @@ def test_scenario_agent_stream_lands_on_the_map():
     north = np.array([m.x for m in odo])
     dlat_m = (lat - float(np.ravel(centre[0])[0])) * 111_132.0
     assert np.allclose(north, dlat_m, atol=0.02 * max(1.0, float(np.abs(north).max())) + 1.0)
+
+
+def test_follow_renders_at_the_simulators_truth_and_localizes():
+    """A fake SITL streams SIM_STATE: on the ground at the map centre, then climbing and flying east. The
+    bridge sends the take-off pad while the camera sees nothing, then the agent's estimates from frames
+    rendered at the truth: the GPS_INPUT positions follow the true vehicle."""
+    pytest.importorskip("aerial_loc_env.estimators.registry", reason="the agents are not available")
+    from aerial_loc_env.env import world_to_action  # noqa: F401  (registers the scenarios)
+    from aerial_loc_env.mavlink.selfcheck import free_udp_port
+
+    env = gym.make("AerialLoc/Small-v0")
+    om = env.unwrapped.orthomap
+    env.close()
+    ground = 30.0
+    port = free_udp_port()
+    args = mav_cli.build_parser().parse_args([
+        "--scenario", "AerialLoc/Small-v0", "--agent", "template-ncc", "--follow", "--ground-amsl-m", str(ground),
+        "--connect", f"udpin:127.0.0.1:{port}", "--duration-s", "7", "--quiet"])
+    result = {}
+    runner = threading.Thread(target=lambda: result.setdefault("rc", mav_cli.run(args, out=io.StringIO())))
+    runner.start()
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock.bind(("127.0.0.1", 0))
+    sock.settimeout(0.01)
+    ap = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
+    parser = mavlink2.MAVLink(None)
+    beat = mavlink2.MAVLink_heartbeat_message(mavlink2.MAV_TYPE_QUADROTOR, mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA,
+                                              0, 0, mavlink2.MAV_STATE_STANDBY, 3)
+    cx, cy = om.width_m / 2, om.height_m / 2
+
+    def truth(t):       # 1 s on the ground, a 1 s jump to 100 m (a test, not a copter), then 10 m/s east
+        if t < 1.0:
+            return cx, cy, 0.0
+        return cx + 10.0 * max(0.0, t - 2.0), cy, 100.0 * min(1.0, t - 1.0)
+
+    gps = []
+    t0 = time.monotonic()
+    next_send = t0
+    while runner.is_alive() and time.monotonic() - t0 < 20:
+        now = time.monotonic()
+        if now >= next_send:
+            x, y, up = truth(now - t0)
+            lat, lon = (float(np.ravel(v)[0]) for v in om.world_to_latlon(x, y))
+            sock.sendto(beat.pack(ap) + mavlink2.MAVLink_sim_state_message(
+                1.0, 0.0, 0.0, 0.0, 0.0, 0.0, math.pi / 2, 0.0, 0.0, -9.8, 0.0, 0.0, 0.0, lat * 1e7, lon * 1e7,
+                ground + up, 0.0, 0.0, 0.0, 10.0, 0.0, round(lat * 1e7), round(lon * 1e7)).pack(ap),
+                ("127.0.0.1", port))
+            next_send += 0.05
+        try:
+            data, _ = sock.recvfrom(65536)
+        except TimeoutError:
+            continue
+        for m in parser.parse_buffer(data) or []:
+            if m.get_type() == "GPS_INPUT":
+                gps.append((time.monotonic() - t0, m))
+    runner.join(10)
+    sock.close()
+    assert result.get("rc") == 0
+    xy = [(t, *(float(np.ravel(v)[0]) for v in om.latlon_to_world(m.lat / 1e7, m.lon / 1e7)), m) for t, m in gps]
+    pad = [(x, y) for t, x, y, m in xy if t < 0.9]
+    assert pad and all(math.hypot(x - cx, y - cy) < 0.2 for x, y in pad)     # the take-off point
+    flying = [(t, x, y, m) for t, x, y, m in xy if t > 4.0]
+    assert len(flying) > 20
+    # template matching at 1 m/px work resolution: within 3 fix sigmas (3 m) plus the 0.25 s frame age at 10 m/s
+    errors = [math.hypot(x - truth(t)[0], y - truth(t)[1]) for t, x, y, _ in flying]
+    assert np.median(errors) < 9.0 + 2.5 + 1.0, errors
+    assert all(m.alt == pytest.approx(ground + 100.0, abs=4.0) for *_, m in flying)

@@ -165,13 +165,18 @@ class DemoTrack:
 
 
 class ScenarioRun:
-    """The env and an agent: reset, then step, handing each estimate to the bridge."""
+    """The env and an agent, run by the episode driver (``estimators.episode``); each estimate goes to the bridge.
+
+    With ``follow_steps`` the env is instead rendered at the simulator's true vehicle (``env.external``): the
+    camera is where the autopilot's vehicle is, the agent estimates from those frames.
+    """
 
     def __init__(self, scenario: str, agent_name: str, seed: int) -> None:
         try:
             import gymnasium as gym
 
-            from aerial_loc_env.env import world_to_action  # importing the env registers the scenarios
+            import aerial_loc_env.env  # noqa: F401  (importing the env registers the scenarios)
+            from aerial_loc_env.estimators.episode import EpisodeDriver
             from aerial_loc_env.estimators.registry import make_agent
         except ImportError as exc:
             raise AerialLocError(
@@ -182,47 +187,84 @@ class ScenarioRun:
         except gym.error.Error as exc:
             raise ConfigError(f"--scenario {scenario!r}: {exc}; list them: aerial-loc scenarios") from exc
         self.agent = make_agent(agent_name)
-        self._world_to_action = world_to_action
+        self.driver = EpisodeDriver(self.env, [self.agent])
         self.seed = seed
         self.episode = 0
-        self._obs, info = self.env.reset(seed=seed)
-        self.briefing = getattr(self.env.unwrapped, "briefing", None) or info.get("briefing")
-        if self.briefing is None:
-            raise AerialLocError("aerial-loc mavlink: the env exposes no Briefing (env.unwrapped.briefing)")
-        self.orthomap = self.briefing.orthomap
-        self.agent.reset(self.briefing, seed=seed)
-        self._info = info
-        self._done = False
+        self.follow: VehicleState | None = None
+        # estimates are in the database map's frame (what the estimator knows): lat/lon through its georeference;
+        # the truth (follow mode) is placed through the ground's own (they differ by any georeference bias)
+        self.orthomap = self.env.unwrapped.database
+        self.ground_map = self.env.unwrapped.orthomap
 
     def steps(self, loop: bool) -> Iterator[Step]:
         """Each frame, the agent estimates on it (the first and the last frame too), then the env steps on
-        that estimate (the benchmark runner's convention)."""
-        dt = float(self.briefing.dt_s)
-        uses_truth = bool(getattr(self.agent, "uses_ground_truth", False))
-        obs, info, t0_s = self._obs, self._info, 0.0
+        that estimate (the driver's time line); ``loop`` starts the next episode (seed + 1) when one ends."""
+        t0_s = 0.0
         while True:
-            est = self.agent.step(obs, info if uses_truth else None)
-            t_s = t0_s + float(info.get("time_s", 0.0))
-            truth = info.get("true_pose")
-            error_m = None if truth is None else math.hypot(est.x_m - truth[0], est.y_m - truth[1])
-            yield Step(t_s, est, float(obs["altitude"][0]), float(obs["yaw"][0]), error_m)
-            if self._done:
-                if not loop:
-                    return
-                self.episode += 1
-                t0_s = t_s + dt          # simulated time keeps running across episodes
-                obs, info = self.env.reset(seed=self.seed + self.episode)
-                # each reset builds a new briefing (track, prior)
-                self.briefing = getattr(self.env.unwrapped, "briefing", None) or self.briefing
-                self.orthomap = self.briefing.orthomap
-                self.agent.reset(self.briefing, seed=self.seed + self.episode)
-                self._done = False
+            t_s = t0_s
+            for rec in self.driver.episode(self.seed + self.episode):
+                t_s = t0_s + rec.time_s
+                yield Step(t_s, rec.estimates[0], float(rec.observation["altitude"][0]),
+                           float(rec.observation["yaw"][0]), rec.error_m(0))
+            if not loop:
+                return
+            self.episode += 1
+            t0_s = t_s + float(self.driver.briefing.dt_s)     # simulated time keeps running across episodes
+
+    def follow_steps(self, ground_amsl_m: float, *, pad_std_m: float = 0.5,
+                     min_altitude_frac: float = 0.5) -> Iterator[Step | None]:
+        """Frames at the simulator's true vehicle (``self.follow``, set by the caller from SIM_STATE).
+
+        The camera frames at the scenario's rate (stream time: the monotonic time SIM_STATE arrived) while the
+        vehicle is above ``min_altitude_frac`` of the scenario's altitude (the range its estimators are built for)
+        with the footprint on the map. Before the first frame the fix is the take-off point (a surveyed pad,
+        ``pad_std_m``), as a vehicle on the ground knows where it stands; below that height later (landing) the
+        last estimate is held as degraded; off the map it is lost. Yields None while no truth has come.
+        """
+        from aerial_loc_env.env.external import ExternalFlight, ExternalPose
+
+        flight = ExternalFlight(self.env)
+        pad: tuple[float, float] | None = None
+        started = False
+        last_frame: Step | None = None
+        min_alt = min_altitude_frac * float(self.env.unwrapped.scenario.flight.altitude_m)
+        while True:
+            v = self.follow
+            if v is None:
+                yield None
                 continue
-            action = np.clip(self._world_to_action(self.orthomap, est.x_m, est.y_m), -1.0, 1.0)
-            obs, _, terminated, truncated, info = self.env.step(action)
-            self._done = bool(terminated or truncated)
+            x, y = (float(np.ravel(c)[0]) for c in self.ground_map.latlon_to_world(v.lat_deg, v.lon_deg))
+            pose = ExternalPose(x, y, math.pi / 2 - v.heading_rad, v.alt_amsl_m - ground_amsl_m, v.received_mono_s)
+            if pad is None:
+                pad = (x, y)
+            high = pose.altitude_m >= min_alt
+            airborne = high and flight.footprint_inside(pose)
+            if not started and not airborne:
+                est = _Estimate(pad[0], pad[1], None, np.eye(2) * pad_std_m ** 2)
+                yield Step(pose.t_s, est, max(0.0, pose.altitude_m), pose.yaw_rad, math.hypot(x - pad[0], y - pad[1]))
+                continue
+            if not airborne:     # landing (hold the last estimate, degraded) or off the map (lost)
+                held = last_frame.estimate
+                est = _Estimate(held.x_m, held.y_m, None, np.asarray(held.cov_xy_m2), "lost" if high else "degraded")
+                yield Step(pose.t_s, est, max(0.0, pose.altitude_m), pose.yaw_rad, math.hypot(x - held.x_m,
+                                                                                             y - held.y_m))
+                continue
+            if not started or flight.due(pose.t_s):
+                if not started:
+                    obs, info = flight.reset(pose, seed=self.seed)
+                    self.agent.reset(flight.briefing, seed=self.seed)
+                    started = True
+                else:
+                    obs, info = flight.observe(pose)
+                est = self.agent.step(obs, info if getattr(self.agent, "uses_ground_truth", False) else None)
+                last_frame = Step(pose.t_s, est, float(obs["altitude"][0]), float(obs["yaw"][0]),
+                                  math.hypot(est.x_m - x, est.y_m - y))
+                yield last_frame
+            else:
+                yield None
 
     def close(self) -> None:
+        self.driver.close()
         self.env.close()
 
 
@@ -261,9 +303,6 @@ def run(args: argparse.Namespace, *, out=sys.stdout, should_stop: Callable[[], b
         raise ConfigError(f"--speed {args.speed}: must be >= 0 (1 = real time, 0 = as fast as possible)")
     if not args.demo and not (args.scenario and args.agent):
         raise ConfigError("aerial-loc mavlink: give --scenario and --agent (or --demo for a synthetic track)")
-    if args.follow and not args.demo:
-        raise ConfigError("--follow with a scenario is not available yet (the env driven by SITL's pose stream "
-                          "is the next step of issue 14); use --follow --demo to check a SITL loop")
     config = sender_config(args)
     if args.demo:
         source: DemoTrack | ScenarioRun = DemoTrack(args.origin, args.seed)
@@ -272,10 +311,10 @@ def run(args: argparse.Namespace, *, out=sys.stdout, should_stop: Callable[[], b
     else:
         source = ScenarioRun(args.scenario, args.agent, args.seed)
         om = source.orthomap      # lat/lon through the current episode's map (--loop may change it)
+        ground = ground_amsl_m(args.ground_amsl_m, om, args.scenario)
         bridge = EstimateBridge(lambda x, y: source.orthomap.world_to_latlon(x, y),
-                                (om.width_m / 2.0, om.height_m / 2.0),
-                                ground_amsl_m=ground_amsl_m(args.ground_amsl_m, om, args.scenario))
-        steps = source.steps(args.loop)
+                                (om.width_m / 2.0, om.height_m / 2.0), ground_amsl_m=ground)
+        steps = source.follow_steps(ground) if args.follow else source.steps(args.loop)
     sender = MavlinkSender(config, policy=FixPolicy(), origin=bridge.origin)
     tty = hasattr(out, "isatty") and out.isatty()
     t_sim, error_m = 0.0, None
@@ -285,8 +324,16 @@ def run(args: argparse.Namespace, *, out=sys.stdout, should_stop: Callable[[], b
         t0 = time.monotonic()
         last_print = -math.inf
         for step in steps:
-            t_sim, error_m = step.time_s, step.error_m
-            if args.speed > 0:   # pace simulated time against the monotonic clock (absolute, no drift)
+            if args.follow:      # the truth moves the camera; the sender keeps its own rate
+                source.follow = sender.vehicle()
+            if step is None:     # follow mode: no truth yet, or no frame due
+                time.sleep(0.005)
+                if (args.duration_s > 0 and time.monotonic() - t0 >= args.duration_s) or should_stop():
+                    break
+                continue
+            t_sim, error_m = (step.time_s - t0 if args.follow and not args.demo else step.time_s), step.error_m
+            # pace simulated time against the monotonic clock (absolute, no drift); follow runs on the truth's
+            if args.speed > 0 and not (args.follow and not args.demo):
                 delay = t0 + t_sim / args.speed - time.monotonic()
                 if delay > 0:
                     time.sleep(delay)
@@ -294,8 +341,6 @@ def run(args: argparse.Namespace, *, out=sys.stdout, should_stop: Callable[[], b
                                              yaw_fallback_rad=step.yaw_fallback_rad))
             while args.speed == 0 and sender.running and not sender.wait_taken(item.seq, 0.1):
                 pass   # as fast as possible, but every frame's fix goes out once (at --rate-hz)
-            if args.follow:
-                source.follow = sender.vehicle()
             now = time.monotonic()
             if not args.quiet and now - last_print >= 1.0:
                 print(status_line(t_sim, sender.stats(), step.error_m), end="\r" if tty else "\n", file=out,

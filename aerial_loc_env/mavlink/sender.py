@@ -369,14 +369,18 @@ class MavlinkSender:
             target, 1, mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL, 0,
             float(mavlink2.MAVLINK_MSG_ID_SIM_STATE), 1e6 / self.config.request_vehicle_hz, 0, 0, 0, 0, 0))
 
-    def _receive(self) -> None:
-        data = self.link.read()
-        if not data:
-            return
-        try:
-            received = self._parser.parse_buffer(data) or []
-        except mavlink2.MAVError:
-            return
+    def _receive(self, max_reads: int = 256) -> None:
+        """Parse everything that arrived: a UDP read returns one datagram, and SITL sends many per tick (reading
+        one per tick let a backlog build up, so the followed truth lagged further and further)."""
+        received: list = []
+        for _ in range(max_reads):
+            data = self.link.read()
+            if not data:
+                break
+            try:
+                received += self._parser.parse_buffer(data) or []
+            except mavlink2.MAVError:
+                continue
         now = time.monotonic()
         for m in received:
             name = m.get_type()
