@@ -176,3 +176,22 @@ def test_env_perspective_is_deterministic_and_changes_only_the_frames():
     assert all(np.array_equal(x, y) for x, y in zip(a, b, strict=True))
     assert all(np.array_equal(x, y) for x, y in zip(pa, pf, strict=True))   # same track: no extra draws
     assert any(not np.array_equal(x, y) for x, y in zip(a, flat, strict=True))
+
+
+def test_map_without_height_model_keeps_the_affine_warp():
+    om = box_map(30.0, 50.0, 40.0)
+    flat = Orthomap(rgb=om.rgb, gsd_x_m=GSD, gsd_y_m=GSD, georef=om.georef, dsm_m=None, name="no-dsm")
+    frames = [CameraRenderer(flat, CAM, Photometry(), perspective=cfg).render(NADIR, np.random.default_rng(2))
+              for cfg in (None, PerspectiveConfig(enabled=True))]
+    assert np.array_equal(frames[0].image, frames[1].image)
+
+
+def test_tilted_relief_path_agrees_with_the_nadir_one_at_negligible_tilt():
+    """The tilted path (rays through the homography, a margin around the march grid) gives the nadir maps."""
+    om = box_map(30.0, 50.0, 40.0)
+    r = renderer(om)
+    a = r.camera_to_map(NADIR)
+    nadir = r._view.maps(a, H, CAM, None)
+    tilted = r._view.maps(a, H, CAM, tilt_homography(CAM, 1e-9, -1e-9))
+    close = np.abs(tilted.xy - nadir.xy).max(axis=2) < 1e-2
+    assert close.mean() > 0.999

@@ -12,10 +12,10 @@ intersection from above, the largest ``z`` with ``h(m(z)) >= z``.
 
 1. March: for ``N`` heights ``z_i`` from the footprint's tallest point down, the points ``m(z_i)`` of all rays
    form the (nadir) camera grid scaled by ``1 - z_i / H`` about the principal point, so each step is one small
-   ``warpAffine`` of the height model's 2 x 2 block maximum sampled on a half-resolution camera grid,
+   ``warpAffine`` of the height model's 4 x 4 block maximum sampled on a quarter-resolution camera grid,
    thresholded at ``z_i`` and max-combined: the highest ``z_i`` at which the ray is at or below the surface,
    i.e. the first hit from the top to within one step (dilated by a pixel so that no roof edge is lost to
-   the half resolution; the next step verifies).
+   the coarse grid; the next step verifies).
 2. Refine at full resolution on the map's own height model with fixed-point steps ``z_{k+1} = h(m(z_k))``:
    ``z1 = h(m(z0))`` is the height of the surface the ray is in; where the next step leaves it unchanged the ray
    sees that surface at ``m(z1)`` (flat roofs and open ground: most pixels). The rest (walls, roof edges, trees,
@@ -46,7 +46,7 @@ from .camera import CameraModel, apply_affine
 _NEAREST = cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP
 _MAX_HEIGHT_FRACTION = 0.95
 GENERATOR_VERSION = 1  # bump whenever the frames change for the same inputs (env/fingerprint.py)
-_MARCH_FACTOR = 2      # the march runs on a half-resolution camera grid over the 2 x 2 block maximum of the heights
+_MARCH_FACTOR = 4      # the march runs on a 1/4-resolution camera grid over the 4 x 4 block maximum of the heights
 _REMAP_MAX_PX = 32767  # cv2.remap's limit on the source's sides
 _SURFACE_TOL_M = 0.3    # h(m(z1)) within this of z1: the ray sees the surface (ridged roofs vary by less per px)
 
