@@ -176,8 +176,7 @@ class ReliefView:
         bbox = (*corners.min(axis=0), *corners.max(axis=0))
         rays = self._centred_grid(camera)
         if tilt is not None:
-            rays = cv2.perspectiveTransform(rays.reshape(1, -1, 2) + np.float32([cu, cv]), tilt).reshape(h, w, 2)
-            rays -= np.float32([cu, cv])
+            rays = _tilted_rays(rays, camera, tilt)
         if self.dsm is None:
             return None if tilt is None else ViewMaps(cv2.transform(rays, to_map), rays, to_map, None, bbox)
         big_h = float(altitude_m)
@@ -212,8 +211,9 @@ class ReliefView:
         if tilt is None and margin == 0 and (wc * f, hc * f) == (w, h):
             z0 = cv2.resize(z_hit, (w, h), interpolation=cv2.INTER_NEAREST)
         else:   # camera pixel -> coarse pixel (q + margin - (F - 1) / 2) / F
-            shift = np.float32([cu + margin - (f - 1) / 2.0, cv + margin - (f - 1) / 2.0])
-            z0 = cv2.remap(z_hit, (rays + shift) * np.float32(1.0 / f), None, cv2.INTER_NEAREST,
+            to_coarse = np.array([[1.0 / f, 0.0, (cu + margin - (f - 1) / 2.0) / f],
+                                  [0.0, 1.0 / f, (cv + margin - (f - 1) / 2.0) / f]])
+            z0 = cv2.remap(z_hit, cv2.transform(rays, to_coarse), None, cv2.INTER_NEAREST,
                            borderMode=cv2.BORDER_REPLICATE)
         cap = np.float32(_MAX_HEIGHT_FRACTION * big_h) if z_raw > _MAX_HEIGHT_FRACTION * big_h else None
 
@@ -282,6 +282,15 @@ class ReliefView:
             flat = image.reshape(-1, image.shape[-1])
             flat[view.facade] = np.rint(flat[view.facade] * np.float32(self.config.facade_gain)).astype(np.uint8)
         return image
+
+
+def _tilted_rays(grid: np.ndarray, camera: CameraModel, tilt: np.ndarray) -> np.ndarray:
+    """(h, w, 2) float32 nadir-camera offsets from the principal point of the tilted camera's pixels (the
+    homography conjugated by the centring, applied to the centred ``grid``: one pass)."""
+    cu, cv = camera.center_px
+    shift = np.array([[1.0, 0.0, cu], [0.0, 1.0, cv], [0.0, 0.0, 1.0]])
+    centred = np.linalg.inv(shift) @ tilt @ shift
+    return cv2.perspectiveTransform(grid.reshape(1, -1, 2), centred).reshape(grid.shape)
 
 
 def _rows(a: np.ndarray, width: int = 1024) -> np.ndarray:
