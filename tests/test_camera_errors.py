@@ -135,3 +135,34 @@ def test_bad_camera_error_configs_are_clear_errors():
     with pytest.raises(ConfigError, match="airlight_rgb"):
         gym.make("AerialLoc/Small-v0", haze={"airlight_rgb": [300.0, 0.0, 0.0]})
     assert GimbalConfig().draw_attitude(np.random.default_rng(0), 3, 0.25).shape == (3, 2)
+
+
+ALL_ON = {"perspective": {"enabled": True}, "gimbal": {"roll_pitch_std_deg": 0.4, "heading_bias_std_deg": 2.0},
+          "altimeter": {"bias_std_m": 2.0, "drift_std_m_per_sqrt_s": 0.2}, "exposure": {"strength": 0.8},
+          "haze": {"extinction_per_km": 0.5}}
+
+
+def test_checkers_pass_with_every_camera_error_on():
+    import warnings
+
+    from gymnasium.utils.env_checker import check_env
+
+    sb3_checker = pytest.importorskip("stable_baselines3.common.env_checker")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        check_env(gym.make("AerialLoc/Small-v0", render_mode="rgb_array", **ALL_ON).unwrapped)
+        sb3_checker.check_env(gym.make("AerialLoc/Small-v0", **ALL_ON).unwrapped, warn=True)
+    assert [str(w.message) for w in caught] == []
+
+
+def test_every_camera_error_on_is_deterministic_and_pickles():
+    import pickle
+
+    a, ai = episode(**ALL_ON)
+    b, bi = episode(**ALL_ON)
+    assert same(a, b) and all(x["exposure_gain"] == y["exposure_gain"] for x, y in zip(ai, bi, strict=True))
+    env = gym.make("AerialLoc/Small-v0", **ALL_ON)
+    env.reset(seed=1)
+    clone = pickle.loads(pickle.dumps(env.unwrapped))
+    step = np.zeros(2, np.float32)
+    assert np.array_equal(env.unwrapped.step(step)[0]["image"], clone.step(step)[0]["image"])

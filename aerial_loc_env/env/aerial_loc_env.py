@@ -276,6 +276,7 @@ class AerialLocEnv(gym.Env):
         h = obs.height_px or sensor.height_px
         self.camera = sensor if (w, h) == (sensor.width_px, sensor.height_px) else sensor.resized(w, h)
         self._build_renderer()
+        self._scene_exposure = SceneExposure(sc.haze, sc.exposure, sc.flight.dt_s)   # pickled with its state
         fw, fh = self.camera.footprint_m(sc.flight.altitude_m + 3.0 * sc.flight.altitude_noise_m)
         clearance = footprint_radius_m(fw, fh) + sc.flight.margin_m
         key = (id(self.orthomap), round(clearance, 3))
@@ -305,7 +306,6 @@ class AerialLocEnv(gym.Env):
         sc = self.scenario
         self._renderer = CameraRenderer(self.orthomap, self.camera, sc.photometry, strict=True,
                                         perspective=sc.perspective if sc.map.use_dsm else None)
-        self._scene_exposure = SceneExposure(sc.haze, sc.exposure, sc.flight.dt_s)
 
     def __getstate__(self) -> dict:
         state = self.__dict__.copy()
