@@ -195,3 +195,17 @@ def test_tilted_relief_path_agrees_with_the_nadir_one_at_negligible_tilt():
     tilted = r._view.maps(a, H, CAM, tilt_homography(CAM, 1e-9, -1e-9))
     close = np.abs(tilted.xy - nadir.xy).max(axis=2) < 1e-2
     assert close.mean() > 0.999
+
+
+@pytest.mark.parametrize(("azimuth", "lit"), [(270.0, True), (90.0, False)])
+def test_facades_are_lit_by_the_sun_they_face(azimuth, lit):
+    """The visible wall of a building east of nadir faces west: a western sun lights it, an eastern one leaves it
+    the sky's half (linear light ambient / 2), both times the facade albedo and the 2.2 tone curve."""
+    cfg = PerspectiveConfig(enabled=True)
+    r = CameraRenderer(box_map(40.0, 55.0, 50.0), CAM, Photometry.ideal(), perspective=cfg)
+    image = r.render(NADIR, np.random.default_rng(0), sun_deg=(azimuth, 30.0)).image
+    prof = centre_row(image)
+    mid = int(round(CAM.center_px[0] + 40.0 * (1 + H / (H - 50.0)) / 2 / GSD))
+    el = math.radians(30.0)
+    linear = 0.5 * cfg.ambient + (1 - cfg.ambient) / math.tan(el) if lit else 0.5 * cfg.ambient
+    assert prof[mid] == pytest.approx(ROOF * cfg.facade_gain * min(linear, 1.5) ** (1 / 2.2), abs=1.0)

@@ -440,7 +440,9 @@ class AerialLocEnv(gym.Env):
         frame = self._renderer.render(pose, self.np_random, self._occlusion, shading,
                                       t_s=float(self._track.t_s[i]), speed_mps=float(self._track.speed_mps[i]),
                                       tilt_rad=tilt, pre_sensor=(lambda image: exposure(image, pose.altitude_m))
-                                      if exposure.active else None)
+                                      if exposure.active else None,
+                                      sun_deg=None if self._occlusion is None else
+                                      (self._sun.azimuth_deg, self._sun.elevation_deg))
         self._frame = frame
         m = self._meas
         obs = {

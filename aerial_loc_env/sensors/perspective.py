@@ -62,6 +62,9 @@ class PerspectiveConfig:
     march_steps: int = field(default=10, metadata=rng(2, 64, doc="heights probed per ray (first-hit search)"))
     facade_gain: float = field(default=0.55, metadata=rng(0.0, 1.0, lo_open=True,
                                                            doc="facade brightness relative to its roof"))
+    # with the sun known (the env passes it), facades are lit by it: see ReliefView.shade_facades
+    ambient: float = field(default=0.15, metadata=rng(0.0, 1.0, lo_open=True,
+                                                      doc="sky light on a roof, share of sun + sky (linear)"))
 
 
 def tilt_homography(camera: CameraModel, roll_rad: float, pitch_rad: float) -> np.ndarray | None:
@@ -104,6 +107,7 @@ class ViewMaps:
     to_map: np.ndarray
     facade: np.ndarray | None
     bbox: tuple[float, float, float, float]   # (x0, y0, x1, y1) level-0 map pixels holding every sample
+    facing: np.ndarray | None = None          # (n, 2) float32 unit (east, north): where each facade pixel faces
 
     def sample(self, image: np.ndarray, level: int = 0, *, border: int = cv2.BORDER_CONSTANT,
                scale: float = 1.0, offset: float = 0.0) -> np.ndarray:
@@ -267,20 +271,40 @@ class ReliefView:
             # the ray entered the building through a wall and runs inside down to the ground (unless the
             # building is thinner than its horizontal travel): the facade takes the building's colour where the
             # ray meets the ground, one map pixel further from the wall so that bilinear sampling skips the street
-            dist = np.hypot(du[wall], dv[wall])
-            scale_s[wall] = 1.0 + 1.0 / np.maximum(dist, np.float32(1e-3))
+            dist = np.maximum(np.hypot(du[wall], dv[wall]), np.float32(1e-3))
+            scale_s[wall] = 1.0 + 1.0 / dist
             facade = sel[wall]
+            # a wall the camera sees faces it: towards nadir (map u east, v south)
+            facing = np.stack([-du[wall] / dist, dv[wall] / dist], axis=1)
         fx, fy = on_map(scale_s)
         flat_xy, flat_ray = xy.reshape(-1, 2), ray.reshape(-1, 2)
         flat_xy[sel, 0], flat_xy[sel, 1] = fx, fy
         flat_ray[sel, 0], flat_ray[sel, 1] = ru * scale_s, rv * scale_s
-        return ViewMaps(xy, ray, to_map, facade, bbox)
+        return ViewMaps(xy, ray, to_map, facade, bbox, facing if facade is not None else None)
 
-    def shade_facades(self, image: np.ndarray, view: ViewMaps) -> np.ndarray:
-        """Darken facade pixels in place (uint8 (h, w, 3)) by ``facade_gain``; returns ``image``."""
-        if view.facade is not None:
-            flat = image.reshape(-1, image.shape[-1])
-            flat[view.facade] = np.rint(flat[view.facade] * np.float32(self.config.facade_gain)).astype(np.uint8)
+    def shade_facades(self, image: np.ndarray, view: ViewMaps, sun_deg: tuple[float, float] | None = None,
+                      gamma: float = 2.2) -> np.ndarray:
+        """Shade facade pixels in place (uint8 (h, w, 3)); returns ``image``.
+
+        Without a sun: ``facade_gain`` times the roof colour. With ``sun_deg = (azimuth, elevation)`` (towards
+        the sun, compass degrees) a facade is lit like a vertical wall: in linear light, relative to a sunlit
+        roof (``ambient + direct = 1``, ``direct = (1 - ambient)`` at the sun's elevation), a wall gets half the
+        sky (``ambient / 2``) plus ``direct cos(el) / sin(el) max(0, n . sun)``: walls facing away from the sun
+        are dark, walls facing it at a low sun bright; then ``facade_gain`` (its albedo against the roof's) and
+        the tone curve ``gamma``.
+        """
+        if view.facade is None:
+            return image
+        gain: np.ndarray | float = self.config.facade_gain
+        if sun_deg is not None and view.facing is not None:
+            az, el = (math.radians(a) for a in sun_deg)
+            amb = self.config.ambient
+            towards = view.facing @ np.array([math.sin(az), math.cos(az)], dtype=np.float32)
+            direct = (1.0 - amb) * math.cos(el) / max(math.sin(el), 0.05) * np.maximum(towards, 0.0)
+            gain = gain * np.minimum(0.5 * amb + direct, 1.5) ** (1.0 / gamma)
+            gain = np.asarray(gain, np.float32)[:, None]
+        flat = image.reshape(-1, image.shape[-1])
+        flat[view.facade] = np.clip(np.rint(flat[view.facade] * gain), 0, 255).astype(np.uint8)
         return image
 
 

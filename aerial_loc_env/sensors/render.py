@@ -304,7 +304,8 @@ class CameraRenderer:
                occlusion: OcclusionSource | Sequence[OcclusionSource] | None = None,
                shading_params: Mapping[str, Any] | None = None, *, t_s: float = 0.0, speed_mps: float = 0.0,
                strict: bool | None = None, tilt_rad: tuple[float, float] = (0.0, 0.0),
-               pre_sensor: Callable[[np.ndarray], np.ndarray] | None = None) -> Frame:
+               pre_sensor: Callable[[np.ndarray], np.ndarray] | None = None,
+               sun_deg: tuple[float, float] | None = None) -> Frame:
         """Render the camera frame at ``pose``: map warp, shadows (if ``occlusion``), then photometry.
 
         ``occlusion``: see ``occlusion_in_camera`` (``t_s`` is the time for cloud fields). ``shading_params``
@@ -314,7 +315,8 @@ class CameraRenderer:
         ``tilt_rad``: the gimbal's (roll, pitch) error; with it, or with a perspective view of the height model,
         the frame is one ``remap`` through per-pixel maps (``sensors.perspective``) instead of the affine warp.
         ``pre_sensor``: scene-side effects (haze, exposure control) on the shaded image before the photometry
-        (which then works in place on the uint8 image it returns).
+        (which then works in place on the uint8 image it returns). ``sun_deg`` (azimuth, elevation): the sun
+        that lights the facades of a perspective view (without it they are a fixed fraction of the roof).
         """
         pose = Pose(*_pose_tuple(pose))
         strict = self.strict if strict is None else strict
@@ -330,7 +332,7 @@ class CameraRenderer:
         else:
             image = view.sample(self.map_level(level), level)
             image = cv2.cvtColor(image, cv2.COLOR_RGBA2RGB) if self._rgba else image
-            self._view.shade_facades(image, view)
+            self._view.shade_facades(image, view, sun_deg, float((shading_params or {}).get("gamma", 2.2)))
         occ_cam = None
         if occlusion is not None:
             from ..world.shadows import shade, shading_lut
