@@ -45,7 +45,7 @@ from .camera import CameraModel, apply_affine
 
 _NEAREST = cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP
 _MAX_HEIGHT_FRACTION = 0.95
-GENERATOR_VERSION = 1  # bump whenever the frames change for the same inputs (env/fingerprint.py)
+GENERATOR_VERSION = 2  # bump whenever the frames change for the same inputs (env/fingerprint.py)
 _MARCH_FACTOR = 4      # the march runs on a 1/4-resolution camera grid over the 4 x 4 block maximum of the heights
 _REMAP_MAX_PX = 32767  # cv2.remap's limit on the source's sides
 _SURFACE_TOL_M = 0.3    # h(m(z1)) within this of z1: the ray sees the surface (ridged roofs vary by less per px)
