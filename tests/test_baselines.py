@@ -85,20 +85,32 @@ def test_baseline_falls_back_to_dead_reckoning_and_says_so(name):
 
 @pytest.mark.parametrize("name", ["template-ncc", "orb"])
 def test_a_fix_far_outside_the_predicted_uncertainty_is_gated(name):
+    """After a fix, frames 30 m off the dead-reckoned track (10 sigma) are gated; the agent re-localizes only
+    once the far matches have agreed while it flew a footprint's short side (80 m): a static false match agrees
+    with itself over a few frames, which made the agent run away on real maps (issue 13)."""
     agent = _agent(name)
     m, briefing = _scene()
-    x, y, yaw = TRUTH
+    x, y, _ = TRUTH
+    yaw = TRUTH[2] - math.pi                          # fly south-west, over the middle of the map
     agent.reset(briefing, seed=0)
     assert agent.step(observation(render_frame(m, x, y, yaw, camera=WIDE), yaw)).status == "ok"
-    # the next frame is 30 m away, 10 sigma of the dead-reckoned prediction (3 m fix + 2 steps of odometry)
-    far = observation(render_frame(m, x + 30.0, y, yaw, camera=WIDE), yaw)
-    for _ in range(agent.params.regate_after - 1):
-        est = agent.step(far)
-        assert est.status == "dead_reckoning" and "gate" in est.extras["reason"]
-        assert math.hypot(est.x_m - x, est.y_m - y) < 1.0
-    # the same far match again and again: the estimate was wrong, the agent re-localizes
-    est = agent.step(far)
-    assert est.status == "ok" and math.hypot(est.x_m - x - 30.0, est.y_m - y) < 1.0
+    speed, dt = 20.0, briefing.dt_s
+    short_m = min(WIDE.footprint_m(ALT_M))
+    statuses = []
+    for k in range(1, 40):
+        d = speed * dt * k
+        px, py = x + d * math.cos(yaw), y + d * math.sin(yaw)   # the dead-reckoned track
+        obs = observation(render_frame(m, px + 30.0, py, yaw, camera=WIDE), yaw)
+        obs["odometry"] = np.array([speed, 0.0], np.float32)
+        est = agent.step(obs)
+        statuses.append(est.status)
+        if est.status == "ok":
+            assert math.hypot(est.x_m - px - 30.0, est.y_m - py) < 1.0
+            break
+        assert "gate" in est.extras["reason"] and math.hypot(est.x_m - px, est.y_m - py) < 1.0
+    relocalized_after_m = speed * dt * (len(statuses) - 1)
+    assert statuses[-1] == "ok" and len(statuses) > agent.params.regate_after
+    assert short_m - speed * dt <= relocalized_after_m <= short_m + 2 * speed * dt
 
 
 def test_template_matching_window_outside_the_map_falls_back():

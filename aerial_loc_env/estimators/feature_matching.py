@@ -32,7 +32,6 @@ DETECTORS = ("orb", "akaze", "sift")
 @dataclass(frozen=True)
 class FeatureMatchingParams(WindowMatchingParams):
     detector: str = field(default="orb", metadata=rng(choices=DETECTORS))
-    work_gsd_m: float = field(default=0.5, metadata=rng(0.01, 100.0, doc="ground size of a matching pixel"))
     max_features: int = field(default=2000, metadata=rng(10, 100000, doc="ORB/SIFT keypoint cap per image"))
     ratio: float = field(default=0.8, metadata=rng(0.0, 1.0, lo_open=True, doc="Lowe's ratio test"))
     ransac_threshold_px: float = field(default=3.0, metadata=rng(0.1, 100.0))
@@ -62,6 +61,13 @@ class FeatureMatchingAgent(WindowMatchingAgent):
     """ORB/AKAZE/SIFT matches between the camera image and the map window, RANSAC similarity."""
 
     Params = FeatureMatchingParams
+    #: ``work_gsd_m = None``: this many pixels across the footprint's short side (the paper's 100 m footprint
+    #: gives 0.5 m); the keypoints' 31-pixel patches then fit in the camera image at any geometry
+    AUTO_PX_ACROSS = 200
+
+    def auto_work_gsd_m(self, briefing) -> float:
+        """As the template matcher's, and never finer than the camera's own pixels (no invented detail)."""
+        return max(super().auto_work_gsd_m(briefing), briefing.camera.gsd_m(briefing.altitude_m))
 
     def __init__(self, params: FeatureMatchingParams | None = None) -> None:
         super().__init__(params)

@@ -41,15 +41,17 @@ if TYPE_CHECKING:
 class WindowMatchingParams:
     """Common settings: matching resolution, search window, and the covariance reported on a fix."""
 
-    work_gsd_m: float = field(default=1.0, metadata=rng(0.01, 100.0, doc="ground size of a matching pixel"))
+    work_gsd_m: float | None = field(default=None, metadata=rng(0.01, 100.0, doc=(
+        "ground size of a matching pixel; None: from the camera geometry (auto_work_gsd_m)")))
     search_radius_m: float = field(default=40.0, metadata=rng(0.0, 1e5, doc="window half-size around the "
                                                                               "prediction, beyond the footprint"))
     global_search: bool = True      # with a uniform prior, search the whole map until the first fix
     fix_std_m: float = field(default=3.0, metadata=rng(0.0, 1e4, lo_open=True, doc="1-sigma of a fix"))
     gate_sigma: float = field(default=3.0, metadata=rng(0.0, 1e3, doc="reject a fix farther than this many "
                                                                        "sigma from the prediction (0: never)"))
-    regate_after: int = field(default=4, metadata=rng(1, 10000, doc="accept a gated fix after this many "
-                                                                     "consecutive gated frames (re-localize)"))
+    regate_after: int = field(default=4, metadata=rng(1, 10000, doc="accept a gated fix after at least this "
+                                                                     "many consecutive gated frames that agree "
+                                                                     "over a footprint flown (re-localize)"))
 
 
 class Fix(NamedTuple):
@@ -78,7 +80,8 @@ class WindowMatchingAgent(Agent):
         m = briefing.orthomap
         self.briefing, self.orthomap, self.camera = briefing, m, briefing.camera
         gray = to_gray(np.asarray(m.rgb))
-        f = self.params.work_gsd_m / min(m.gsd_x_m, m.gsd_y_m)
+        self.work_gsd_m = self.params.work_gsd_m or self.auto_work_gsd_m(briefing)
+        f = self.work_gsd_m / min(m.gsd_x_m, m.gsd_y_m)
         lw, lh = max(2, int(round(m.width_px / f))), max(2, int(round(m.height_px / f)))
         self.level = cv2.resize(gray, (lw, lh), interpolation=cv2.INTER_AREA) if f != 1 else gray
         if m.nodata is not None and np.any(m.nodata):
@@ -94,8 +97,19 @@ class WindowMatchingAgent(Agent):
         self.level_gsd = (m.gsd_x_m * sx, m.gsd_y_m * sy)
         self.dr = DeadReckoningAgent()
         self.has_fix = False
-        self.gated = 0                                              # consecutive gated matches
+        self.gated_offsets: list[tuple[float, float]] = []          # consecutive gated matches - prediction
         return self.dr.reset(briefing, seed=seed)
+
+    #: ``work_gsd_m = None``: the template (the square inscribed in the footprint) spans this many pixels
+    #: across the footprint's short side; the paper's 100 m footprint gives its 1 m working resolution
+    AUTO_PX_ACROSS = 100
+
+    def auto_work_gsd_m(self, briefing: Briefing) -> float:
+        """The working resolution for this camera geometry: ``AUTO_PX_ACROSS`` pixels across the footprint's
+        short side, never finer than the map (so any altitude, field of view or image size works alike)."""
+        m = briefing.orthomap
+        short_m = min(briefing.camera.footprint_m(briefing.altitude_m))
+        return max(min(m.gsd_x_m, m.gsd_y_m), short_m / self.AUTO_PX_ACROSS)
 
     def step(self, observation: Mapping[str, np.ndarray], info: Mapping[str, Any] | None = None) -> Estimate:
         if self.dr is None:
@@ -121,17 +135,32 @@ class WindowMatchingAgent(Agent):
         jump = math.hypot(fix.x_m - pred.x_m, fix.y_m - pred.y_m)
         limit = self.params.gate_sigma * math.hypot(pred.std_m or 0.0, self.params.fix_std_m)
         if self.params.gate_sigma > 0 and jump > limit:
-            # a lone far match is likely false; several in a row mean the estimate itself is off (e.g. after
-            # a false fix), so the agent re-localizes instead of staying locked out
-            self.gated += 1
-            if self.gated < self.params.regate_after:
+            # a lone far match is likely false; several in a row that agree on the same offset mean the estimate
+            # itself is off (e.g. after a false fix), so the agent re-localizes instead of staying locked out.
+            # False matches scatter: accepting any run of them made the agent run away on repetitive ground.
+            self.gated_offsets = (self.gated_offsets + [(fix.x_m - pred.x_m, fix.y_m - pred.y_m,
+                                                         pred.x_m, pred.y_m)])[-MAX_GATED:]
+            if not self._gated_agree(obs.altitude_m):
                 return self._dead_reckoning(pred, f"no fix: the match is {jump:.0f} m from the prediction, beyond"
                                                   f" the {self.params.gate_sigma:g}-sigma gate ({limit:.0f} m)")
-        self.gated = 0
+        self.gated_offsets = []
         self.has_fix = True
         self.dr.anchor((fix.x_m, fix.y_m), np.eye(2) * self.params.fix_std_m ** 2)
         return Estimate(fix.x_m, fix.y_m, yaw_rad=obs.yaw_rad, cov_xy_m2=self.dr.cov.copy(), status="ok",
                         extras={"match": True, **fix.extras})
+
+    def _gated_agree(self, altitude_m: float) -> bool:
+        """Re-localize only after a fix (before it, a tracking prior is the authority) on ``regate_after``
+        gated matches in a row that agree on the offset from the prediction (within 2 ``fix_std_m``) while the
+        vehicle flew at least the footprint's short side: a static false match (a look-alike bridge truss or
+        orchard row) agrees with itself over a few frames, but not once the camera sees other ground."""
+        if not self.has_fix or len(self.gated_offsets) < self.params.regate_after:
+            return False
+        d = np.asarray(self.gated_offsets)
+        agree = np.hypot(*(d[:, :2] - d[-1, :2]).T) <= 2.0 * self.params.fix_std_m
+        run = len(agree) - (np.flatnonzero(~agree)[-1] + 1 if not agree.all() else 0)   # trailing agreement
+        flown = math.hypot(*(d[-1, 2:] - d[-run, 2:]))
+        return bool(run >= self.params.regate_after and flown >= min(self.camera.footprint_m(altitude_m)))
 
     def _dead_reckoning(self, pred: Estimate, reason: str) -> Estimate:
         return Estimate(pred.x_m, pred.y_m, yaw_rad=pred.yaw_rad, cov_xy_m2=pred.cov_xy_m2,
@@ -164,6 +193,18 @@ class WindowMatchingAgent(Agent):
         raise NotImplementedError
 
 
+#: gated matches remembered for the re-localization test
+MAX_GATED = 1000
+
+
+def second_peak(res: np.ndarray, peak: tuple[int, int], radius_px: int) -> float:
+    """The highest value of ``res`` farther than ``radius_px`` (square) from ``peak`` (-1 when none)."""
+    mx, my = peak
+    masked = res.copy()
+    masked[max(0, my - radius_px):my + radius_px + 1, max(0, mx - radius_px):mx + radius_px + 1] = -1.0
+    return float(masked.max()) if masked.size else -1.0
+
+
 def parabola_offset(left: float, centre: float, right: float) -> float:
     """Sub-pixel offset in [-0.5, 0.5] of the vertex of the parabola through three samples around a peak."""
     den = left - 2.0 * centre + right
@@ -175,6 +216,9 @@ def parabola_offset(left: float, centre: float, right: float) -> float:
 @dataclass(frozen=True)
 class TemplateMatchingParams(WindowMatchingParams):
     min_score: float = field(default=0.5, metadata=rng(-1.0, 1.0, doc="NCC peak needed for a fix"))
+    min_peak_margin: float = field(default=0.05, metadata=rng(0.0, 2.0, doc=(
+        "NCC peak minus the highest other peak (beyond a quarter template) needed for a fix: repetitive "
+        "ground (bridge trusses, orchard rows, water) gives near-equal peaks, and any of them may be false")))
 
 
 class TemplateMatchingAgent(WindowMatchingAgent):
@@ -215,6 +259,10 @@ class TemplateMatchingAgent(WindowMatchingAgent):
             return f"no match: NCC peak {score:.2f} < min_score {self.params.min_score:.2f}"
         if mx in (0, res.shape[1] - 1) or my in (0, res.shape[0] - 1):
             return f"no match: the NCC peak ({score:.2f}) is on the window border"
+        margin = score - second_peak(res, (mx, my), max(2, tpl.shape[0] // 4))
+        if margin < self.params.min_peak_margin:
+            return (f"no match: ambiguous NCC peak {score:.2f}, another peak is within {margin:.2f} "
+                    f"(< min_peak_margin {self.params.min_peak_margin:.2f})")
         dx = parabola_offset(res[my, mx - 1], res[my, mx], res[my, mx + 1])
         dy = parabola_offset(res[my - 1, mx], res[my, mx], res[my + 1, mx])
         half = (tpl.shape[0] - 1) / 2
@@ -223,4 +271,4 @@ class TemplateMatchingAgent(WindowMatchingAgent):
         if self.level_nodata is not None and self.level_nodata[int(round(v)), int(round(u))]:
             return "no match: the NCC peak lies on no-data"
         x, y = self.level_point_to_world(u, v)
-        return Fix(x, y, {"score": float(score)})
+        return Fix(x, y, {"score": float(score), "peak_margin": float(margin)})
