@@ -12,14 +12,21 @@ import numpy as np
 import pytest
 from test_dense_models import ALT_M, briefing_standin, observation, render_frame, textured_map
 
-from aerial_loc_env.estimators.mcl.abbrief import _POPCOUNT8, ABBriefConfig, ABBriefModel, popcount
+from aerial_loc_env.estimators.mcl.abbrief import (
+    _POPCOUNT8,
+    ABBriefConfig,
+    ABBriefModel,
+    lab_channels,
+    popcount,
+    reduced_lab,
+)
 from aerial_loc_env.estimators.mcl.dense import (
     MIModel,
     mutual_information,
     mutual_information_reference,
 )
 from aerial_loc_env.estimators.mcl.intensity_pairs import IntensityPairsConfig, IntensityPairsModel, xnor_similarity
-from aerial_loc_env.estimators.patches import PatchGeometry, PatchSampler
+from aerial_loc_env.estimators.patches import PatchGeometry, PatchSampler, reduce_image
 from aerial_loc_env.estimators.shadow_detection import restoration_lut, restoration_lut_reference
 
 
@@ -207,3 +214,11 @@ def test_database_words_are_converted_once_per_map_and_read_only():
     c = IntensityPairsModel(IntensityPairsConfig(channels=1))
     c.reset(briefing_standin(other), np.random.default_rng(0))
     assert c._db is not a._db and c._nodata is not None and c._nodata[:1200].all() and not c._nodata[1200:].any()
+
+
+@pytest.mark.parametrize("channels", ["ab", "L", "Lab"])
+@pytest.mark.parametrize("size", [(60, 40), (37, 23), (120, 80)])
+def test_reduced_lab_is_bit_identical_to_reducing_the_selected_channels(channels, size):
+    img = render_frame(textured_map(200, seed=6), 50.0, 50.0, 0.2)
+    ref = reduce_image(lab_channels(img, channels), *size)          # (h, w) for one channel: cv2 drops it
+    np.testing.assert_array_equal(reduced_lab(img, channels, *size), ref.reshape(size[1], size[0], -1))
