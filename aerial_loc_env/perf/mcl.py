@@ -7,8 +7,8 @@ Target (issue 12): <= 1.0x the floor (one bare map warp) per step, median on one
 Where the time goes (shadow-aware step, profiled): the frame's shadow detection and pairs ~0.3x the floor, the
 particles' likelihood ~0.35x (of which the per-particle affines of ``camera_to_map`` and their product with
 the pair points ~0.2x; the gather of 2K database words per particle and the XNOR count the rest), motion,
-resampling, estimate and the filter's bookkeeping ~0.4x together: many small NumPy calls on N = 700, whose
-fixed costs also dominate Table 5's steps at small K (K = 10 costs ~0.8x of K = 70).
+resampling, estimate and the filter's bookkeeping ~0.4-0.5x together: many small NumPy calls on N = 700, whose
+fixed costs also dominate Table 5's steps at small K (a K = 10 step costs 0.7-0.8 of a K = 70 one).
 """
 
 from __future__ import annotations
