@@ -3,8 +3,9 @@
 A scenario id names a *setting*; what the env renders for it also depends on the code that generates the world
 and the frames (the city generator changed four times under the same ids). Every module of ``world/`` and
 ``sensors/`` whose output is data (a map, an epoch, an acquisition, a camera model) declares an integer
-``GENERATOR_VERSION`` and bumps it whenever its output changes for the same inputs; ``generator_versions``
-collects them all (a new module that declares one joins without being listed anywhere).
+``GENERATOR_VERSION`` (or another module-level ``<NAME>_VERSION`` integer, e.g. ``EPOCH_VERSION``) and bumps it
+whenever its output changes for the same inputs; ``generator_versions`` collects them all (a new module that
+declares one joins without being listed anywhere).
 ``scenario_fingerprint`` hashes them with the fully resolved spec: the benchmark puts it in every trial key,
 so a resumed run can never mix rows of two generations (docs/ARCHITECTURE.md, "Versions").
 """
@@ -22,16 +23,37 @@ GENERATOR_PACKAGES = ("aerial_loc_env.world", "aerial_loc_env.sensors")
 
 
 def generator_versions() -> dict[str, int]:
-    """``{"world.city": 4, ...}``: the ``GENERATOR_VERSION`` of every world/sensors module declaring one."""
+    """``{"world.city": 4, "world.epochs.EPOCH_VERSION": 1, ...}``: every integer ``*_VERSION`` defined by a
+    world/sensors module (``GENERATOR_VERSION`` is keyed by the module alone; names imported from elsewhere
+    are left to the module that defines them)."""
     out: dict[str, int] = {}
     for package in GENERATOR_PACKAGES:
         pkg = importlib.import_module(package)
         for info in pkgutil.iter_modules(pkg.__path__):
             module = importlib.import_module(f"{package}.{info.name}")
-            version = getattr(module, "GENERATOR_VERSION", None)
-            if version is not None:
-                out[f"{package.rsplit('.', 1)[1]}.{info.name}"] = int(version)
+            where = f"{package.rsplit('.', 1)[1]}.{info.name}"
+            own = _defined_here(module)
+            for name, value in vars(module).items():
+                if name.endswith("_VERSION") and isinstance(value, int) and name in own:
+                    out[where if name == "GENERATOR_VERSION" else f"{where}.{name}"] = int(value)
     return dict(sorted(out.items()))
+
+
+def _defined_here(module: Any) -> set[str]:
+    """Module-level names assigned in the module's own source (not imported into it)."""
+    import ast
+    import inspect
+
+    try:
+        tree = ast.parse(inspect.getsource(module))
+    except (OSError, TypeError):  # pragma: no cover (no source: a frozen install)
+        return set(vars(module))
+    names = set()
+    for node in tree.body:
+        targets = node.targets if isinstance(node, ast.Assign) else [node.target] \
+            if isinstance(node, ast.AnnAssign) else []
+        names.update(t.id for t in targets if isinstance(t, ast.Name))
+    return names
 
 
 def fingerprint(spec: dict[str, Any], versions: dict[str, int] | None = None) -> str:
