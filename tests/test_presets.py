@@ -1,0 +1,37 @@
+"""The scenario presets: the paper's ids keep the paper's setting, the realistic ids fly the same setting with
+every part of the realistic gap switched on."""
+
+from __future__ import annotations
+
+import pytest
+
+from aerial_loc_env.env import load_scenario
+
+PAPER = ("AerialLoc/PaperShadows-v0", "AerialLoc/PaperNoShadows-v0")
+REALISTIC = ("AerialLoc/RealisticPaper-v0", "AerialLoc/SeasonChange-v0", "AerialLoc/Downtown-v0")
+SETTING = ("flight", "camera", "odometry", "observation", "episode", "reward")
+
+
+@pytest.mark.parametrize("sid", PAPER)
+def test_paper_ids_keep_the_papers_setting(sid):
+    """Shadow-free database of the same epoch, the affine camera: Table 5 still means what it meant."""
+    sc = load_scenario(sid)
+    assert sc.epoch.is_identity and sc.database.is_identity
+    assert not sc.perspective.enabled and sc.shadows.database_sun_deg is None
+
+
+@pytest.mark.parametrize("sid", REALISTIC)
+def test_realistic_ids_switch_on_every_part_of_the_gap(sid):
+    sc = load_scenario(sid)
+    assert not sc.epoch.is_identity and not sc.database.is_identity
+    assert sc.perspective.enabled and sc.shadows.database_sun_deg is not None
+    assert sc.database.gsd_m > sc.city.gsd_m          # the map's sensor is coarser than the drone's camera
+
+
+def test_realistic_paper_is_the_paper_setting_plus_the_gap():
+    paper, real = load_scenario(PAPER[0]).to_dict(), load_scenario(REALISTIC[0]).to_dict()
+    for section in (*SETTING, "city"):
+        assert real[section] == paper[section], section
+    season = load_scenario(REALISTIC[1]).to_dict()
+    for section in (*SETTING, "city", "database"):
+        assert season[section] == real[section], section
