@@ -30,7 +30,7 @@ bench: venv
 	OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 $(PY) -m aerial_loc_env.perf $(ARGS)
 
 pictures: venv
-	$(VENV)/bin/aerial-loc pictures --out docs/img
+	$(VENV)/bin/aerial-loc pictures --out docs/img --realism
 
 lint: venv
 	$(VENV)/bin/ruff check aerial_loc_env tests

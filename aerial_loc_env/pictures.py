@@ -8,7 +8,10 @@ Writes, into ``--out``:
 - ``frame_NN_database.png`` / ``frame_NN_camera.png``: the shadow-free database patch and the camera frame
   (shadows, exposure, noise, vignetting) at a few poses of the track;
 - ``frame_NN_pair.png``: database | camera | ground-truth shadow mask, side by side and labelled;
-- ``contact_sheet.png``: all the pairs stacked.
+- ``contact_sheet.png``: all the pairs stacked;
+- with ``--realism``, ``gap_<level>.png``: the map database at the true pose | the camera frame, for each kind
+  of realistic map-camera gap alone (epoch change, relief displacement over tall buildings, the map's own sun,
+  the map's own sensor) and all together (``AerialLoc/RealisticPaper-v0``).
 """
 
 from __future__ import annotations
@@ -42,6 +45,9 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument("--seed", type=int, default=0, help="seed of the track, sun, clouds and sensor noise")
     ap.add_argument("--altitude", type=float, default=200.0, help="flight altitude above ground, metres")
     ap.add_argument("--frames", type=int, default=4, help="number of camera frames along the track (1-12)")
+    ap.add_argument("--realism", action="store_true",
+                    help="also write gap_<level>.png: map patch | camera frame for each kind of realistic gap "
+                         "(epoch change, relief, the map's own sun, the map's sensor, all of them)")
     return ap
 
 
@@ -52,6 +58,8 @@ def main(argv: list[str] | None = None) -> int:
             raise ConfigError("pictures: --crs and --gsd describe the file given with --map; give --map too")
         written = write_pictures(Path(args.out), map_path=args.map, seed=args.seed, altitude_m=args.altitude,
                                  n_frames=args.frames, map_crs=args.crs, map_gsd_m=args.gsd)
+        if args.realism:
+            written += write_realism_pictures(Path(args.out), seed=args.seed)
     except AerialLocError as exc:
         print(f"aerial-loc pictures: {exc}", file=sys.stderr)
         return 2
@@ -218,3 +226,90 @@ def _save(path: Path, rgb: np.ndarray) -> Path:
     if not cv2.imwrite(str(path), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)):
         raise ConfigError(f"pictures: could not write {path} (check the folder is writable)")
     return path
+
+
+# ------------------------------------------------------------------------------------------ realism levels
+#: (file stem, title, scenario id, overrides, frame choice): one picture per kind of map/camera gap, each with
+#: only that kind switched on over the paper's shadow-free setting (``realism_levels`` fills the sections in
+#: from the realistic presets, so the pictures show what those presets fly).
+_QUIET = {"shadows.strength_range": [0.0, 0.0]}
+
+
+def realism_levels() -> list[tuple[str, str, str, dict, str]]:
+    """The realism levels shown by ``write_realism_pictures``, built from the realistic presets' specs."""
+    from .env import load_scenario
+
+    real = load_scenario("AerialLoc/RealisticPaper-v0").to_dict()
+    season = load_scenario("AerialLoc/SeasonChange-v0").to_dict()
+    downtown = load_scenario("AerialLoc/Downtown-v0").to_dict()
+    relief = {k: v for k, v in downtown.items() if k not in ("id", "description", "epoch", "database")}
+    relief["shadows"] = {**downtown["shadows"], "strength_range": [0.0, 0.0]}
+    relief.pop("photometry", None)
+    sun = real["shadows"]["database_sun_deg"]
+    return [
+        ("paper", "the paper's setting: shadow-free map | camera with cast shadows (PaperShadows)",
+         "AerialLoc/PaperShadows-v0", {}, "middle"),
+        ("epoch", "epoch change only: map of epoch A | camera over epoch B (SeasonChange's rates)",
+         "AerialLoc/PaperNoShadows-v0", {**_QUIET, "epoch": season["epoch"]}, "middle"),
+        ("relief", "relief only: affine map patch | perspective camera, tall buildings at the frame edge "
+                   "(Downtown)", "AerialLoc/Downtown-v0", relief, "relief"),
+        ("database_sun", f"map with another sun's shadows (az {sun[0]:.0f}, el {sun[1]:.0f} deg) | camera "
+                         "with the flight's sun", "AerialLoc/PaperShadows-v0",
+         {"shadows.database_sun_deg": sun}, "middle"),
+        ("acquisition", "map acquired by another sensor (GSD, blur, JPEG, colour, haze, lean, georeference "
+                        "bias) | camera", "AerialLoc/PaperNoShadows-v0", {**_QUIET, "database": real["database"]},
+         "middle"),
+        ("realistic", "everything: RealisticPaper-v0 map | camera", "AerialLoc/RealisticPaper-v0", {}, "middle"),
+    ]
+
+
+def write_realism_pictures(out: Path, *, seed: int = 0, levels: list | None = None) -> list[Path]:
+    """``gap_<level>.png``: map patch at the true pose | camera frame, one per realism level, labelled."""
+    from .env import AerialLocEnv, load_scenario
+
+    written = []
+    for stem, title, sid, overrides, choice in (realism_levels() if levels is None else levels):
+        env = AerialLocEnv(load_scenario(sid, overrides))
+        try:
+            obs, info = env.reset(seed=seed)
+            frames = [(obs["image"], info["true_pose"])]
+            done = False
+            while not done:
+                obs, _r, terminated, truncated, info = env.step(np.zeros(2, np.float32))
+                frames.append((obs["image"], info["true_pose"]))
+                done = terminated or truncated
+            pick = _relief_frame(env, frames) if choice == "relief" else len(frames) // 2
+            image, truth = frames[pick]
+            pose = Pose(*(float(v) for v in truth))
+            database = CameraRenderer(env.briefing.orthomap, env.camera, Photometry.ideal(),
+                                      strict=False).database_patch(pose)
+        finally:
+            env.close()
+        gap = np.full((image.shape[0], 6, 3), 255, np.uint8)
+        row = np.concatenate([database, gap, image], axis=1)
+        head = np.full((28, row.shape[1], 3), 255, np.uint8)
+        _text(head, "map database at the true pose", (6, 20), 0.55, (0, 0, 0))
+        _text(head, f"camera frame (x {pose.x_m:.0f} m, y {pose.y_m:.0f} m, alt {pose.altitude_m:.0f} m)",
+              (database.shape[1] + 12, 20), 0.55, (0, 0, 0))
+        written.append(_save(out / f"gap_{stem}.png", _with_header(np.concatenate([head, row], axis=0), title)))
+    return written
+
+
+def _relief_frame(env, frames: list) -> int:
+    """The frame whose footprint edge holds the tallest buildings (relief displacement is largest there)."""
+    om = env.orthomap
+    cam = env.camera
+    w, h, t = 0.95 * cam.width_px, 0.95 * cam.height_px, np.linspace(0.05, 0.95, 40)
+    edge = np.concatenate([np.stack([t * cam.width_px, np.full_like(t, 0.05 * cam.height_px)], axis=1),
+                           np.stack([t * cam.width_px, np.full_like(t, h)], axis=1),
+                           np.stack([np.full_like(t, 0.05 * cam.width_px), t * cam.height_px], axis=1),
+                           np.stack([np.full_like(t, w), t * cam.height_px], axis=1)])   # a band 5 % inside
+    best, score = 0, -1.0
+    for i, (_img, truth) in enumerate(frames):
+        uv = cam.project_pixels(om, edge, *(float(t) for t in truth))[0]
+        cols = np.clip(np.rint(uv[:, 0]).astype(int), 0, om.width_px - 1)
+        rows = np.clip(np.rint(uv[:, 1]).astype(int), 0, om.height_px - 1)
+        s = float(np.percentile(np.asarray(om.dsm_m)[rows, cols], 90))
+        if s > score:
+            best, score = i, s
+    return best

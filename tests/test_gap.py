@@ -141,3 +141,17 @@ def test_real_pairs_are_far_less_alike_than_the_paper_scenario():
         assert 0.25 < s["ncc"]["median"] < 0.7, a.name
         assert 0.55 < s["bit_agreement"]["median"] < 0.75, a.name
         assert 0.0 < s["template_within"]["mean"] <= 1.0, a.name
+
+
+def test_realism_pictures_show_map_and_camera_side_by_side(tmp_path):
+    """One labelled picture per level: the map patch at the true pose beside the camera frame (Small-v0, with
+    the perspective camera for the relief level)."""
+    from aerial_loc_env.pictures import write_realism_pictures
+
+    levels = [("plain", "plain", "AerialLoc/Small-v0", {}, "middle"),
+              ("relief", "relief", "AerialLoc/Small-v0", {"perspective": {"enabled": True}}, "relief")]
+    written = write_realism_pictures(tmp_path, seed=0, levels=levels)
+    assert [p.name for p in written] == ["gap_plain.png", "gap_relief.png"]
+    for path in written:
+        img = cv2.imread(str(path))
+        assert img.shape[1] == 2 * 64 + 6 and img.shape[0] > 64 + 28   # two 64 px panels, a gap, headers
