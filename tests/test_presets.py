@@ -18,6 +18,7 @@ def test_paper_ids_keep_the_papers_setting(sid):
     sc = load_scenario(sid)
     assert sc.epoch.is_identity and sc.database.is_identity
     assert not sc.perspective.enabled and sc.shadows.database_sun_deg is None
+    assert sc.gimbal.roll_pitch_std_deg == 0 and sc.altimeter.bias_std_m == 0 and sc.exposure.strength == 0
 
 
 @pytest.mark.parametrize("sid", REALISTIC)
@@ -25,6 +26,8 @@ def test_realistic_ids_switch_on_every_part_of_the_gap(sid):
     sc = load_scenario(sid)
     assert not sc.epoch.is_identity and not sc.database.is_identity
     assert sc.perspective.enabled and sc.shadows.database_sun_deg is not None
+    assert sc.gimbal.roll_pitch_std_deg > 0 and sc.altimeter.bias_std_m > 0 and sc.exposure.strength > 0
+    assert sc.haze.extinction_per_km > 0
     assert sc.database.gsd_m > sc.city.gsd_m          # the map's sensor is coarser than the drone's camera
 
 

@@ -43,9 +43,6 @@ import numpy as np
 from ..config import rng
 from .camera import CameraModel, apply_affine
 
-#: bump whenever the output changes for the same inputs (env.fingerprint: part of every benchmark trial key)
-GENERATOR_VERSION = 1
-
 _NEAREST = cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP
 _MAX_HEIGHT_FRACTION = 0.95
 GENERATOR_VERSION = 2  # bump whenever the frames change for the same inputs (env/fingerprint.py)
