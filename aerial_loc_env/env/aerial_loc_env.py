@@ -254,7 +254,7 @@ class AerialLocEnv(gym.Env):
     * v0 of ``RealisticPaper``, ``SeasonChange``, ``Downtown`` (new): the realistic map-camera gap, calibrated
       on real two-epoch pairs (``aerial-loc gap``): epoch B of the city (``[epoch]``), the map acquired by
       another sensor under another sun (``[database]``, ``shadows.database_sun_deg``), the perspective camera
-      (``[perspective]``) and frame-to-frame auto-exposure.
+      (``[perspective]``), the camera's errors (``[gimbal]``, ``[altimeter]``, ``[exposure]``, ``[haze]``).
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 4}
