@@ -237,14 +237,16 @@ _QUIET = {"shadows.strength_range": [0.0, 0.0]}
 
 def realism_levels() -> list[tuple[str, str, str, dict, str]]:
     """The realism levels shown by ``write_realism_pictures``, built from the realistic presets' specs."""
+    from .config import config_to_dict
     from .env import load_scenario
+    from .env.scenarios import SECTIONS
 
     real = load_scenario("AerialLoc/RealisticPaper-v0").to_dict()
     season = load_scenario("AerialLoc/SeasonChange-v0").to_dict()
-    downtown = load_scenario("AerialLoc/Downtown-v0").to_dict()
-    relief = {k: v for k, v in downtown.items() if k not in ("id", "description", "epoch", "database")}
-    relief["shadows"] = {**downtown["shadows"], "strength_range": [0.0, 0.0]}
-    relief.pop("photometry", None)
+    # relief alone: Downtown with every other part of the gap back at its default (off)
+    relief = {name: config_to_dict(SECTIONS[name]()()) for name in
+              ("epoch", "database", "gimbal", "altimeter", "exposure", "haze", "photometry")}
+    relief["shadows"] = {"strength_range": [0.0, 0.0], "database_sun_deg": None}
     sun = real["shadows"]["database_sun_deg"]
     return [
         ("paper", "the paper's setting: shadow-free map | camera with cast shadows (PaperShadows)",
