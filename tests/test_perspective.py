@@ -209,3 +209,17 @@ def test_facades_are_lit_by_the_sun_they_face(azimuth, lit):
     el = math.radians(30.0)
     linear = 0.5 * cfg.ambient + (1 - cfg.ambient) / math.tan(el) if lit else 0.5 * cfg.ambient
     assert prof[mid] == pytest.approx(ROOF * cfg.facade_gain * min(linear, 1.5) ** (1 / 2.2), abs=1.0)
+
+
+def test_flat_ground_keeps_the_affine_map_coordinates_and_the_roof_moves():
+    """Pixels whose neighbourhood is flat ground skip the refinement: exactly the affine coordinates there; the
+    roof (east of nadir, r h / (H - h) further out) does not."""
+    r = renderer(box_map(30.0, 50.0, 40.0))
+    a = r.camera_to_map(NADIR)
+    view = r._view.maps(a, H, CAM)
+    u, v = np.meshgrid(np.arange(CAM.width_px, dtype=np.float64), np.arange(CAM.height_px, dtype=np.float64))
+    affine_xy = np.dstack([a[0, 0] * u + a[0, 1] * v + a[0, 2], a[1, 0] * u + a[1, 1] * v + a[1, 2]])
+    west = slice(0, CAM.width_px // 2 - 10)     # the building is east of nadir: the west half is open ground
+    assert np.abs(view.xy[:, west] - affine_xy[:, west]).max() < 1e-3
+    roof = (slice(190, 210), slice(CAM.width_px // 2 + 200, CAM.width_px // 2 + 240))   # ~50-60 m east: roof
+    assert np.abs(view.xy[roof] - affine_xy[roof]).max() > 1.0

@@ -170,6 +170,14 @@ class ReliefView:
             self._grids[key] = tuple(cv2.split(self._centred_grid(camera)))
         return self._grids[key]
 
+    def _ground_heights(self, radius: int) -> np.ndarray:
+        """The block maximum dilated by ``radius`` blocks (once per radius): zero where a whole neighbourhood is
+        flat ground."""
+        key = ("ground", radius)
+        if key not in self._grids:
+            self._grids[key] = cv2.dilate(self._march_heights(), np.ones((2 * radius + 1,) * 2, np.uint8))
+        return self._grids[key]
+
     def _march_heights(self) -> np.ndarray:
         """The height model's block maximum over ``_MARCH_FACTOR`` px (once): the coarse march misses nothing."""
         if self._pooled is None:
@@ -231,6 +239,17 @@ class ReliefView:
             cv2.threshold(probe, z - 1e-4, z, cv2.THRESH_BINARY, dst=probe)   # hit: the ray is at/below the surface
             cv2.max(z_hit, probe, dst=z_hit)
         z_hit = cv2.dilate(z_hit, np.ones((3, 3), np.uint8))
+        # Flat ground: a cell whose rays hit nothing in the march (z0 = 0) and whose pixels all look at ground of
+        # height 0 (the block maximum dilated by the cell's reach, sampled like the march) sees the ground at its
+        # affine point g: the fixed-point steps below would leave it there (z1 = z2 = 0). Only the other cells'
+        # pixels (marked by z0 >= 0; flat ones get -1) are refined, as 1-D arrays.
+        reach = 2.0 * max(abs(a[0, 0]) + abs(a[0, 1]), abs(a[1, 0]) + abs(a[1, 1]))   # map px per axis, in a cell
+        ground = cv2.warpAffine(self._ground_heights(int(math.ceil((reach + 1.0) / f))), coarse, (wc, hc),
+                                flags=_NEAREST, borderMode=cv2.BORDER_CONSTANT)
+        relief = cv2.bitwise_or(cv2.compare(z_hit, 0.0, cv2.CMP_GT), cv2.compare(ground, 0.0, cv2.CMP_GT))
+        if cv2.countNonZero(relief) == 0:
+            return None if tilt is None else ViewMaps(gx, gy, None, bbox)
+        z_hit[relief == 0] = -1.0
         if tilt is None and margin == 0 and (wc * f, hc * f) == (w, h):
             z0 = cv2.resize(z_hit, (w, h), interpolation=cv2.INTER_NEAREST)
         else:   # camera pixel -> coarse pixel (q + margin - (F - 1) / 2) / F
@@ -238,60 +257,52 @@ class ReliefView:
                                   [0.0, 1.0 / f, (cv + margin - (f - 1) / 2.0) / f]])
             z0 = cv2.remap(z_hit, cv2.transform(rays, to_coarse), None, cv2.INTER_NEAREST,
                            borderMode=cv2.BORDER_REPLICATE)
+        idx = np.flatnonzero(z0 >= 0.0)
         cap = np.float32(_MAX_HEIGHT_FRACTION * big_h) if z_raw > _MAX_HEIGHT_FRACTION * big_h else None
-
-        def height(x: np.ndarray, y: np.ndarray) -> np.ndarray:
-            if max(self.dsm.shape) < _REMAP_MAX_PX:
-                hz = cv2.remap(self.dsm, x, y, cv2.INTER_NEAREST)
-            else:
-                c0, r0, c1, r1 = _window(bbox, 1.0, 0.0, self.dsm.shape[1], self.dsm.shape[0])
-                hz = cv2.remap(self.dsm[r0:r1, c0:c1], x - np.float32(c0), y - np.float32(r0), cv2.INTER_NEAREST,
-                               borderMode=cv2.BORDER_REPLICATE)
-            return hz if cap is None else np.minimum(hz, cap, out=hz)
-
-        # Fixed-point steps z_{k+1} = h(m(z_k)) from the march's z0 (just below the first hit): z1 is the height
-        # of the surface the ray is in there; where the next step leaves it unchanged the ray sees that surface
-        # (a flat roof, the ground: most pixels). The others (walls, roof edges, trees, low objects) get one
-        # more step on their own; where z keeps jumping between the street and the roof the ray crosses a wall.
-        def along(z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:   # m(z) = g - (g - c) z / H, per plane
-            return (cv2.add(gx, cv2.multiply(ex, z, scale=-1.0 / big_h)),
-                    cv2.add(gy, cv2.multiply(ey, z, scale=-1.0 / big_h)))
-
-        z1 = height(*along(z0))
-        x, y = along(z1)
-        z2 = height(x, y)
-        sel = np.flatnonzero(z2 != z1)
-        if sel.size == 0:
-            return ViewMaps(x, y, None, bbox)
-        du, dv = ex.ravel()[sel], ey.ravel()[sel]     # ground point - nadir, map px
+        du, dv = ex.ravel()[idx], ey.ravel()[idx]     # ground point - nadir, map px
         nx, ny = np.float32(nadir_x), np.float32(nadir_y)
 
         def on_map(k: np.ndarray) -> tuple[np.ndarray, np.ndarray]:   # map pixel of the subset's rays scaled by k
             return du * k + nx, dv * k + ny
 
-        def height_subset(z: np.ndarray) -> np.ndarray:
-            sx, sy = on_map(1.0 - z / np.float32(big_h))
-            return height(_rows(sx), _rows(sy)).ravel()[:sel.size]
+        def height(z: np.ndarray, part: np.ndarray | None = None) -> np.ndarray:
+            """h(m(z)) for the subset's rays (or its ``part``) at heights z."""
+            k = 1.0 - z / np.float32(big_h)
+            sx, sy = on_map(k) if part is None else (du[part] * k + nx, dv[part] * k + ny)
+            sx, sy = _rows(sx), _rows(sy)
+            if max(self.dsm.shape) < _REMAP_MAX_PX:
+                hz = cv2.remap(self.dsm, sx, sy, cv2.INTER_NEAREST)
+            else:
+                c0, r0, c1, r1 = _window(bbox, 1.0, 0.0, self.dsm.shape[1], self.dsm.shape[0])
+                hz = cv2.remap(self.dsm[r0:r1, c0:c1], sx - np.float32(c0), sy - np.float32(r0), cv2.INTER_NEAREST,
+                               borderMode=cv2.BORDER_REPLICATE)
+            hz = hz.ravel()[:z.size]
+            return hz if cap is None else np.minimum(hz, cap, out=hz)
 
+        # Fixed-point steps z_{k+1} = h(m(z_k)) from the march's z0 (just below the first hit): z1 is the height
+        # of the surface the ray is in there; where the next step leaves it unchanged the ray sees that surface
+        # (a flat roof, the ground: most pixels). The others (walls, roof edges, trees, low objects) get one
+        # more step; where z keeps jumping between the street and the roof the ray crosses a wall.
         tol = np.float32(_SURFACE_TOL_M)
-        z1s, z2s = z1.ravel()[sel], z2.ravel()[sel]
-        seen1 = np.abs(z2s - z1s) <= tol
-        z3s = height_subset(z2s)
-        seen2 = ~seen1 & (np.abs(z3s - z2s) <= tol)
-        scale_s = 1.0 - np.where(seen1, z1s, z2s) / np.float32(big_h)
-        wall = ~(seen1 | seen2)
+        z1 = height(z0.ravel()[idx])
+        z2 = height(z1)
+        moved = np.flatnonzero(np.abs(z2 - z1) > tol)      # not settled on a surface after one step
+        wall = np.zeros(idx.size, bool)
+        wall[moved] = np.abs(height(z2[moved], moved) - z2[moved]) > tol
+        scale = 1.0 - z1 / np.float32(big_h)
+        scale[moved] = 1.0 - z2[moved] / np.float32(big_h)
         facade = facing = None
         if wall.any():
             # the ray entered the building through a wall and runs inside down to the ground (unless the
             # building is thinner than its horizontal travel): the facade takes the building's colour where the
             # ray meets the ground, one map pixel further from the wall so that bilinear sampling skips the street
             dist = np.maximum(np.hypot(du[wall], dv[wall]), np.float32(1e-3))
-            scale_s[wall] = 1.0 + 1.0 / dist
-            facade = sel[wall]
+            scale[wall] = 1.0 + 1.0 / dist
+            facade = idx[wall]
             # a wall the camera sees faces it: towards nadir (map u east, v south)
             facing = np.stack([-du[wall] / dist, dv[wall] / dist], axis=1)
-        x.ravel()[sel], y.ravel()[sel] = on_map(scale_s)
-        return ViewMaps(x, y, facade, bbox, facing)
+        gx.ravel()[idx], gy.ravel()[idx] = on_map(scale)
+        return ViewMaps(gx, gy, facade, bbox, facing)
 
     def shade_facades(self, image: np.ndarray, view: ViewMaps, sun_deg: tuple[float, float] | None = None,
                       gamma: float = 2.2) -> np.ndarray:
