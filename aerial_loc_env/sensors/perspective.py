@@ -203,11 +203,9 @@ class ReliefView:
             ru, rv = cv2.split(rays)
         else:
             ru, rv = self._centred_planes(camera)
-        # the ground point each ray meets, relative to nadir (ex, ey) and absolute (gx, gy), map px: one pass each
-        ex = cv2.addWeighted(ru, a[0, 0], rv, a[0, 1], 0.0)
-        ey = cv2.addWeighted(ru, a[1, 0], rv, a[1, 1], 0.0)
-        gx = cv2.add(ex, float(nadir_x))
-        gy = cv2.add(ey, float(nadir_y))
+        # the ground point each ray meets (gx, gy), map px: one pass each
+        gx = cv2.addWeighted(ru, a[0, 0], rv, a[0, 1], float(nadir_x))
+        gy = cv2.addWeighted(ru, a[1, 0], rv, a[1, 1], float(nadir_y))
         if self.dsm is None:
             return None if tilt is None else ViewMaps(gx, gy, None, bbox)
         big_h = float(altitude_m)
@@ -259,7 +257,9 @@ class ReliefView:
                            borderMode=cv2.BORDER_REPLICATE)
         idx = np.flatnonzero(z0 >= 0.0)
         cap = np.float32(_MAX_HEIGHT_FRACTION * big_h) if z_raw > _MAX_HEIGHT_FRACTION * big_h else None
-        du, dv = ex.ravel()[idx], ey.ravel()[idx]     # ground point - nadir, map px
+        rus, rvs = ru.ravel()[idx], rv.ravel()[idx]
+        m = a[:, :2].astype(np.float32)
+        du, dv = m[0, 0] * rus + m[0, 1] * rvs, m[1, 0] * rus + m[1, 1] * rvs     # ground point - nadir, map px
         nx, ny = np.float32(nadir_x), np.float32(nadir_y)
 
         def on_map(k: np.ndarray) -> tuple[np.ndarray, np.ndarray]:   # map pixel of the subset's rays scaled by k
@@ -267,6 +267,8 @@ class ReliefView:
 
         def height(z: np.ndarray, part: np.ndarray | None = None) -> np.ndarray:
             """h(m(z)) for the subset's rays (or its ``part``) at heights z."""
+            if z.size == 0:
+                return z.copy()
             k = 1.0 - z / np.float32(big_h)
             sx, sy = on_map(k) if part is None else (du[part] * k + nx, dv[part] * k + ny)
             sx, sy = _rows(sx), _rows(sy)
