@@ -197,12 +197,9 @@ class ReliefView:
         nadir_x, nadir_y = a[:, :2] @ np.array([cu, cv]) + a[:, 2]     # the map pixel below the camera
         corners = apply_affine(a, tilted_corners(camera, tilt))
         bbox = (*corners.min(axis=0), *corners.max(axis=0))
-        rays = self._centred_grid(camera)
+        ru, rv = self._centred_planes(camera)
         if tilt is not None:
-            rays = _tilted_rays(rays, camera, tilt)
-            ru, rv = cv2.split(rays)
-        else:
-            ru, rv = self._centred_planes(camera)
+            ru, rv = _tilted_rays(ru, rv, camera, tilt)
         # the ground point each ray meets (gx, gy), map px: one pass each
         gx = cv2.addWeighted(ru, a[0, 0], rv, a[0, 1], float(nadir_x))
         gy = cv2.addWeighted(ru, a[1, 0], rv, a[1, 1], float(nadir_y))
@@ -253,7 +250,8 @@ class ReliefView:
         else:   # camera pixel -> coarse pixel (q + margin - (F - 1) / 2) / F
             to_coarse = np.array([[1.0 / f, 0.0, (cu + margin - (f - 1) / 2.0) / f],
                                   [0.0, 1.0 / f, (cv + margin - (f - 1) / 2.0) / f]])
-            z0 = cv2.remap(z_hit, cv2.transform(rays, to_coarse), None, cv2.INTER_NEAREST,
+            z0 = cv2.remap(z_hit, cv2.addWeighted(ru, to_coarse[0, 0], ru, 0.0, to_coarse[0, 2]),
+                           cv2.addWeighted(rv, to_coarse[1, 1], rv, 0.0, to_coarse[1, 2]), cv2.INTER_NEAREST,
                            borderMode=cv2.BORDER_REPLICATE)
         idx = np.flatnonzero(z0 >= 0.0)
         cap = np.float32(_MAX_HEIGHT_FRACTION * big_h) if z_raw > _MAX_HEIGHT_FRACTION * big_h else None
@@ -332,13 +330,16 @@ class ReliefView:
         return image
 
 
-def _tilted_rays(grid: np.ndarray, camera: CameraModel, tilt: np.ndarray) -> np.ndarray:
-    """(h, w, 2) float32 nadir-camera offsets from the principal point of the tilted camera's pixels (the
-    homography conjugated by the centring, applied to the centred ``grid``: one pass)."""
+def _tilted_rays(u: np.ndarray, v: np.ndarray, camera: CameraModel,
+                 tilt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The nadir-camera offsets from the principal point (two (h, w) float32 planes) of the tilted camera's
+    pixels at centred offsets ``u``, ``v``: the homography conjugated by the centring, per plane."""
     cu, cv = camera.center_px
     shift = np.array([[1.0, 0.0, cu], [0.0, 1.0, cv], [0.0, 0.0, 1.0]])
-    centred = np.linalg.inv(shift) @ tilt @ shift
-    return cv2.perspectiveTransform(grid.reshape(1, -1, 2), centred).reshape(grid.shape)
+    c = np.linalg.inv(shift) @ tilt @ shift
+    den = cv2.addWeighted(u, c[2, 0], v, c[2, 1], c[2, 2])
+    return (cv2.divide(cv2.addWeighted(u, c[0, 0], v, c[0, 1], c[0, 2]), den),
+            cv2.divide(cv2.addWeighted(u, c[1, 0], v, c[1, 1], c[1, 2]), den))
 
 
 def _rows(a: np.ndarray, width: int = 1024) -> np.ndarray:
