@@ -106,7 +106,7 @@ class ExternalFlight:
             u._prior = Prior("gaussian", (float(mean[0]), float(mean[1])), float(std))
         else:
             u._prior = Prior("uniform")
-        u.briefing = dataclasses.replace(u.briefing, prior=u._prior, altitude_m=float(first.altitude_m))
+        u.briefing = dataclasses.replace(u.briefing, prior=u._prior)   # altitude: the scenario's nominal
         self.briefing = u.briefing
         self._gimbal = u._attitude
         self.frames = 0
@@ -144,7 +144,10 @@ class ExternalFlight:
             speed, yaw_rate = 0.0, 0.0
         else:
             dt = pose.t_s - last.t_s
-            speed = math.hypot(pose.x_m - last.x_m, pose.y_m - last.y_m) / dt
+            # the odometry's forward speed: the displacement along the heading (a copter moving sideways or
+            # backwards is not a unicycle; its sideways motion is not in the env's odometry model)
+            speed = ((pose.x_m - last.x_m) * math.cos(pose.yaw_rad)
+                     + (pose.y_m - last.y_m) * math.sin(pose.yaw_rad)) / dt
             yaw_rate = float(wrap_angle(pose.yaw_rad - last.yaw_rad)) / dt
         on = sc.odometry
         noise = rng.normal(0.0, 1.0, 4) * (on.speed_std_mps, on.yaw_rate_std_radps, on.heading_std_rad,

@@ -212,14 +212,15 @@ class ScenarioRun:
             t0_s = t_s + float(self.driver.briefing.dt_s)     # simulated time keeps running across episodes
 
     def follow_steps(self, ground_amsl_m: float, *, pad_std_m: float = 0.5,
-                     min_altitude_frac: float = 0.5) -> Iterator[Step | None]:
+                     min_altitude_frac: float = 0.6) -> Iterator[Step | None]:
         """Frames at the simulator's true vehicle (``self.follow``, set by the caller from SIM_STATE).
 
         The camera frames at the scenario's rate (stream time: the monotonic time SIM_STATE arrived) while the
         vehicle is above ``min_altitude_frac`` of the scenario's altitude (the range its estimators are built for)
         with the footprint on the map. Before the first frame the fix is the take-off point (a surveyed pad,
-        ``pad_std_m``), as a vehicle on the ground knows where it stands; below that height later (landing) the
-        last estimate is held as degraded; off the map it is lost. Yields None while no truth has come.
+        ``pad_std_m``), as a vehicle on the ground knows where it stands; below that height later (landing) or
+        off the map the fix is lost (the autopilot then lands on inertial navigation). Yields None while no truth
+        has come.
         """
         from aerial_loc_env.env.external import ExternalFlight, ExternalPose
 
@@ -228,11 +229,13 @@ class ScenarioRun:
         started = False
         last_frame: Step | None = None
         min_alt = min_altitude_frac * float(self.env.unwrapped.scenario.flight.altitude_m)
+        seen_s = math.nan
         while True:
             v = self.follow
-            if v is None:
+            if v is None or v.received_mono_s == seen_s:    # no truth yet, or nothing new since the last step
                 yield None
                 continue
+            seen_s = v.received_mono_s
             x, y = (float(np.ravel(c)[0]) for c in self.ground_map.latlon_to_world(v.lat_deg, v.lon_deg))
             pose = ExternalPose(x, y, math.pi / 2 - v.heading_rad, v.alt_amsl_m - ground_amsl_m, v.received_mono_s)
             if pad is None:
@@ -243,9 +246,9 @@ class ScenarioRun:
                 est = _Estimate(pad[0], pad[1], None, np.eye(2) * pad_std_m ** 2)
                 yield Step(pose.t_s, est, max(0.0, pose.altitude_m), pose.yaw_rad, math.hypot(x - pad[0], y - pad[1]))
                 continue
-            if not airborne:     # landing (hold the last estimate, degraded) or off the map (lost)
-                held = last_frame.estimate
-                est = _Estimate(held.x_m, held.y_m, None, np.asarray(held.cov_xy_m2), "lost" if high else "degraded")
+            if not airborne:     # landing below the camera's range, or off the map: no fix (lost)
+                held = last_frame.estimate      # (a held position sent as valid told the EKF the vehicle had
+                est = _Estimate(held.x_m, held.y_m, None, np.asarray(held.cov_xy_m2), "lost")   # stopped)
                 yield Step(pose.t_s, est, max(0.0, pose.altitude_m), pose.yaw_rad, math.hypot(x - held.x_m,
                                                                                              y - held.y_m))
                 continue
