@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
+import io
 import math
+import socket
+import threading
+import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -64,3 +68,41 @@ def vincenty_m(lat1, lon1, lat2, lon2) -> float:
 def vincenty_fixture() -> Callable[[float, float, float, float], float]:
     """Geodesic distance in metres between two WGS84 (lat, lon) points (Vincenty; independent of the library)."""
     return vincenty_m
+
+
+def run_mavlink_cli(argv: list[str]) -> tuple[int, str, list]:
+    """Run ``aerial-loc mavlink`` with ``argv`` into a real UDP socket on loopback (``--connect`` is added) and
+    collect every MAVLink message it sends until it ends (plus 0.2 s): (exit status, its printed output, msgs)."""
+    from pymavlink.dialects.v20 import common as mavlink2
+
+    from aerial_loc_env.mavlink import cli as mav_cli
+
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock.bind(("127.0.0.1", 0))
+    sock.settimeout(0.05)
+    args = mav_cli.build_parser().parse_args([*argv, "--connect", f"udpout:127.0.0.1:{sock.getsockname()[1]}"])
+    out = io.StringIO()
+    result = {}
+    runner = threading.Thread(target=lambda: result.setdefault("rc", mav_cli.run(args, out=out)))
+    runner.start()
+    parser = mavlink2.MAVLink(None)
+    msgs, drain_until = [], None
+    try:
+        while drain_until is None or time.monotonic() < drain_until:   # until the run ends, then 0.2 s more
+            if drain_until is None and not runner.is_alive():
+                drain_until = time.monotonic() + 0.2
+            try:
+                data, _ = sock.recvfrom(65536)
+            except TimeoutError:
+                continue
+            msgs += parser.parse_buffer(data) or []
+        runner.join()
+    finally:
+        sock.close()
+    return result.get("rc", -1), out.getvalue(), msgs
+
+
+@pytest.fixture(name="run_mavlink_cli", scope="session")
+def run_mavlink_cli_fixture() -> Callable[[list[str]], tuple[int, str, list]]:
+    """``aerial-loc mavlink`` end to end into a loopback UDP socket: see ``run_mavlink_cli``."""
+    return run_mavlink_cli

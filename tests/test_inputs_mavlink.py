@@ -3,14 +3,11 @@ signing keys that are not UTF-8 or one hex digit short."""
 
 from __future__ import annotations
 
-import io
 import socket
 import sys
-import threading
 import time
 
 import pytest
-from pymavlink.dialects.v20 import common as mavlink2
 
 from aerial_loc_env.errors import ConfigError, MissingExtraError
 from aerial_loc_env.mavlink import cli as mav_cli
@@ -29,33 +26,13 @@ def _free_udp_port() -> int:
         return s.getsockname()[1]
 
 
-def test_speed_zero_delivers_every_frame():
+def test_speed_zero_delivers_every_frame(run_mavlink_cli):
     """'--speed 0' (replay into a logger) must hand every frame's fix to the wire, not only the last one."""
     pytest.importorskip("aerial_loc_env.estimators.registry", reason="the agents are not available")
-    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    sock.bind(("127.0.0.1", 0))
-    sock.settimeout(0.05)
-    args = mav_cli.build_parser().parse_args([
+    rc, _, msgs = run_mavlink_cli([
         "--scenario", "AerialLoc/Small-v0", "--agent", "dead-reckoning", "--seed", "1", "--speed", "0",
-        "--rate-hz", "200", "--ground-amsl-m", "30", "--connect", f"udpout:127.0.0.1:{sock.getsockname()[1]}",
-        "--quiet"])
-    out = io.StringIO()
-    result = {}
-    runner = threading.Thread(target=lambda: result.setdefault("rc", mav_cli.run(args, out=out)))
-    runner.start()
-    parser = mavlink2.MAVLink(None)
-    msgs, drain_until = [], None
-    while drain_until is None or time.monotonic() < drain_until:
-        if drain_until is None and not runner.is_alive():
-            drain_until = time.monotonic() + 0.2
-        try:
-            data, _ = sock.recvfrom(65536)
-        except TimeoutError:
-            continue
-        msgs += parser.parse_buffer(data) or []
-    runner.join()
-    sock.close()
-    assert result["rc"] == 0
+        "--rate-hz", "200", "--ground-amsl-m", "30", "--quiet"])
+    assert rc == 0
     # Small-v0: 15 s at 4 Hz = 60 steps, 61 frames; each frame's fix carries its own GPS time
     times = {(m.time_week, m.time_week_ms) for m in msgs if m.get_type() == "GPS_INPUT"}
     positions = {(m.lat, m.lon) for m in msgs if m.get_type() == "GPS_INPUT"}

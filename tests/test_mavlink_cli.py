@@ -17,7 +17,7 @@ from aerial_loc_env.mavlink import cli as mav_cli
 gym = pytest.importorskip("gymnasium")
 
 
-def test_scenario_agent_stream_lands_on_the_map():
+def test_scenario_agent_stream_lands_on_the_map(run_mavlink_cli):
     pytest.importorskip("aerial_loc_env.estimators.registry", reason="the agents are not available")
     from aerial_loc_env.env import world_to_action  # noqa: F401  (registers the scenarios)
 
@@ -28,32 +28,11 @@ def test_scenario_agent_stream_lands_on_the_map():
     centre = om.world_to_latlon(om.width_m / 2, om.height_m / 2)
     env.close()
 
-    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    sock.bind(("127.0.0.1", 0))
-    sock.settimeout(0.05)
-    args = mav_cli.build_parser().parse_args([
+    rc, printed, msgs = run_mavlink_cli([
         "--scenario", "AerialLoc/Small-v0", "--agent", "dead-reckoning", "--seed", "3", "--speed", "10",
-        "--connect", f"udpout:127.0.0.1:{sock.getsockname()[1]}", "--message", "gps,odometry",
-        "--ground-amsl-m", "400"])
-    out = io.StringIO()
-    result = {}
-    runner = threading.Thread(target=lambda: result.setdefault("rc", mav_cli.run(args, out=out)))
-    runner.start()
-    parser = mavlink2.MAVLink(None)
-    msgs = []
-    drain_until = None
-    while drain_until is None or time.monotonic() < drain_until:   # until the run ends, then 0.2 s more
-        if drain_until is None and not runner.is_alive():
-            drain_until = time.monotonic() + 0.2
-        try:
-            data, _ = sock.recvfrom(65536)
-        except TimeoutError:
-            continue
-        msgs += parser.parse_buffer(data) or []
-    runner.join()
-    sock.close()
-    assert result["rc"] == 0
-    assert out.getvalue().strip().splitlines()[-1].startswith("done:")
+        "--message", "gps,odometry", "--ground-amsl-m", "400"])
+    assert rc == 0
+    assert printed.strip().splitlines()[-1].startswith("done:")
     gps = [m for m in msgs if m.get_type() == "GPS_INPUT"]
     odo = [m for m in msgs if m.get_type() == "ODOMETRY"]
     origin = [m for m in msgs if m.get_type() == "SET_GPS_GLOBAL_ORIGIN"]
