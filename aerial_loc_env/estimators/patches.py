@@ -122,6 +122,7 @@ class PatchSampler:
                                     [0.0, 0.0, 1.0]])
         self._cols = np.arange(geometry.width_px, dtype=np.float32)
         self._rows = np.arange(geometry.height_px, dtype=np.float32)
+        self._map_buffers: tuple[np.ndarray, np.ndarray] | None = None
 
     def grid_to_level(self, states: np.ndarray, altitude_m: float) -> np.ndarray:
         """Affines (N, 2, 3): reduced-grid pixel -> stored-level pixel, from ``camera_to_map`` (eq. (3))."""
@@ -167,16 +168,21 @@ class PatchSampler:
         return 1 if self._remap_level.ndim == 2 else self._remap_level.shape[2]
 
     def _maps(self, e: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Level-pixel coordinates (N, h, w) of every grid node, float32: two broadcast additions."""
+        """Level-pixel coordinates (N, h, w) of every grid node, float32: ``e_00 col + (e_01 row + e_02)``.
+
+        Written into two buffers kept across calls (fresh 7 MB arrays cost their page faults on every step),
+        as a copy of the per-column term then one in-place add of the per-row term: the same float32 sums as
+        a broadcast ``np.add``, in passes with longer inner loops. Valid until the next call.
+        """
         n = e.shape[0]
         gh, gw = self.geometry.height_px, self.geometry.width_px
-        mx = np.empty((n, gh, gw), np.float32)
-        my = np.empty((n, gh, gw), np.float32)
-        np.add((e[:, 0, 0, None] * self._cols)[:, None, :],
-               (e[:, 0, 1, None] * self._rows + e[:, 0, 2, None])[:, :, None], out=mx)
-        np.add((e[:, 1, 0, None] * self._cols)[:, None, :],
-               (e[:, 1, 1, None] * self._rows + e[:, 1, 2, None])[:, :, None], out=my)
-        return mx, my
+        if self._map_buffers is None or self._map_buffers[0].shape[0] < n:
+            self._map_buffers = (np.empty((n, gh, gw), np.float32), np.empty((n, gh, gw), np.float32))
+        maps = tuple(b[:n] for b in self._map_buffers)
+        for i, m in enumerate(maps):
+            m[...] = (e[:, i, 0, None] * self._cols)[:, None, :]
+            m += (e[:, i, 1, None] * self._rows + e[:, i, 2, None])[:, :, None]
+        return maps
 
     def _remap_into(self, out: np.ndarray, mx: np.ndarray, my: np.ndarray) -> None:
         """Bilinear samples of the level at (mx, my) (any (M, ...) shape, at most 32000 rows once flattened to

@@ -76,7 +76,7 @@ class ShadowMask:
 
     @property
     def fraction(self) -> float:
-        return float(self.mask.mean())
+        return np.count_nonzero(self.mask) / self.mask.size     # = float(mask.mean()): exact count / size
 
 
 def _disc(radius: int) -> np.ndarray:
@@ -135,7 +135,11 @@ class ShadowDetector:
         if n_in == 0 or n_in == mask.size:
             return ShadowMask(np.zeros(mask.shape, bool), img.shape[:2])
         inside, outside = mask.ravel(), ~mask.ravel()   # np.compress: the same arrays as lum[mask], 2x faster
-        ratio = float(np.compress(inside, lum).mean()) / max(float(np.compress(outside, lum).mean()), 1e-6)
+        if lum.size * 255 < 2 ** 24:                    # integer luminance: exact sums, no masked copies
+            lum_out, lum_in = (float(m[0]) for m in _masked_channel_means(lum, mask))
+        else:
+            lum_in, lum_out = float(np.compress(inside, lum).mean()), float(np.compress(outside, lum).mean())
+        ratio = lum_in / max(lum_out, 1e-6)
         bluer = c3 is None or (float(np.compress(inside, c3).mean()) - float(np.compress(outside, c3).mean())
                                >= self.config.min_blue_shift)
         if ratio > self.config.max_luminance_ratio or not bluer:
@@ -207,8 +211,9 @@ def _masked_channel_means(small_rgb: np.ndarray, mask: np.ndarray) -> tuple[np.n
     """Per-channel float32 means outside and inside ``mask``, the same floats as
     ``small_rgb[~mask].astype(np.float32).mean(axis=0)`` (and ``[mask]``) without the two masked copies: the
     sums of 8-bit values below 2^24 are exact integers in any order (float64 products here, float32 pairwise
-    sums in NumPy), then divided as NumPy's mean divides (a float32 sum by the count)."""
-    flat = small_rgb.reshape(-1, 3).astype(np.float64)
+    sums in NumPy), then divided as NumPy's mean divides (a float32 sum by the count). Any number of channels
+    (an (h, w) image is one), integer-valued."""
+    flat = small_rgb.reshape(mask.size, -1).astype(np.float64)
     inside = mask.reshape(-1)
     n_in = int(np.count_nonzero(inside))
     s_in = inside.astype(np.float64) @ flat

@@ -85,6 +85,9 @@ class CameraModel:
 
     def gsd_m(self, altitude_m: ArrayLike) -> ArrayLike:
         """Ground size of one pixel along ``u`` (metres); along ``v`` it is ``pixel_aspect`` times this."""
+        if isinstance(altitude_m, (float, int)) and not isinstance(altitude_m, bool) and \
+                math.isfinite(altitude_m) and altitude_m > 0.0:   # a plain number: the same float64 arithmetic
+            return 2.0 * float(altitude_m) * math.tan(math.radians(self.hfov_deg) / 2.0) / self.width_px
         alt = _positive_altitude(altitude_m)
         gsd = 2.0 * alt * math.tan(math.radians(self.hfov_deg) / 2.0) / self.width_px
         return float(gsd) if np.ndim(gsd) == 0 else gsd
@@ -102,14 +105,18 @@ class CameraModel:
     def camera_to_world(self, x_m: ArrayLike, y_m: ArrayLike, yaw_rad: ArrayLike,
                         altitude_m: ArrayLike) -> np.ndarray:
         """Affine (..., 2, 3): camera pixel (u, v) -> world metres (x east, y north)."""
-        x, y, yaw, alt = np.broadcast_arrays(*(np.asarray(a, dtype=np.float64) for a in
-                                               (x_m, y_m, yaw_rad, altitude_m)))
-        gu = np.asarray(self.gsd_m(alt), dtype=np.float64)
+        x, y, yaw = (np.asarray(a, dtype=np.float64) for a in (x_m, y_m, yaw_rad))
+        alt = np.asarray(altitude_m, dtype=np.float64)
+        shape = np.broadcast_shapes(x.shape, y.shape, yaw.shape, alt.shape)
+        if not x.shape == y.shape == yaw.shape == shape:
+            x, y, yaw = np.broadcast_arrays(x, y, yaw, alt)[:3]
+        # a scalar altitude stays a scalar: the same float products as broadcast, without the (N,) copies
+        gu = self.gsd_m(altitude_m if isinstance(altitude_m, (float, int)) else alt)
         gv = gu * self.pixel_aspect
         c, s = np.cos(yaw), np.sin(yaw)
         cu, cv = self.center_px
         # right of the vehicle = (sin, -cos), forward = (cos, sin); v grows backwards.
-        a = np.empty(x.shape + (2, 3))
+        a = np.empty(shape + (2, 3))
         a[..., 0, 0] = gu * s
         a[..., 0, 1] = -gv * c
         a[..., 1, 0] = -gu * c
@@ -155,8 +162,16 @@ class CameraModel:
     def camera_to_map(self, orthomap: MapGrid, x_m: ArrayLike, y_m: ArrayLike, yaw_rad: ArrayLike,
                       altitude_m: ArrayLike) -> np.ndarray:
         """Affine (..., 2, 3): camera pixel (u, v) -> map pixel (u, v); eq. (3) ``s R(psi) x + T``."""
-        to_world = self.camera_to_world(x_m, y_m, yaw_rad, altitude_m)
-        return world_to_map_affine(orthomap) @ _homogeneous(to_world)
+        a = self.camera_to_world(x_m, y_m, yaw_rad, altitude_m)
+        # world_to_map_affine(orthomap) @ a, written out: that affine is diagonal, so each row of ``a`` is
+        # scaled and its translation shifted (the same floats as the 3x3 product, whose other terms are exact
+        # zeros; tests/test_camera.py checks it bit for bit), without N tiny matrix products
+        w = world_to_map_affine(orthomap)
+        a[..., 0, :] *= w[0, 0]
+        a[..., 0, 2] += w[0, 2]
+        a[..., 1, :] *= w[1, 1]
+        a[..., 1, 2] += w[1, 2]
+        return a
 
     def map_to_camera(self, orthomap: MapGrid, x_m: ArrayLike, y_m: ArrayLike, yaw_rad: ArrayLike,
                       altitude_m: ArrayLike) -> np.ndarray:
@@ -209,14 +224,6 @@ def invert_affine(a: np.ndarray) -> np.ndarray:
     inv[..., 1, 1] = lin[..., 0, 0] / det
     inv[..., :, 2] = -np.einsum("...ij,...j->...i", inv[..., :2], a[..., 2])
     return inv
-
-
-def _homogeneous(a: np.ndarray) -> np.ndarray:
-    """(..., 2, 3) -> (..., 3, 3) with the row (0, 0, 1), so affines compose with ``@``."""
-    out = np.zeros(a.shape[:-2] + (3, 3))
-    out[..., :2, :] = a
-    out[..., 2, 2] = 1.0
-    return out
 
 
 def _positive_altitude(altitude_m: ArrayLike) -> np.ndarray | float:

@@ -145,6 +145,10 @@ class ABBriefModel(MeasurementModel):
         stride = self.sampler.node_channels      # columns of sample_nodes' (N, nodes * stride) values
         self._k1 = (j1[:, None] * stride + np.arange(c)).ravel()
         self._k2 = (j2[:, None] * stride + np.arange(c)).ravel()
+        # one gathered item per test point where the c channels fit one: a float32 (c = 1) or the first two
+        # floats of a padded node read as one complex64 (c = 2): half the gathers for a/b, the same floats
+        self._j = (j1, j2) if (c, stride) in ((1, 1), (2, 4)) else None
+        self._j_items = c
 
     def _descriptor(self, values: np.ndarray) -> np.ndarray:
         """Bits (M, P c) of grid values (M, h w c) (nodes x channels flattened, channel fastest)."""
@@ -170,8 +174,15 @@ class ABBriefModel(MeasurementModel):
         if self.sampler is None:
             raise ConfigError("abBRIEF: call reset(briefing, rng) before scoring particles")
         values, valid = self.sampler.sample_nodes(states, altitude_m, self._nodes)
-        values = values.reshape(len(values), -1)
-        db_bits = np.take(values, self._k1, axis=1) > np.take(values, self._k2, axis=1)
+        if self._j is not None:
+            n = len(values)
+            items = values.reshape(n, -1) if self._j_items == 1 else \
+                np.ascontiguousarray(values.view(np.complex64)[..., 0])
+            first, second = (np.take(items, j, axis=1, mode="clip").view(np.float32) for j in self._j)
+            db_bits = first > second                   # (N, tests c), channel fastest, as with _k1 / _k2
+        else:
+            values = values.reshape(len(values), -1)
+            db_bits = np.take(values, self._k1, axis=1) > np.take(values, self._k2, axis=1)
         # eq. (4): XNOR count over all bits (keypoints x tests x channels) = bits - popcount(XOR)
         n_bits = prepared.bits.size
         disagree = popcount(np.packbits(db_bits, axis=1) ^ prepared.packed).sum(axis=1, dtype=np.int64)

@@ -19,7 +19,7 @@ from ...config import rng
 from ...errors import ConfigError
 from ..protocol import Agent, Estimate, prior_estimate
 from .core import FilterConfig, ParticleFilter
-from .estimate import circular_mean, mean_shift, weighted_cov, weighted_mean
+from .estimate import circular_mean, max_std_m, mean_shift, weighted_cov, weighted_mean
 from .measurement import make_model
 from .motion import OdometryMotionModel
 
@@ -89,7 +89,7 @@ class MCLAgent(Agent):
         else:
             center = weighted_mean(xy, W)
         cov = weighted_cov(xy, W, center)
-        std = float(np.sqrt(max(np.linalg.eigvalsh(cov)[-1], 0.0)))
+        std = max_std_m(cov)
         status = "ok" if std <= p.status_ok_std_m else "degraded" if std <= p.status_lost_std_m else "lost"
         stats = dict(stats)
         if "K" in stats:

@@ -5,6 +5,8 @@ landing between them.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 
@@ -18,6 +20,14 @@ def weighted_cov(xy: np.ndarray, W: np.ndarray, center: np.ndarray | None = None
     c = weighted_mean(xy, W) if center is None else center
     d = xy - c
     return (d * W[:, None]).T @ d
+
+
+def max_std_m(cov: np.ndarray) -> float:
+    """The 1-sigma spread along the major axis of a 2x2 covariance: the square root of its largest eigenvalue,
+    in closed form (``(a + c) / 2 + hypot((a - c) / 2, b)``; within a few ulp of ``eigvalsh``, without the
+    fixed cost of a LAPACK call per step)."""
+    a, b, c = float(cov[0, 0]), float(cov[0, 1]), float(cov[1, 1])
+    return math.sqrt(max(0.5 * (a + c) + math.hypot(0.5 * (a - c), b), 0.0))
 
 
 def circular_mean(angles_rad: np.ndarray, W: np.ndarray) -> float:

@@ -366,7 +366,8 @@ class IntensityPairsModel(MeasurementModel):
         elif mask_pts is not None:
             stats["shadow_pairs"] = int(np.count_nonzero(mask_pts[:K] ^ mask_pts[K:]))
         self.last_stats = stats
-        uv = np.stack([u, v], axis=1).astype(np.float64)
+        uv = np.empty((u.size, 2))
+        uv[:, 0], uv[:, 1] = u, v
         return PreparedPairs(uv, cam_bits, keep, log_scale, log_offset, pair_weights)
 
     def _finish_with_map(self, p: _PendingPairs, states: np.ndarray) -> PreparedPairs:
@@ -424,7 +425,10 @@ class IntensityPairsModel(MeasurementModel):
             inside = (col >= 0) & (col < W) & (row >= 0) & (row < H)
             np.clip(col, 0, W - 1, out=col)
             np.clip(row, 0, H - 1, out=row)
-        flat = row.astype(np.intp) * W + col.astype(np.intp)                            # nearest pixel
+        itype = np.int32 if W * H < 2 ** 31 else np.intp                                # 4-byte indices
+        flat = row.astype(itype)                                                        # nearest pixel
+        flat *= itype(W)
+        flat += col.astype(itype)
         db = self._db[flat]                                                             # (N, 2K) words
         if c == 3:  # RGBA bytes of the packed words; alpha (255 vs 255) never "greater", like the padding
             db8 = db.view(np.uint8).reshape(db.shape[0], 2 * K, 4)

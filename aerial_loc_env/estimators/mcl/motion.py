@@ -62,24 +62,31 @@ class OdometryMotionModel:
         return wrap(yaw_rad + rng.normal(0.0, self.noise.heading_std_rad * self.noise_scale, n))
 
     def propagate(self, states: np.ndarray, obs: Observation, rng: np.random.Generator) -> np.ndarray:
-        """Move every particle over the last step (in place; also returned)."""
+        """Move every particle over the last step (in place; also returned).
+
+        All the step's normal draws come from ONE ``standard_normal`` call, scaled per use: the same numbers,
+        in the same order, as one ``rng.normal(0, std, n)`` call per noise term (``normal`` is
+        ``0 + std * z`` over the same stream), without the fixed cost of four calls on N = 700.
+        """
         n = states.shape[0]
         k, dt = self.noise_scale, self.dt_s
-        v = obs.speed_mps + rng.normal(0.0, self.noise.speed_std_mps * k, n)
+        m = 3 if self.state == "xy" else 2                    # draws per particle before the jitter
+        z = rng.standard_normal((m + 2 if self.jitter_std_m > 0 else m) * n)
+        v = obs.speed_mps + self.noise.speed_std_mps * k * z[:n]
         if self.state == "xy":
             heading = mid_heading(self.prev_yaw_rad, obs.yaw_rad, obs.yaw_rate_radps, dt)
-            psi = heading + rng.normal(0.0, self.noise.heading_std_rad * k / math.sqrt(2.0), n)
+            psi = heading + self.noise.heading_std_rad * k / math.sqrt(2.0) * z[n:2 * n]
             states[:, 0] += v * dt * np.cos(psi)
             states[:, 1] += v * dt * np.sin(psi)
-            states[:, 2] = wrap(obs.yaw_rad + rng.normal(0.0, self.noise.heading_std_rad * k, n))
+            states[:, 2] = wrap(obs.yaw_rad + self.noise.heading_std_rad * k * z[2 * n:3 * n])
         else:
-            omega = obs.yaw_rate_radps + rng.normal(0.0, self.noise.yaw_rate_std_radps * k, n)
+            omega = obs.yaw_rate_radps + self.noise.yaw_rate_std_radps * k * z[n:2 * n]
             psi = states[:, 2] + 0.5 * omega * dt
             states[:, 0] += v * dt * np.cos(psi)
             states[:, 1] += v * dt * np.sin(psi)
             states[:, 2] = wrap(states[:, 2] + omega * dt)
         if self.jitter_std_m > 0:
-            states[:, :2] += rng.normal(0.0, self.jitter_std_m, (n, 2))
+            states[:, :2] += self.jitter_std_m * z[m * n:].reshape(n, 2)
         self.prev_yaw_rad = obs.yaw_rad
         return states
 

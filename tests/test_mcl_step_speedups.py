@@ -1,0 +1,165 @@
+"""The MCL step's fixed costs made cheaper (issue 12) against the code they replaced, kept here as references.
+
+Every change here keeps the arithmetic (the same float operations on the same operands, or exact integer sums),
+so the outputs must be bit-identical; the one exception, the closed-form largest eigenvalue of the estimate's
+2x2 covariance, has its tolerance derived in its test.
+"""
+
+from __future__ import annotations
+
+import math
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from aerial_loc_env.errors import ConfigError
+from aerial_loc_env.estimators.mcl.estimate import max_std_m
+from aerial_loc_env.estimators.mcl.motion import OdometryMotionModel, mid_heading, wrap
+from aerial_loc_env.estimators.protocol import Observation
+from aerial_loc_env.estimators.shadow_detection import ShadowDetector, ShadowMask, _masked_channel_means
+from aerial_loc_env.sensors.camera import CameraModel, world_to_map_affine
+
+
+# ---------------------------------------------------------------------- references: the replaced code
+def _camera_to_world_reference(cam: CameraModel, x_m, y_m, yaw_rad, altitude_m) -> np.ndarray:
+    """The replaced entry: every argument broadcast to a float64 array first (the altitude too, so the pixel
+    size is an array) before the per-element arithmetic, which is unchanged."""
+    return cam.camera_to_world(*np.broadcast_arrays(*(np.asarray(a, dtype=np.float64)
+                                                      for a in (x_m, y_m, yaw_rad, altitude_m))))
+
+
+def _camera_to_map_reference(cam: CameraModel, grid, *pose) -> np.ndarray:
+    to_world = _camera_to_world_reference(cam, *pose)
+    hom = np.zeros(to_world.shape[:-2] + (3, 3))
+    hom[..., :2, :] = to_world
+    hom[..., 2, 2] = 1.0
+    return world_to_map_affine(grid) @ hom
+
+
+def _propagate_reference(m: OdometryMotionModel, states: np.ndarray, obs: Observation,
+                         rng: np.random.Generator) -> np.ndarray:
+    """One ``rng.normal`` call per noise term (the code before the single draw)."""
+    n = states.shape[0]
+    k, dt = m.noise_scale, m.dt_s
+    v = obs.speed_mps + rng.normal(0.0, m.noise.speed_std_mps * k, n)
+    if m.state == "xy":
+        heading = mid_heading(m.prev_yaw_rad, obs.yaw_rad, obs.yaw_rate_radps, dt)
+        psi = heading + rng.normal(0.0, m.noise.heading_std_rad * k / math.sqrt(2.0), n)
+        states[:, 0] += v * dt * np.cos(psi)
+        states[:, 1] += v * dt * np.sin(psi)
+        states[:, 2] = wrap(obs.yaw_rad + rng.normal(0.0, m.noise.heading_std_rad * k, n))
+    else:
+        omega = obs.yaw_rate_radps + rng.normal(0.0, m.noise.yaw_rate_std_radps * k, n)
+        psi = states[:, 2] + 0.5 * omega * dt
+        states[:, 0] += v * dt * np.cos(psi)
+        states[:, 1] += v * dt * np.sin(psi)
+        states[:, 2] = wrap(states[:, 2] + omega * dt)
+    if m.jitter_std_m > 0:
+        states[:, :2] += rng.normal(0.0, m.jitter_std_m, (n, 2))
+    m.prev_yaw_rad = obs.yaw_rad
+    return states
+
+
+# ---------------------------------------------------------------------- camera
+@pytest.mark.parametrize("gsd_xy", [(0.25, 0.25), (0.3, 0.21), (1.0, 0.5)])
+def test_camera_to_map_is_the_composed_affine_bit_for_bit(gsd_xy):
+    cam = CameraModel(width_px=640, height_px=360, hfov_deg=50.0, pixel_aspect=1.1)
+    grid = SimpleNamespace(gsd_x_m=gsd_xy[0], gsd_y_m=gsd_xy[1], height_px=1234)
+    g = np.random.default_rng(7)
+    n = 5000
+    x, y, yaw = g.uniform(-50, 900, n), g.uniform(-50, 900, n), g.uniform(-4, 4, n)
+    alts = g.uniform(50, 400, n)
+    cases = [(x, y, yaw, 200.0), (x, y, yaw, 173), (x, y, yaw, np.float64(88.8)), (x, y, yaw, alts),
+             (x[0], y[0], yaw[0], 150.0), (x[:7], 42.0, yaw[:7], 120.0), (1.0, 2.0, yaw[:3], alts[:3]),
+             (x.reshape(50, 100), y.reshape(50, 100), yaw.reshape(50, 100), np.array(210.0))]
+    for pose in cases:
+        ref = _camera_to_map_reference(cam, grid, *pose)
+        out = cam.camera_to_map(grid, *pose)
+        assert out.shape == ref.shape
+        np.testing.assert_array_equal(out, ref)
+        np.testing.assert_array_equal(cam.camera_to_world(*pose), _camera_to_world_reference(cam, *pose))
+
+
+def test_gsd_of_a_plain_number_equals_the_array_path_and_bad_altitudes_still_fail():
+    cam = CameraModel()
+    for alt in (200, 200.0, 57.3, np.float64(123.4), 1e-3, 19999.9):
+        assert cam.gsd_m(alt) == float(cam.gsd_m(np.array([alt]))[0])
+        assert isinstance(cam.gsd_m(alt), float)
+    for bad in (0.0, -5.0, float("nan"), float("inf"), 0):
+        with pytest.raises(ConfigError, match="altitude_m"):
+            cam.gsd_m(bad)
+        with pytest.raises(ConfigError, match="altitude_m"):
+            cam.camera_to_map(SimpleNamespace(gsd_x_m=1.0, gsd_y_m=1.0, height_px=10), 0.0, 0.0, 0.0, bad)
+
+
+# ---------------------------------------------------------------------- motion
+@pytest.mark.parametrize("state", ["xy", "xyyaw"])
+@pytest.mark.parametrize("jitter", [0.0, 0.5])
+@pytest.mark.parametrize("scale", [1.0, 2.5])
+def test_one_normal_draw_moves_the_particles_as_one_call_per_term(state, jitter, scale):
+    noise = SimpleNamespace(speed_std_mps=0.3, yaw_rate_std_radps=0.05, heading_std_rad=0.035)
+    new = OdometryMotionModel(noise, 0.25, state=state, noise_scale=scale, jitter_std_m=jitter)
+    ref = OdometryMotionModel(noise, 0.25, state=state, noise_scale=scale, jitter_std_m=jitter)
+    g = np.random.default_rng(2)
+    s0 = np.column_stack([g.uniform(0, 500, 700), g.uniform(0, 500, 700), g.uniform(-np.pi, np.pi, 700)])
+    a, b = s0.copy(), s0.copy()
+    ra, rb = np.random.default_rng(11), np.random.default_rng(11)
+    for t in range(4):
+        obs = Observation(np.zeros((4, 4, 3), np.uint8), 12.0 + t, 0.02 * t, 0.4 - 0.1 * t, 200.0)
+        new.propagate(a, obs, ra)
+        _propagate_reference(ref, b, obs, rb)
+        np.testing.assert_array_equal(a, b)
+    assert ra.random() == rb.random()        # the same number of draws: later draws are unchanged too
+
+
+# ---------------------------------------------------------------------- estimate
+def test_closed_form_spread_matches_eigvalsh():
+    """``(a + c)/2 + hypot((a - c)/2, b)`` adds two non-negative terms (no cancellation), each within 1-2 ulp;
+    LAPACK's symmetric solver is backward stable (a few ulp of ||cov||, and the largest eigenvalue is
+    ||cov||): so relative agreement to 8 ulp (2e-15) of the eigenvalue, half that on its square root."""
+    g = np.random.default_rng(5)
+    covs = [np.zeros((2, 2)), np.diag([4.0, 4.0]), np.diag([1e-9, 1e6]), np.array([[1.0, 1.0], [1.0, 1.0]])]
+    for _ in range(2000):
+        m = g.normal(size=(2, 2)) * 10 ** g.uniform(-3, 4)
+        covs.append(m @ m.T)
+    for cov in covs:
+        ref = float(np.sqrt(max(np.linalg.eigvalsh(cov)[-1], 0.0)))
+        assert max_std_m(cov) == pytest.approx(ref, rel=1e-15 * 8 / 2, abs=1e-300)
+
+
+# ---------------------------------------------------------------------- shadow detector
+def test_luminance_means_from_exact_sums_equal_the_masked_means():
+    g = np.random.default_rng(3)
+    for shape in [(100, 150), (7, 9), (1, 300)]:
+        lum = g.integers(0, 256, shape).astype(np.float32)
+        for p in (0.01, 0.3, 0.9):
+            mask = g.random(shape) < p
+            if not mask.any() or mask.all():
+                continue
+            out_mean, in_mean = _masked_channel_means(lum, mask)
+            assert float(in_mean[0]) == float(lum[mask].mean())
+            assert float(out_mean[0]) == float(lum[~mask].mean())
+            assert ShadowMask(mask, shape).fraction == float(mask.mean())
+
+
+def test_detector_keeps_the_masks_of_the_compress_means():
+    """The detector with the exact-sum means against the one with NumPy's masked means (the replaced code)."""
+
+    class CompressMeans(ShadowDetector):
+        def detect(self, image, small=None):
+            import aerial_loc_env.estimators.shadow_detection as sd
+            saved = sd._masked_channel_means
+            sd._masked_channel_means = lambda lum, mask: (np.array([lum[~mask].mean()]), np.array([lum[mask].mean()]))
+            try:
+                return super().detect(image, small)
+            finally:
+                sd._masked_channel_means = saved
+
+    g = np.random.default_rng(9)
+    for k in range(12):
+        img = np.clip(g.normal(120, 30, (400, 600, 3)), 0, 255).astype(np.uint8)
+        img[50 + 10 * k:220, 80:300] = (img[50 + 10 * k:220, 80:300] * np.array([0.35, 0.4, 0.55])).astype(np.uint8)
+        a, b = ShadowDetector().detect(img), CompressMeans().detect(img)
+        assert a.mask.any() or k > 8                 # mostly real shadows: the means decide something
+        np.testing.assert_array_equal(a.mask, b.mask)
