@@ -20,6 +20,7 @@ per-particle validity flag so that the models give such particles the worst like
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import cv2
@@ -29,6 +30,9 @@ from ..errors import ConfigError
 
 #: cv2.remap refuses maps with more rows than this (SHRT_MAX); larger particle sets are sampled in chunks.
 _MAX_REMAP_ROWS = 32000
+#: samples per chunk of ``PatchSampler.sample_chunks``: the chunk's two maps and its samples (1.4 MB at
+#: 120 000 float32 samples) stay in a 2 MB L2 cache until they are scored (50 particles of 60 x 40)
+_CHUNK_SAMPLES = 120_000
 
 
 def reduce_image(image: np.ndarray, width_px: int, height_px: int) -> np.ndarray:
@@ -224,6 +228,31 @@ class PatchSampler:
         if self.has_nan:
             valid &= ~np.isnan(out.reshape(n, -1)).any(axis=1)
         return out, valid
+
+
+    def sample_chunks(self, states: np.ndarray, altitude_m: float, samples_per_chunk: int = _CHUNK_SAMPLES
+                      ) -> Iterator[tuple[slice, np.ndarray, np.ndarray]]:
+        """``sample`` a chunk of particles at a time: yields (the chunk's slice of the particles, its patches
+        (k, h, w[, C]) float32, its validity (k,) bool), the same values as ``sample`` bit for bit (the same
+        float32 maps and remap per sample). The patches live in one buffer that the next chunk overwrites:
+        score them before advancing. Scoring a chunk while its maps and samples are still in the cache is
+        ~7 % faster than scoring the (N, h, w) stack once it is all sampled (SSD at N = 700)."""
+        e = self.grid_to_level(states, altitude_m).astype(np.float32)
+        n = e.shape[0]
+        gh, gw = self.geometry.height_px, self.geometry.width_px
+        per = max(1, min(samples_per_chunk // (gh * gw), _MAX_REMAP_ROWS // gh))
+        chans = () if self.level.ndim == 2 else (self.level.shape[2],)
+        buffer = np.empty((min(per, n), gh, gw) + chans, np.float32)
+        valid = self._footprint_valid(e)
+        for start in range(0, n, per):
+            stop = min(n, start + per)
+            patches = buffer[:stop - start]
+            mx, my = self._maps(e[start:stop])
+            self._remap_into(patches, mx, my)
+            ok = valid[start:stop]
+            if self.has_nan:
+                ok = ok & ~np.isnan(patches.reshape(stop - start, -1)).any(axis=1)
+            yield slice(start, stop), patches, ok
 
 
 def _check_states(states: np.ndarray) -> np.ndarray:

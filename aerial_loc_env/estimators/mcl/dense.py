@@ -208,12 +208,17 @@ class DenseModel(MeasurementModel):
     def log_likelihood(self, prepared: DensePrepared, states: np.ndarray, altitude_m: float) -> np.ndarray:
         if self.sampler is None:
             raise ConfigError(f"{type(self).__name__}: call reset(briefing, rng) before log_likelihood()")
-        patches, valid = self.sampler.sample(states, altitude_m)
-        flat = patches.reshape(len(patches), -1)
-        if not valid.all():
-            flat[~valid] = 0.0                      # NaN-free input; these rows get worst_xi below
-        xi = np.where(valid, self.similarity(prepared, flat), self.worst_xi)
-        self.last_stats = {"valid": int(valid.sum()), "xi_max": float(xi.max()) if xi.size else float("nan")}
+        n = len(states)
+        xi = np.empty(n)
+        n_valid = 0
+        # scored a chunk of particles at a time, while its samples are in the cache (the same xi per particle)
+        for part, patches, valid in self.sampler.sample_chunks(states, altitude_m):
+            flat = patches.reshape(len(patches), -1)
+            if not valid.all():
+                flat[~valid] = 0.0                      # NaN-free input; these rows get worst_xi below
+            xi[part] = np.where(valid, self.similarity(prepared, flat), self.worst_xi)
+            n_valid += int(valid.sum())
+        self.last_stats = {"valid": n_valid, "xi_max": float(xi.max()) if xi.size else float("nan")}
         return -np.square(1.0 - xi) / (2.0 * self.config.sigma ** 2)
 
 
