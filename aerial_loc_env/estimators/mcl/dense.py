@@ -49,14 +49,25 @@ def ncc(patches: np.ndarray, ref: np.ndarray) -> np.ndarray:
 
     A constant row or a constant ``ref`` has no defined correlation; it scores 0 (no evidence either way).
     """
-    p = np.asarray(patches, dtype=np.float32)
+    return ncc_unit(patches, unit_ref(ref))
+
+
+def unit_ref(ref: np.ndarray) -> np.ndarray | None:
+    """``ref`` centred and scaled to unit norm (float32), or None for a constant ``ref``: the part of ``ncc``
+    that depends on the frame only (computed once per frame, not once per chunk of particles)."""
     r = np.asarray(ref, dtype=np.float64)
-    k = r.size
     rc = r - r.mean()
     rn = float(np.sqrt(rc @ rc))
-    if rn < 1e-9:
+    return None if rn < 1e-9 else (rc / rn).astype(np.float32)
+
+
+def ncc_unit(patches: np.ndarray, unit: np.ndarray | None) -> np.ndarray:
+    """``ncc`` of the rows of ``patches`` (N, K) with a reference already made ``unit_ref``."""
+    p = np.asarray(patches, dtype=np.float32)
+    if unit is None:
         return np.zeros(p.shape[0])
-    dot = np.einsum("nk,k->n", p, (rc / rn).astype(np.float32)).astype(np.float64)  # p . r~ (no BLAS threads)
+    k = unit.size
+    dot = np.einsum("nk,k->n", p, unit).astype(np.float64)           # p . r~ (no BLAS threads)
     s1 = p.sum(axis=1).astype(np.float64)
     s2 = np.einsum("nk,nk->n", p, p).astype(np.float64)
     var = np.maximum(s2 - s1 * s1 / k, 0.0)                           # sum (p - mean p)^2
@@ -234,8 +245,11 @@ class NCCModel(DenseModel):
 
     worst_xi: ClassVar[float] = -1.0
 
+    def _prepare_ref(self, ref: np.ndarray) -> np.ndarray | None:
+        return unit_ref(ref)
+
     def similarity(self, prepared: DensePrepared, patches: np.ndarray) -> np.ndarray:
-        return ncc(patches, prepared.ref)
+        return ncc_unit(patches, prepared.extra)
 
 
 class MIModel(DenseModel):
