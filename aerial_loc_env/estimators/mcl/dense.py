@@ -98,24 +98,24 @@ def entropy(values: np.ndarray, bins: int = 16, lo: float = 0.0, hi: float = 256
 
 
 def mutual_information(patches: np.ndarray, ref: np.ndarray, bins: int = 16, lo: float = 0.0,
-                       hi: float = 256.0) -> np.ndarray:
+                       hi: float = 256.0, *, ref_bins: np.ndarray | None = None) -> np.ndarray:
     """Mutual information (N,) in nats between each row of ``patches`` (N, K) and ``ref`` (K,).
 
     One ``np.bincount`` over all rows: the joint bin of sample k of row n is ``n B^2 + B q(p_nk) + q(r_k)``,
     built in uint8 while ``B^2 <= 256`` (16 bins: one byte per sample until the row offset is added). The
     entropies come from the integer counts c through a table of ``c log c``:
-    ``H = log K - sum_c c log c / K`` (no (N, B^2) float64 probabilities and logs).
+    ``H = log K - sum_c c log c / K`` (no (N, B^2) float64 probabilities and logs). ``ref_bins``:
+    ``quantize(ref, bins, lo, hi)`` when the caller already has it (once per frame, not per chunk of rows).
     """
     p = np.asarray(patches)
     n, k = p.shape
-    qr = quantize(ref, bins, lo, hi)
+    qr = quantize(ref, bins, lo, hi) if ref_bins is None else ref_bins
     offsets = np.arange(n, dtype=np.intp)[:, None] * (bins * bins)
     if bins * bins <= 256:
         q = _quantize_u8(p, bins, lo, hi)
         q *= np.uint8(bins)
         q += qr.astype(np.uint8)
-        idx = q.astype(np.intp)                         # the intp copy np.bincount would make anyway
-        idx += offsets
+        idx = q + offsets                               # the intp copy np.bincount would make anyway
     else:
         idx = quantize(p, bins, lo, hi).astype(np.intp)
         idx *= bins
@@ -255,6 +255,10 @@ class NCCModel(DenseModel):
 class MIModel(DenseModel):
     """Mutual information normalized by the camera entropy: ``xi = MI / H(I)`` in [0, 1]."""
 
+    def __init__(self, config: DenseConfig | None = None) -> None:
+        super().__init__(config)
+        self._ref_bins: tuple[np.ndarray, np.ndarray] | None = None   # (the frame's ref, its bins)
+
     def _prepare_ref(self, ref: np.ndarray) -> float:
         return entropy(ref, self.config.bins)
 
@@ -262,7 +266,9 @@ class MIModel(DenseModel):
         h_ref = prepared.extra
         if h_ref <= 1e-12:
             return np.zeros(len(patches))          # a uniform camera frame carries no information
-        return mutual_information(patches, prepared.ref, self.config.bins) / h_ref
+        if self._ref_bins is None or self._ref_bins[0] is not prepared.ref:   # once per frame, not per chunk
+            self._ref_bins = (prepared.ref, quantize(prepared.ref, self.config.bins))
+        return mutual_information(patches, prepared.ref, self.config.bins, ref_bins=self._ref_bins[1]) / h_ref
 
 
 register_model("ssd", SSDModel)
