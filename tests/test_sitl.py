@@ -4,13 +4,22 @@ flown on the vision fix with the camera rendered at SITL's truth. Skipped with a
 from __future__ import annotations
 
 import math
+import os
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from aerial_loc_env.errors import ConfigError
-from aerial_loc_env.mavlink.sitl import DEFAULT_SITL_DIR, find_sitl, sitl_home
+from aerial_loc_env.mavlink.sitl import (
+    DEFAULT_SITL_DIR,
+    MISSIONS,
+    find_sitl,
+    fly_mission,
+    sitl_home,
+    timed_horizontal_errors,
+    vision_fix_s,
+)
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 SITL_DIR = REPO_ROOT.parent / "shared" / "sitl"
@@ -43,9 +52,9 @@ def test_copter_mission_on_the_vision_fix():
     if not (SITL_DIR / "arducopter").is_file():
         pytest.skip(f"ArduPilot SITL not found at {SITL_DIR} (see ../shared/sitl/README.md)")
     pytest.importorskip("aerial_loc_env.estimators.registry", reason="the agents are not available")
-    from aerial_loc_env.mavlink.sitl import fly_copter_mission, summary
+    from aerial_loc_env.mavlink.sitl import fly_mission, summary
 
-    r = fly_copter_mission("AerialLoc/Small-v0", "template-ncc", ground_amsl_m=30.0, sitl_dir=SITL_DIR)
+    r = fly_mission("AerialLoc/Small-v0", "template-ncc", ground_amsl_m=30.0, sitl_dir=SITL_DIR)
     print(summary(r), [t for _, t in r["texts"]][-12:])
     texts = [t for _, t in r["texts"]]
     assert any("EKF3 IMU0 is using GPS" in t for t in texts), texts
@@ -59,3 +68,72 @@ def test_copter_mission_on_the_vision_fix():
     assert rmse < 2 * 3.0 + 3.5 and errors.max() < 5 * 3.0 + 3.5, (rmse, errors.max())
     gaps = np.array(r["gps_gaps_ms"])
     assert len(gaps) > 100 and gaps.max() < 245, gaps.max()
+
+
+def test_mission_parameters_follow_ardupilots_external_nav_recipe():
+    """ExternalNav: no GNSS, MAVLink visual odometry, EKF position from ExternalNav; the denial keeps ArduPilot's
+    GPS sources in set 1 and puts ExternalNav in set 2 (GPS / non-GPS transitions); an unknown mission is a
+    clear error before anything starts."""
+    ext, den, gps = (MISSIONS[k].params for k in ("external-nav", "gnss-denial", "gps-input"))
+    assert (ext["GPS1_TYPE"], ext["VISO_TYPE"], ext["EK3_SRC1_POSXY"], ext["EK3_SRC1_VELXY"]) == (0, 1, 6, 0)
+    assert "GPS1_TYPE" not in den and (den["VISO_TYPE"], den["EK3_SRC2_POSXY"]) == (1, 6) and MISSIONS[
+        "gnss-denial"].deny_gnss
+    assert gps["GPS1_TYPE"] == 14 and "VISO_TYPE" not in gps
+    assert {m.message for m in MISSIONS.values()} == {"gps_input", "vision_position_estimate"}
+    with pytest.raises(ConfigError, match="external-nav"):
+        fly_mission("AerialLoc/Small-v0", "template-ncc", ground_amsl_m=30.0, mission="optical-flow")
+
+
+def test_errors_interpolate_the_truth_and_vision_time_counts_camera_steps():
+    # truth moving east at 10 m/s sampled at 10 Hz; an EKF sample half-way between two truth samples at the
+    # interpolated position has zero error (nearest-sample matching would say 0.5 m)
+    deg_per_m = math.degrees(1 / (6_371_008.8 * math.cos(math.radians(-35.0))))
+    truth = [(0.1 * k, -35.0, 149.0 + k * 1.0 * deg_per_m, 50.0) for k in range(10)]
+    ekf = [(0.45, -35.0, 149.0 + 4.5 * deg_per_m, 50.0), (5.0, -35.0, 149.0, 50.0)]
+    (t, e), = timed_horizontal_errors(truth, ekf)        # the sample outside the truth's span is skipped
+    assert t == 0.45 and e < 1e-6
+    steps = [(0.0, "pad", 1, 0, 0), (0.5, "camera", 1, 0, 0), (0.75, "camera", 1, 0, 0), (5.0, "camera", 1, 0, 0),
+             (5.25, "lost", 1, 0, 0)]
+    assert vision_fix_s(steps) == pytest.approx(0.5 + 0.25 + 1.0)    # a 4.25 s hole counts 1 s at most
+    assert vision_fix_s(steps, after=0.6) == pytest.approx(1.0)      # only intervals that start after
+
+
+@pytest.mark.timeout(600)
+@pytest.mark.parametrize("mission", ["external-nav", "gnss-denial"])
+def test_copter_mission_on_external_nav(mission):
+    """ExternalNav (VISION_POSITION_ESTIMATE, VISO_TYPE 1): with no GNSS at all, or after SITL's GPS is switched
+    off at the top of the climb and the EKF moved to source set 2. Same flight and the same bound as the
+    GPS_INPUT mission (the fix sigma 3 m: RMSE < 2 sigma + 3.5 m, max < 5 sigma + 3.5 m on the legs). About
+    3.5 min each at real time: run in CI only with AERIAL_LOC_SITL_ALL=1 (keeps CI within its budget)."""
+    if not (SITL_DIR / "arducopter").is_file():
+        pytest.skip(f"ArduPilot SITL not found at {SITL_DIR} (see ../shared/sitl/README.md)")
+    if os.environ.get("AERIAL_LOC_SITL_ALL") != "1":
+        pytest.skip("the longer SITL missions run with AERIAL_LOC_SITL_ALL=1 (3.5 min each)")
+    pytest.importorskip("aerial_loc_env.estimators.registry", reason="the agents are not available")
+    from aerial_loc_env.mavlink.sitl import summary
+
+    r = fly_mission("AerialLoc/Small-v0", "template-ncc", ground_amsl_m=30.0, sitl_dir=SITL_DIR,
+                           mission=mission)
+    s = summary(r)
+    print(s)
+    texts = [t for _, t in r["texts"]]
+    assert {1, 2, 3} <= set(r["reached"]), (r["reached"], texts[-12:])
+    assert r["leg_flags"] and all(f & 16 for _, f in r["leg_flags"]), "the EKF lost its position on the legs"
+    errors = np.array(r["leg_errors_m"])
+    assert len(errors) > 100
+    rmse = float(np.sqrt(np.mean(errors ** 2)))
+    assert rmse < 2 * 3.0 + 3.5 and errors.max() < 5 * 3.0 + 3.5, (rmse, errors.max())
+    if mission == "external-nav":
+        assert any("is using external nav" in t for t in texts), texts
+        assert not r["gps_gaps_ms"]               # no GNSS at all
+    else:
+        t_d = r["t_denied"]
+        assert any("is using GPS" in t for t in texts) and t_d is not None
+        # SITL's GPS really went away, the autopilot accepted the source switch, and the legs (all after the
+        # denial) kept an absolute position: the EKF navigated on ExternalNav, not on GNSS
+        assert any(f < 3 for t, f in r["gps_fix"] if t > t_d + 2.0), "SITL's GPS still had a fix"
+        assert (42007, 0) in {(c, res) for _, c, res in r["acks"]}, r["acks"]
+        stopped = [t for t, x in r["texts"] if "stopped aiding" in x]
+        first_leg = next(t for t, x in r["texts"] if x.startswith("Mission: 2"))
+        assert first_leg >= t_d - 1.0 and all(t > first_leg for t in stopped)
+        assert s["vision_fix_s"] > 20.0

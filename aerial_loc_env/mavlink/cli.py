@@ -52,6 +52,9 @@ def build_parser() -> argparse.ArgumentParser:
                      help="stop after N real seconds; 0: at the end")
     src.add_argument("--loop", action="store_true", help="restart the episode when it ends")
     src.add_argument("--follow", action="store_true", help="the camera follows the autopilot's vehicle")
+    src.add_argument("--pad-radius-m", type=float, default=math.inf,
+                     help="--follow: the take-off pad fix holds while the vehicle is within this distance of the "
+                          "pad; beyond it, until the camera is in range, no fix (a fixed wing's take-off run)")
     src.add_argument("--ground-amsl-m", type=float, default=None,
                      help="terrain height of the map, m AMSL (default: the map's own, if it declares one)")
     link = ap.add_argument_group("MAVLink")
@@ -105,6 +108,7 @@ class Step:
     altitude_m: float
     yaw_fallback_rad: float | None
     error_m: float | None = None     # the simulator's position error, for the status line only
+    source: str = "camera"           # follow mode: "pad" (take-off point), "camera" (a frame), "lost"
 
 
 @dataclass(frozen=True)
@@ -211,14 +215,15 @@ class ScenarioRun:
             self.episode += 1
             t0_s = t_s + float(self.driver.briefing.dt_s)     # simulated time keeps running across episodes
 
-    def follow_steps(self, ground_amsl_m: float, *, pad_std_m: float = 0.5,
-                     min_altitude_frac: float = 0.6) -> Iterator[Step | None]:
+    def follow_steps(self, ground_amsl_m: float, *, pad_std_m: float = 0.5, min_altitude_frac: float = 0.6,
+                     pad_radius_m: float = math.inf) -> Iterator[Step | None]:
         """Frames at the simulator's true vehicle (``self.follow``, set by the caller from SIM_STATE).
 
         The camera frames at the scenario's rate (stream time: the monotonic time SIM_STATE arrived) while the
         vehicle is above ``min_altitude_frac`` of the scenario's altitude (the range its estimators are built for)
         with the footprint on the map. Before the first frame the fix is the take-off point (a surveyed pad,
-        ``pad_std_m``), as a vehicle on the ground knows where it stands; below that height later (landing) or
+        ``pad_std_m``), as a vehicle on the ground knows where it stands, while it is within ``pad_radius_m`` of
+        the pad (beyond, e.g. a fixed wing's take-off run and climb, no fix); below that height later (landing) or
         off the map the fix is lost (the autopilot then lands on inertial navigation). Yields None while no truth
         has come.
         """
@@ -242,15 +247,17 @@ class ScenarioRun:
                 pad = (x, y)
             high = pose.altitude_m >= min_alt
             airborne = high and flight.footprint_inside(pose)
-            if not started and not airborne:
+            if not started and not airborne and math.hypot(x - pad[0], y - pad[1]) <= pad_radius_m:
                 est = _Estimate(pad[0], pad[1], None, np.eye(2) * pad_std_m ** 2)
-                yield Step(pose.t_s, est, max(0.0, pose.altitude_m), pose.yaw_rad, math.hypot(x - pad[0], y - pad[1]))
+                yield Step(pose.t_s, est, max(0.0, pose.altitude_m), pose.yaw_rad, math.hypot(x - pad[0], y - pad[1]),
+                           "pad")
                 continue
             if not airborne:     # landing below the camera's range, or off the map: no fix (lost)
-                held = last_frame.estimate      # (a held position sent as valid told the EKF the vehicle had
-                est = _Estimate(held.x_m, held.y_m, None, np.asarray(held.cov_xy_m2), "lost")   # stopped)
+                # (a held position sent as valid told the EKF the vehicle had stopped)
+                held = last_frame.estimate if last_frame is not None else _Estimate(*pad, None, np.eye(2))
+                est = _Estimate(held.x_m, held.y_m, None, np.asarray(held.cov_xy_m2), "lost")
                 yield Step(pose.t_s, est, max(0.0, pose.altitude_m), pose.yaw_rad, math.hypot(x - held.x_m,
-                                                                                             y - held.y_m))
+                                                                                             y - held.y_m), "lost")
                 continue
             if not started or flight.due(pose.t_s):
                 if not started:
@@ -300,8 +307,10 @@ def ground_amsl_m(given: float | None, orthomap: Any, scenario: str) -> float:
     return float(value)
 
 
-def run(args: argparse.Namespace, *, out=sys.stdout, should_stop: Callable[[], bool] = lambda: False) -> int:
-    """Fly and stream until the episode ends, ``--duration-s`` passes, or Ctrl-C (returns 130)."""
+def run(args: argparse.Namespace, *, out=sys.stdout, should_stop: Callable[[], bool] = lambda: False,
+        on_step: Callable[[Step], None] | None = None) -> int:
+    """Fly and stream until the episode ends, ``--duration-s`` passes, or Ctrl-C (returns 130).
+    ``on_step`` sees each published step (a mission's record of the estimator's own error)."""
     if args.speed < 0 or not math.isfinite(args.speed):
         raise ConfigError(f"--speed {args.speed}: must be >= 0 (1 = real time, 0 = as fast as possible)")
     if not args.demo and not (args.scenario and args.agent):
@@ -317,7 +326,8 @@ def run(args: argparse.Namespace, *, out=sys.stdout, should_stop: Callable[[], b
         ground = ground_amsl_m(args.ground_amsl_m, om, args.scenario)
         bridge = EstimateBridge(lambda x, y: source.orthomap.world_to_latlon(x, y),
                                 (om.width_m / 2.0, om.height_m / 2.0), ground_amsl_m=ground)
-        steps = source.follow_steps(ground) if args.follow else source.steps(args.loop)
+        steps = (source.follow_steps(ground, pad_radius_m=args.pad_radius_m) if args.follow
+                 else source.steps(args.loop))
     sender = MavlinkSender(config, policy=FixPolicy(), origin=bridge.origin)
     tty = hasattr(out, "isatty") and out.isatty()
     t_sim, error_m = 0.0, None
@@ -342,6 +352,8 @@ def run(args: argparse.Namespace, *, out=sys.stdout, should_stop: Callable[[], b
                     time.sleep(delay)
             item = sender.publish(bridge.fix(step.estimate, time_s=step.time_s, altitude_m=step.altitude_m,
                                              yaw_fallback_rad=step.yaw_fallback_rad))
+            if on_step is not None:
+                on_step(step)
             while args.speed == 0 and sender.running and not sender.wait_taken(item.seq, 0.1):
                 pass   # as fast as possible, but every frame's fix goes out once (at --rate-hz)
             now = time.monotonic()

@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 from pymavlink import mavutil
 
 from ..errors import AerialLocError, ConfigError
@@ -29,10 +30,49 @@ from .selfcheck import free_udp_port
 VEHICLES = {"copter": ("arducopter", "+", "copter.parm"), "plane": ("arduplane", "plane", "plane.parm")}
 DEFAULT_SITL_DIR = Path(__file__).resolve().parents[2].parent / "shared" / "sitl"
 
-# GPS_INPUT (ArduPilot's MAVLink GPS): GPS1 from the bridge, vertical speed not from the GPS, 100 m RTL
-COPTER_GPS_INPUT = {"GPS1_TYPE": 14, "EK3_SRC1_VELZ": 0, "AUTO_OPTIONS": 7, "WPNAV_SPEED": 1000,
-                    "WPNAV_SPEED_UP": 500, "RTL_ALT": 10000, "RTL_ALT_FINAL": 0, "LAND_SPEED_HIGH": 500,
-                    "WP_YAW_BEHAVIOR": 1}   # nose first, RTL too: the env's odometry is a unicycle's
+# the copter's flight: 10 m/s legs, 5 m/s climb/descent, RTL at the mission's height, nose first (the env's
+# odometry is a unicycle's), arming in AUTO allowed; vertical speed never from the vision fix
+COPTER_FLIGHT = {"AUTO_OPTIONS": 7, "WPNAV_SPEED": 1000, "WPNAV_SPEED_UP": 500, "RTL_ALT": 10000,
+                 "RTL_ALT_FINAL": 0, "LAND_SPEED_HIGH": 500, "WP_YAW_BEHAVIOR": 1, "EK3_SRC1_VELZ": 0}
+# GPS_INPUT (ArduPilot's MAVLink GPS): GPS1 from the bridge
+COPTER_GPS_INPUT = {**COPTER_FLIGHT, "GPS1_TYPE": 14}
+# ExternalNav (ArduPilot's non-GPS navigation): no GNSS, VISION_POSITION_ESTIMATE through VISO_TYPE 1 (MAVLink);
+# position from ExternalNav, no velocity source (VISION_POSITION_ESTIMATE carries none; an image fix
+# differentiated is too noisy for VISO_VEL_M_NSE's fixed 0.1 m/s), height from the baro, yaw from the compass
+EXTERNAL_NAV_SOURCES = {"POSXY": 6, "VELXY": 0, "POSZ": 1, "VELZ": 0, "YAW": 1}
+COPTER_EXTERNAL_NAV = {**COPTER_FLIGHT, "GPS1_TYPE": 0, "VISO_TYPE": 1,
+                       **{f"EK3_SRC1_{k}": v for k, v in EXTERNAL_NAV_SOURCES.items()}}
+# GNSS denial: SITL's own GPS (source set 1, ArduPilot's defaults) until it is switched off in flight
+# (SIM_GPS_DISABLE 1); source set 2 is ExternalNav, selected by MAV_CMD_SET_EKF_SOURCE_SET (ArduPilot's
+# GPS / non-GPS transitions; the same as an RCx_OPTION 90 switch)
+COPTER_GNSS_DENIAL = {**COPTER_FLIGHT, "VISO_TYPE": 1, **{f"EK3_SRC2_{k}": v for k, v in EXTERNAL_NAV_SOURCES.items()}}
+
+
+@dataclass(frozen=True)
+class Mission:
+    """How a mission feeds the autopilot: its parameters, the bridge's message, the STATUSTEXT that says the
+    EKF uses that feed, and whether SITL's GPS is switched off (and the EKF to source set 2) after take-off."""
+
+    params: dict
+    message: str
+    ready_text: str
+    ready_what: str
+    deny_gnss: bool = False
+
+
+MISSIONS = {
+    "gps-input": Mission(COPTER_GPS_INPUT, "gps_input", "is using GPS", "the EKF to use the vision fix (GPS_INPUT)"),
+    "external-nav": Mission(COPTER_EXTERNAL_NAV, "vision_position_estimate", "is using external nav",
+                            "the EKF to use the vision fix (ExternalNav)"),
+    "gnss-denial": Mission(COPTER_GNSS_DENIAL, "vision_position_estimate", "is using GPS",
+                           "the EKF to use SITL's GPS before the denial", deny_gnss=True),
+}
+# ArduPlane, GPS_INPUT as GPS1, plane.parm's airframe (cruise 22 m/s, at most 30: the paper's 41.7 m/s is beyond
+# this model), return at the camera's altitude and loiter there (no landing: the camera has no fix below)
+PLANE_GPS_INPUT = {"GPS1_TYPE": 14, "EK3_SRC1_VELZ": 0, "RTL_ALTITUDE": 200, "RTL_AUTOLAND": 0}
+PLANE_MISSIONS = {"gps-input": Mission(PLANE_GPS_INPUT, "gps_input", "is using GPS",
+                                       "the EKF to use the vision fix (GPS_INPUT)")}
+MAV_CMD_SET_EKF_SOURCE_SET = 42007     # ardupilotmega: param1 = source set 1..3
 
 
 def find_sitl(vehicle: str, sitl_dir: str | os.PathLike | None = None) -> tuple[Path, Path, str]:
@@ -50,9 +90,12 @@ def find_sitl(vehicle: str, sitl_dir: str | os.PathLike | None = None) -> tuple[
     return binary, defaults, model
 
 
-def sitl_home(orthomap: Any, ground_amsl_m: float, heading_deg: float = 0.0) -> str:
-    """SITL's ``--home`` (LAT,LON,ALT,HEADING) at the map's centre: start the autopilot where the map is."""
-    lat, lon = (float(v) for v in orthomap.world_to_latlon(orthomap.width_m / 2.0, orthomap.height_m / 2.0))
+def sitl_home(orthomap: Any, ground_amsl_m: float, heading_deg: float = 0.0,
+              xy_m: tuple[float, float] | None = None) -> str:
+    """SITL's ``--home`` (LAT,LON,ALT,HEADING) at the map's centre (or at ``xy_m``, world metres): start the
+    autopilot where the map is."""
+    x, y = xy_m if xy_m is not None else (orthomap.width_m / 2.0, orthomap.height_m / 2.0)
+    lat, lon = (float(np.ravel(v)[0]) for v in orthomap.world_to_latlon(x, y))
     return f"{lat:.8f},{lon:.8f},{ground_amsl_m:.2f},{heading_deg:.0f}"
 
 
@@ -114,6 +157,8 @@ class Track:
     ekf_flags: list = field(default_factory=list)
     gps_gaps_ms: list = field(default_factory=list)
     reached: list = field(default_factory=list)
+    acks: list = field(default_factory=list)          # (time, command, result) of COMMAND_ACK
+    gps_fix: list = field(default_factory=list)       # (time, fix_type) of GPS_RAW_INT
     armed: bool = False
     mode: str = ""
     relative_alt_m: float = 0.0
@@ -160,11 +205,15 @@ class Monitor:
                     t.ekf_flags.append((now, int(msg.flags)))
                 elif kind == "STATUSTEXT":
                     t.texts.append((now, msg.text))
-                elif kind == "GPS_RAW_INT" and msg.fix_type >= 3:
-                    ms = msg.time_usec // 1000
-                    if self._last_gps_ms is not None and ms > self._last_gps_ms:
+                elif kind == "COMMAND_ACK":
+                    t.acks.append((now, int(msg.command), int(msg.result)))
+                elif kind == "GPS_RAW_INT":
+                    t.gps_fix.append((now, int(msg.fix_type)))
+                    ms = msg.time_usec // 1000     # gaps between 3D fixes, in SITL's own clock
+                    if msg.fix_type >= 3 and self._last_gps_ms is not None and ms > self._last_gps_ms:
                         t.gps_gaps_ms.append(ms - self._last_gps_ms)
-                    self._last_gps_ms = ms
+                    if msg.fix_type >= 3:
+                        self._last_gps_ms = ms
                 elif kind == "MISSION_ITEM_REACHED" and msg.seq != 65535 and msg.seq not in t.reached:
                     t.reached.append(int(msg.seq))     # (ArduPilot repeats it; 65535: none reached yet)
                 elif kind == "HEARTBEAT" and msg.get_srcComponent() == 1:
@@ -184,14 +233,19 @@ class Monitor:
     def arm(self) -> None:
         self.conn.mav.command_long_send(1, 1, mavutil.mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0, 1, 0, 0, 0, 0, 0, 0)
 
+    def set_source_set(self, source_set: int) -> None:
+        """The EKF's active source set (1..3, EK3_SRCn_*): MAV_CMD_SET_EKF_SOURCE_SET."""
+        self.conn.mav.command_long_send(1, 1, MAV_CMD_SET_EKF_SOURCE_SET, 0, source_set, 0, 0, 0, 0, 0, 0)
+
     def set_param(self, name: str, value: float) -> None:
         self.conn.mav.param_set_send(1, 1, name.encode(), float(value), mavutil.mavlink.MAV_PARAM_TYPE_REAL32)
 
-    def upload_mission(self, items: list[tuple[int, float, float, float]], timeout_s: float = 20.0) -> None:
-        """Items (command, lat, lon, alt relative to home); item 0 is home (overwritten by the autopilot)."""
+    def upload_mission(self, items: list[tuple[int, float, float, float, float]], timeout_s: float = 20.0) -> None:
+        """Items (command, lat, lon, alt relative to home, param1); item 0 is home (overwritten by the
+        autopilot)."""
         mav = mavutil.mavlink
         frame = mav.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT
-        full = [(mav.MAV_CMD_NAV_WAYPOINT, 0.0, 0.0, 0.0)] + items
+        full = [(mav.MAV_CMD_NAV_WAYPOINT, 0.0, 0.0, 0.0, 0.0)] + items
         self._stop.set()
         self._thread.join(2)          # the mission protocol reads the link itself
         try:
@@ -206,8 +260,8 @@ class Monitor:
                     if msg.type != mav.MAV_MISSION_ACCEPTED:
                         raise AerialLocError(f"SITL refused the mission (MISSION_ACK type {msg.type})")
                     return
-                cmd, lat, lon, alt = full[msg.seq]
-                self.conn.mav.mission_item_int_send(1, 1, msg.seq, frame, cmd, 0, 1, 0, 0, 0, 0,
+                cmd, lat, lon, alt, param1 = full[msg.seq]
+                self.conn.mav.mission_item_int_send(1, 1, msg.seq, frame, cmd, 0, 1, param1, 0, 0, 0,
                                                     int(lat * 1e7), int(lon * 1e7), alt,
                                                     mav.MAV_MISSION_TYPE_MISSION)
             raise AerialLocError("SITL did not acknowledge the mission upload")
@@ -228,25 +282,42 @@ class Monitor:
         raise AerialLocError(f"SITL: timed out after {timeout_s:.0f} s waiting for {what}; last messages: {texts}")
 
 
-def horizontal_errors_m(truth: list, ekf: list) -> list[float]:
-    """EKF minus truth, metres, each EKF sample against the truth sample nearest in time (within 0.15 s)."""
+def timed_horizontal_errors(truth: list, ekf: list, max_gap_s: float = 0.3) -> list[tuple[float, float]]:
+    """(time, EKF minus truth in metres) for each EKF sample, the truth interpolated linearly at its time
+    between the two samples around it (at most ``max_gap_s`` apart); samples outside the truth's span skipped."""
     import bisect
 
     times = [t[0] for t in truth]
     out = []
     for t, lat, lon, _ in ekf:
         i = bisect.bisect_left(times, t)
-        best = min((j for j in (i - 1, i) if 0 <= j < len(truth)), key=lambda j: abs(times[j] - t), default=None)
-        if best is None or abs(times[best] - t) > 0.15:
-            continue
-        _, tl, tn, _ = truth[best]
+        if i == 0 or i >= len(truth):
+            if i < len(truth) and times[i] == t:
+                tl, tn = truth[i][1], truth[i][2]
+            else:
+                continue
+        else:
+            (ta, la, na, _), (tb, lb, nb, _) = truth[i - 1], truth[i]
+            if tb - ta > max_gap_s:
+                continue
+            w = (t - ta) / (tb - ta) if tb > ta else 0.0
+            tl, tn = la + w * (lb - la), na + w * (nb - na)
         dn = math.radians(lat - tl) * 6_371_008.8
         de = math.radians(lon - tn) * 6_371_008.8 * math.cos(math.radians(tl))
-        out.append(math.hypot(dn, de))
+        out.append((t, math.hypot(dn, de)))
     return out
 
 
+def _distance_m(a: tuple, b: tuple) -> float:
+    """Horizontal distance between two (time, lat, lon, ...) rows, metres (equirectangular)."""
+    dn = math.radians(a[1] - b[1]) * 6_371_008.8
+    de = math.radians(a[2] - b[2]) * 6_371_008.8 * math.cos(math.radians(b[1]))
+    return math.hypot(dn, de)
 
+
+def horizontal_errors_m(truth: list, ekf: list) -> list[float]:
+    """EKF minus truth, metres, the truth interpolated at each EKF sample's time (``timed_horizontal_errors``)."""
+    return [e for _, e in timed_horizontal_errors(truth, ekf)]
 
 
 def offset_latlon(lat: float, lon: float, east_m: float, north_m: float) -> tuple[float, float]:
@@ -254,44 +325,81 @@ def offset_latlon(lat: float, lon: float, east_m: float, north_m: float) -> tupl
             lon + math.degrees(east_m / (6_371_008.8 * math.cos(math.radians(lat)))))
 
 
-def fly_copter_mission(scenario: str, agent: str, *, ground_amsl_m: float, leg_m: float = 80.0,
-                       altitude_m: float = 100.0, speedup: float = 1.0, sitl_dir=None, seed: int = 0,
-                       timeout_s: float = 300.0, log=None) -> dict:
-    """ArduCopter on the vision fix (GPS_INPUT, GPS1_TYPE 14): arm in AUTO on the fix, take off, fly a leg east
-    and back over the map, RTL and land; the camera follows SITL's truth. Returns the monitor's record."""
+def _plan(vehicle: str, database: Any, lat0: float, lon0: float, leg_m: float, altitude_m: float) -> list:
+    """Mission items (command, lat, lon, alt above home, param1). Copter: take off at home, a leg east and back,
+    RTL (lands). Plane: take off north (home in the map's south), a rectangular loop 300 m inside the map's edges
+    (camera footprint and turns stay on the map), RTL (loiters over home at the camera's altitude)."""
+    mav = mavutil.mavlink
+    if vehicle == "copter":
+        return [(mav.MAV_CMD_NAV_TAKEOFF, 0.0, 0.0, altitude_m, 0.0),
+                (mav.MAV_CMD_NAV_WAYPOINT, *offset_latlon(lat0, lon0, leg_m, 0.0), altitude_m, 0.0),
+                (mav.MAV_CMD_NAV_WAYPOINT, *offset_latlon(lat0, lon0, 5.0, 0.0), altitude_m, 0.0),
+                (mav.MAV_CMD_NAV_RETURN_TO_LAUNCH, 0.0, 0.0, 0.0, 0.0)]
+    w, h, m = database.width_m, database.height_m, 300.0
+
+    def at(x: float, y: float) -> tuple[float, float]:
+        return tuple(float(np.ravel(v)[0]) for v in database.world_to_latlon(x, y))
+
+    corners = [(w - m, h - m), (w - m, m), (m, m), (m, h - m)]
+    return ([(mav.MAV_CMD_NAV_TAKEOFF, 0.0, 0.0, 0.65 * altitude_m, 15.0)]      # 15 deg climb to the camera's range
+            + [(mav.MAV_CMD_NAV_WAYPOINT, *at(x, y), altitude_m, 0.0) for x, y in corners]
+            + [(mav.MAV_CMD_NAV_RETURN_TO_LAUNCH, 0.0, 0.0, 0.0, 0.0)])
+
+
+def fly_mission(scenario: str, agent: str, *, ground_amsl_m: float, vehicle: str = "copter",
+                mission: str = "gps-input", leg_m: float = 80.0, altitude_m: float | None = None,
+                speedup: float = 1.0, sitl_dir=None, seed: int = 0, timeout_s: float = 300.0, log=None) -> dict:
+    """ArduPilot SITL on the vision fix, the camera following SITL's truth. Copter (``MISSIONS``: GPS_INPUT,
+    ExternalNav, or SITL's GPS then denied): arm in AUTO on the pad fix, take off, a leg east and back, RTL and
+    land. Plane (``PLANE_MISSIONS``): arm in AUTO on the pad fix, take off (no fix from leaving the pad until the
+    camera is in range), a loop over the map at the scenario's altitude, RTL and loiter. Returns the monitor's
+    record plus the bridge's steps (the estimator's own error, pad/camera/lost)."""
     import gymnasium as gym
 
     import aerial_loc_env.env  # noqa: F401  (registers the scenarios)
 
     from . import cli as mav_cli
 
+    missions = MISSIONS if vehicle == "copter" else PLANE_MISSIONS
+    if mission not in missions:
+        raise ConfigError(f"--mission {mission!r} for --vehicle {vehicle}: use one of {', '.join(missions)}")
+    spec = missions[mission]
     env = gym.make(scenario)
-    home = sitl_home(env.unwrapped.database, ground_amsl_m)
+    database = env.unwrapped.database
+    scenario_alt_m = float(env.unwrapped.scenario.flight.altitude_m)
+    altitude_m = scenario_alt_m if altitude_m is None else altitude_m
+    camera_min_alt_m = 0.6 * scenario_alt_m
+    home_xy = None if vehicle == "copter" else (database.width_m / 2.0, 250.0)
+    home = sitl_home(database, ground_amsl_m, 0.0, home_xy)
     env.close()
     lat0, lon0 = (float(v) for v in home.split(",")[:2])
+    items = _plan(vehicle, database, lat0, lon0, leg_m, altitude_m)
+    last_wp = len(items) - 1          # the last waypoint before RTL (item 0 is home)
     stop = threading.Event()
     result: dict = {}
-    with SitlProcess("copter", home, COPTER_GPS_INPUT, speedup=speedup, sitl_dir=sitl_dir) as sitl:
+    steps: list = []      # (monotonic time, source, estimator error m, estimate x, y in the map's frame)
+    t_denied = None
+
+    def on_step(step) -> None:
+        src = step.source if step.estimate.status != "lost" else "lost"
+        steps.append((time.monotonic(), src, step.error_m, float(step.estimate.x_m), float(step.estimate.y_m)))
+
+    with SitlProcess(vehicle, home, spec.params, speedup=speedup, sitl_dir=sitl_dir) as sitl:
         args = mav_cli.build_parser().parse_args([
             "--scenario", scenario, "--agent", agent, "--follow", "--seed", str(seed),
             "--ground-amsl-m", str(ground_amsl_m), "--connect", f"udpin:127.0.0.1:{sitl.bridge_port}",
-            "--rate-hz", str(10.0 * speedup), *([] if log is not None else ["--quiet"])])
+            "--message", spec.message, "--rate-hz", str(10.0 * speedup),
+            *(["--pad-radius-m", "5"] if vehicle == "plane" else []),
+            *([] if log is not None else ["--quiet"])])
         bridge = threading.Thread(target=lambda: result.setdefault("rc", mav_cli.run(
-            args, out=log or open(os.devnull, "w"), should_stop=stop.is_set)), daemon=True)
+            args, out=log or open(os.devnull, "w"), should_stop=stop.is_set, on_step=on_step)), daemon=True)
         bridge.start()
         monitor = Monitor(sitl.monitor_port)
         try:
             monitor.start()
-            monitor.wait(lambda t: any("is using GPS" in x for _, x in t.texts), 120 / speedup,
-                         "the EKF to use the vision fix (GPS_INPUT)")
+            monitor.wait(lambda t: any(spec.ready_text in x for _, x in t.texts), 120 / speedup, spec.ready_what)
             t_fix = time.monotonic()
-            east = offset_latlon(lat0, lon0, leg_m, 0.0)
-            back = offset_latlon(lat0, lon0, 5.0, 0.0)
-            mav = mavutil.mavlink
-            monitor.upload_mission([(mav.MAV_CMD_NAV_TAKEOFF, 0.0, 0.0, altitude_m),
-                                    (mav.MAV_CMD_NAV_WAYPOINT, *east, altitude_m),
-                                    (mav.MAV_CMD_NAV_WAYPOINT, *back, altitude_m),
-                                    (mav.MAV_CMD_NAV_RETURN_TO_LAUNCH, 0.0, 0.0, 0.0)])
+            monitor.upload_mission(items)
             end_arm = time.monotonic() + 60 / speedup
             while not monitor.track.armed:
                 if time.monotonic() > end_arm:
@@ -301,8 +409,18 @@ def fly_copter_mission(scenario: str, agent: str, *, ground_amsl_m: float, leg_m
                 monitor.arm()
                 time.sleep(1.0)
             t_armed = time.monotonic()
-            monitor.wait(lambda t: 3 in t.reached, timeout_s / speedup, "the mission's last waypoint")
-            monitor.wait(lambda t: not t.armed, timeout_s / speedup, "landing and disarming after RTL")
+            if spec.deny_gnss:    # at the top of the climb, over the map with the camera in range: GNSS gone
+                monitor.wait(lambda t: 1 in t.reached, timeout_s / speedup, "the take-off")
+                monitor.set_param("SIM_GPS_DISABLE", 1)
+                monitor.set_source_set(2)
+                t_denied = time.monotonic()
+            monitor.wait(lambda t: last_wp in t.reached, timeout_s / speedup, "the mission's last waypoint")
+            if vehicle == "copter":
+                monitor.wait(lambda t: not t.armed, timeout_s / speedup, "landing and disarming after RTL")
+            else:         # RTL to home, then one loiter circle at the camera's altitude
+                monitor.wait(lambda t: t.truth and _distance_m(t.truth[-1], (0, lat0, lon0)) < 150.0,
+                             timeout_s / speedup, "RTL back over home")
+                time.sleep(25.0 / speedup)
             t_end = time.monotonic()
         finally:
             stop.set()
@@ -313,14 +431,23 @@ def fly_copter_mission(scenario: str, agent: str, *, ground_amsl_m: float, leg_m
             flight = [s for s in tr.truth if t_armed <= s[0] <= t_end]
             ekf = [s for s in tr.ekf if t_armed <= s[0] <= t_end]
             flags = [f for f in tr.ekf_flags if t_armed <= f[0] <= t_end]
-            record = {"truth": flight, "ekf": ekf, "texts": list(tr.texts), "ekf_flags": flags,
+            record = {"vehicle": vehicle, "mission": mission, "last_wp": last_wp, "truth": flight, "ekf": ekf,
+                      "texts": list(tr.texts), "ekf_flags": flags,
                       "gps_gaps_ms": list(tr.gps_gaps_ms), "reached": list(tr.reached),
-                      "fix_to_arm_s": t_armed - t_fix, "flight_s": t_end - t_armed, "bridge_rc": result.get("rc")}
-    record["horizontal_errors_m"] = horizontal_errors_m(record["truth"], record["ekf"])
+                      "acks": list(tr.acks), "gps_fix": [g for g in tr.gps_fix if t_armed <= g[0] <= t_end],
+                      "fix_to_arm_s": t_armed - t_fix, "flight_s": t_end - t_armed, "bridge_rc": result.get("rc"),
+                      "t_armed": t_armed, "t_end": t_end, "t_denied": t_denied,
+                      "steps": [s for s in steps if t_armed <= s[0] <= t_end],
+                      "estimates": [(s[0], *(float(np.ravel(v)[0]) for v in database.world_to_latlon(s[3], s[4])))
+                                    for s in steps if t_armed <= s[0] <= t_end and s[1] == "camera"],
+                      "ground_amsl_m": ground_amsl_m, "camera_min_alt_m": camera_min_alt_m}
+    record["timed_errors"] = timed_horizontal_errors(record["truth"], record["ekf"])
+    record["horizontal_errors_m"] = [e for _, e in record["timed_errors"]]
     # the AUTO legs on the vision fix: from the first waypoint to the start of RTL
-    starts = {k: next((t for t, x in record["texts"] if x.startswith(f"Mission: {k}")), None) for k in (2, 4)}
-    if starts[2] is not None and starts[4] is not None:
-        legs = lambda rows: [r for r in rows if starts[2] <= r[0] <= starts[4]]   # noqa: E731
+    starts = {k: next((t for t, x in record["texts"] if x.startswith(f"Mission: {k}")), None)
+              for k in (2, last_wp + 1)}
+    if starts[2] is not None and starts[last_wp + 1] is not None:
+        legs = lambda rows: [r for r in rows if starts[2] <= r[0] <= starts[last_wp + 1]]   # noqa: E731
         record["leg_errors_m"] = horizontal_errors_m(legs(record["truth"]), legs(record["ekf"]))
         record["leg_flags"] = legs(record["ekf_flags"])
     else:
@@ -328,22 +455,47 @@ def fly_copter_mission(scenario: str, agent: str, *, ground_amsl_m: float, leg_m
     return record
 
 
+def vision_fix_s(steps: list, after: float | None = None) -> float:
+    """Seconds the bridge sent camera fixes (sum of step intervals, each at most 1 s, ending on a camera step)."""
+    total = 0.0
+    for a, b in zip(steps, steps[1:], strict=False):
+        t0, t1, src = a[0], b[0], b[1]
+        if src == "camera" and (after is None or t0 >= after):
+            total += min(1.0, t1 - t0)
+    return total
+
+
 def summary(record: dict) -> dict:
     """The figures the issue asks for, from a mission record."""
-    import numpy as np
-
     e = np.asarray(record["horizontal_errors_m"], dtype=float)
     g = np.asarray(record["gps_gaps_ms"], dtype=float)
     legs = np.asarray(record["leg_errors_m"], dtype=float)
-    return {"mission_completed": 3 in record["reached"] and not record.get("armed_at_end", False),
-            "legs_ekf_rmse_m": float(np.sqrt(np.mean(legs ** 2))) if legs.size else math.nan,
-            "legs_ekf_max_m": float(legs.max()) if legs.size else math.nan,
-            "ekf_rmse_m": float(np.sqrt(np.mean(e ** 2))) if e.size else math.nan,
-            "ekf_max_m": float(e.max()) if e.size else math.nan,
-            "fix_to_arm_s": record["fix_to_arm_s"], "flight_s": record["flight_s"],
-            "share_of_flight_with_absolute_position": (sum(1 for _, f in record["ekf_flags"] if f & 16)
-                                                       / max(1, len(record["ekf_flags"]))),
-            "gps_gaps_over_245ms": int((g > 245).sum()), "gps_gap_max_ms": float(g.max()) if g.size else math.nan}
+    steps = record.get("steps", [])
+    est = np.asarray([s[2] for s in steps if s[1] == "camera" and s[2] is not None], dtype=float)
+    events = [x for _, x in record["texts"] if any(k in x for k in ("ailsafe", "EKF variance", "Glitch",
+                                                                     "stopped aiding", "is using", "source"))]
+    out = {"mission": record.get("mission", "gps-input"),
+           "vehicle": record.get("vehicle", "copter"),
+           "mission_completed": record.get("last_wp", 3) in record["reached"],
+           "legs_ekf_rmse_m": float(np.sqrt(np.mean(legs ** 2))) if legs.size else math.nan,
+           "legs_ekf_max_m": float(legs.max()) if legs.size else math.nan,
+           "ekf_rmse_m": float(np.sqrt(np.mean(e ** 2))) if e.size else math.nan,
+           "ekf_max_m": float(e.max()) if e.size else math.nan,
+           "estimator_rmse_m": float(np.sqrt(np.mean(est ** 2))) if est.size else math.nan,
+           "estimator_max_m": float(est.max()) if est.size else math.nan,
+           "vision_fix_s": vision_fix_s(steps, record.get("t_denied")),
+           "fix_to_arm_s": record["fix_to_arm_s"], "flight_s": record["flight_s"],
+           "share_of_flight_with_absolute_position": (sum(1 for _, f in record["ekf_flags"] if f & 16)
+                                                      / max(1, len(record["ekf_flags"]))),
+           "gps_gaps_over_245ms": int((g > 245).sum()), "gps_gap_max_ms": float(g.max()) if g.size else math.nan,
+           "events": list(dict.fromkeys(events))}
+    if record.get("t_denied") is not None:     # the EKF after the GNSS was switched off
+        t_d = record["t_denied"]
+        after = [r for r in record["truth"] if r[0] >= t_d], [r for r in record["ekf"] if r[0] >= t_d]
+        d = np.asarray(horizontal_errors_m(*after), dtype=float)
+        out["denied_ekf_rmse_m"] = float(np.sqrt(np.mean(d ** 2))) if d.size else math.nan
+        out["denied_ekf_max_m"] = float(d.max()) if d.size else math.nan
+    return out
 
 
 def write_outputs(record: dict, out_dir: Path) -> list[Path]:
@@ -351,14 +503,20 @@ def write_outputs(record: dict, out_dir: Path) -> list[Path]:
     import csv
 
     out_dir.mkdir(parents=True, exist_ok=True)
-    paths = [out_dir / "errors.csv"]
+    paths = [out_dir / "errors.csv", out_dir / "messages.txt"]
     truth, ekf = record["truth"], record["ekf"]
     t0 = truth[0][0] if truth else 0.0
+    lines = [f"{t - t0:8.1f} s  {x}" for t, x in record["texts"]]
+    if record.get("t_denied") is not None:
+        lines.append(f"{record['t_denied'] - t0:8.1f} s  [SIM_GPS_DISABLE 1, EKF source set 2]")
+    paths[1].write_text("\n".join(sorted(lines, key=lambda x: float(x.split()[0]))) + "\n")
     with open(paths[0], "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(["t_s", "ekf_lat_deg", "ekf_lon_deg", "ekf_alt_m", "horizontal_error_m"])
-        for (t, lat, lon, alt), err in zip(ekf, record["horizontal_errors_m"], strict=False):
-            w.writerow([f"{t - t0:.2f}", f"{lat:.8f}", f"{lon:.8f}", f"{alt:.2f}", f"{err:.3f}"])
+        err_at = dict(record.get("timed_errors", []))
+        for t, lat, lon, alt in ekf:
+            if t in err_at:
+                w.writerow([f"{t - t0:.2f}", f"{lat:.8f}", f"{lon:.8f}", f"{alt:.2f}", f"{err_at[t]:.3f}"])
     try:
         import matplotlib
 
@@ -373,14 +531,27 @@ def write_outputs(record: dict, out_dir: Path) -> list[Path]:
             return ([math.radians(r[2] - lon0) * 6_371_008.8 * math.cos(math.radians(lat0)) for r in rows],
                     [math.radians(r[1] - lat0) * 6_371_008.8 for r in rows])
 
-        fig, ax = plt.subplots(figsize=(6, 5))
-        ax.plot(*en(truth), "g-", label="SITL truth")
-        ax.plot(*en(ekf), "r--", label="EKF (on the vision fix)")
+        fig, (ax, ax2) = plt.subplots(1, 2, figsize=(10, 3.6), gridspec_kw={"width_ratios": [1.4, 1]})
+        ax.plot(*en(truth), "g-", lw=2, label="SITL truth")
+        ax.plot(*en(ekf), "r--", lw=1.2, label="EKF")
+        if record.get("estimates"):
+            ax.plot(*en(record["estimates"]), "b.", ms=2, label="estimates (camera)")
         ax.set_xlabel("east of take-off, m")
         ax.set_ylabel("north, m")
-        ax.set_aspect("equal")
-        ax.legend()
-        fig.savefig(out_dir / "track.png", dpi=100, bbox_inches="tight")
+        ax.set_title(f"{record.get('vehicle', 'copter')}, {record.get('mission', 'gps-input')}: track", fontsize=9)
+        ax.legend(fontsize=7)
+        timed = record.get("timed_errors", [])
+        ax2.plot([t - t0 for t, _ in timed], [e for _, e in timed], "r-", lw=1, label="EKF vs truth")
+        cam = [s for s in record.get("steps", []) if s[1] == "camera" and s[2] is not None]
+        if cam:
+            ax2.plot([s[0] - t0 for s in cam], [s[2] for s in cam], "b.", ms=2, label="estimator vs truth")
+        if record.get("t_denied") is not None:
+            ax2.axvline(record["t_denied"] - t0, color="k", lw=0.8, ls=":", label="GNSS off")
+        ax2.set_yscale("log")
+        ax2.set_xlabel("time since arming, s")
+        ax2.set_ylabel("horizontal error, m")
+        ax2.legend(fontsize=7)
+        fig.savefig(out_dir / "track.png", dpi=90, bbox_inches="tight")
         plt.close(fig)
         paths.append(out_dir / "track.png")
     return paths
@@ -394,22 +565,26 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="aerial-loc sitl", description="fly an ArduPilot SITL mission on the vision "
                                  "fix: SITL on loopback at the map, the bridge with the camera at SITL's truth")
     ap.add_argument("--vehicle", default="copter", choices=tuple(VEHICLES))
-    ap.add_argument("--scenario", default="AerialLoc/Small-v0")
+    ap.add_argument("--scenario", default=None, help="default: AerialLoc/Small-v0 (copter), "
+                    "AerialLoc/PaperShadows-v0 (plane: 1.2 x 1.4 km at 200 m, room for a fixed wing's loop)")
     ap.add_argument("--agent", default="template-ncc")
-    ap.add_argument("--mission", default="gps-input", choices=("gps-input",))
+    ap.add_argument("--mission", default="gps-input", choices=tuple(MISSIONS),
+                    help="gps-input: GPS_INPUT as GPS1; external-nav: VISION_POSITION_ESTIMATE, no GNSS; "
+                         "gnss-denial: SITL's GPS, switched off after take-off, EKF to ExternalNav (source set 2)")
     ap.add_argument("--ground-amsl-m", type=float, default=30.0, help="SITL's home altitude = the map's ground")
     ap.add_argument("--sitl-bin", default=None, help=f"folder of the SITL binaries (default {DEFAULT_SITL_DIR})")
     ap.add_argument("--speedup", type=float, default=1.0)
     ap.add_argument("--out", default="sitl-run", help="folder for errors.csv and track.png")
     args = ap.parse_args(argv)
-    if args.vehicle != "copter":
-        raise ConfigError("--vehicle plane: the plane mission is not built yet (issue 14); use --vehicle copter")
-    record = fly_copter_mission(args.scenario, args.agent, ground_amsl_m=args.ground_amsl_m,
-                                speedup=args.speedup, sitl_dir=args.sitl_bin, log=sys.stdout)
+    scenario = args.scenario or ("AerialLoc/Small-v0" if args.vehicle == "copter" else "AerialLoc/PaperShadows-v0")
+    record = fly_mission(scenario, args.agent, ground_amsl_m=args.ground_amsl_m, vehicle=args.vehicle,
+                         mission=args.mission, speedup=args.speedup, sitl_dir=args.sitl_bin, log=sys.stdout)
     paths = write_outputs(record, Path(args.out))
     print(json.dumps(summary(record), indent=1))
     print("wrote " + ", ".join(str(p) for p in paths))
     return 0
 
-__all__ = ["SitlProcess", "Monitor", "find_sitl", "sitl_home", "horizontal_errors_m", "fly_copter_mission",
-           "summary", "write_outputs", "main", "COPTER_GPS_INPUT"]
+
+__all__ = ["SitlProcess", "Monitor", "find_sitl", "sitl_home", "horizontal_errors_m", "timed_horizontal_errors",
+           "fly_mission", "summary", "write_outputs", "main", "COPTER_GPS_INPUT", "COPTER_EXTERNAL_NAV",
+           "COPTER_GNSS_DENIAL", "MISSIONS", "Mission", "vision_fix_s"]
