@@ -55,6 +55,9 @@ def build_parser() -> argparse.ArgumentParser:
     src.add_argument("--pad-radius-m", type=float, default=math.inf,
                      help="--follow: the take-off pad fix holds while the vehicle is within this distance of the "
                           "pad; beyond it, until the camera is in range, no fix (a fixed wing's take-off run)")
+    src.add_argument("--sim-speedup", type=float, default=1.0,
+                     help="--follow: the simulator runs this many times faster than real time (SITL --speedup); "
+                          "the camera's frame times and the odometry follow the simulator's clock")
     src.add_argument("--ground-amsl-m", type=float, default=None,
                      help="terrain height of the map, m AMSL (default: the map's own, if it declares one)")
     link = ap.add_argument_group("MAVLink")
@@ -216,7 +219,7 @@ class ScenarioRun:
             t0_s = t_s + float(self.driver.briefing.dt_s)     # simulated time keeps running across episodes
 
     def follow_steps(self, ground_amsl_m: float, *, pad_std_m: float = 0.5, min_altitude_frac: float = 0.6,
-                     pad_radius_m: float = math.inf) -> Iterator[Step | None]:
+                     pad_radius_m: float = math.inf, sim_speedup: float = 1.0) -> Iterator[Step | None]:
         """Frames at the simulator's true vehicle (``self.follow``, set by the caller from SIM_STATE).
 
         The camera frames at the scenario's rate (stream time: the monotonic time SIM_STATE arrived) while the
@@ -225,7 +228,8 @@ class ScenarioRun:
         ``pad_std_m``), as a vehicle on the ground knows where it stands, while it is within ``pad_radius_m`` of
         the pad (beyond, e.g. a fixed wing's take-off run and climb, no fix); below that height later (landing) or
         off the map the fix is lost (the autopilot then lands on inertial navigation). Yields None while no truth
-        has come.
+        has come. ``sim_speedup``: the simulator's clock runs that many times faster than the monotonic clock
+        (SITL ``--speedup``, a fixed ratio while SITL keeps pace); frame times and odometry are in its seconds.
         """
         from aerial_loc_env.env.external import ExternalFlight, ExternalPose
 
@@ -242,7 +246,8 @@ class ScenarioRun:
                 continue
             seen_s = v.received_mono_s
             x, y = (float(np.ravel(c)[0]) for c in self.ground_map.latlon_to_world(v.lat_deg, v.lon_deg))
-            pose = ExternalPose(x, y, math.pi / 2 - v.heading_rad, v.alt_amsl_m - ground_amsl_m, v.received_mono_s)
+            pose = ExternalPose(x, y, math.pi / 2 - v.heading_rad, v.alt_amsl_m - ground_amsl_m,
+                                v.received_mono_s * sim_speedup)
             if pad is None:
                 pad = (x, y)
             high = pose.altitude_m >= min_alt
@@ -326,8 +331,10 @@ def run(args: argparse.Namespace, *, out=sys.stdout, should_stop: Callable[[], b
         ground = ground_amsl_m(args.ground_amsl_m, om, args.scenario)
         bridge = EstimateBridge(lambda x, y: source.orthomap.world_to_latlon(x, y),
                                 (om.width_m / 2.0, om.height_m / 2.0), ground_amsl_m=ground)
-        steps = (source.follow_steps(ground, pad_radius_m=args.pad_radius_m) if args.follow
-                 else source.steps(args.loop))
+        if not (math.isfinite(args.sim_speedup) and 0.1 <= args.sim_speedup <= 20.0):
+            raise ConfigError(f"--sim-speedup {args.sim_speedup}: must be in [0.1, 20] (SITL's --speedup)")
+        steps = (source.follow_steps(ground, pad_radius_m=args.pad_radius_m, sim_speedup=args.sim_speedup)
+                 if args.follow else source.steps(args.loop))
     sender = MavlinkSender(config, policy=FixPolicy(), origin=bridge.origin)
     tty = hasattr(out, "isatty") and out.isatty()
     t_sim, error_m = 0.0, None
@@ -344,7 +351,9 @@ def run(args: argparse.Namespace, *, out=sys.stdout, should_stop: Callable[[], b
                 if (args.duration_s > 0 and time.monotonic() - t0 >= args.duration_s) or should_stop():
                     break
                 continue
-            t_sim, error_m = (step.time_s - t0 if args.follow and not args.demo else step.time_s), step.error_m
+            follow_clock = args.follow and not args.demo      # step times: the simulator's scaled monotonic clock
+            t_sim = step.time_s - t0 * args.sim_speedup if follow_clock else step.time_s
+            error_m = step.error_m
             # pace simulated time against the monotonic clock (absolute, no drift); follow runs on the truth's
             if args.speed > 0 and not (args.follow and not args.demo):
                 delay = t0 + t_sim / args.speed - time.monotonic()

@@ -43,8 +43,8 @@ EXTERNAL_NAV_SOURCES = {"POSXY": 6, "VELXY": 0, "POSZ": 1, "VELZ": 0, "YAW": 1}
 COPTER_EXTERNAL_NAV = {**COPTER_FLIGHT, "GPS1_TYPE": 0, "VISO_TYPE": 1,
                        **{f"EK3_SRC1_{k}": v for k, v in EXTERNAL_NAV_SOURCES.items()}}
 # GNSS denial: SITL's own GPS (source set 1, ArduPilot's defaults) until it is switched off in flight
-# (SIM_GPS_DISABLE 1); source set 2 is ExternalNav, selected by MAV_CMD_SET_EKF_SOURCE_SET (ArduPilot's
-# GPS / non-GPS transitions; the same as an RCx_OPTION 90 switch)
+# (SIM_GPS1_ENABLE 0; older versions' SIM_GPS_DISABLE 1 no longer exists); source set 2 is ExternalNav,
+# selected by MAV_CMD_SET_EKF_SOURCE_SET (ArduPilot's GPS / non-GPS transitions; as an RCx_OPTION 90 switch)
 COPTER_GNSS_DENIAL = {**COPTER_FLIGHT, "VISO_TYPE": 1, **{f"EK3_SRC2_{k}": v for k, v in EXTERNAL_NAV_SOURCES.items()}}
 
 
@@ -388,7 +388,7 @@ def fly_mission(scenario: str, agent: str, *, ground_amsl_m: float, vehicle: str
         args = mav_cli.build_parser().parse_args([
             "--scenario", scenario, "--agent", agent, "--follow", "--seed", str(seed),
             "--ground-amsl-m", str(ground_amsl_m), "--connect", f"udpin:127.0.0.1:{sitl.bridge_port}",
-            "--message", spec.message, "--rate-hz", str(10.0 * speedup),
+            "--message", spec.message, "--rate-hz", str(10.0 * speedup), "--sim-speedup", str(speedup),
             *(["--pad-radius-m", "5"] if vehicle == "plane" else []),
             *([] if log is not None else ["--quiet"])])
         bridge = threading.Thread(target=lambda: result.setdefault("rc", mav_cli.run(
@@ -411,7 +411,7 @@ def fly_mission(scenario: str, agent: str, *, ground_amsl_m: float, vehicle: str
             t_armed = time.monotonic()
             if spec.deny_gnss:    # at the top of the climb, over the map with the camera in range: GNSS gone
                 monitor.wait(lambda t: 1 in t.reached, timeout_s / speedup, "the take-off")
-                monitor.set_param("SIM_GPS_DISABLE", 1)
+                monitor.set_param("SIM_GPS1_ENABLE", 0)
                 monitor.set_source_set(2)
                 t_denied = time.monotonic()
             monitor.wait(lambda t: last_wp in t.reached, timeout_s / speedup, "the mission's last waypoint")
@@ -440,7 +440,7 @@ def fly_mission(scenario: str, agent: str, *, ground_amsl_m: float, vehicle: str
                       "steps": [s for s in steps if t_armed <= s[0] <= t_end],
                       "estimates": [(s[0], *(float(np.ravel(v)[0]) for v in database.world_to_latlon(s[3], s[4])))
                                     for s in steps if t_armed <= s[0] <= t_end and s[1] == "camera"],
-                      "ground_amsl_m": ground_amsl_m, "camera_min_alt_m": camera_min_alt_m}
+                      "ground_amsl_m": ground_amsl_m, "camera_min_alt_m": camera_min_alt_m, "speedup": speedup}
     record["timed_errors"] = timed_horizontal_errors(record["truth"], record["ekf"])
     record["horizontal_errors_m"] = [e for _, e in record["timed_errors"]]
     # the AUTO legs on the vision fix: from the first waypoint to the start of RTL
@@ -483,10 +483,13 @@ def summary(record: dict) -> dict:
            "ekf_max_m": float(e.max()) if e.size else math.nan,
            "estimator_rmse_m": float(np.sqrt(np.mean(est ** 2))) if est.size else math.nan,
            "estimator_max_m": float(est.max()) if est.size else math.nan,
-           "vision_fix_s": vision_fix_s(steps, record.get("t_denied")),
-           "fix_to_arm_s": record["fix_to_arm_s"], "flight_s": record["flight_s"],
+           # in SITL's seconds (the record's times are monotonic, SITL runs ``speedup`` times faster)
+           "vision_fix_s": vision_fix_s(steps, record.get("t_denied")) * record.get("speedup", 1.0),
+           "fix_to_arm_s": record["fix_to_arm_s"] * record.get("speedup", 1.0),
+           "flight_s": record["flight_s"] * record.get("speedup", 1.0), "speedup": record.get("speedup", 1.0),
            "share_of_flight_with_absolute_position": (sum(1 for _, f in record["ekf_flags"] if f & 16)
                                                       / max(1, len(record["ekf_flags"]))),
+           "ekf_flags_seen": sorted({f for _, f in record["ekf_flags"]}),
            "gps_gaps_over_245ms": int((g > 245).sum()), "gps_gap_max_ms": float(g.max()) if g.size else math.nan,
            "events": list(dict.fromkeys(events))}
     if record.get("t_denied") is not None:     # the EKF after the GNSS was switched off
@@ -499,16 +502,20 @@ def summary(record: dict) -> dict:
 
 
 def write_outputs(record: dict, out_dir: Path) -> list[Path]:
-    """errors.csv (time, truth, EKF, error) and, with matplotlib, track.png (true and EKF tracks)."""
+    """errors.csv (time, EKF, error), messages.txt (STATUSTEXT), summary.json and, with matplotlib, track.png
+    (true and EKF tracks, estimates; errors over time)."""
     import csv
 
     out_dir.mkdir(parents=True, exist_ok=True)
-    paths = [out_dir / "errors.csv", out_dir / "messages.txt"]
+    import json
+
+    paths = [out_dir / "errors.csv", out_dir / "messages.txt", out_dir / "summary.json"]
+    paths[2].write_text(json.dumps(summary(record), indent=1) + "\n")
     truth, ekf = record["truth"], record["ekf"]
     t0 = truth[0][0] if truth else 0.0
     lines = [f"{t - t0:8.1f} s  {x}" for t, x in record["texts"]]
     if record.get("t_denied") is not None:
-        lines.append(f"{record['t_denied'] - t0:8.1f} s  [SIM_GPS_DISABLE 1, EKF source set 2]")
+        lines.append(f"{record['t_denied'] - t0:8.1f} s  [SIM_GPS1_ENABLE 0, EKF source set 2]")
     paths[1].write_text("\n".join(sorted(lines, key=lambda x: float(x.split()[0]))) + "\n")
     with open(paths[0], "w", newline="") as f:
         w = csv.writer(f)
@@ -573,7 +580,8 @@ def main(argv: list[str] | None = None) -> int:
                          "gnss-denial: SITL's GPS, switched off after take-off, EKF to ExternalNav (source set 2)")
     ap.add_argument("--ground-amsl-m", type=float, default=30.0, help="SITL's home altitude = the map's ground")
     ap.add_argument("--sitl-bin", default=None, help=f"folder of the SITL binaries (default {DEFAULT_SITL_DIR})")
-    ap.add_argument("--speedup", type=float, default=1.0)
+    ap.add_argument("--speedup", type=float, default=1.0, help="SITL's --speedup; the camera follows SITL's clock "
+                    "(frame times and odometry scaled by it): keep it where SITL and the agent keep pace")
     ap.add_argument("--out", default="sitl-run", help="folder for errors.csv and track.png")
     args = ap.parse_args(argv)
     scenario = args.scenario or ("AerialLoc/Small-v0" if args.vehicle == "copter" else "AerialLoc/PaperShadows-v0")
