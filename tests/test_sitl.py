@@ -17,6 +17,7 @@ from aerial_loc_env.mavlink.sitl import (
     find_sitl,
     fly_mission,
     sitl_home,
+    summary,
     timed_horizontal_errors,
     vision_fix_s,
 )
@@ -52,7 +53,6 @@ def test_copter_mission_on_the_vision_fix():
     if not (SITL_DIR / "arducopter").is_file():
         pytest.skip(f"ArduPilot SITL not found at {SITL_DIR} (see ../shared/sitl/README.md)")
     pytest.importorskip("aerial_loc_env.estimators.registry", reason="the agents are not available")
-    from aerial_loc_env.mavlink.sitl import fly_mission, summary
 
     r = fly_mission("AerialLoc/Small-v0", "template-ncc", ground_amsl_m=30.0, sitl_dir=SITL_DIR)
     print(summary(r), [t for _, t in r["texts"]][-12:])
@@ -98,6 +98,15 @@ def test_errors_interpolate_the_truth_and_vision_time_counts_camera_steps():
     assert vision_fix_s(steps, after=0.6) == pytest.approx(1.0)      # only intervals that start after
 
 
+def _long_mission(binary: str, duration: str) -> None:
+    """Skip (with the reason) without the SITL binary, the agents, or AERIAL_LOC_SITL_ALL=1 (CI's time budget)."""
+    if not (SITL_DIR / binary).is_file():
+        pytest.skip(f"ArduPilot SITL not found at {SITL_DIR} (see ../shared/sitl/README.md)")
+    if os.environ.get("AERIAL_LOC_SITL_ALL") != "1":
+        pytest.skip(f"the longer SITL missions run with AERIAL_LOC_SITL_ALL=1 ({duration})")
+    pytest.importorskip("aerial_loc_env.estimators.registry", reason="the agents are not available")
+
+
 @pytest.mark.timeout(600)
 @pytest.mark.parametrize("mission", ["external-nav", "gnss-denial"])
 def test_copter_mission_on_external_nav(mission):
@@ -105,15 +114,8 @@ def test_copter_mission_on_external_nav(mission):
     off at the top of the climb and the EKF moved to source set 2. Same flight and the same bound as the
     GPS_INPUT mission (the fix sigma 3 m: RMSE < 2 sigma + 3.5 m, max < 5 sigma + 3.5 m on the legs). About
     3.5 min each at real time: run in CI only with AERIAL_LOC_SITL_ALL=1 (keeps CI within its budget)."""
-    if not (SITL_DIR / "arducopter").is_file():
-        pytest.skip(f"ArduPilot SITL not found at {SITL_DIR} (see ../shared/sitl/README.md)")
-    if os.environ.get("AERIAL_LOC_SITL_ALL") != "1":
-        pytest.skip("the longer SITL missions run with AERIAL_LOC_SITL_ALL=1 (3.5 min each)")
-    pytest.importorskip("aerial_loc_env.estimators.registry", reason="the agents are not available")
-    from aerial_loc_env.mavlink.sitl import summary
-
-    r = fly_mission("AerialLoc/Small-v0", "template-ncc", ground_amsl_m=30.0, sitl_dir=SITL_DIR,
-                           mission=mission)
+    _long_mission("arducopter", "3.5 min each")
+    r = fly_mission("AerialLoc/Small-v0", "template-ncc", ground_amsl_m=30.0, sitl_dir=SITL_DIR, mission=mission)
     s = summary(r)
     print(s)
     texts = [t for _, t in r["texts"]]
@@ -148,13 +150,7 @@ def test_plane_mission_on_the_vision_fix():
     2 sigma + 7.7 m; the max includes the reacquisition after the climb with no fix, where the estimator itself
     starts from the scenario's 15 m prior: under 3 prior sigmas + 7.7 m. About 4 min at real time: runs with
     AERIAL_LOC_SITL_ALL=1."""
-    if not (SITL_DIR / "arduplane").is_file():
-        pytest.skip(f"ArduPilot SITL not found at {SITL_DIR} (see ../shared/sitl/README.md)")
-    if os.environ.get("AERIAL_LOC_SITL_ALL") != "1":
-        pytest.skip("the longer SITL missions run with AERIAL_LOC_SITL_ALL=1 (4 min)")
-    pytest.importorskip("aerial_loc_env.estimators.registry", reason="the agents are not available")
-    from aerial_loc_env.mavlink.sitl import summary
-
+    _long_mission("arduplane", "4 min")
     r = fly_mission("AerialLoc/PaperShadows-v0", "template-ncc", ground_amsl_m=30.0, sitl_dir=SITL_DIR,
                     vehicle="plane")
     s = summary(r)
