@@ -314,6 +314,7 @@ class AerialLocEnv(gym.Env):
     def __getstate__(self) -> dict:
         state = self.__dict__.copy()
         state.pop("_renderer", None)
+        state.pop("_baked", None)      # a copy of the map's box: baked again on arrival
         return state
 
     def __setstate__(self, state: dict) -> None:
@@ -321,6 +322,7 @@ class AerialLocEnv(gym.Env):
         self._build_renderer()
         if self._track is not None:
             self._renderer.reset(np.random.default_rng(self._noise_seed))
+            self._bake_shadows()
 
     # ------------------------------------------------------------------ episode
     def reset(self, *, seed: int | None = None, options: Mapping[str, Any] | None = None):
@@ -349,6 +351,7 @@ class AerialLocEnv(gym.Env):
         else:
             self._prior = Prior("uniform")
         self._draw_sensor_errors(rng)
+        self._bake_shadows()
         self.briefing = Briefing(orthomap=self.database, camera=self.camera, prior=self._prior,
                                  dt_s=sc.flight.dt_s, altitude_m=sc.flight.altitude_m,
                                  odometry_noise=sc.odometry, scenario_id=sc.id)
@@ -390,6 +393,7 @@ class AerialLocEnv(gym.Env):
         if cfg.strength_range[1] <= 0.0:
             return None
         sources: list = []
+        self._shadow_box_px: tuple[int, int, int, int] | None = None
         if sc.map.use_dsm and om.dsm_m is not None:
             sources.append(self._cast_shadows())
         # clouds only over the window the episode sees (the track's box plus the footprint): the field is
@@ -402,6 +406,17 @@ class AerialLocEnv(gym.Env):
         if clouds is not None:
             sources.append(clouds)
         return sources or None
+
+    def _bake_shadows(self) -> None:
+        """Cast shadows alone on an untilted camera: shade them into the map over the track's box once per episode
+        (``CameraRenderer.bake``), so that each frame is one warp of the pre-shaded map. Draws nothing."""
+        self._baked = self._baked_from = None
+        occ = self._occlusion
+        if occ is None or len(occ) != 1 or self._attitude is not None or self._shadow_box_px is None:
+            return
+        shading = {"strength": self._strength, **self.scenario.shadows.shading_kwargs()}
+        self._baked = self._renderer.bake(occ[0], shading, self._shadow_box_px)
+        self._baked_from = occ
 
     def _cast_shadows(self) -> Any:
         from ..world.shadows import ShadowGrid, sun_occlusion
@@ -429,6 +444,7 @@ class AerialLocEnv(gym.Env):
                              azimuth_samples=cfg.penumbra_azimuth_samples)
         field = np.zeros((hc, wc), dtype=np.float32)
         field[i0:i1, j0:j1] = grid.data[i0 - ci0:i1 - ci0, j0 - cj0:j1 - cj0]
+        self._shadow_box_px = (j0 * f, i0 * f, j1 * f, i1 * f)
         return ShadowGrid(field, gx, gy, f)
 
     def _pose(self, i: int) -> Pose:
@@ -441,7 +457,9 @@ class AerialLocEnv(gym.Env):
         shading = {"strength": self._strength, **sc.shadows.shading_kwargs()}
         tilt = (0.0, 0.0) if self._attitude is None else (float(self._attitude[i, 0]), float(self._attitude[i, 1]))
         exposure = self._scene_exposure
-        frame = self._renderer.render(pose, self.np_random, self._occlusion, shading,
+        # the baked shadows while the occluders are the ones baked (env.external swaps in the whole map's)
+        occlusion = self._baked if self._baked is not None and self._occlusion is self._baked_from else self._occlusion
+        frame = self._renderer.render(pose, self.np_random, occlusion, shading,
                                       t_s=float(self._track.t_s[i]), speed_mps=float(self._track.speed_mps[i]),
                                       tilt_rad=tilt, pre_sensor=(lambda image: exposure(image, pose.altitude_m))
                                       if exposure.active else None,

@@ -61,8 +61,15 @@ def _render_setup(altitude_m: float, shadows: bool, perspective: bool = False,
         rng = np.random.default_rng(1)
         poses = [Pose(*p, altitude_m) for p in _flight()]
         state = {"i": 0}
-        occlusion = grid if shadows else None
         shading = {"strength": 0.9}
+        occlusion = grid if shadows else None
+        if shadows:  # as the env does at reset: shaded into the map over the flight's box (None: perspective)
+            from ..sensors.camera import apply_affine
+
+            corners = np.concatenate([apply_affine(renderer.camera_to_map(p), renderer.camera.corners_px())
+                                      for p in poses])
+            box = (*np.floor(corners.min(axis=0)).astype(int), *np.ceil(corners.max(axis=0)).astype(int))
+            occlusion = renderer.bake(grid, shading, box) or grid
 
         def run() -> object:
             state["i"] = (state["i"] + 1) % len(poses)

@@ -36,6 +36,10 @@ from .perspective import PerspectiveConfig, ReliefView, ViewMaps, sample_grid, t
 FootprintStatus = Literal["valid", "outside", "nodata"]
 OcclusionSource = Any  # np.ndarray (map-sized float32) | world.shadows.ShadowGrid | world.shadows.CloudField
 
+#: bumped when the frames change for the same inputs (env/fingerprint.py); 1: an episode's cast shadows are shaded
+#: into the map at reset (``CameraRenderer.bake``), before the interpolation instead of after it
+GENERATOR_VERSION = 1
+
 _WARP_FLAGS = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
 _RGBA_MAX_PX = 32_000_000  # maps up to this many pixels get an RGBA copy (faster warps; the default city: 27 Mpx)
 _NOISE_MARGIN_PX = 97  # the noise bank is this much larger than a frame in each direction (random offsets)
@@ -86,6 +90,31 @@ class Frame:
     pose: Pose
     occlusion: np.ndarray | None = None  # (H, W) float32 in [0, 1] in the camera frame, None without shadows
     pyramid_level: int = 0               # the map pyramid level the frame was warped from
+
+
+@dataclass(frozen=True, eq=False)
+class BakedShadows:
+    """An episode's cast shadows shaded into a box of the map at reset (``CameraRenderer.bake``).
+
+    A frame whose footprint lies in the box is ONE warp of ``rgba``: the shaded RGB, with the occlusion quantized
+    to uint8 in the alpha channel (the channel the renderer warps anyway), so the per-frame occlusion warp and
+    shading disappear. Frames that cannot use it (pyramid level > 0, a perspective or tilted view, a footprint
+    leaving the box) render from ``grid`` and ``shading_params`` as before. The shading is applied before the
+    interpolation instead of after it: the same bytes away from shadow edges up to rounding, and within the bound
+    tests/test_render_bake.py derives at the edges; the shadow mask is the warped alpha >= 128.
+    """
+
+    grid: Any                         # world.shadows.ShadowGrid: the source
+    shading_params: Mapping[str, Any]
+    rgba: np.ndarray                  # (h, w, 4) uint8: shaded RGB, alpha = round(255 occlusion)
+    origin_px: tuple[int, int]        # (column, row) of rgba[0, 0] in the map (level 0)
+
+    def covers(self, corners_px: np.ndarray) -> bool:
+        """Whether map points (n, 2) lie in the box with the bilinear kernel's margin."""
+        c0, r0 = self.origin_px
+        h, w = self.rgba.shape[:2]
+        lo, hi = corners_px.min(axis=0), corners_px.max(axis=0)
+        return bool(lo[0] >= c0 + 1.0 and lo[1] >= r0 + 1.0 and hi[0] <= c0 + w - 2.0 and hi[1] <= r0 + h - 2.0)
 
 
 class CameraRenderer:
@@ -144,6 +173,32 @@ class CameraRenderer:
         """Redraw the noise bank (once per episode) from ``rng``."""
         if self.photometry.has_noise:
             self._noise_bank = noise_bank(rng, self.camera)
+
+    def bake(self, grid: Any, shading_params: Mapping[str, Any] | None,
+             box_px: tuple[int, int, int, int]) -> BakedShadows | None:
+        """Shade the cast shadows ``grid`` (a ``world.shadows.ShadowGrid``) into the map over ``box_px`` (column0,
+        row0, column1, row1; level 0 map pixels, the region an episode's footprints stay in), once per episode.
+
+        Returns None where baking does not apply: maps warped as RGB (no alpha channel to carry the occlusion)
+        and perspective views of a height model (their frames sample the grid through per-pixel maps). Memory:
+        one RGBA copy of the box, held by the returned object only."""
+        from ..world.shadows import ShadowGrid, shade
+
+        if not self._rgba or self._view.dsm is not None or not isinstance(grid, ShadowGrid):
+            return None
+        h, w = self.orthomap.rgb.shape[:2]
+        c0, r0 = max(0, int(box_px[0]) - 2), max(0, int(box_px[1]) - 2)
+        c1, r1 = min(w, int(box_px[2]) + 2), min(h, int(box_px[3]) + 2)
+        if c1 <= c0 or r1 <= r0:
+            raise ConfigError(f"CameraRenderer.bake: box_px = {box_px!r} holds no map pixel of the {w}x{h} map")
+        data, f = self._grid(grid)
+        # map pixel u -> grid pixel (u + 0.5) / f - 0.5, as in the per-frame warp
+        a = np.array([[1.0 / f, 0.0, (c0 + 0.5) / f - 0.5], [0.0, 1.0 / f, (r0 + 0.5) / f - 0.5]])
+        occ = cv2.warpAffine(data, a, (c1 - c0, r1 - r0), flags=_WARP_FLAGS, borderMode=cv2.BORDER_REPLICATE)
+        occ_q = cv2.convertScaleAbs(occ, alpha=255.0)
+        rgb = cv2.cvtColor(self._levels[0][r0:r1, c0:c1], cv2.COLOR_RGBA2RGB)
+        shaded = shade(rgb, occ_q, _shading_lut(shading_params), out=rgb)
+        return BakedShadows(grid, dict(shading_params or {}), cv2.merge([shaded, occ_q]), (c0, r0))
 
     # ------------------------------------------------------------------ geometry
     def camera_to_map(self, pose: Pose, camera: CameraModel | None = None) -> np.ndarray:
@@ -281,24 +336,31 @@ class CameraRenderer:
         if isinstance(occlusion, shadows.CloudField):
             to_world = camera.camera_to_world(*_pose_tuple(pose))
             return occlusion.occlusion_image(t_s, to_world, (camera.height_px, camera.width_px))
-        if isinstance(occlusion, shadows.ShadowGrid):
-            data, factor = occlusion.data, int(occlusion.factor)
-        elif isinstance(occlusion, np.ndarray):
-            data, factor = occlusion, 1
-        else:
-            raise ConfigError(f"render: occlusion must be a map-sized float32 array, a ShadowGrid, a CloudField or "
-                              f"a sequence of them, got {type(occlusion).__name__}")
-        h, w = self.orthomap.rgb.shape[:2]
-        expected = (-(-h // factor), -(-w // factor))
-        if data.shape != expected or data.dtype != np.float32:
-            raise ConfigError(f"render: occlusion grid must be float32 of shape {expected} (the map {h}x{w} "
-                              f"px at {factor} map px per cell), got {data.dtype} {data.shape}")
+        data, factor = self._grid(occlusion)
         if view is not None:  # shadows lie on the surfaces the perspective view sees
             return sample_grid(view, data, factor)
         # map pixel u -> grid pixel (u + 0.5) / f - 0.5
         a = affine / factor
         a[:, 2] += 0.5 / factor - 0.5
         return cv2.warpAffine(data, a, size, flags=_WARP_FLAGS, borderMode=cv2.BORDER_REPLICATE)
+
+    def _grid(self, occlusion: Any) -> tuple[np.ndarray, int]:
+        """The (data, map px per cell) of a ShadowGrid or map-sized array, checked against the map."""
+        from ..world import shadows
+
+        if isinstance(occlusion, shadows.ShadowGrid):
+            data, factor = occlusion.data, int(occlusion.factor)
+        elif isinstance(occlusion, np.ndarray):
+            data, factor = occlusion, 1
+        else:
+            raise ConfigError(f"render: occlusion must be a map-sized float32 array, a ShadowGrid, a CloudField, "
+                              f"a BakedShadows or a sequence of them, got {type(occlusion).__name__}")
+        h, w = self.orthomap.rgb.shape[:2]
+        expected = (-(-h // factor), -(-w // factor))
+        if data.shape != expected or data.dtype != np.float32:
+            raise ConfigError(f"render: occlusion grid must be float32 of shape {expected} (the map {h}x{w} "
+                              f"px at {factor} map px per cell), got {data.dtype} {data.shape}")
+        return data, factor
 
     def render(self, pose: Pose, rng: np.random.Generator,
                occlusion: OcclusionSource | Sequence[OcclusionSource] | None = None,
@@ -327,6 +389,10 @@ class CameraRenderer:
         status = self._status(affine, level, camera, None if tilt is None else tilted_corners(camera, tilt))
         self._check(pose, status, strict, camera)
         view = self._view.maps(affine, pose.altitude_m, camera, tilt)
+        if isinstance(occlusion, BakedShadows):
+            baked, occlusion, shading_params = occlusion, occlusion.grid, occlusion.shading_params
+            if view is None and level == 0 and baked.covers(apply_affine(affine, camera.corners_px())):
+                return self._render_baked(baked, affine, pose, rng, speed_mps, status, pre_sensor)
         if view is None:
             image = self._warp(affine, level, camera)
         else:
@@ -335,14 +401,10 @@ class CameraRenderer:
             self._view.shade_facades(image, view, sun_deg, float((shading_params or {}).get("gamma", 2.2)))
         occ_cam = None
         if occlusion is not None:
-            from ..world.shadows import shade, shading_lut
+            from ..world.shadows import shade
 
             occ_cam = self._occlusion(occlusion, affine, pose, t_s, camera, view)
-            kwargs = dict(shading_params or {})
-            strength = float(kwargs.pop("strength", 1.0))
-            if "sky_tint_rgb" in kwargs:
-                kwargs["sky_tint_rgb"] = tuple(float(t) for t in kwargs["sky_tint_rgb"])
-            shade(image, cv2.convertScaleAbs(occ_cam, alpha=255.0), shading_lut(strength, **kwargs), out=image)
+            shade(image, cv2.convertScaleAbs(occ_cam, alpha=255.0), _shading_lut(shading_params), out=image)
             mask = occ_cam >= 0.5
             fraction = cv2.countNonZero(mask.view(np.uint8)) / mask.size
         else:
@@ -353,6 +415,27 @@ class CameraRenderer:
         image = self._photometry(image, rng, speed_mps, camera.gsd_m(pose.altitude_m) * camera.pixel_aspect)
         return Frame(image=image, shadow_mask=mask, shadow_fraction=float(fraction), valid=status == "valid",
                      status=status, pose=pose, occlusion=occ_cam, pyramid_level=level)
+
+    def _render_baked(self, baked: BakedShadows, affine: np.ndarray, pose: Pose, rng: np.random.Generator,
+                      speed_mps: float, status: FootprintStatus,
+                      pre_sensor: Callable[[np.ndarray], np.ndarray] | None) -> Frame:
+        """One warp of the pre-shaded box: RGB and the occlusion (alpha) together, then the photometry."""
+        camera = self.camera
+        a = affine.copy()
+        a[0, 2] -= baked.origin_px[0]
+        a[1, 2] -= baked.origin_px[1]
+        out = cv2.warpAffine(baked.rgba, a, (camera.width_px, camera.height_px), flags=_WARP_FLAGS,
+                             borderMode=cv2.BORDER_CONSTANT, borderValue=(0, 0, 0, 0))
+        image = cv2.cvtColor(out, cv2.COLOR_RGBA2RGB)
+        alpha = cv2.extractChannel(out, 3)
+        mask = alpha >= 128                      # round(255 occ) >= 128  <=>  occ >= 0.5 (up to interpolation)
+        fraction = cv2.countNonZero(mask.view(np.uint8)) / mask.size
+        occ_cam = np.multiply(alpha, np.float32(1.0 / 255.0), dtype=np.float32)
+        if pre_sensor is not None:
+            image = pre_sensor(image)
+        image = self._photometry(image, rng, speed_mps, camera.gsd_m(pose.altitude_m) * camera.pixel_aspect)
+        return Frame(image=image, shadow_mask=mask, shadow_fraction=float(fraction), valid=status == "valid",
+                     status=status, pose=pose, occlusion=occ_cam, pyramid_level=0)
 
     # ------------------------------------------------------------------ photometry
     def _photometry(self, image: np.ndarray, rng: np.random.Generator, speed_mps: float,
@@ -398,6 +481,17 @@ class CameraRenderer:
         cos2 = f_px ** 2 / (f_px ** 2 + u ** 2 + v ** 2)
         gain = (1.0 - strength * (1.0 - cos2 ** 2)).astype(np.float32)
         return cv2.merge([gain, gain, gain])
+
+
+def _shading_lut(shading_params: Mapping[str, Any] | None) -> np.ndarray:
+    """``world.shadows.shading_lut`` of render's ``shading_params`` (``strength`` defaults to 1)."""
+    from ..world.shadows import shading_lut
+
+    kwargs = dict(shading_params or {})
+    strength = float(kwargs.pop("strength", 1.0))
+    if "sky_tint_rgb" in kwargs:
+        kwargs["sky_tint_rgb"] = tuple(float(t) for t in kwargs["sky_tint_rgb"])
+    return shading_lut(strength, **kwargs)
 
 
 def _motion_kernel(length_px: float) -> np.ndarray:

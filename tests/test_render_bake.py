@@ -1,0 +1,168 @@
+"""Cast shadows baked into the map at reset (``CameraRenderer.bake``) against the per-frame path.
+
+Per frame the old path warps the map (bilinear weights w_i over the 2x2 map pixels a_i), warps the occlusion grid
+to the camera (float, Q), then shades: ``A G(Q)`` with ``A = sum w_i a_i`` and G the per-channel shading LUT.
+The baked path shades the map first, with the occlusion upsampled to map pixels and rounded (q_i), then warps:
+``sum w_i a_i G(q_i)``. Their difference, per pixel and channel, splits into
+
+    sum w_i (a_i - A)(G_i - Gbar)            <= Ra RG / 4     (a weighted covariance: half-range times half-range)
+    A (Gbar - G(Q))                          <= A RG + A step (1 + 255 d_kink) / 255
+
+with Ra, RG the ranges of a_i and G_i = G(q_i) over the 2x2 pixels, Gbar = sum w_i G_i (Gbar and G(Q) both lie in
+[min G_i, max G_i] up to Q's own error), ``step`` the LUT's largest step (DN per occlusion level at a = 255) and
+``d_kink`` the error of interpolating the bilinearly upsampled grid again instead of the grid itself (the
+interpolant has kinks at the grid's pixel centres: at most D2 / (2 f), D2 the grid's largest second difference,
+f its factor). Both paths round twice (the warp and the shading multiply): +2. Where the 2x2 pixels share one
+shade (RG = 0, most of the frame) this leaves the rounding and one occlusion level: the same picture.
+
+The shadow mask is the warped alpha >= 128 instead of the warped float occlusion >= 0.5: they can only disagree
+where the float occlusion is within ``2 / 255 + D2 / (2 f) + slope (1 + 1 / f) / 32`` of 0.5 (two roundings, the
+kinks, and the 1/32 px coordinate quantization of both warps over the grid's largest slope per grid pixel).
+"""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import cv2
+import numpy as np
+import pytest
+
+from aerial_loc_env.sensors.camera import CameraModel, Pose, apply_affine
+from aerial_loc_env.sensors.perspective import PerspectiveConfig
+from aerial_loc_env.sensors.render import BakedShadows, CameraRenderer, Photometry
+from aerial_loc_env.world.shadows import ShadowGrid, shading_lut
+
+CAMERA = CameraModel(width_px=120, height_px=80)       # 0.25 m/px at 40 m: map level 0
+POSES = [Pose(50.0, 50.0, 0.3, 40.0), Pose(47.0, 55.0, -2.1, 40.0), Pose(55.0, 45.0, 1.2, 38.0)]
+SHADING = {"strength": 0.9}
+
+
+def _scene(hard: bool):
+    """A textured 100 m map with a factor-2 occlusion grid: soft (every level) or hard (0/1 blocks)."""
+    rng = np.random.default_rng(0)
+    rgb = cv2.resize(rng.integers(0, 256, (50, 50, 3), dtype=np.uint8), (400, 400), interpolation=cv2.INTER_CUBIC)
+    if hard:
+        occ = cv2.resize((rng.random((10, 10)) < 0.5).astype(np.float32), (200, 200),
+                         interpolation=cv2.INTER_NEAREST)
+    else:
+        occ = cv2.resize(rng.random((20, 20), dtype=np.float32), (200, 200), interpolation=cv2.INTER_LINEAR)
+        occ = np.clip(2.0 * occ - 0.5, 0.0, 1.0)
+    orthomap = SimpleNamespace(rgb=rgb, gsd_x_m=0.25, gsd_y_m=0.25, height_px=400, width_px=400, nodata=None,
+                               name="bake-test")
+    return orthomap, ShadowGrid(occ.astype(np.float32), 0.5, 0.5, 2)
+
+
+def _grid_constants(grid: ShadowGrid) -> tuple[float, float]:
+    """The grid's largest second difference and slope (per grid pixel) along either axis."""
+    g = grid.data.astype(np.float64)
+    d2 = max(np.abs(np.diff(g, 2, axis=0)).max(), np.abs(np.diff(g, 2, axis=1)).max())
+    slope = max(np.abs(np.diff(g, axis=0)).max(), np.abs(np.diff(g, axis=1)).max())
+    return float(d2), float(slope)
+
+
+def _frames(renderer, grid, baked, pose):
+    old = renderer.render(pose, np.random.default_rng(1), grid, SHADING)
+    new = renderer.render(pose, np.random.default_rng(1), baked, None)
+    return old, new
+
+
+def _bound(renderer, baked: BakedShadows, grid: ShadowGrid, pose) -> np.ndarray:
+    """The per-pixel, per-channel bound of the module docstring (DN)."""
+    affine = renderer.camera_to_map(pose)
+    v, u = np.mgrid[0:CAMERA.height_px, 0:CAMERA.width_px]
+    xy = apply_affine(affine, np.stack([u.ravel(), v.ravel()], axis=1).astype(np.float64))
+    c0, r0 = baked.origin_px
+    x0 = np.floor(xy[:, 0]).astype(int) - c0
+    y0 = np.floor(xy[:, 1]).astype(int) - r0
+    rgb = renderer.orthomap.rgb[r0:, c0:].astype(np.float64)
+    q = baked.rgba[..., 3]
+    lut = shading_lut(SHADING["strength"]).astype(np.float64) / 255.0       # (3, 256)
+    a = np.stack([rgb[y0 + dy, x0 + dx] for dy in (0, 1) for dx in (0, 1)])            # (4, n, 3)
+    gains = np.stack([lut[:, q[y0 + dy, x0 + dx]].T for dy in (0, 1) for dx in (0, 1)])  # (4, n, 3)
+    ra, rg = np.ptp(a, axis=0), np.ptp(gains, axis=0)
+    big_a = a.max(axis=0)
+    step = np.abs(np.diff(shading_lut(SHADING["strength"]).astype(np.float64), axis=1)).max()
+    d2, _ = _grid_constants(grid)
+    d_kink = d2 / (2.0 * grid.factor)
+    bound = ra * rg / 4.0 + big_a * rg + big_a * step * (1.0 + 255.0 * d_kink) / 255.0 + 2.0
+    shape = (CAMERA.height_px, CAMERA.width_px, 3)
+    return bound.reshape(shape), rg.reshape(shape)
+
+
+@pytest.mark.parametrize("hard", [False, True])
+def test_baked_frame_within_the_derived_bound_of_the_per_frame_shading(hard):
+    orthomap, grid = _scene(hard)
+    renderer = CameraRenderer(orthomap, CAMERA, Photometry.ideal())
+    baked = renderer.bake(grid, SHADING, (40, 40, 360, 360))
+    assert isinstance(baked, BakedShadows)
+    for pose in POSES:
+        old, new = _frames(renderer, grid, baked, pose)
+        diff = np.abs(old.image.astype(int) - new.image.astype(int))
+        bound, rg = _bound(renderer, baked, grid, pose)
+        assert np.all(diff <= bound), f"max excess {(diff - bound).max():.2f} DN"
+        # fully lit or fully shaded (the 2x2 pixels share one shade, the float occlusion is 0 or 1): only the
+        # two roundings differ
+        flat = (rg.max(axis=2) == 0) & ((old.occlusion == 0) | (old.occlusion == 1))
+        assert flat.mean() > (0.5 if hard else 0.05)
+        assert diff[flat].max() <= 2
+        assert 0.05 < old.shadow_fraction < 0.95
+
+
+def test_baked_shadow_mask_differs_only_next_to_half_occlusion():
+    orthomap, grid = _scene(hard=False)
+    renderer = CameraRenderer(orthomap, CAMERA, Photometry.ideal())
+    baked = renderer.bake(grid, SHADING, (40, 40, 360, 360))
+    d2, slope = _grid_constants(grid)
+    f = grid.factor
+    delta = 2.0 / 255.0 + d2 / (2.0 * f) + slope * (1.0 + 1.0 / f) / 32.0
+    assert delta < 0.1                          # a meaningful bound on this smooth grid
+    for pose in POSES:
+        old, new = _frames(renderer, grid, baked, pose)
+        differ = old.shadow_mask != new.shadow_mask
+        assert np.all(np.abs(old.occlusion[differ] - 0.5) <= delta)
+        assert abs(old.shadow_fraction - new.shadow_fraction) <= differ.mean() + 1e-12
+        assert np.abs(old.occlusion - new.occlusion).max() <= delta
+        assert new.occlusion.dtype == np.float32 and new.shadow_mask.dtype == bool
+
+
+def test_frames_the_bake_cannot_serve_use_the_grid_exactly():
+    """Outside the box, above pyramid level 0, or tilted: the per-frame path, bit for bit."""
+    orthomap, grid = _scene(hard=False)
+    renderer = CameraRenderer(orthomap, CAMERA, Photometry())
+    baked = renderer.bake(grid, SHADING, (150, 150, 250, 250))       # smaller than the footprints
+    cases = [(POSES[0], {}), (Pose(50.0, 50.0, 0.3, 40.0), {"tilt_rad": (0.01, -0.01)})]
+    wide = CameraRenderer(orthomap, CAMERA, Photometry())
+    full = wide.bake(grid, SHADING, (0, 0, 400, 400))
+    cases_full = [(Pose(50.0, 50.0, 0.3, 75.0), {})]                   # 0.47 m/px: pyramid level 1
+    for r, b, these in ((renderer, baked, cases), (wide, full, cases_full)):
+        for pose, kw in these:
+            old = r.render(pose, np.random.default_rng(3), grid, SHADING, **kw)
+            new = r.render(pose, np.random.default_rng(3), b, None, **kw)
+            np.testing.assert_array_equal(old.image, new.image)
+            np.testing.assert_array_equal(old.shadow_mask, new.shadow_mask)
+
+
+def test_bake_applies_only_where_it_can_and_checks_its_inputs():
+    orthomap, grid = _scene(hard=False)
+    assert CameraRenderer(orthomap, CAMERA, rgba=False).bake(grid, SHADING, (0, 0, 400, 400)) is None
+    relief = SimpleNamespace(**vars(orthomap), dsm_m=np.zeros((400, 400), np.float32))
+    persp = CameraRenderer(relief, CAMERA, perspective=PerspectiveConfig(enabled=True))
+    assert persp.bake(grid, SHADING, (0, 0, 400, 400)) is None     # perspective frames keep the grid path
+    renderer = CameraRenderer(orthomap, CAMERA)
+    with pytest.raises(Exception, match="box_px"):
+        renderer.bake(grid, SHADING, (500, 500, 600, 600))
+    with pytest.raises(Exception, match="float32 of shape"):
+        renderer.bake(ShadowGrid(grid.data[:10], 0.5, 0.5, 2), SHADING, (0, 0, 400, 400))
+
+
+def test_baked_frames_are_deterministic():
+    orthomap, grid = _scene(hard=False)
+    images = []
+    for _ in range(2):
+        renderer = CameraRenderer(orthomap, CAMERA, Photometry(), noise_seed=5)
+        baked = renderer.bake(grid, SHADING, (40, 40, 360, 360))
+        rng = np.random.default_rng(6)
+        images.append([renderer.render(p, rng, baked, None).image for p in POSES])
+    for a, b in zip(*images, strict=True):
+        np.testing.assert_array_equal(a, b)
