@@ -166,3 +166,23 @@ def test_baked_frames_are_deterministic():
         images.append([renderer.render(p, rng, baked, None).image for p in POSES])
     for a, b in zip(*images, strict=True):
         np.testing.assert_array_equal(a, b)
+
+
+def test_tiles_are_baked_lazily_and_do_not_depend_on_the_order():
+    orthomap, grid = _scene(hard=False)
+    bakes = []
+    for poses in (POSES, POSES[::-1]):
+        renderer = CameraRenderer(orthomap, CAMERA, Photometry.ideal())
+        baked = renderer.bake(grid, SHADING, (0, 0, 400, 400))
+        assert not baked.baked_tiles.any()
+        renderer.render(poses[0], np.random.default_rng(0), baked, None)
+        assert 0 < baked.baked_tiles.sum() < baked.baked_tiles.size     # only the tiles the footprint reads
+        for pose in poses[1:]:
+            renderer.render(pose, np.random.default_rng(0), baked, None)
+        bakes.append(baked)
+    a, b = bakes
+    np.testing.assert_array_equal(a.baked_tiles, b.baked_tiles)
+    tile = 128
+    for ty, tx in zip(*np.nonzero(a.baked_tiles), strict=True):
+        sl = np.s_[ty * tile:(ty + 1) * tile, tx * tile:(tx + 1) * tile]
+        np.testing.assert_array_equal(a.rgba[sl], b.rgba[sl])

@@ -10,6 +10,12 @@ Why it is built this way:
   pose gives the same picture minus shadows and sensor effects.
 - Footprints that leave the map or touch no-data are detected, never silently padded: strict mode raises
   ``FootprintError``; the non-strict path fills with black and flags the frame invalid.
+- Cast shadows are static over an episode, so ``bake`` shades them into the map once per reset (over the box the
+  episode's footprints stay in, the occlusion quantized into the alpha channel the RGBA warp carries anyway): a
+  frame is then ONE warp of the pre-shaded map plus the photometry, instead of the map warp, a float occlusion
+  warp and three shading passes. Shading before interpolation differs from shading after it only at shadow edges
+  (tests/test_render_bake.py derives the bound); cloud shadows drift and keep the per-frame path, and so do frames
+  the bake cannot serve (pyramid level > 0, perspective or tilted views, a footprint leaving the box).
 - Photometry stays in integers, uint8 in and uint8 out, one full-frame pass per effect (``_photometry``): the
   shading gain image is three 1-channel LUTs of the quantized occlusion, gamma one uint8 LUT, the white-balance
   and exposure gains one ``cv2.transform`` (all bit-identical to float arithmetic), vignetting one multiply by a
@@ -42,6 +48,7 @@ GENERATOR_VERSION = 1
 
 _WARP_FLAGS = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
 _RGBA_MAX_PX = 32_000_000  # maps up to this many pixels get an RGBA copy (faster warps; the default city: 27 Mpx)
+_BAKE_TILE_PX = 128  # BakedShadows fills its box in tiles this size, as footprints first reach them
 _NOISE_MARGIN_PX = 97  # the noise bank is this much larger than a frame in each direction (random offsets)
 _BLOCK_PX = 16  # no-data screening block (map pixels)
 _NOISE_BITS = 11  # the int16 noise bank holds round(z * 2**11), |z| <= 16
@@ -94,20 +101,24 @@ class Frame:
 
 @dataclass(frozen=True, eq=False)
 class BakedShadows:
-    """An episode's cast shadows shaded into a box of the map at reset (``CameraRenderer.bake``).
+    """An episode's cast shadows shaded into a box of the map (``CameraRenderer.bake``).
 
     A frame whose footprint lies in the box is ONE warp of ``rgba``: the shaded RGB, with the occlusion quantized
     to uint8 in the alpha channel (the channel the renderer warps anyway), so the per-frame occlusion warp and
-    shading disappear. Frames that cannot use it (pyramid level > 0, a perspective or tilted view, a footprint
-    leaving the box) render from ``grid`` and ``shading_params`` as before. The shading is applied before the
-    interpolation instead of after it: the same bytes away from shadow edges up to rounding, and within the bound
-    tests/test_render_bake.py derives at the edges; the shadow mask is the warped alpha >= 128.
+    shading disappear. ``rgba`` is filled lazily in tiles of ``_BAKE_TILE_PX``, each the first time a footprint
+    needs it: an episode shades the strip it flies over, not its whole bounding box, and the memory of tiles never
+    touched is never committed (``np.empty``). A tile's bytes do not depend on when it is baked. Frames that cannot
+    use it (pyramid level > 0, a perspective or tilted view, a footprint leaving the box) render from ``grid`` and
+    ``shading_params`` as before. The shading is applied before the interpolation instead of after it: the same
+    bytes away from shadow edges up to rounding, and within the bound tests/test_render_bake.py derives at the
+    edges; the shadow mask is the warped alpha >= 128.
     """
 
     grid: Any                         # world.shadows.ShadowGrid: the source
     shading_params: Mapping[str, Any]
-    rgba: np.ndarray                  # (h, w, 4) uint8: shaded RGB, alpha = round(255 occlusion)
+    rgba: np.ndarray                  # (h, w, 4) uint8: shaded RGB, alpha = round(255 occlusion), where baked
     origin_px: tuple[int, int]        # (column, row) of rgba[0, 0] in the map (level 0)
+    baked_tiles: np.ndarray           # (rows, columns) bool: the tiles of rgba filled so far
 
     def covers(self, corners_px: np.ndarray) -> bool:
         """Whether map points (n, 2) lie in the box with the bilinear kernel's margin."""
@@ -177,12 +188,13 @@ class CameraRenderer:
     def bake(self, grid: Any, shading_params: Mapping[str, Any] | None,
              box_px: tuple[int, int, int, int]) -> BakedShadows | None:
         """Shade the cast shadows ``grid`` (a ``world.shadows.ShadowGrid``) into the map over ``box_px`` (column0,
-        row0, column1, row1; level 0 map pixels, the region an episode's footprints stay in), once per episode.
+        row0, column1, row1; level 0 map pixels, the region an episode's footprints stay in), once per episode
+        (lazily: each tile when a frame first needs it).
 
         Returns None where baking does not apply: maps warped as RGB (no alpha channel to carry the occlusion)
         and perspective views of a height model (their frames sample the grid through per-pixel maps). Memory:
-        one RGBA copy of the box, held by the returned object only."""
-        from ..world.shadows import ShadowGrid, shade
+        at most one RGBA copy of the box (the tiles flown over), held by the returned object only."""
+        from ..world.shadows import ShadowGrid
 
         if not self._rgba or self._view.dsm is not None or not isinstance(grid, ShadowGrid):
             return None
@@ -191,14 +203,37 @@ class CameraRenderer:
         c1, r1 = min(w, int(box_px[2]) + 2), min(h, int(box_px[3]) + 2)
         if c1 <= c0 or r1 <= r0:
             raise ConfigError(f"CameraRenderer.bake: box_px = {box_px!r} holds no map pixel of the {w}x{h} map")
-        data, f = self._grid(grid)
-        # map pixel u -> grid pixel (u + 0.5) / f - 0.5, as in the per-frame warp
-        a = np.array([[1.0 / f, 0.0, (c0 + 0.5) / f - 0.5], [0.0, 1.0 / f, (r0 + 0.5) / f - 0.5]])
-        occ = cv2.warpAffine(data, a, (c1 - c0, r1 - r0), flags=_WARP_FLAGS, borderMode=cv2.BORDER_REPLICATE)
-        occ_q = cv2.convertScaleAbs(occ, alpha=255.0)
-        rgb = cv2.cvtColor(self._levels[0][r0:r1, c0:c1], cv2.COLOR_RGBA2RGB)
-        shaded = shade(rgb, occ_q, _shading_lut(shading_params), out=rgb)
-        return BakedShadows(grid, dict(shading_params or {}), cv2.merge([shaded, occ_q]), (c0, r0))
+        self._grid(grid)                         # checks the grid against the map
+        tiles = (-(-(r1 - r0) // _BAKE_TILE_PX), -(-(c1 - c0) // _BAKE_TILE_PX))
+        return BakedShadows(grid, dict(shading_params or {}), np.empty((r1 - r0, c1 - c0, 4), np.uint8), (c0, r0),
+                            np.zeros(tiles, dtype=bool))
+
+    def _bake_tiles(self, baked: BakedShadows, corners_px: np.ndarray) -> None:
+        """Shade the tiles of ``baked`` that the bilinear warp over map points ``corners_px`` reads, if not yet."""
+        from ..world.shadows import shade
+
+        c0, r0 = baked.origin_px
+        lo = np.floor(corners_px.min(axis=0)).astype(int) - np.array([c0 + 1, r0 + 1])
+        hi = np.floor(corners_px.max(axis=0)).astype(int) - np.array([c0 - 2, r0 - 2])
+        t0, t1 = np.maximum(lo // _BAKE_TILE_PX, 0), hi // _BAKE_TILE_PX + 1
+        todo = ~baked.baked_tiles[t0[1]:t1[1], t0[0]:t1[0]]
+        if not todo.any():
+            return
+        data, f = self._grid(baked.grid)
+        lut = _shading_lut(baked.shading_params)
+        h, w = baked.rgba.shape[:2]
+        for ty, tx in zip(*np.nonzero(todo), strict=True):
+            ty, tx = int(ty + t0[1]), int(tx + t0[0])
+            y0, x0 = ty * _BAKE_TILE_PX, tx * _BAKE_TILE_PX
+            y1, x1 = min(h, y0 + _BAKE_TILE_PX), min(w, x0 + _BAKE_TILE_PX)
+            u0, v0 = c0 + x0, r0 + y0
+            # map pixel u -> grid pixel (u + 0.5) / f - 0.5, as in the per-frame warp
+            a = np.array([[1.0 / f, 0.0, (u0 + 0.5) / f - 0.5], [0.0, 1.0 / f, (v0 + 0.5) / f - 0.5]])
+            occ = cv2.warpAffine(data, a, (x1 - x0, y1 - y0), flags=_WARP_FLAGS, borderMode=cv2.BORDER_REPLICATE)
+            occ_q = cv2.convertScaleAbs(occ, alpha=255.0)
+            rgb = cv2.cvtColor(self._levels[0][v0:v0 + y1 - y0, u0:u0 + x1 - x0], cv2.COLOR_RGBA2RGB)
+            baked.rgba[y0:y1, x0:x1] = cv2.merge([shade(rgb, occ_q, lut, out=rgb), occ_q])
+            baked.baked_tiles[ty, tx] = True
 
     # ------------------------------------------------------------------ geometry
     def camera_to_map(self, pose: Pose, camera: CameraModel | None = None) -> np.ndarray:
@@ -370,7 +405,8 @@ class CameraRenderer:
                sun_deg: tuple[float, float] | None = None) -> Frame:
         """Render the camera frame at ``pose``: map warp, shadows (if ``occlusion``), then photometry.
 
-        ``occlusion``: see ``occlusion_in_camera`` (``t_s`` is the time for cloud fields). ``shading_params``
+        ``occlusion``: see ``occlusion_in_camera`` (``t_s`` is the time for cloud fields), or a ``BakedShadows``
+        from ``bake`` (which brings its own shading parameters; ``shading_params`` is ignored). ``shading_params``
         are the keyword arguments of ``world.shadows.apply_shading`` (``strength`` defaults to 1), e.g.
         ``{"strength": cfg.draw_strength(rng), **cfg.shading_kwargs()}`` for a ``ShadowConfig``.
         ``speed_mps`` sets the motion blur length (``speed * exposure_time`` along the heading).
@@ -391,7 +427,9 @@ class CameraRenderer:
         view = self._view.maps(affine, pose.altitude_m, camera, tilt)
         if isinstance(occlusion, BakedShadows):
             baked, occlusion, shading_params = occlusion, occlusion.grid, occlusion.shading_params
-            if view is None and level == 0 and baked.covers(apply_affine(affine, camera.corners_px())):
+            corners = apply_affine(affine, camera.corners_px())
+            if view is None and level == 0 and baked.covers(corners):
+                self._bake_tiles(baked, corners)
                 return self._render_baked(baked, affine, pose, rng, speed_mps, status, pre_sensor)
         if view is None:
             image = self._warp(affine, level, camera)
