@@ -155,7 +155,7 @@ class Track:
     ekf: list = field(default_factory=list)
     texts: list = field(default_factory=list)
     ekf_flags: list = field(default_factory=list)
-    gps_gaps_ms: list = field(default_factory=list)
+    gps_gaps_ms: list = field(default_factory=list)   # (time, ms between 3D fixes in SITL's clock)
     reached: list = field(default_factory=list)
     acks: list = field(default_factory=list)          # (time, command, result) of COMMAND_ACK
     gps_fix: list = field(default_factory=list)       # (time, fix_type) of GPS_RAW_INT
@@ -211,7 +211,7 @@ class Monitor:
                     t.gps_fix.append((now, int(msg.fix_type)))
                     ms = msg.time_usec // 1000     # gaps between 3D fixes, in SITL's own clock
                     if msg.fix_type >= 3 and self._last_gps_ms is not None and ms > self._last_gps_ms:
-                        t.gps_gaps_ms.append(ms - self._last_gps_ms)
+                        t.gps_gaps_ms.append((now, ms - self._last_gps_ms))
                     if msg.fix_type >= 3:
                         self._last_gps_ms = ms
                 elif kind == "MISSION_ITEM_REACHED" and msg.seq != 65535 and msg.seq not in t.reached:
@@ -433,7 +433,10 @@ def fly_mission(scenario: str, agent: str, *, ground_amsl_m: float, vehicle: str
             flags = [f for f in tr.ekf_flags if t_armed <= f[0] <= t_end]
             record = {"vehicle": vehicle, "mission": mission, "last_wp": last_wp, "truth": flight, "ekf": ekf,
                       "texts": list(tr.texts), "ekf_flags": flags,
-                      "gps_gaps_ms": list(tr.gps_gaps_ms), "reached": list(tr.reached),
+                      # from the EKF taking the fix on (a stall while the bridge starts up is harmless)
+                      "gps_gaps_ms": [g for t, g in tr.gps_gaps_ms if t_fix <= t <= t_end],
+                      "gps_gap_max_before_fix_ms": max((g for t, g in tr.gps_gaps_ms if t < t_fix), default=0),
+                      "reached": list(tr.reached),
                       "acks": list(tr.acks), "gps_fix": [g for g in tr.gps_fix if t_armed <= g[0] <= t_end],
                       "fix_to_arm_s": t_armed - t_fix, "flight_s": t_end - t_armed, "bridge_rc": result.get("rc"),
                       "t_armed": t_armed, "t_end": t_end, "t_denied": t_denied,
@@ -491,6 +494,7 @@ def summary(record: dict) -> dict:
                                                       / max(1, len(record["ekf_flags"]))),
            "ekf_flags_seen": sorted({f for _, f in record["ekf_flags"]}),
            "gps_gaps_over_245ms": int((g > 245).sum()), "gps_gap_max_ms": float(g.max()) if g.size else math.nan,
+           "gps_gap_max_before_fix_ms": float(record.get("gps_gap_max_before_fix_ms", math.nan)),
            "events": list(dict.fromkeys(events))}
     if record.get("t_denied") is not None:     # the EKF after the GNSS was switched off
         t_d = record["t_denied"]
