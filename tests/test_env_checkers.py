@@ -107,10 +107,13 @@ def test_async_vector_env_for_every_id(sid):
         envs.close()
 
 
-def test_sb3_multi_input_policy_accepts_the_observation():
+def test_sb3_multi_input_policy_accepts_the_observation(tmp_path):
     sb3 = pytest.importorskip("stable_baselines3")
+    from stable_baselines3.common.logger import configure
+
     env = gym.make("AerialLoc/Small-v0", duration_s=2.0)
     model = sb3.PPO("MultiInputPolicy", env, n_steps=8, batch_size=8, n_epochs=1, device="cpu", seed=0)
+    model.set_logger(configure(str(tmp_path), []))   # SB3's default logger leaves an SB3-<date> folder in /tmp
     model.learn(8)                                   # one rollout and one update through the policy
     obs, _ = env.reset(seed=0)
     action, _ = model.predict(obs, deterministic=True)
