@@ -142,3 +142,137 @@ def test_jpeg_changes_the_image_and_is_deterministic():
     assert np.array_equal(a, b)
     err = np.abs(a.astype(int) - img.astype(int)).mean()
     assert 0.3 < err < 10.0
+
+
+# ------------------------------------------------------------------------------- the database cached on disk
+_DB = {"gsd_m": 0.5, "blur_m": 0.35, "jpeg_quality": 70, "gain_rgb": [1.05, 1.0, 0.92], "haze": 0.08,
+       "georef_bias_m": [1.2, -0.9], "lean_deg": 6.0, "lean_azimuth_deg": 200.0}
+
+
+def _shadows(**kw):
+    from aerial_loc_env.world.shadows import ShadowConfig
+
+    return build_config(ShadowConfig, {"database_sun_deg": [145.0, 55.0], **kw}, where="test [shadows]")
+
+
+def _all_layers(om) -> list[np.ndarray]:
+    return [np.asarray(getattr(om, n)) for n in ("rgb", "dsm_m", "classes", "nodata") if getattr(om, n) is not None]
+
+
+@pytest.fixture()
+def cache_home(tmp_path, monkeypatch):
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    return tmp_path
+
+
+@pytest.fixture(scope="module")
+def small_database():
+    """The small city's database built without the cache (the reference for bit-for-bit comparisons)."""
+    from aerial_loc_env.world.acquisition import acquire_map
+    from aerial_loc_env.world.city import generate_city, small_city_config
+
+    return acquire_map(generate_city(small_city_config(0)), _shadows(), _acq(**_DB))
+
+
+def _forbid_building(monkeypatch):
+    from aerial_loc_env.world import acquisition
+
+    def fail(*_a, **_k):
+        raise AssertionError("the database was rebuilt: the cache missed")
+
+    monkeypatch.setattr(acquisition, "acquire_map", fail)
+
+
+def test_database_cache_second_construction_is_a_hit_and_bit_identical(cache_home, small_database, monkeypatch):
+    from aerial_loc_env.world.acquisition import database_cache_path, database_city
+    from aerial_loc_env.world.city import small_city_config
+
+    city, shadows, acq = small_city_config(0), _shadows(), _acq(**_DB)
+    path = database_cache_path(city, shadows, acq)
+    assert str(path).startswith(str(cache_home)) and not path.exists()
+    first = database_city(city, shadows, acq)
+    assert path.is_dir() and first.bundle_path == path
+    _forbid_building(monkeypatch)
+    second = database_city(city, shadows, acq)
+    assert second.bundle_path == path and isinstance(second.rgb, np.memmap)
+    for a, b, ref in zip(_all_layers(first), _all_layers(second), _all_layers(small_database), strict=True):
+        assert a.dtype == ref.dtype and b.dtype == ref.dtype
+        np.testing.assert_array_equal(a, ref)
+        np.testing.assert_array_equal(b, ref)
+    assert (second.gsd_x_m, second.gsd_y_m, second.name) == (small_database.gsd_x_m, small_database.gsd_y_m,
+                                                             small_database.name)
+    assert second.georef.to_dict() == small_database.georef.to_dict()
+
+
+@pytest.mark.parametrize("field_name,value", [("jpeg_quality", 71), ("lean_deg", 6.5), ("georef_bias_m", [1.2, -1.0]),
+                                              ("haze", 0.0), ("gain_rgb", [1.0, 1.0, 0.92])])
+def test_database_cache_misses_on_a_changed_database_field(cache_home, field_name, value):
+    from aerial_loc_env.world.acquisition import database_cache_path
+    from aerial_loc_env.world.city import small_city_config
+
+    city, shadows = small_city_config(0), _shadows()
+    assert database_cache_path(city, shadows, _acq(**{**_DB, field_name: value})) != \
+        database_cache_path(city, shadows, _acq(**_DB))
+
+
+def test_database_cache_key_holds_city_sun_and_generator_versions(cache_home, monkeypatch):
+    from aerial_loc_env.world import acquisition
+    from aerial_loc_env.world import city as city_mod
+    from aerial_loc_env.world import shadows as shadow_mod
+    from aerial_loc_env.world.city import small_city_config
+
+    city, shadows, acq = small_city_config(0), _shadows(), _acq(**_DB)
+    p = acquisition.database_cache_path(city, shadows, acq)
+    assert p == acquisition.database_cache_path(small_city_config(0), _shadows(), _acq(**_DB))   # stable
+    assert p != acquisition.database_cache_path(small_city_config(1), shadows, acq)
+    assert p != acquisition.database_cache_path(city, _shadows(database_sun_deg=[150.0, 65.0]), acq)
+    assert p != acquisition.database_cache_path(city, _shadows(database_strength=0.5), acq)
+    for module in (acquisition, city_mod, shadow_mod):
+        monkeypatch.setattr(module, "GENERATOR_VERSION", module.GENERATOR_VERSION + 1)
+        assert acquisition.database_cache_path(city, shadows, acq) != p, module.__name__
+        monkeypatch.undo()
+    # without its own sun the database does not depend on the [shadows] section (nor on the shadow generator)
+    no_sun = _shadows(database_sun_deg=None)
+    assert acquisition.database_cache_path(city, no_sun, acq) == \
+        acquisition.database_cache_path(city, _shadows(database_sun_deg=None, shadow_ratio=0.3), acq)
+
+
+def test_database_cache_changed_field_builds_a_second_entry(cache_home, small_database):
+    from aerial_loc_env.world.acquisition import acquire_map, database_city
+    from aerial_loc_env.world.city import default_city, small_city_config
+
+    city, shadows = small_city_config(0), _shadows()
+    a = database_city(city, shadows, _acq(**_DB))
+    b = database_city(city, shadows, _acq(**{**_DB, "jpeg_quality": 40}))
+    assert a.bundle_path != b.bundle_path and a.bundle_path.is_dir() and b.bundle_path.is_dir()
+    np.testing.assert_array_equal(a.rgb, small_database.rgb)
+    np.testing.assert_array_equal(b.rgb, acquire_map(default_city(city), shadows,
+                                                     _acq(**{**_DB, "jpeg_quality": 40})).rgb)
+    assert not np.array_equal(a.rgb, b.rgb)
+
+
+@pytest.mark.parametrize("damage", ["truncate_rgb", "garbage_meta", "foreign"])
+def test_database_cache_corrupt_or_foreign_entry_is_rebuilt_with_a_warning(cache_home, small_database, damage):
+    from aerial_loc_env.world.acquisition import acquire_map, database_cache_path, database_city
+    from aerial_loc_env.world.city import default_city, small_city_config
+    from aerial_loc_env.world.map_cache import CacheRebuiltWarning
+
+    city, shadows, acq = small_city_config(0), _shadows(), _acq(**_DB)
+    path = database_cache_path(city, shadows, acq)
+    if damage == "foreign":       # a right-sized bundle of another spec under this name
+        other = acquire_map(default_city(city), shadows, _acq(**{**_DB, "jpeg_quality": 40}))
+        other.save_bundle(path, provenance={"generator": "someone else"})
+    else:
+        database_city(city, shadows, acq)
+        if damage == "truncate_rgb":
+            f = path / "rgb.npy"
+            f.write_bytes(f.read_bytes()[: f.stat().st_size // 3])
+        else:
+            (path / "meta.json").write_text("{not json")
+    with pytest.warns(CacheRebuiltWarning, match="rebuilding") as record:
+        om = database_city(city, shadows, acq)
+    assert str(path) in str(record[0].message)
+    for a, ref in zip(_all_layers(om), _all_layers(small_database), strict=True):
+        np.testing.assert_array_equal(a, ref)
+    assert om.bundle_path == path
+    assert [p.name for p in path.parent.iterdir() if p.name.startswith(".")] == []     # nothing left aside

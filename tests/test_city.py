@@ -21,6 +21,7 @@ from aerial_loc_env.world.city import (
     small_city_config,
 )
 from aerial_loc_env.world.landcover import LandCover
+from aerial_loc_env.world.map_cache import CacheRebuiltWarning
 
 # the camera footprint of the paper: 600 x 400 px at 0.25 m/px, i.e. 150 m x 100 m
 FOOT_W_PX, FOOT_H_PX = 600, 400
@@ -253,7 +254,8 @@ def test_damaged_cache_entry_is_regenerated(cache_home, city, damage):
             f.write_bytes(f.read_bytes()[: f.stat().st_size // 3])
         else:
             (path / "meta.json").write_text("{not json")
-    om = default_city(cfg)
+    with pytest.warns(CacheRebuiltWarning, match=f"cached map {path} is unusable"):
+        om = default_city(cfg)
     assert _digest(om) == _digest(city)
     assert om.bundle_path == path
     leftovers = [p.name for p in path.parent.iterdir() if p != path]

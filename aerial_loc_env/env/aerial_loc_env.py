@@ -102,29 +102,25 @@ def world_map(scenario: Scenario, base: Any) -> Any:
     return _MAPS[key]
 
 
-def database_map(orthomap: Any, shadows: Any, acquisition: Any = None) -> Any:
+def database_map(orthomap: Any, shadows: Any, acquisition: Any = None, city: Any = None) -> Any:
     """What the estimators get as the map: the scene itself (shadow-free), or, with
     ``shadows.database_sun_deg``, a copy with the shadows of that other sun baked in (time-of-day mismatch),
     then, with a ``[database]`` acquisition model that is not the identity, as that sensor acquired it (colour,
-    sampling, blur, JPEG, haze, building lean, georeference bias; ``world/acquisition.py``).
-    Built once per process, map, shadow and acquisition config."""
-    plain = acquisition is None or acquisition.is_identity
-    if shadows.database_sun_deg is None and plain:
+    sampling, blur, JPEG, haze, building lean, georeference bias; ``world/acquisition.py``). ``orthomap`` is
+    the procedural city ``city`` when given: its database is then cached on disk (``database_city``), else
+    built once per process, map, shadow and acquisition config."""
+    from ..world import acquisition as acq
+
+    if acq.database_is_identity(shadows, acquisition):
         return orthomap
+    if city is not None:
+        key = ("database", str(acq.database_cache_path(city, shadows, acquisition)))
+        if key not in _MAPS:
+            _MAPS[key] = acq.database_city(city, shadows, acquisition)
+        return _MAPS[key]
     key = ("database", id(orthomap), repr(shadows), repr(acquisition))
     if key not in _MAPS:
-        import dataclasses
-
-        rgb = shadows.database_image(orthomap.rgb, orthomap.dsm_m, orthomap.gsd_x_m, orthomap.gsd_y_m)
-        layers: dict[str, Any] = {}
-        if not plain:
-            from ..world.acquisition import acquire, acquire_layer
-
-            gx, gy = orthomap.gsd_x_m, orthomap.gsd_y_m
-            rgb = acquire(rgb, orthomap.dsm_m, gx, gy, acquisition)
-            layers = {name: acquire_layer(getattr(orthomap, name), gx, gy, acquisition)
-                      for name in ("dsm_m", "classes", "nodata") if getattr(orthomap, name) is not None}
-        _MAPS[key] = dataclasses.replace(orthomap, rgb=rgb, name=f"{orthomap.name}-database", **layers)
+        _MAPS[key] = acq.acquire_map(orthomap, shadows, acquisition)
     return _MAPS[key]
 
 
@@ -273,7 +269,8 @@ class AerialLocEnv(gym.Env):
         self.metadata = {**self.metadata, "render_fps": sc.flight.rate_hz}
         surveyed = load_map(sc)                      # epoch A: the ground when the map was made
         self.orthomap = world_map(sc, surveyed)      # the ground the camera sees (epoch B, or A itself)
-        self.database = database_map(surveyed, sc.shadows, sc.database)
+        self.database = database_map(surveyed, sc.shadows, sc.database,
+                                     city=sc.city if sc.map.kind == "city" else None)
         sensor: CameraModel = sc.camera
         obs = sc.observation
         w = obs.width_px or sensor.width_px

@@ -10,7 +10,9 @@ an error of a few metres. ``AcquisitionConfig`` (the scenario's ``[database]`` s
 
 The database's sun (shadows baked in at another time of day) is ``ShadowConfig.database_sun_deg``; it is baked
 before this model runs (shadows lie on the scene; the sensor then sees them). Every field defaults to "off",
-and a config with every field off returns its input unchanged (the same array).
+and a config with every field off returns its input unchanged (the same array). ``acquire_map`` makes the whole
+database (other sun, then sensor) from a map; ``database_city`` does it for the procedural city once, cached on
+disk beside the city's bundle (``map_cache``), since the building lean alone costs seconds per process.
 
 Order of the pipeline (the physical order of a real acquisition): building lean (the viewpoint), optics blur,
 sampling at the sensor's ground sampling distance, colour response (white balance, tone, saturation, contrast,
@@ -19,14 +21,19 @@ haze), JPEG at that resolution, resampling back onto the map grid, and the geore
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
 
-from ..config import rng
+from ..config import config_to_dict, rng
 from ..errors import ConfigError, MapError
+from .map_cache import cached_bundle, spec_key
+from .orthomap import Orthomap
 
 #: Bump whenever ``acquire``'s output changes for the same inputs (the benchmark's fingerprint, env/fingerprint.py).
 GENERATOR_VERSION = 1
@@ -247,4 +254,66 @@ def acquire_layer(layer: np.ndarray, gsd_x_m: float, gsd_y_m: float, config: Acq
     return out.astype(bool) if a.dtype == bool else out
 
 
-__all__ = ["AcquisitionConfig", "acquire", "acquire_layer", "lean_buildings", "lean_offsets_px", "shift_image"]
+# ------------------------------------------------------------------------------------------- the database map
+def database_is_identity(shadows: Any, config: AcquisitionConfig | None) -> bool:
+    """True when the database is the surveyed map itself: no other sun baked in, no acquisition model."""
+    return shadows.database_sun_deg is None and (config is None or config.is_identity)
+
+
+def acquire_map(orthomap: Orthomap, shadows: Any, config: AcquisitionConfig | None) -> Orthomap:
+    """The map database made from ``orthomap`` (the surveyed ground, epoch A): with
+    ``shadows.database_sun_deg`` (a ``ShadowConfig``) the shadows of that other sun baked in, then as
+    ``config``'s sensor acquired it; the height, class and no-data layers carry the georeference bias along.
+    ``orthomap`` itself when both are off."""
+    if database_is_identity(shadows, config):
+        return orthomap
+    gx, gy = orthomap.gsd_x_m, orthomap.gsd_y_m
+    rgb = shadows.database_image(orthomap.rgb, orthomap.dsm_m, gx, gy)
+    layers: dict[str, np.ndarray] = {}
+    if config is not None and not config.is_identity:
+        rgb = acquire(rgb, orthomap.dsm_m, gx, gy, config)
+        layers = {name: acquire_layer(getattr(orthomap, name), gx, gy, config)
+                  for name in ("dsm_m", "classes", "nodata") if getattr(orthomap, name) is not None}
+    return dataclasses.replace(orthomap, rgb=rgb, name=f"{orthomap.name}-database", **layers)
+
+
+def _database_spec(city_config: Any, shadows: Any, config: AcquisitionConfig | None) -> dict[str, Any]:
+    """Everything the database of a procedural city depends on (its cache key and provenance). The other sun's
+    shadows depend on the whole ``[shadows]`` section and the shadow generator only when that sun is set."""
+    from . import shadows as shadow_module
+    from .city import GENERATOR_VERSION as CITY_VERSION
+
+    sun = shadows.database_sun_deg is not None
+    return {"generator": "aerial_loc_env.world.acquisition", "generator_version": GENERATOR_VERSION,
+            "city_generator_version": CITY_VERSION, "city": config_to_dict(city_config),
+            "shadow_generator_version": shadow_module.GENERATOR_VERSION if sun else None,
+            "shadows": config_to_dict(shadows) if sun else None,
+            "database": None if config is None else config_to_dict(config)}
+
+
+def database_cache_path(city_config: Any, shadows: Any, config: AcquisitionConfig | None) -> Path:
+    """Where ``database_city`` keeps the database of the city ``city_config`` (beside the city's bundle)."""
+    from ..paths import cache_dir
+
+    key = spec_key(_database_spec(city_config, shadows, config))
+    return cache_dir("maps") / f"{city_config.name}-{city_config.cache_key()}-database-{key}.alm"
+
+
+def database_city(city_config: Any, shadows: Any, config: AcquisitionConfig | None) -> Orthomap:
+    """The map database of the procedural city ``city_config`` (``acquire_map`` of its epoch A), memory-mapped
+    from the cache: built once on first use by any process (lean, other sun, sensor: seconds), then only mapped.
+    The key holds the city spec, the ``[database]`` section, the ``[shadows]`` section when the database has its
+    own sun, and the generator versions of the city, the shadows and this module; the epoch flown (``[epoch]``)
+    does not enter: the database is the surveyed epoch A whatever the camera sees."""
+    from .city import default_city
+
+    base = default_city(city_config)
+    if database_is_identity(shadows, config):
+        return base
+    return cached_bundle(database_cache_path(city_config, shadows, config),
+                         lambda: acquire_map(base, shadows, config),
+                         _database_spec(city_config, shadows, config), size_px=(base.width_px, base.height_px))
+
+
+__all__ = ["AcquisitionConfig", "acquire", "acquire_layer", "acquire_map", "database_cache_path", "database_city",
+           "database_is_identity", "lean_buildings", "lean_offsets_px", "shift_image"]

@@ -16,11 +16,6 @@ and writing it atomically on the first call.
 
 from __future__ import annotations
 
-import hashlib
-import json
-import os
-import shutil
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -29,7 +24,7 @@ import numpy as np
 
 from ..config import build_config, config_to_dict
 from ..config import rng as crange
-from ..errors import ConfigError, MapError
+from ..errors import ConfigError
 from ..paths import cache_dir
 from .city_content import Filler, choose_use, paint_scene
 from .city_layout import build_layout
@@ -37,6 +32,7 @@ from .city_paint import Canvas
 from .city_roads import paint_roads
 from .geo import LocalTangentGeoref
 from .landcover import LandCover
+from .map_cache import cached_bundle, spec_key
 from .orthomap import Orthomap
 
 #: Largest map generated (pixels): 150 Mpx is ~1.2 GB of layers while drawing.
@@ -87,8 +83,7 @@ class CityConfig:
         return int(round(self.width_m / self.gsd_m)), int(round(self.height_m / self.gsd_m))
 
     def cache_key(self) -> str:
-        blob = json.dumps({"generator": GENERATOR_VERSION, **config_to_dict(self)}, sort_keys=True)
-        return hashlib.sha256(blob.encode()).hexdigest()[:20]
+        return spec_key({"generator": GENERATOR_VERSION, **config_to_dict(self)})
 
 
 def height_ranges_m(config: CityConfig | None = None) -> dict[LandCover, tuple[float, float]]:
@@ -163,57 +158,17 @@ def generate_city(config: CityConfig | None = None) -> Orthomap:
                     source=f"procedural city v{GENERATOR_VERSION} seed={cfg.seed}")
 
 
-def _check_cached(om: Orthomap, size_px: tuple[int, int]) -> None:
-    w_px, h_px = size_px
-    if (om.width_px, om.height_px) != (w_px, h_px) or om.dsm_m is None or om.classes is None:
-        raise MapError(f"cached city has size {om.width_px}x{om.height_px} or missing layers; expected "
-                       f"{w_px}x{h_px} with dsm_m and classes")
-
-
-def _discard(path: Path) -> None:
-    """Move a bad cache entry aside (atomically) and delete it; a concurrent reader keeps its open files."""
-    try:
-        aside = Path(tempfile.mkdtemp(prefix=f".{path.name}.bad-", dir=path.parent))
-        os.replace(path, aside / "bundle")
-        shutil.rmtree(aside, ignore_errors=True)
-    except OSError:
-        pass
-
-
 def city_cache_path(config: CityConfig | None = None) -> Path:
     """Where ``default_city(config)`` keeps its bundle (under $XDG_CACHE_HOME/aerial_loc_env/maps)."""
     cfg = config if config is not None else CityConfig()
     return cache_dir("maps") / f"{cfg.name}-{cfg.cache_key()}.alm"
 
 
-def cached_bundle(path: Path, make, provenance: dict, size_px: tuple[int, int]) -> Orthomap:
-    """The bundle at ``path``, memory-mapped; built with ``make()`` and saved atomically when absent or bad.
-
-    A cache entry that cannot be read or does not have ``size_px`` and the dsm_m/classes layers is discarded
-    and rebuilt. Two processes that race on the first call both build; one rename wins and the other loads the
-    winner's bundle.
-    """
-    if path.exists():
-        try:
-            om = Orthomap.load_bundle(path, mmap=True)
-            _check_cached(om, size_px)
-            return om
-        except (MapError, OSError, ValueError, KeyError, TypeError):
-            _discard(path)
-    om = make()
-    try:
-        om.save_bundle(path, provenance=provenance)
-    except (MapError, OSError):
-        if not path.exists():       # not a lost race but a real failure (disk full, permissions)
-            raise
-    return Orthomap.load_bundle(path, mmap=True)
-
-
 def default_city(config: CityConfig | None = None) -> Orthomap:
     """The procedural city for ``config`` (default: the paper-sized default city), memory-mapped from the cache.
 
     The first call generates and saves the bundle atomically; later calls (any process) only map it
-    (``cached_bundle``).
+    (``map_cache.cached_bundle``: a corrupt or foreign entry is rebuilt with a warning).
     """
     cfg = config if config is not None else CityConfig()
     return cached_bundle(city_cache_path(cfg), lambda: generate_city(cfg),
@@ -221,5 +176,5 @@ def default_city(config: CityConfig | None = None) -> Orthomap:
                           "config": config_to_dict(cfg)}, cfg.size_px)
 
 
-__all__ = ["CityConfig", "GENERATOR_VERSION", "cached_bundle", "city_cache_path", "default_city",
+__all__ = ["CityConfig", "GENERATOR_VERSION", "city_cache_path", "default_city",
            "generate_city", "height_ranges_m", "small_city_config"]

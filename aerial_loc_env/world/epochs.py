@@ -17,8 +17,6 @@ epoch B of the procedural city on disk beside the city, keyed by the city's key,
 from __future__ import annotations
 
 import dataclasses
-import hashlib
-import json
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -30,6 +28,7 @@ import numpy as np
 from ..config import config_to_dict, rng
 from ..errors import ConfigError, MapError
 from .landcover import LandCover as LC
+from .map_cache import cached_bundle, spec_key
 from .orthomap import Orthomap
 
 #: Bump whenever change_epoch's output changes for a given input and config: it is part of the cache key and of
@@ -84,8 +83,7 @@ class EpochConfig:
         return all(getattr(self, f.name) == 0 for f in dataclasses.fields(self) if f.name != "seed")
 
     def cache_key(self) -> str:
-        blob = json.dumps({"epoch_version": GENERATOR_VERSION, **config_to_dict(self)}, sort_keys=True)
-        return hashlib.sha256(blob.encode()).hexdigest()[:16]
+        return spec_key({"epoch_version": GENERATOR_VERSION, **config_to_dict(self)}, length=16)
 
 
 # ------------------------------------------------------------------------------------------- helpers
@@ -524,7 +522,7 @@ def epoch_cache_path(city_config, config: EpochConfig) -> Path:
 def epoch_city(city_config, config: EpochConfig) -> Orthomap:
     """Epoch B of the procedural city ``city_config``, memory-mapped from the cache (built on first use)."""
     from .city import GENERATOR_VERSION as CITY_VERSION
-    from .city import cached_bundle, default_city
+    from .city import default_city
 
     if not isinstance(config, EpochConfig):
         raise ConfigError(f"epoch_city: expected an EpochConfig, got {type(config).__name__}")
