@@ -186,3 +186,34 @@ def test_tiles_are_baked_lazily_and_do_not_depend_on_the_order():
     for ty, tx in zip(*np.nonzero(a.baked_tiles), strict=True):
         sl = np.s_[ty * tile:(ty + 1) * tile, tx * tile:(tx + 1) * tile]
         np.testing.assert_array_equal(a.rgba[sl], b.rgba[sl])
+
+
+def test_baked_frame_carries_the_occlusion_quantized_and_its_mask_and_fraction_agree():
+    """The float occlusion of a baked frame is made on first read from the warped alpha; the mask and the shadow
+    fraction come from the same alpha (>= 128) without it."""
+    orthomap, grid = _scene(hard=False)
+    renderer = CameraRenderer(orthomap, CAMERA, Photometry(), noise_seed=5)
+    baked = renderer.bake(grid, SHADING, (40, 40, 360, 360))
+    for pose in POSES:
+        frame = renderer.render(pose, np.random.default_rng(2), baked, None)
+        alpha = frame.occlusion_q
+        assert alpha.dtype == np.uint8 and alpha.shape == frame.image.shape[:2]
+        assert frame.shadow_mask.dtype == bool
+        np.testing.assert_array_equal(frame.shadow_mask, alpha >= 128)
+        assert frame.shadow_fraction == pytest.approx(float(np.mean(alpha >= 128)), abs=1e-12)
+        assert 0.0 < frame.shadow_fraction < 1.0
+        occ = frame.occlusion
+        assert occ.dtype == np.float32 and frame.occlusion is occ          # made once, then kept
+        np.testing.assert_array_equal(occ, alpha.astype(np.float32) * np.float32(1.0 / 255.0))
+
+
+def test_shading_an_rgba_tile_gives_the_shaded_rgb_and_the_occlusion_as_alpha():
+    from aerial_loc_env.world.shadows import shade
+
+    rng = np.random.default_rng(4)
+    rgb = rng.integers(0, 256, (64, 96, 3), dtype=np.uint8)
+    occ_q = rng.integers(0, 256, (64, 96), dtype=np.uint8)
+    lut = shading_lut(0.9)
+    rgba = shade(cv2.cvtColor(rgb, cv2.COLOR_RGB2RGBA), occ_q, lut)
+    np.testing.assert_array_equal(rgba[..., :3], shade(rgb, occ_q, lut))
+    np.testing.assert_array_equal(rgba[..., 3], occ_q)

@@ -85,9 +85,14 @@ class Photometry:
         return self.read_noise_dn > 0.0 or self.shot_noise_gain > 0.0
 
 
-@dataclass(frozen=True, eq=False)
+@dataclass(frozen=True, eq=False, init=False)
 class Frame:
-    """One camera frame and its ground truth (the shadow mask is for oracles, reports and tests)."""
+    """One camera frame and its ground truth (the shadow mask is for oracles, reports and tests).
+
+    ``occlusion`` is (H, W) float32 in [0, 1] in the camera frame, None without shadows. Frames from baked
+    shadows carry it quantized (``occlusion_q``: the warped alpha, ``round(255 occ)``) and make the float32
+    image on first read: the env and the estimators never read it, so a frame costs no float pass for it.
+    """
 
     image: np.ndarray             # (H, W, 3) uint8
     shadow_mask: np.ndarray       # (H, W) bool, True where the occlusion is >= 0.5
@@ -95,8 +100,24 @@ class Frame:
     valid: bool                   # the footprint lies inside the map and touches no no-data
     status: FootprintStatus
     pose: Pose
-    occlusion: np.ndarray | None = None  # (H, W) float32 in [0, 1] in the camera frame, None without shadows
-    pyramid_level: int = 0               # the map pyramid level the frame was warped from
+    pyramid_level: int = 0        # the map pyramid level the frame was warped from
+
+    def __init__(self, image: np.ndarray, shadow_mask: np.ndarray, shadow_fraction: float, valid: bool,
+                 status: FootprintStatus, pose: Pose, occlusion: np.ndarray | None = None, pyramid_level: int = 0,
+                 *, occlusion_q: np.ndarray | None = None) -> None:
+        if occlusion is not None and occlusion_q is not None:
+            raise ValueError("Frame: give occlusion or occlusion_q, not both")
+        for name, value in (("image", image), ("shadow_mask", shadow_mask), ("shadow_fraction", shadow_fraction),
+                            ("valid", valid), ("status", status), ("pose", pose), ("pyramid_level", pyramid_level),
+                            ("_occlusion", occlusion), ("occlusion_q", occlusion_q)):
+            object.__setattr__(self, name, value)
+
+    @property
+    def occlusion(self) -> np.ndarray | None:
+        if self._occlusion is None and self.occlusion_q is not None:
+            object.__setattr__(self, "_occlusion", np.multiply(self.occlusion_q, np.float32(1.0 / 255.0),
+                                                               dtype=np.float32))
+        return self._occlusion
 
 
 @dataclass(frozen=True, eq=False)
@@ -213,26 +234,29 @@ class CameraRenderer:
         from ..world.shadows import shade
 
         c0, r0 = baked.origin_px
-        lo = np.floor(corners_px.min(axis=0)).astype(int) - np.array([c0 + 1, r0 + 1])
-        hi = np.floor(corners_px.max(axis=0)).astype(int) - np.array([c0 - 2, r0 - 2])
-        t0, t1 = np.maximum(lo // _BAKE_TILE_PX, 0), hi // _BAKE_TILE_PX + 1
-        todo = ~baked.baked_tiles[t0[1]:t1[1], t0[0]:t1[0]]
-        if not todo.any():
+        # the tile range in plain Python (a frame's 4 corners: numpy's per-call overhead would cost more)
+        us, vs = corners_px[:, 0].tolist(), corners_px[:, 1].tolist()
+        tx0 = max((math.floor(min(us)) - c0 - 1) // _BAKE_TILE_PX, 0)
+        ty0 = max((math.floor(min(vs)) - r0 - 1) // _BAKE_TILE_PX, 0)
+        tx1 = (math.floor(max(us)) - c0 + 2) // _BAKE_TILE_PX + 1
+        ty1 = (math.floor(max(vs)) - r0 + 2) // _BAKE_TILE_PX + 1
+        done = baked.baked_tiles[ty0:ty1, tx0:tx1]
+        if done.all():
             return
         data, f = self._grid(baked.grid)
         lut = _shading_lut(baked.shading_params)
         h, w = baked.rgba.shape[:2]
-        for ty, tx in zip(*np.nonzero(todo), strict=True):
-            ty, tx = int(ty + t0[1]), int(tx + t0[0])
+        for ty, tx in zip(*np.nonzero(~done), strict=True):
+            ty, tx = int(ty) + ty0, int(tx) + tx0
             y0, x0 = ty * _BAKE_TILE_PX, tx * _BAKE_TILE_PX
             y1, x1 = min(h, y0 + _BAKE_TILE_PX), min(w, x0 + _BAKE_TILE_PX)
             u0, v0 = c0 + x0, r0 + y0
             # map pixel u -> grid pixel (u + 0.5) / f - 0.5, as in the per-frame warp
             a = np.array([[1.0 / f, 0.0, (u0 + 0.5) / f - 0.5], [0.0, 1.0 / f, (v0 + 0.5) / f - 0.5]])
             occ = cv2.warpAffine(data, a, (x1 - x0, y1 - y0), flags=_WARP_FLAGS, borderMode=cv2.BORDER_REPLICATE)
-            occ_q = cv2.convertScaleAbs(occ, alpha=255.0)
-            rgb = cv2.cvtColor(self._levels[0][v0:v0 + y1 - y0, u0:u0 + x1 - x0], cv2.COLOR_RGBA2RGB)
-            baked.rgba[y0:y1, x0:x1] = cv2.merge([shade(rgb, occ_q, lut, out=rgb), occ_q])
+            # the RGBA map tile (alpha 255) shaded as 4 channels: shaded RGB, alpha = occ_q, in one multiply
+            baked.rgba[y0:y1, x0:x1] = shade(self._levels[0][v0:v0 + y1 - y0, u0:u0 + x1 - x0],
+                                             cv2.convertScaleAbs(occ, alpha=255.0), lut)
             baked.baked_tiles[ty, tx] = True
 
     # ------------------------------------------------------------------ geometry
@@ -424,7 +448,9 @@ class CameraRenderer:
         tilt = tilt_homography(camera, *tilt_rad) if any(tilt_rad) else None
         status = self._status(affine, level, camera, None if tilt is None else tilted_corners(camera, tilt))
         self._check(pose, status, strict, camera)
-        view = self._view.maps(affine, pose.altitude_m, camera, tilt)
+        # a flat, untilted view needs no per-pixel maps (the affine warp is exact): skip their two float passes
+        view = None if tilt is None and self._view.dsm is None else self._view.maps(affine, pose.altitude_m,
+                                                                                   camera, tilt)
         if isinstance(occlusion, BakedShadows):
             baked, occlusion, shading_params = occlusion, occlusion.grid, occlusion.shading_params
             corners = apply_affine(affine, camera.corners_px())
@@ -466,14 +492,14 @@ class CameraRenderer:
                              borderMode=cv2.BORDER_CONSTANT, borderValue=(0, 0, 0, 0))
         image = cv2.cvtColor(out, cv2.COLOR_RGBA2RGB)
         alpha = cv2.extractChannel(out, 3)
-        mask = alpha >= 128                      # round(255 occ) >= 128  <=>  occ >= 0.5 (up to interpolation)
-        fraction = cv2.countNonZero(mask.view(np.uint8)) / mask.size
-        occ_cam = np.multiply(alpha, np.float32(1.0 / 255.0), dtype=np.float32)
+        # round(255 occ) >= 128  <=>  occ >= 0.5 (up to interpolation): one threshold to 0/1 bytes, read as bool
+        mask = cv2.threshold(alpha, 127, 1, cv2.THRESH_BINARY)[1]
+        fraction = cv2.countNonZero(mask) / mask.size
         if pre_sensor is not None:
             image = pre_sensor(image)
         image = self._photometry(image, rng, speed_mps, camera.gsd_m(pose.altitude_m) * camera.pixel_aspect)
-        return Frame(image=image, shadow_mask=mask, shadow_fraction=float(fraction), valid=status == "valid",
-                     status=status, pose=pose, occlusion=occ_cam, pyramid_level=0)
+        return Frame(image=image, shadow_mask=mask.view(bool), shadow_fraction=float(fraction),
+                     valid=status == "valid", status=status, pose=pose, pyramid_level=0, occlusion_q=alpha)
 
     # ------------------------------------------------------------------ photometry
     def _photometry(self, image: np.ndarray, rng: np.random.Generator, speed_mps: float,

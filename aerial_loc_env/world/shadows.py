@@ -493,9 +493,13 @@ def shade(rgb: np.ndarray, occ_q: np.ndarray, lut: np.ndarray, out: np.ndarray |
     """``rgb * lut[c, occ_q] / 255`` per channel, rounded (uint8 (H, W, 3) in, uint8 out; ``out`` may be ``rgb``).
 
     The gain image is three 1-channel ``cv2.LUT`` merged: twice as fast as one 3-channel LUT of the grey image,
-    and the same bytes. ``occ_q`` is the occlusion quantized to uint8 (255 = no direct sun)."""
-    gain_img = cv2.merge([cv2.LUT(occ_q, lut[c]) for c in range(3)])
-    return cv2.multiply(rgb, gain_img, dst=out, scale=1.0 / 255.0)
+    and the same bytes. ``occ_q`` is the occlusion quantized to uint8 (255 = no direct sun). An (H, W, 4) ``rgb``
+    with alpha 255 (the renderer's RGBA map) comes back with ``occ_q`` as its alpha (``255 occ_q / 255``): the
+    shaded colour and the occlusion in one multiply, as ``CameraRenderer.bake`` stores them."""
+    gains = [cv2.LUT(occ_q, lut[c]) for c in range(3)]
+    if rgb.shape[2] == 4:
+        gains.append(occ_q)
+    return cv2.multiply(rgb, cv2.merge(gains), dst=out, scale=1.0 / 255.0)
 
 
 def combine_occlusion(*fields: np.ndarray) -> np.ndarray:
