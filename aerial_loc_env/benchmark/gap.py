@@ -44,7 +44,10 @@ search margin):
 
 Summaries (``summarize``) give the median, the quartiles and the mean of each statistic over windows. The
 **spread of the real pairs** is the range (min..max) over pairs of each pair's median (of its mean, for
-``template_within``); ``aerial-loc gap`` marks a scenario's statistic that lies inside it.
+``template_within``); ``aerial-loc gap`` marks a scenario's statistic that lies inside it. How far a headline
+figure can move from sampling alone: ``headline_interval`` (distribution-free, for i.i.d. windows: order
+statistics for a median, Clopper-Pearson for the template fraction); tests/test_gap_calibration.py checks with it
+that every realistic preset stays inside the real spread.
 """
 
 from __future__ import annotations
@@ -203,6 +206,56 @@ def headline(summary: Mapping[str, Mapping[str, float]], stat: str) -> float:
     return summary[stat]["mean" if stat == "template_within" else "median"]
 
 
+def median_interval(values: Sequence[float], confidence: float = 0.99) -> tuple[float, float]:
+    """A distribution-free confidence interval of the median of i.i.d. ``values``: the order statistics
+    ``(x_(k), x_(n+1-k))`` with the largest k for which ``P(Binomial(n, 1/2) <= k - 1) <= (1 - confidence) / 2``
+    (each bound falls on the wrong side of the true median only if fewer than k values do). Its coverage is at
+    least ``confidence`` whatever the distribution."""
+    x = np.sort(np.asarray(values, dtype=float))
+    n = x.size
+    tail, k, cdf = (1.0 - confidence) / 2.0, 0, 0.0
+    while k < n and cdf + math.comb(n, k) / 2.0 ** n <= tail:
+        cdf += math.comb(n, k) / 2.0 ** n
+        k += 1
+    if k == 0:
+        need = math.ceil(math.log2(1.0 / tail))
+        raise ConfigError(f"gap: {n} values cannot bound a median at {confidence:.0%} confidence; measure at "
+                          f"least {need}")
+    return float(x[k - 1]), float(x[n - k])
+
+
+def proportion_interval(successes: int, n: int, confidence: float = 0.99) -> tuple[float, float]:
+    """The exact (Clopper-Pearson) confidence interval of a binomial proportion: the p whose binomial tails
+    put ``successes`` out of ``n`` at probability ``(1 - confidence) / 2`` (found by bisection)."""
+    if not 0 <= successes <= n or n < 1:
+        raise ConfigError(f"gap: {successes} successes out of {n} trials is not a proportion")
+    tail = (1.0 - confidence) / 2.0
+
+    def cdf(k: int, p: float) -> float:          # P(X <= k), X ~ Binomial(n, p)
+        return sum(math.comb(n, i) * p ** i * (1.0 - p) ** (n - i) for i in range(k + 1))
+
+    def solve(f) -> float:                       # the root of a decreasing f on [0, 1]
+        lo, hi = 0.0, 1.0
+        for _ in range(60):
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if f(mid) > 0.0 else (lo, mid)
+        return 0.5 * (lo + hi)
+
+    lower = 0.0 if successes == 0 else solve(lambda p: tail - (1.0 - cdf(successes - 1, p)))
+    upper = 1.0 if successes == n else solve(lambda p: cdf(successes, p) - tail)
+    return lower, upper
+
+
+def headline_interval(windows: Sequence[Mapping[str, float]], stat: str, confidence: float = 0.99
+                      ) -> tuple[float, float]:
+    """How far a source's headline figure (``headline``) can move from sampling alone, given i.i.d. windows:
+    ``proportion_interval`` for the template fraction, ``median_interval`` otherwise."""
+    v = [w[stat] for w in windows]
+    if stat == "template_within":
+        return proportion_interval(int(round(sum(v))), len(v), confidence)
+    return median_interval(v, confidence)
+
+
 def spread(summaries: Iterable[Mapping[str, Mapping[str, float]]]) -> dict[str, tuple[float, float]]:
     """The spread of several sources (the real pairs): min..max of their headline figures per statistic."""
     items = list(summaries)
@@ -277,9 +330,11 @@ def pairs_in(folder: str | Path) -> list[tuple[Path, Path]]:
 
 # ------------------------------------------------------------------------------------------ scenarios
 def scenario_gap(scenario: str, overrides: Mapping[str, Any] | None = None, *, seeds: Sequence[int] = range(5),
-                 stride: int = 20, cfg: GapConfig | None = None) -> list[dict[str, float]]:
+                 stride: int = 20, cfg: GapConfig | None = None,
+                 frames_per_seed: int | None = None) -> list[dict[str, float]]:
     """The statistics of every ``stride``-th frame of ``seeds`` episodes of ``scenario``: the camera frame
-    against the estimators' database rendered at the frame's true pose."""
+    against the estimators' database rendered at the frame's true pose. With ``frames_per_seed`` an episode
+    stops after that many measured frames (1: the first frame of each seed, i.i.d. over seeds)."""
     from ..env import AerialLocEnv, load_scenario
     from ..sensors.camera import Pose
     from ..sensors.render import CameraRenderer, Photometry
@@ -287,6 +342,8 @@ def scenario_gap(scenario: str, overrides: Mapping[str, Any] | None = None, *, s
     cfg = cfg or GapConfig()
     if stride < 1:
         raise ConfigError(f"gap: stride = {stride} must be >= 1 (every stride-th frame is measured)")
+    if frames_per_seed is not None and frames_per_seed < 1:
+        raise ConfigError(f"gap: frames_per_seed = {frames_per_seed} must be >= 1 (or None: the whole episode)")
     env = AerialLocEnv(load_scenario(scenario, dict(overrides or {})))
     renderers: dict[int, CameraRenderer] = {}
     out = []
@@ -297,12 +354,13 @@ def scenario_gap(scenario: str, overrides: Mapping[str, Any] | None = None, *, s
             if id(db) not in renderers:
                 renderers[id(db)] = CameraRenderer(db, env.camera, Photometry.ideal(), strict=False)
             renderer = renderers[id(db)]
-            step, done = 0, False
+            step, done, measured = 0, False, 0
             while True:
                 if step % stride == 0:
                     pose = Pose(*(float(v) for v in info["true_pose"]))
                     out.append(_frame_stats(obs["image"], pose, env.camera, renderer, cfg))
-                if done:
+                    measured += 1
+                if done or measured == frames_per_seed:
                     break
                 obs, _r, terminated, truncated, info = env.step(np.zeros(2, np.float32))
                 done = terminated or truncated
@@ -371,6 +429,9 @@ def _parser() -> argparse.ArgumentParser:
                     help="ground metres per pixel of pair images without a georeference (LEVIR-CD: 0.5)")
     ap.add_argument("--seeds", type=int, default=5, help="episodes per scenario (seeds 0..N-1; default 5)")
     ap.add_argument("--stride", type=int, default=20, help="measure every N-th frame (default 20)")
+    ap.add_argument("--frames-per-seed", type=int, metavar="N",
+                    help="stop each episode after N measured frames (1: the first frame of each seed, as the "
+                         "calibration test does; default: the whole episode)")
     ap.add_argument("--gsd", type=float, default=0.5, help="analysis ground sampling, m/px (default 0.5)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="a scenario override for every scenario (JSON value), e.g. flight.altitude_m=150")
@@ -415,10 +476,12 @@ def main(argv: list[str] | None = None) -> int:
     real = spread(s["summary"] for s in result["pairs"].values()) if pairs else None
     overrides = _overrides(args.set)
     for sid in args.scenarios:
-        windows = scenario_gap(sid, overrides, seeds=range(args.seeds), stride=args.stride, cfg=cfg)
+        windows = scenario_gap(sid, overrides, seeds=range(args.seeds), stride=args.stride, cfg=cfg,
+                               frames_per_seed=args.frames_per_seed)
         summary = summarize(windows)
         result["scenarios"][sid] = {"overrides": overrides, "seeds": args.seeds, "stride": args.stride,
-                                    "summary": summary, "windows": windows}
+                                    "frames_per_seed": args.frames_per_seed, "summary": summary,
+                                    "windows": windows}
         rows.append((sid, summary))
     if real is not None:
         result["real_spread"] = {s: list(v) for s, v in real.items()}
