@@ -13,6 +13,7 @@ from aerial_loc_env.sensors.perspective import PerspectiveConfig, tilt_homograph
 from aerial_loc_env.sensors.render import CameraRenderer, Photometry
 from aerial_loc_env.world.geo import LocalTangentGeoref
 from aerial_loc_env.world.orthomap import Orthomap
+from aerial_loc_env.world.shadows import ShadowGrid
 
 GSD = 0.25
 SIZE_PX = 1600                     # a 400 m map
@@ -116,6 +117,33 @@ def test_zero_height_model_gives_the_affine_frame_bit_for_bit():
         for cfg in (None, PerspectiveConfig(enabled=True))]
     assert np.array_equal(frames[0].image, frames[1].image)
     assert np.array_equal(frames[0].occlusion, frames[1].occlusion)
+    # and with the shadows baked into the map (the env's path for a lone cast-shadow grid)
+    grid = ShadowGrid(np.ascontiguousarray(occlusion[::2, ::2]), 2 * GSD, 2 * GSD, 2)
+    baked = []
+    for cfg in (None, PerspectiveConfig(enabled=True)):
+        r = CameraRenderer(om, CAM, Photometry(), perspective=cfg)
+        box = r.bake(grid, {"strength": 0.8}, (300, 300, 1300, 1300))
+        baked.append(r.render(Pose(190.0, 205.0, 0.3, H), np.random.default_rng(5), box, speed_mps=20.0))
+    assert np.array_equal(baked[0].image, baked[1].image)
+    assert np.array_equal(baked[0].shadow_mask, baked[1].shadow_mask)
+
+
+@pytest.mark.parametrize("tilt_rad", [(0.0, 0.0), (0.004, -0.003)])
+def test_maps_in_a_box_frame_are_the_map_frame_maps_shifted(tilt_rad):
+    """A baked box is sampled through maps made in the box's pixels (``origin_px``): the same decisions (facades),
+    the same points up to float32 rounding (coordinates below 1024 px: half an ulp, 6e-5 px, per operation); every
+    sample lies in ``reads_px``'s box, the bake's coverage test."""
+    r = renderer(box_map(30.0, 50.0, 40.0))
+    a = r.camera_to_map(NADIR)
+    tilt = tilt_homography(CAM, *tilt_rad) if any(tilt_rad) else None
+    view = r._view.maps(a, H, CAM, tilt)
+    boxed = r._view.maps(a, H, CAM, tilt, origin_px=(517, 333))
+    assert boxed.origin_px == (517, 333)
+    assert np.abs(boxed.xy - view.xy).max() < 1e-3
+    assert view.facade.size > 100 and np.array_equal(np.sort(view.facade), np.sort(boxed.facade))
+    reads = r._view.reads_px(a, CAM, tilt)
+    lo, hi = reads.min(axis=0), reads.max(axis=0)
+    assert lo[0] <= view.x.min() and view.x.max() <= hi[0] and lo[1] <= view.y.min() and view.y.max() <= hi[1]
 
 
 def test_remap_path_with_negligible_relief_matches_the_affine_warp_within_interpolation():

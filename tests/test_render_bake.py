@@ -29,7 +29,7 @@ import numpy as np
 import pytest
 
 from aerial_loc_env.sensors.camera import CameraModel, Pose, apply_affine
-from aerial_loc_env.sensors.perspective import PerspectiveConfig
+from aerial_loc_env.sensors.perspective import PerspectiveConfig, tilt_homography
 from aerial_loc_env.sensors.render import BakedShadows, CameraRenderer, Photometry
 from aerial_loc_env.world.shadows import ShadowGrid, shading_lut
 
@@ -67,11 +67,15 @@ def _frames(renderer, grid, baked, pose):
     return old, new
 
 
-def _bound(renderer, baked: BakedShadows, grid: ShadowGrid, pose) -> np.ndarray:
-    """The per-pixel, per-channel bound of the module docstring (DN)."""
+def _bound(renderer, baked: BakedShadows, grid: ShadowGrid, pose, view=None) -> np.ndarray:
+    """The per-pixel, per-channel bound of the module docstring (DN); ``view``: the map points of a perspective
+    or tilted view (``sensors.perspective.ViewMaps``) instead of the affine footprint."""
     affine = renderer.camera_to_map(pose)
     v, u = np.mgrid[0:CAMERA.height_px, 0:CAMERA.width_px]
-    xy = apply_affine(affine, np.stack([u.ravel(), v.ravel()], axis=1).astype(np.float64))
+    if view is None:
+        xy = apply_affine(affine, np.stack([u.ravel(), v.ravel()], axis=1).astype(np.float64))
+    else:
+        xy = np.stack([view.x.ravel(), view.y.ravel()], axis=1).astype(np.float64)
     c0, r0 = baked.origin_px
     x0 = np.floor(xy[:, 0]).astype(int) - c0
     y0 = np.floor(xy[:, 1]).astype(int) - r0
@@ -107,6 +111,35 @@ def test_baked_frame_within_the_derived_bound_of_the_per_frame_shading(hard):
         assert flat.mean() > (0.5 if hard else 0.05)
         assert diff[flat].max() <= 2
         assert 0.05 < old.shadow_fraction < 0.95
+
+
+@pytest.mark.parametrize("relief", [False, True])
+def test_perspective_and_tilted_views_sample_the_bake_within_the_same_bound(relief):
+    """A tilted view (and a perspective view of a height model) samples the baked box through its maps: the same
+    bilinear reads at the view's map points, so the same bound at those points; facade pixels (a gain <= 1 on the
+    roof's colour, applied after the shading instead of before it) get one more rounding."""
+    orthomap, grid = _scene(hard=True)
+    tilt = (0.01, -0.008)
+    if relief:
+        dsm = np.zeros((400, 400), np.float32)
+        dsm[150:200, 215:265] = 12.0                 # a 12 m box east of the poses, seen from 40 m
+        orthomap = SimpleNamespace(**vars(orthomap), dsm_m=dsm)
+    renderer = CameraRenderer(orthomap, CAMERA, Photometry.ideal(), perspective=PerspectiveConfig(enabled=True))
+    baked = renderer.bake(grid, SHADING, (40, 40, 360, 360))
+    assert isinstance(baked, BakedShadows)
+    for pose in POSES:
+        old = renderer.render(pose, np.random.default_rng(1), grid, SHADING, tilt_rad=tilt)
+        new = renderer.render(pose, np.random.default_rng(1), baked, None, tilt_rad=tilt)
+        view = renderer._view.maps(renderer.camera_to_map(pose), pose.altitude_m, CAMERA,
+                                   tilt_homography(CAMERA, *tilt))
+        bound, _ = _bound(renderer, baked, grid, pose, view)
+        if view.facade is not None:
+            bound.reshape(-1, 3)[view.facade] += 1.0
+        diff = np.abs(old.image.astype(int) - new.image.astype(int))
+        assert np.all(diff <= bound), f"max excess {(diff - bound).max():.2f} DN"
+        assert np.count_nonzero(diff) > 0           # the baked path did serve the frame
+    if relief:
+        assert view.facade is not None and view.facade.size > 50
 
 
 def test_baked_shadow_mask_differs_only_next_to_half_occlusion():
@@ -148,7 +181,7 @@ def test_bake_applies_only_where_it_can_and_checks_its_inputs():
     assert CameraRenderer(orthomap, CAMERA, rgba=False).bake(grid, SHADING, (0, 0, 400, 400)) is None
     relief = SimpleNamespace(**vars(orthomap), dsm_m=np.zeros((400, 400), np.float32))
     persp = CameraRenderer(relief, CAMERA, perspective=PerspectiveConfig(enabled=True))
-    assert persp.bake(grid, SHADING, (0, 0, 400, 400)) is None     # perspective frames keep the grid path
+    assert isinstance(persp.bake(grid, SHADING, (0, 0, 400, 400)), BakedShadows)   # views sample it by their maps
     renderer = CameraRenderer(orthomap, CAMERA)
     with pytest.raises(Exception, match="box_px"):
         renderer.bake(grid, SHADING, (500, 500, 600, 600))

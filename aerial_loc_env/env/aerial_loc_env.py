@@ -405,11 +405,12 @@ class AerialLocEnv(gym.Env):
         return sources or None
 
     def _bake_shadows(self) -> None:
-        """Cast shadows alone on an untilted camera: shade them into the map over the track's box once per episode
-        (``CameraRenderer.bake``), so that each frame is one warp of the pre-shaded map. Draws nothing."""
+        """Cast shadows alone: shade them into the map over the track's box once per episode
+        (``CameraRenderer.bake``), so that each frame is one warp of the pre-shaded map (a perspective or tilted
+        view samples it through its maps; a footprint leaving the box falls back to the grid). Draws nothing."""
         self._baked = self._baked_from = None
         occ = self._occlusion
-        if occ is None or len(occ) != 1 or self._attitude is not None or self._shadow_box_px is None:
+        if occ is None or len(occ) != 1 or self._shadow_box_px is None:
             return
         shading = {"strength": self._strength, **self.scenario.shadows.shading_kwargs()}
         self._baked = self._renderer.bake(occ[0], shading, self._shadow_box_px)

@@ -26,7 +26,9 @@ intersection from above, the largest ``z`` with ``h(m(z)) >= z``.
    ground the steps would leave the affine point unchanged (a quarter of the pixels in the perf scene remain).
 
 The result is a pair of per-pixel map coordinate planes (x, y) for one ``cv2.remap`` of the map (and of the cast-shadow
-field, which lives in map coordinates on the ground and roofs, so shadows stay on the surfaces they fall on).
+field, which lives in map coordinates on the ground and roofs, so shadows stay on the surfaces they fall on). With
+the shadows baked into a box of the map (``render.CameraRenderer.bake``) the frame is one remap of that box, RGB and
+occlusion together: the maps are then made in the box's pixels (``origin_px``) so that no pass shifts them.
 Heights are clipped below ``0.95 H`` (a camera below the roofs has no downward view). Features thinner than one
 march step (about ``H_max / N`` of height, ``r H_max / (N H)`` on the ground) may be missed at the frame edge.
 
@@ -48,9 +50,10 @@ from .camera import CameraModel, apply_affine
 
 _NEAREST = cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP
 _MAX_HEIGHT_FRACTION = 0.95
-GENERATOR_VERSION = 3  # bump whenever the frames change for the same inputs (env/fingerprint.py)
+GENERATOR_VERSION = 4  # bump whenever the frames change for the same inputs (env/fingerprint.py)
 _MARCH_FACTOR = 4      # the march runs on a 1/4-resolution camera grid over the 4 x 4 block maximum of the heights
 _REMAP_MAX_PX = 32767  # cv2.remap's limit on the source's sides
+_ROW_PX = 1024         # 1-D sample points go to remap as rows of this many (remap wants fewer than 32767 rows)
 _SURFACE_TOL_M = 0.3    # h(m(z1)) within this of z1: the ray sees the surface (ridged roofs vary by less per px)
 
 
@@ -100,10 +103,11 @@ def tilted_corners(camera: CameraModel, tilt: np.ndarray | None) -> np.ndarray:
 class ViewMaps:
     """Where each pixel of one frame looks on the map.
 
-    ``x``, ``y`` (h, w) float32: the level-0 map pixel each camera pixel sees (separate planes: OpenCV's
-    per-plane arithmetic and ``remap(src, x, y)`` are several times faster than on an interleaved (h, w, 2)
-    array); ``facade``: flat indices of facade pixels, or None; ``facing`` (n, 2) float32 unit (east, north):
-    where each facade pixel faces.
+    ``x``, ``y`` (h, w) float32: the level-0 map pixel each camera pixel sees, minus ``origin_px`` (separate
+    planes: OpenCV's per-plane arithmetic and ``remap(src, x, y)`` are several times faster than on an
+    interleaved (h, w, 2) array; the origin lets a box cut from the map be sampled without shifting them);
+    ``facade``: flat indices of facade pixels, or None; ``facing`` (n, 2) float32 unit (east, north): where each
+    facade pixel faces.
     """
 
     x: np.ndarray
@@ -111,34 +115,40 @@ class ViewMaps:
     facade: np.ndarray | None
     bbox: tuple[float, float, float, float]   # (x0, y0, x1, y1) level-0 map pixels holding every sample
     facing: np.ndarray | None = None
+    origin_px: tuple[int, int] = (0, 0)       # (column, row): the map pixel at x = y = 0
 
     @property
     def xy(self) -> np.ndarray:
         """(h, w, 2) float32 map pixels (for inspection; sampling uses the planes)."""
-        return cv2.merge([self.x, self.y])
+        xy = cv2.merge([self.x, self.y])
+        return xy if self.origin_px == (0, 0) else xy + np.float32(self.origin_px)
 
     def sample(self, image: np.ndarray, level: int = 0, *, border: int = cv2.BORDER_CONSTANT,
-               scale: float = 1.0, offset: float = 0.0) -> np.ndarray:
+               scale: float = 1.0, offset: float = 0.0, origin_px: tuple[int, int] = (0, 0)) -> np.ndarray:
         """``image`` sampled (bilinear) at the maps: pyramid level ``level`` (``u_L = u_0 / 2**L``), or any grid
-        with ``u_g = u_0 * scale + offset`` (e.g. a coarse shadow field). Sources beyond remap's 32767 px limit
-        are cut to the window under the footprint (a view)."""
+        with ``u_g = u_0 * scale + offset`` (e.g. a coarse shadow field), whose pixel (0, 0) is the grid's pixel
+        ``origin_px`` (column, row) (e.g. a box cut from the map). Sources beyond remap's 32767 px limit are cut
+        to the window under the footprint (a view)."""
         f = scale / (1 << level)
         h, w = image.shape[:2]
-        if f == 1.0 and offset == 0.0 and max(h, w) < _REMAP_MAX_PX:
+        ox, oy = offset - origin_px[0], offset - origin_px[1]    # grid px = map px * f + (ox, oy)
+        sx, sy = self.origin_px[0] * f + ox, self.origin_px[1] * f + oy   # ... = (x, y) * f + (sx, sy)
+        if f == 1.0 and sx == 0.0 and sy == 0.0 and max(h, w) < _REMAP_MAX_PX:
             return cv2.remap(image, self.x, self.y, cv2.INTER_LINEAR, borderMode=border, borderValue=0)
-        c0, r0, c1, r1 = _window(self.bbox, f, offset, w, h)
+        c0, r0, c1, r1 = _window(self.bbox, f, (ox, oy), w, h)
         if c1 <= c0 or r1 <= r0:
             return np.zeros(self.x.shape + image.shape[2:], image.dtype)
-        gx = cv2.addWeighted(self.x, f, self.x, 0.0, offset - c0)
-        gy = cv2.addWeighted(self.y, f, self.y, 0.0, offset - r0)
+        gx = cv2.addWeighted(self.x, f, self.x, 0.0, sx - c0)
+        gy = cv2.addWeighted(self.y, f, self.y, 0.0, sy - r0)
         return cv2.remap(image[r0:r1, c0:c1], gx, gy, cv2.INTER_LINEAR, borderMode=border, borderValue=0)
 
 
-def _window(bbox: tuple[float, float, float, float], scale: float, offset: float, w: int,
+def _window(bbox: tuple[float, float, float, float], scale: float, offset: tuple[float, float], w: int,
             h: int) -> tuple[int, int, int, int]:
-    """The pixel window (c0, r0, c1, r1) of a grid ``u_g = u_0 * scale + offset`` holding ``bbox`` (+2 px)."""
-    lo = [int(math.floor(b * scale + offset)) - 2 for b in bbox[:2]]
-    hi = [int(math.ceil(b * scale + offset)) + 3 for b in bbox[2:]]
+    """The pixel window (c0, r0, c1, r1) of a grid ``u_g = u_0 * scale + offset`` (per axis) holding ``bbox``
+    (+2 px)."""
+    lo = [int(math.floor(b * scale + o)) - 2 for b, o in zip(bbox[:2], offset, strict=True)]
+    hi = [int(math.ceil(b * scale + o)) + 3 for b, o in zip(bbox[2:], offset, strict=True)]
     return max(0, lo[0]), max(0, lo[1]), min(w, hi[0]), min(h, hi[1])
 
 
@@ -188,11 +198,20 @@ class ReliefView:
             self._pooled = max_pool(self.dsm, _MARCH_FACTOR)
         return self._pooled
 
+    def reads_px(self, affine: np.ndarray, camera: CameraModel, tilt: np.ndarray | None = None) -> np.ndarray:
+        """Level-0 map points (n, 2) whose bounding box holds every point a frame's maps can sample: the footprint
+        (every ray's visible point lies between its ground point and nadir), one map pixel wider with a height
+        model (facades sample one pixel beyond their ground point)."""
+        corners = apply_affine(np.asarray(affine, dtype=np.float64), tilted_corners(camera, tilt))
+        if self.dsm is None:
+            return corners
+        return np.concatenate([corners - 1.0, corners + 1.0])
+
     def maps(self, affine: np.ndarray, altitude_m: float, camera: CameraModel,
-             tilt: np.ndarray | None = None) -> ViewMaps | None:
+             tilt: np.ndarray | None = None, origin_px: tuple[int, int] = (0, 0)) -> ViewMaps | None:
         """The maps of the frame whose nadir camera->map affine (level 0) is ``affine`` at ``altitude_m``, with
-        the tilt homography ``tilt`` (``tilt_homography``); None when the footprint is flat and the camera
-        untilted (the affine warp is exact then)."""
+        the tilt homography ``tilt`` (``tilt_homography``), in map pixels minus ``origin_px`` (``ViewMaps``);
+        None when the footprint is flat and the camera untilted (the affine warp is exact then)."""
         w, h = camera.width_px, camera.height_px
         a = np.asarray(affine, dtype=np.float64)
         cu, cv = camera.center_px
@@ -202,11 +221,13 @@ class ReliefView:
         ru, rv = self._centred_planes(camera)
         if tilt is not None:
             ru, rv = _tilted_rays(ru, rv, camera, tilt)
-        # the ground point each ray meets (gx, gy), map px: one pass each
-        gx = cv2.addWeighted(ru, a[0, 0], rv, a[0, 1], float(nadir_x))
-        gy = cv2.addWeighted(ru, a[1, 0], rv, a[1, 1], float(nadir_y))
+        origin = (int(origin_px[0]), int(origin_px[1]))
+        ox, oy = float(nadir_x) - origin[0], float(nadir_y) - origin[1]    # nadir in the maps' frame
+        # the ground point each ray meets (gx, gy), map px - origin: one pass each
+        gx = cv2.addWeighted(ru, a[0, 0], rv, a[0, 1], ox)
+        gy = cv2.addWeighted(ru, a[1, 0], rv, a[1, 1], oy)
         if self.dsm is None:
-            return None if tilt is None else ViewMaps(gx, gy, None, bbox)
+            return None if tilt is None else ViewMaps(gx, gy, None, bbox, origin_px=origin)
         big_h = float(altitude_m)
         margin = 0
         if tilt is not None:
@@ -223,7 +244,7 @@ class ReliefView:
         z_raw = float(cv2.minMaxLoc(heights)[1])
         z_top = min(z_raw, _MAX_HEIGHT_FRACTION * big_h)
         if z_top <= 0.0:
-            return None if tilt is None else ViewMaps(gx, gy, None, bbox)
+            return None if tilt is None else ViewMaps(gx, gy, None, bbox, origin_px=origin)
         chu, chv = (cu + margin - (f - 1) / 2.0) / f, (cv + margin - (f - 1) / 2.0) / f
         z_hit = np.zeros_like(heights)
         probe = np.empty_like(heights)
@@ -245,40 +266,49 @@ class ReliefView:
                                 flags=_NEAREST, borderMode=cv2.BORDER_CONSTANT)
         relief = cv2.bitwise_or(cv2.compare(z_hit, 0.0, cv2.CMP_GT), cv2.compare(ground, 0.0, cv2.CMP_GT))
         if cv2.countNonZero(relief) == 0:
-            return None if tilt is None else ViewMaps(gx, gy, None, bbox)
+            return None if tilt is None else ViewMaps(gx, gy, None, bbox, origin_px=origin)
         z_hit[relief == 0] = -1.0
+        cap = np.float32(_MAX_HEIGHT_FRACTION * big_h) if z_raw > _MAX_HEIGHT_FRACTION * big_h else None
         if tilt is None and margin == 0 and (wc * f, hc * f) == (w, h):
-            z0 = cv2.resize(z_hit, (w, h), interpolation=cv2.INTER_NEAREST)
+            # the march cells are the camera's F x F blocks: the relief pixels block by block, z0 their cell's
+            cells = np.flatnonzero(z_hit >= 0.0)
+            within = (np.arange(f)[:, None] * w + np.arange(f)[None, :]).ravel()
+            idx = (((cells // wc) * (f * w) + (cells % wc) * f)[:, None] + within[None, :]).ravel()
+            z0s = np.repeat(z_hit.ravel()[cells], f * f)
         else:   # camera pixel -> coarse pixel (q + margin - (F - 1) / 2) / F
             to_coarse = np.array([[1.0 / f, 0.0, (cu + margin - (f - 1) / 2.0) / f],
                                   [0.0, 1.0 / f, (cv + margin - (f - 1) / 2.0) / f]])
             z0 = cv2.remap(z_hit, cv2.addWeighted(ru, to_coarse[0, 0], ru, 0.0, to_coarse[0, 2]),
                            cv2.addWeighted(rv, to_coarse[1, 1], rv, 0.0, to_coarse[1, 2]), cv2.INTER_NEAREST,
                            borderMode=cv2.BORDER_REPLICATE)
-        idx = np.flatnonzero(z0 >= 0.0)
-        cap = np.float32(_MAX_HEIGHT_FRACTION * big_h) if z_raw > _MAX_HEIGHT_FRACTION * big_h else None
+            idx = np.flatnonzero(z0 >= 0.0)
+            z0s = z0.ravel()[idx]
+        nx, ny = np.float32(nadir_x), np.float32(nadir_y)
         rus, rvs = ru.ravel()[idx], rv.ravel()[idx]
         m = a[:, :2].astype(np.float32)
         du, dv = m[0, 0] * rus + m[0, 1] * rvs, m[1, 0] * rus + m[1, 1] * rvs     # ground point - nadir, map px
-        nx, ny = np.float32(nadir_x), np.float32(nadir_y)
+        bx, by = self._row_buffers(idx.size)
+        big_h32 = np.float32(big_h)
 
-        def on_map(k: np.ndarray) -> tuple[np.ndarray, np.ndarray]:   # map pixel of the subset's rays scaled by k
-            return du * k + nx, dv * k + ny
-
-        def height(z: np.ndarray, part: np.ndarray | None = None) -> np.ndarray:
-            """h(m(z)) for the subset's rays (or its ``part``) at heights z."""
-            if z.size == 0:
-                return z.copy()
-            k = 1.0 - z / np.float32(big_h)
-            sx, sy = on_map(k) if part is None else (du[part] * k + nx, dv[part] * k + ny)
-            sx, sy = _rows(sx), _rows(sy)
+        def height(k: np.ndarray, part: np.ndarray | None = None) -> np.ndarray:
+            """h(m(z)) for the subset's rays (or its ``part``) scaled by k = 1 - z / H about nadir."""
+            n = k.size
+            if n == 0:
+                return k.copy()
+            rows = -(-n // _ROW_PX)
+            sx, sy = bx[:rows], by[:rows]          # sample points written in place (the tail: stale, unread)
+            fx, fy = sx.ravel()[:n], sy.ravel()[:n]
+            np.multiply(du if part is None else du[part], k, out=fx)
+            np.multiply(dv if part is None else dv[part], k, out=fy)
+            fx += nx
+            fy += ny
             if max(self.dsm.shape) < _REMAP_MAX_PX:
                 hz = cv2.remap(self.dsm, sx, sy, cv2.INTER_NEAREST)
             else:
-                c0, r0, c1, r1 = _window(bbox, 1.0, 0.0, self.dsm.shape[1], self.dsm.shape[0])
+                c0, r0, c1, r1 = _window(bbox, 1.0, (0.0, 0.0), self.dsm.shape[1], self.dsm.shape[0])
                 hz = cv2.remap(self.dsm[r0:r1, c0:c1], sx - np.float32(c0), sy - np.float32(r0), cv2.INTER_NEAREST,
                                borderMode=cv2.BORDER_REPLICATE)
-            hz = hz.ravel()[:z.size]
+            hz = hz.ravel()[:n]
             return hz if cap is None else np.minimum(hz, cap, out=hz)
 
         # Fixed-point steps z_{k+1} = h(m(z_k)) from the march's z0 (just below the first hit): z1 is the height
@@ -286,25 +316,40 @@ class ReliefView:
         # (a flat roof, the ground: most pixels). The others (walls, roof edges, trees, low objects) get one
         # more step; where z keeps jumping between the street and the roof the ray crosses a wall.
         tol = np.float32(_SURFACE_TOL_M)
-        z1 = height(z0.ravel()[idx])
-        z2 = height(z1)
+        z1 = height(1.0 - z0s / big_h32)
+        scale = 1.0 - z1 / big_h32
+        z2 = height(scale)
         moved = np.flatnonzero(np.abs(z2 - z1) > tol)      # not settled on a surface after one step
-        wall = np.zeros(idx.size, bool)
-        wall[moved] = np.abs(height(z2[moved], moved) - z2[moved]) > tol
-        scale = 1.0 - z1 / np.float32(big_h)
-        scale[moved] = 1.0 - z2[moved] / np.float32(big_h)
+        z2 = z2[moved]
+        scale[moved] = k2 = 1.0 - z2 / big_h32
+        wall = moved[np.abs(height(k2, moved) - z2) > tol]
         facade = facing = None
-        if wall.any():
+        if wall.size:
             # the ray entered the building through a wall and runs inside down to the ground (unless the
             # building is thinner than its horizontal travel): the facade takes the building's colour where the
             # ray meets the ground, one map pixel further from the wall so that bilinear sampling skips the street
-            dist = np.maximum(np.hypot(du[wall], dv[wall]), np.float32(1e-3))
+            wu, wv = du[wall], dv[wall]
+            dist = np.maximum(np.hypot(wu, wv), np.float32(1e-3))
             scale[wall] = 1.0 + 1.0 / dist
             facade = idx[wall]
             # a wall the camera sees faces it: towards nadir (map u east, v south)
-            facing = np.stack([-du[wall] / dist, dv[wall] / dist], axis=1)
-        gx.ravel()[idx], gy.ravel()[idx] = on_map(scale)
-        return ViewMaps(gx, gy, facade, bbox, facing)
+            facing = np.empty((wall.size, 2), np.float32)
+            np.divide(wu, dist, out=facing[:, 0])
+            np.negative(facing[:, 0], out=facing[:, 0])
+            np.divide(wv, dist, out=facing[:, 1])
+        # the visible point: the ground point scaled about nadir, in the maps' frame
+        gx.ravel()[idx] = du * scale + np.float32(ox)
+        gy.ravel()[idx] = dv * scale + np.float32(oy)
+        return ViewMaps(gx, gy, facade, bbox, facing, origin)
+
+    def _row_buffers(self, n: int) -> tuple[np.ndarray, np.ndarray]:
+        """Two (rows, _ROW_PX) float32 buffers holding n sample points, reused from frame to frame."""
+        rows = max(1, -(-n // _ROW_PX))
+        bufs = self._grids.get("rows")
+        if bufs is None or bufs[0].shape[0] < rows:
+            bufs = self._grids["rows"] = (np.zeros((rows, _ROW_PX), np.float32),
+                                          np.zeros((rows, _ROW_PX), np.float32))
+        return bufs
 
     def shade_facades(self, image: np.ndarray, view: ViewMaps, sun_deg: tuple[float, float] | None = None,
                       gamma: float = 2.2) -> np.ndarray:
@@ -342,13 +387,6 @@ def _tilted_rays(u: np.ndarray, v: np.ndarray, camera: CameraModel,
     den = cv2.addWeighted(u, c[2, 0], v, c[2, 1], c[2, 2])
     return (cv2.divide(cv2.addWeighted(u, c[0, 0], v, c[0, 1], c[0, 2]), den),
             cv2.divide(cv2.addWeighted(u, c[1, 0], v, c[1, 1], c[1, 2]), den))
-
-
-def _rows(a: np.ndarray, width: int = 1024) -> np.ndarray:
-    """A 1-D float32 array as a (rows, width) image, zero-padded (remap wants fewer than 32767 rows)."""
-    out = np.zeros(-(-a.size // width) * width, np.float32)
-    out[:a.size] = a
-    return out.reshape(-1, width)
 
 
 def sample_grid(view: ViewMaps, data: np.ndarray, factor: int) -> np.ndarray:

@@ -212,12 +212,13 @@ class CameraRenderer:
         row0, column1, row1; level 0 map pixels, the region an episode's footprints stay in), once per episode
         (lazily: each tile when a frame first needs it).
 
-        Returns None where baking does not apply: maps warped as RGB (no alpha channel to carry the occlusion)
-        and perspective views of a height model (their frames sample the grid through per-pixel maps). Memory:
-        at most one RGBA copy of the box (the tiles flown over), held by the returned object only."""
+        Returns None where baking does not apply: maps warped as RGB (no alpha channel to carry the occlusion).
+        Perspective and tilted views sample the box through their per-pixel maps (the shadows lie in map
+        coordinates, on the surfaces the view sees). Memory: at most one RGBA copy of the box (the tiles flown
+        over), held by the returned object only."""
         from ..world.shadows import ShadowGrid
 
-        if not self._rgba or self._view.dsm is not None or not isinstance(grid, ShadowGrid):
+        if not self._rgba or not isinstance(grid, ShadowGrid):
             return None
         h, w = self.orthomap.rgb.shape[:2]
         c0, r0 = max(0, int(box_px[0]) - 2), max(0, int(box_px[1]) - 2)
@@ -448,15 +449,18 @@ class CameraRenderer:
         tilt = tilt_homography(camera, *tilt_rad) if any(tilt_rad) else None
         status = self._status(affine, level, camera, None if tilt is None else tilted_corners(camera, tilt))
         self._check(pose, status, strict, camera)
-        # a flat, untilted view needs no per-pixel maps (the affine warp is exact): skip their two float passes
-        view = None if tilt is None and self._view.dsm is None else self._view.maps(affine, pose.altitude_m,
-                                                                                   camera, tilt)
-        if isinstance(occlusion, BakedShadows):
-            baked, occlusion, shading_params = occlusion, occlusion.grid, occlusion.shading_params
-            corners = apply_affine(affine, camera.corners_px())
-            if view is None and level == 0 and baked.covers(corners):
-                self._bake_tiles(baked, corners)
-                return self._render_baked(baked, affine, pose, rng, speed_mps, status, pre_sensor)
+        baked = occlusion if isinstance(occlusion, BakedShadows) else None
+        if baked is not None:
+            occlusion, shading_params = baked.grid, baked.shading_params
+            corners = self._view.reads_px(affine, camera, tilt)
+            baked = baked if level == 0 and baked.covers(corners) else None
+        # a flat, untilted view needs no per-pixel maps (the affine warp is exact): skip their two float passes;
+        # a view's maps come in the baked box's pixels when it serves the frame (no shift of the maps to sample it)
+        view = None if tilt is None and self._view.dsm is None else self._view.maps(
+            affine, pose.altitude_m, camera, tilt, (0, 0) if baked is None else baked.origin_px)
+        if baked is not None:
+            self._bake_tiles(baked, corners)
+            return self._render_baked(baked, affine, pose, rng, speed_mps, status, pre_sensor, view, sun_deg)
         if view is None:
             image = self._warp(affine, level, camera)
         else:
@@ -482,15 +486,22 @@ class CameraRenderer:
 
     def _render_baked(self, baked: BakedShadows, affine: np.ndarray, pose: Pose, rng: np.random.Generator,
                       speed_mps: float, status: FootprintStatus,
-                      pre_sensor: Callable[[np.ndarray], np.ndarray] | None) -> Frame:
-        """One warp of the pre-shaded box: RGB and the occlusion (alpha) together, then the photometry."""
+                      pre_sensor: Callable[[np.ndarray], np.ndarray] | None, view: ViewMaps | None = None,
+                      sun_deg: tuple[float, float] | None = None) -> Frame:
+        """One warp of the pre-shaded box: RGB and the occlusion (alpha) together, then the photometry.
+        ``view``: a perspective or tilted view samples the box through its maps instead (facades then shaded)."""
         camera = self.camera
-        a = affine.copy()
-        a[0, 2] -= baked.origin_px[0]
-        a[1, 2] -= baked.origin_px[1]
-        out = cv2.warpAffine(baked.rgba, a, (camera.width_px, camera.height_px), flags=_WARP_FLAGS,
-                             borderMode=cv2.BORDER_CONSTANT, borderValue=(0, 0, 0, 0))
+        if view is None:
+            a = affine.copy()
+            a[0, 2] -= baked.origin_px[0]
+            a[1, 2] -= baked.origin_px[1]
+            out = cv2.warpAffine(baked.rgba, a, (camera.width_px, camera.height_px), flags=_WARP_FLAGS,
+                                 borderMode=cv2.BORDER_CONSTANT, borderValue=(0, 0, 0, 0))
+        else:
+            out = view.sample(baked.rgba, origin_px=baked.origin_px)
         image = cv2.cvtColor(out, cv2.COLOR_RGBA2RGB)
+        if view is not None:
+            self._view.shade_facades(image, view, sun_deg, float(baked.shading_params.get("gamma", 2.2)))
         alpha = cv2.extractChannel(out, 3)
         # round(255 occ) >= 128  <=>  occ >= 0.5 (up to interpolation): one threshold to 0/1 bytes, read as bool
         mask = cv2.threshold(alpha, 127, 1, cv2.THRESH_BINARY)[1]
