@@ -98,3 +98,21 @@ def test_epoch_and_acquisition_together():
     assert np.array_equal(env.database.classes, city.classes)       # epoch A's layers (no georeference bias)
     obs, _ = env.reset(seed=0)
     assert env.observation_space.contains(obs)
+
+
+def test_city_database_comes_from_the_disk_cache_whatever_the_epoch():
+    """The acquired database of a city map is built once and memory-mapped by every process after
+    (world/acquisition.database_city); it is epoch A's, so the flown epoch shares it, and it is the map that
+    acquire_map builds in memory, bit for bit."""
+    from aerial_loc_env.world.acquisition import acquire_map, database_cache_path
+
+    db = {"gsd_m": 1.0, "haze": 0.2, "lean_deg": 8.0}
+    env = gym.make(SMALL, **SHORT, database=db, shadows={"database_sun_deg": [150.0, 50.0]}).unwrapped
+    sc = env.scenario
+    assert env.database.bundle_path == database_cache_path(sc.city, sc.shadows, sc.database)
+    flown = gym.make(SMALL, **SHORT, database=db, shadows={"database_sun_deg": [150.0, 50.0]},
+                     epoch={"leaf_off": 0.5}).unwrapped
+    assert flown.database.bundle_path == env.database.bundle_path and flown.orthomap is not env.orthomap
+    fresh = acquire_map(load_map(sc), sc.shadows, sc.database)
+    for name in ("rgb", "dsm_m", "classes"):
+        assert np.array_equal(np.asarray(getattr(env.database, name)), getattr(fresh, name)), name
