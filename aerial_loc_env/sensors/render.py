@@ -145,8 +145,8 @@ class BakedShadows:
         """Whether map points (n, 2) lie in the box with the bilinear kernel's margin."""
         c0, r0 = self.origin_px
         h, w = self.rgba.shape[:2]
-        lo, hi = corners_px.min(axis=0), corners_px.max(axis=0)
-        return bool(lo[0] >= c0 + 1.0 and lo[1] >= r0 + 1.0 and hi[0] <= c0 + w - 2.0 and hi[1] <= r0 + h - 2.0)
+        us, vs = corners_px[:, 0].tolist(), corners_px[:, 1].tolist()
+        return min(us) >= c0 + 1.0 and min(vs) >= r0 + 1.0 and max(us) <= c0 + w - 2.0 and max(vs) <= r0 + h - 2.0
 
 
 class CameraRenderer:
@@ -268,7 +268,8 @@ class CameraRenderer:
 
     def pyramid_level(self, affine: np.ndarray) -> int:
         """The pyramid level whose pixels are closest to one camera pixel (log2 of the sampling step, rounded)."""
-        step = float(np.max(np.hypot(affine[0, :2], affine[1, :2])))
+        (a00, a01, _), (a10, a11, _) = affine.tolist()
+        step = max(math.hypot(a00, a10), math.hypot(a01, a11))
         return max(0, int(math.floor(math.log2(max(step, 1e-12)) + 0.5)))
 
     def footprint_status(self, pose: Pose, camera: CameraModel | None = None) -> FootprintStatus:
@@ -278,12 +279,15 @@ class CameraRenderer:
         return self._status(affine, self.pyramid_level(affine), camera)
 
     def _status(self, affine: np.ndarray, level: int, camera: CameraModel,
-                corners_px: np.ndarray | None = None) -> FootprintStatus:
-        corners = apply_affine(affine, camera.corners_px() if corners_px is None else corners_px)
+                corners_px: np.ndarray | None = None, map_corners: np.ndarray | None = None) -> FootprintStatus:
+        """The footprint's status; ``map_corners``: the corners already in map pixels (else from ``corners_px``,
+        by default the camera's)."""
+        corners = apply_affine(affine, camera.corners_px() if corners_px is None else corners_px) \
+            if map_corners is None else map_corners
         h, w = self.orthomap.rgb.shape[:2]
         tol = 1e-6
-        if (np.any(corners < -0.5 - tol) or np.any(corners[:, 0] > w - 0.5 + tol)
-                or np.any(corners[:, 1] > h - 0.5 + tol)):
+        us, vs = corners[:, 0].tolist(), corners[:, 1].tolist()      # 4 points: plain Python beats numpy here
+        if min(us) < -0.5 - tol or min(vs) < -0.5 - tol or max(us) > w - 0.5 + tol or max(vs) > h - 0.5 + tol:
             return "outside"
         if self._nodata_levels is not None and self._blocks_touched(corners, level):
             nd = self._nodata_level(level)
@@ -447,7 +451,8 @@ class CameraRenderer:
         affine = self.camera_to_map(pose, camera)
         level = self.pyramid_level(affine)
         tilt = tilt_homography(camera, *tilt_rad) if any(tilt_rad) else None
-        status = self._status(affine, level, camera, None if tilt is None else tilted_corners(camera, tilt))
+        corners = apply_affine(affine, camera.corners_px() if tilt is None else tilted_corners(camera, tilt))
+        status = self._status(affine, level, camera, map_corners=corners)
         self._check(pose, status, strict, camera)
         baked = occlusion if isinstance(occlusion, BakedShadows) else None
         if baked is not None:
