@@ -250,3 +250,25 @@ def test_shading_an_rgba_tile_gives_the_shaded_rgb_and_the_occlusion_as_alpha():
     rgba = shade(cv2.cvtColor(rgb, cv2.COLOR_RGB2RGBA), occ_q, lut)
     np.testing.assert_array_equal(rgba[..., :3], shade(rgb, occ_q, lut))
     np.testing.assert_array_equal(rgba[..., 3], occ_q)
+
+
+@pytest.mark.parametrize("factor", [1, 2, 3, 4, 8, 32])
+def test_tile_upsampling_equals_the_per_frame_warp_bit_for_bit(factor):
+    """A tile's occlusion (``_upsample_tile``: a resize of the grid block for power-of-two factors) is the same
+    floats as the bilinear warp the per-frame path uses, at the grid's edges and for narrow tiles too."""
+    from aerial_loc_env.sensors.render import _upsample_tile
+
+    rng = np.random.default_rng(factor)
+    gh, gw = 37, 53
+    data = np.clip(cv2.GaussianBlur(rng.random((gh, gw), dtype=np.float32), (0, 0), 1.5) * 3.0 - 1.0, 0.0, 1.0)
+    data[5:9, 7:20] = 1.0                               # a hard edge as well
+    flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+    mh, mw = gh * factor, gw * factor
+    cases = [(0, 0, min(128, mw), min(128, mh)), (mw - 7, mh - 5, 7, 5), (0, mh - 1, 1, 1)]
+    cases += [(int(rng.integers(0, mw - 1)), int(rng.integers(0, mh - 1)), 0, 0) for _ in range(40)]
+    for u0, v0, w, h in cases:
+        w = w or int(rng.integers(1, min(128, mw - u0) + 1))
+        h = h or int(rng.integers(1, min(128, mh - v0) + 1))
+        a = np.array([[1.0 / factor, 0.0, (u0 + 0.5) / factor - 0.5], [0.0, 1.0 / factor, (v0 + 0.5) / factor - 0.5]])
+        ref = cv2.warpAffine(data, a, (w, h), flags=flags, borderMode=cv2.BORDER_REPLICATE)
+        np.testing.assert_array_equal(_upsample_tile(data, factor, u0, v0, w, h), ref)

@@ -252,12 +252,14 @@ class CameraRenderer:
             y0, x0 = ty * _BAKE_TILE_PX, tx * _BAKE_TILE_PX
             y1, x1 = min(h, y0 + _BAKE_TILE_PX), min(w, x0 + _BAKE_TILE_PX)
             u0, v0 = c0 + x0, r0 + y0
-            # map pixel u -> grid pixel (u + 0.5) / f - 0.5, as in the per-frame warp
-            a = np.array([[1.0 / f, 0.0, (u0 + 0.5) / f - 0.5], [0.0, 1.0 / f, (v0 + 0.5) / f - 0.5]])
-            occ = cv2.warpAffine(data, a, (x1 - x0, y1 - y0), flags=_WARP_FLAGS, borderMode=cv2.BORDER_REPLICATE)
+            occ = _upsample_tile(data, f, u0, v0, x1 - x0, y1 - y0)
             # the RGBA map tile (alpha 255) shaded as 4 channels: shaded RGB, alpha = occ_q, in one multiply
-            baked.rgba[y0:y1, x0:x1] = shade(self._levels[0][v0:v0 + y1 - y0, u0:u0 + x1 - x0],
-                                             cv2.convertScaleAbs(occ, alpha=255.0), lut)
+            # written straight into the box (OpenCV writes into the strided view; copied if it ever did not)
+            box = baked.rgba[y0:y1, x0:x1]
+            shaded = shade(self._levels[0][v0:v0 + y1 - y0, u0:u0 + x1 - x0], cv2.convertScaleAbs(occ, alpha=255.0),
+                           lut, out=box)
+            if shaded is not box:
+                box[...] = shaded
             baked.baked_tiles[ty, tx] = True
 
     # ------------------------------------------------------------------ geometry
@@ -572,6 +574,25 @@ def _shading_lut(shading_params: Mapping[str, Any] | None) -> np.ndarray:
     if "sky_tint_rgb" in kwargs:
         kwargs["sky_tint_rgb"] = tuple(float(t) for t in kwargs["sky_tint_rgb"])
     return shading_lut(strength, **kwargs)
+
+
+def _upsample_tile(data: np.ndarray, f: int, u0: int, v0: int, w: int, h: int) -> np.ndarray:
+    """The occlusion grid ``data`` (``f`` map px per cell) bilinearly at the map pixels [u0, u0 + w) x [v0, v0 + h)
+    (map pixel u -> grid pixel (u + 0.5) / f - 0.5, as in the per-frame warp; the grid's edges replicated).
+
+    For f a power of two up to 32 the warp's 1/32 px coordinate quantization is exact and so is resize's
+    (u + 0.5) / f - 0.5: a ``cv2.resize`` of the grid block under the tile gives the same floats 4x faster
+    (tests/test_render_bake.py checks them bit for bit); other factors take the warp."""
+    if f & (f - 1) or f > 32:
+        a = np.array([[1.0 / f, 0.0, (u0 + 0.5) / f - 0.5], [0.0, 1.0 / f, (v0 + 0.5) / f - 0.5]])
+        return cv2.warpAffine(data, a, (w, h), flags=_WARP_FLAGS, borderMode=cv2.BORDER_REPLICATE)
+    gh, gw = data.shape
+    # the grid cells the tile's bilinear taps read, one more on each side (resize replicates the block's edges,
+    # which must be the grid's own edges or lie outside the taps)
+    i0, j0 = max(v0 // f - 1, 0), max(u0 // f - 1, 0)
+    i1, j1 = min((v0 + h - 1) // f + 2, gh), min((u0 + w - 1) // f + 2, gw)
+    block = cv2.resize(data[i0:i1, j0:j1], ((j1 - j0) * f, (i1 - i0) * f), interpolation=cv2.INTER_LINEAR)
+    return block[v0 - i0 * f:v0 - i0 * f + h, u0 - j0 * f:u0 - j0 * f + w]
 
 
 def _motion_kernel(length_px: float) -> np.ndarray:
