@@ -426,3 +426,22 @@ def test_database_sun_bakes_shadows_of_another_hour():
         cfg.database_image(img, None, 0.25, 0.25)
     with pytest.raises(ConfigError, match="database_sun_deg"):
         build_config(ShadowConfig, {"database_sun_deg": [90.0, 0.0]}, where="envs/x.toml")
+
+
+def test_disc_fraction_computes_the_penumbra_alone_with_the_same_floats():
+    """``_disc_fraction`` evaluates the arcsine only where -1 < x < 1 and thresholds the rest: the same float32
+    values as the formula over the whole (clipped) array, and exactly 0 / 1 outside the penumbra."""
+    from aerial_loc_env.world.shadows import _disc_formula, _disc_fraction
+
+    rng = np.random.default_rng(5)
+    x = rng.normal(0.0, 3.0, (301, 257)).astype(np.float32)
+    x[::7, ::5] = -np.inf                                  # pixels with no occluder
+    x[1, :4] = [-1.0, 1.0, np.nextafter(np.float32(-1), np.float32(0)), np.nextafter(np.float32(1), np.float32(2))]
+    expected = _disc_formula(np.clip(x, -1.0, 1.0))
+    got = _disc_fraction(x.copy())
+    assert got.dtype == np.float32 and got.shape == x.shape
+    np.testing.assert_array_equal(got, expected)
+    assert np.all(got[x <= -1.0] == 0.0) and np.all(got[x >= 1.0] == 1.0)
+    inner = (x > -1.0) & (x < 1.0)
+    assert 0.1 < inner.mean() < 0.5 and np.all(np.abs(got[inner] - 0.5) <= 0.5 + 1e-6)
+    assert np.all(np.diff(got[0][np.argsort(x[0])]) >= -1e-6)        # monotone in x

@@ -327,8 +327,26 @@ def cast_shadow_bruteforce(dsm_m: np.ndarray, gsd_x_m: float, gsd_y_m: float, su
 
 
 def _disc_fraction(x: np.ndarray) -> np.ndarray:
-    """Fraction of a unit-radius disc below a horizontal line at height x (x in disc radii), in place."""
-    np.clip(x, -1.0, 1.0, out=x)
+    """Fraction of a unit-radius disc below a horizontal line at height x (x in disc radii, float32, no NaN).
+
+    Only the penumbra (-1 < x < 1, well under 1 % of an episode's grid) needs the arcsine: the rest is 0 (x <= -1,
+    lit or no occluder) or 1 (x >= 1, umbra), one threshold; the formula runs on the penumbra's pixels alone,
+    the same floats as over the whole grid (tests/test_shadows.py), 5x faster at reset."""
+    ends = _disc_formula(np.array([-1.0, 1.0], dtype=x.dtype))
+    out = cv2.threshold(x, 0.0, 1.0, cv2.THRESH_BINARY)[1]        # 1 where x > 0, else 0
+    if ends[0] != 0.0 or ends[1] != 1.0:                          # (they are 0 and 1 in IEEE arithmetic)
+        out = np.where(out > 0, ends[1], ends[0]).astype(x.dtype)
+    lo, hi = np.nextafter(x.dtype.type(-1.0), x.dtype.type(0.0)), np.nextafter(x.dtype.type(1.0), x.dtype.type(0.0))
+    inner = cv2.findNonZero(cv2.inRange(x, float(lo), float(hi)))
+    if inner is not None:
+        inner = inner.reshape(-1, 2)                              # (column, row) points ((n, 1, 2) in OpenCV 4)
+        cols, rows = inner[:, 0], inner[:, 1]
+        out[rows, cols] = _disc_formula(x[rows, cols])
+    return out
+
+
+def _disc_formula(x: np.ndarray) -> np.ndarray:
+    """``(x sqrt(1 - x^2) + arcsin x) / pi + 1/2`` for x in [-1, 1]: the disc fraction below height x."""
     root = np.sqrt(1.0 - x * x)
     out = x * root
     out += np.arcsin(x)
