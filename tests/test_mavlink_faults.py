@@ -259,14 +259,18 @@ def _sim_state(lat_deg: float, lon_deg: float, alt_m: float, yaw_rad: float, *, 
 
 
 def test_follow_mode_follows_sitl_truth_not_the_ekf():
-    """A fake SITL answers the stream request with SIM_STATE (truth) and a far-away GLOBAL_POSITION_INT (its
-    EKF): the demo follows the truth, and the placeholder (0, 0) SITL sends before it has a position is ignored.
+    """A fake SITL at --speedup 4 answers the stream requests with SIM_STATE (truth), SYSTEM_TIME (its clock) and
+    a far-away GLOBAL_POSITION_INT (its EKF): the demo follows the truth, the placeholder (0, 0) SITL sends before
+    it has a position is ignored, and GPS_INPUT's GPS time runs on SITL's clock (ArduPilot corrects it against
+    its own: wall-clock stamps would fall behind by 3 s every 4 s).
     """
     sock = _udp_socket()
     port = sock.getsockname()[1]
     lat, lon, heading_deg = -35.36, 149.17, 30.0          # ~ 600 m from the demo track's centre
+    speedup, t0 = 4.0, time.monotonic()
     args = mav_cli.build_parser().parse_args(["--demo", "--follow", "--connect", f"udpout:127.0.0.1:{port}",
-                                              "--duration-s", "2.5", "--quiet"])
+                                              "--duration-s", "2.5", "--quiet", "--sim-speedup", str(speedup),
+                                              "--rate-hz", "40"])
     result = {}
     runner = threading.Thread(target=lambda: result.setdefault("rc", mav_cli.run(args, out=io.StringIO())))
     runner.start()
@@ -283,12 +287,19 @@ def test_follow_mode_follows_sitl_truth_not_the_ekf():
                 0, round((lat + 0.01) * 1e7), round(lon * 1e7), 684_000, 100_000, 500, 0, 0, 3000).pack(ap), addr)
             sock.sendto(_sim_state(lat, lon, 684.0, math.radians(heading_deg)).pack(ap), addr)
             sock.sendto(_sim_state(0.0, 0.0, 0.0, 0.0).pack(ap), addr)    # placeholder: ignored
+            sock.sendto(mavlink2.MAVLink_system_time_message(                # SITL's clock, 4x real time
+                0, 5000 + round((time.monotonic() - t0) * speedup * 1000)).pack(ap), addr)
     runner.join(10)
     sock.close()
     assert result.get("rc") == 0
     requests = {int(m.param1) for _, m, _ in seen if m.get_type() == "COMMAND_LONG"
                 and m.command == mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL}
-    assert requests == {mavlink2.MAVLINK_MSG_ID_SIM_STATE}
+    assert requests == {mavlink2.MAVLINK_MSG_ID_SIM_STATE, mavlink2.MAVLINK_MSG_ID_SYSTEM_TIME}
+    # GPS time per real second over the last 1.5 s (synced by then): 4 s; scheduling delays either end's arrival by
+    # less than the exchange's 0.1 s cycle, so the ratio is within 4 x (1 +- 2 x 0.1 / 1.5)
+    gps = [(t, m.time_week_ms) for t, m, _ in seen if m.get_type() == "GPS_INPUT" and t > end - 1.5]
+    rate = (gps[-1][1] - gps[0][1]) / 1000.0 / (gps[-1][0] - gps[0][0])
+    assert speedup * (1 - 0.2 / 1.5) < rate < speedup * (1 + 0.2 / 1.5), rate
     last = [m for _, m, _ in seen if m.get_type() == "GPS_INPUT"][-1]
     # the demo's estimate noise is 0.5 m per axis: 5 sigma is 2.3e-5 deg of latitude, 2.8e-5 of longitude
     assert last.lat / 1e7 == pytest.approx(lat, abs=2.5e-5) and last.lon / 1e7 == pytest.approx(lon, abs=3e-5)

@@ -15,7 +15,7 @@ from aerial_loc_env.mavlink.bridge import EstimateBridge
 from aerial_loc_env.mavlink.fix import FixPolicy, FixSlot, PoseFix, assess
 from aerial_loc_env.mavlink.link import parse_connection
 from aerial_loc_env.mavlink.sender import SenderConfig, signing_secret
-from aerial_loc_env.mavlink.timebase import Schedule, gps_to_unix_s, gps_week_ms, signing_timestamp
+from aerial_loc_env.mavlink.timebase import Schedule, SimClock, gps_to_unix_s, gps_week_ms, signing_timestamp
 
 
 def _fix(**kw) -> PoseFix:
@@ -149,6 +149,25 @@ def test_schedule_absolute_deadlines_skip_when_late():
     for _ in range(1000):
         s.advance(s.deadline_s)
     assert s.deadline_s == pytest.approx(100.0 + 1004 * 0.1)   # no accumulated drift
+
+
+def test_sim_clock_runs_on_the_simulators_time_without_jumps_or_steps_back():
+    """SITL at --speedup 3: before its time is seen the clock runs 3x from its creation; the first SYSTEM_TIME
+    joins on without a jump; then the simulator's own seconds (re-anchored at each observation, 3x between them);
+    an observation behind the clock holds it (never backwards); a zero or infinite rate is a clear error."""
+    now = [10.0]
+    c = SimClock(3.0, monotonic=lambda: now[0], anchor_unix_s=1000.0)
+    assert not c.synced and c.unix_s(11.0) == pytest.approx(1003.0)         # 1 real s = 3 sim s
+    c.observe(50.0, 11.0)                           # SITL says 50 s since its boot at that instant
+    assert c.synced and c.unix_s(11.0) == pytest.approx(1003.0) and c.sim_s(11.0) == pytest.approx(50.0)
+    assert c.sim_s(11.5) == pytest.approx(51.5) and c.unix_s(11.5) == pytest.approx(1004.5)
+    c.observe(51.2, 11.5)                           # SITL fell behind its speedup (1.2 s in 0.5 s real)
+    assert c.sim_s(11.5) == pytest.approx(51.5)     # held, not stepped back ...
+    assert c.sim_s(11.6) == pytest.approx(51.5)     # ... until the simulator catches up (51.2 + 0.3)
+    assert c.sim_s(11.7) == pytest.approx(51.8)
+    for bad in (0.0, math.inf):
+        with pytest.raises(ConfigError, match="rate"):
+            SimClock(bad)
 
 
 @pytest.mark.parametrize("text, kind", [

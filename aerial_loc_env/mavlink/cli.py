@@ -98,7 +98,7 @@ def sender_config(args: argparse.Namespace) -> SenderConfig:
         "system_id": args.sysid, "component_id": args.compid, "gps_id": args.gps_id, "gps_yaw": args.gps_yaw,
         "odometry_frames": args.odometry_frames, "signing_key": args.signing_key,
         "signing_link_id": args.signing_link_id, "baud": args.baud,
-        "request_vehicle_hz": 20.0 if args.follow else 0.0,
+        "request_vehicle_hz": 20.0 if args.follow else 0.0, "sim_speedup": args.sim_speedup,
     }, where="aerial-loc mavlink options")
 
 
@@ -228,8 +228,8 @@ class ScenarioRun:
         ``pad_std_m``), as a vehicle on the ground knows where it stands, while it is within ``pad_radius_m`` of
         the pad (beyond, e.g. a fixed wing's take-off run and climb, no fix); below that height later (landing) or
         off the map the fix is lost (the autopilot then lands on inertial navigation). Yields None while no truth
-        has come. ``sim_speedup``: the simulator's clock runs that many times faster than the monotonic clock
-        (SITL ``--speedup``, a fixed ratio while SITL keeps pace); frame times and odometry are in its seconds.
+        has come. Frame times and odometry are in the simulator's seconds: the truth's ``sim_time_s`` (SITL's
+        boot time through SYSTEM_TIME), else its arrival scaled by ``sim_speedup`` (SITL ``--speedup``).
         """
         from aerial_loc_env.env.external import ExternalFlight, ExternalPose
 
@@ -246,8 +246,8 @@ class ScenarioRun:
                 continue
             seen_s = v.received_mono_s
             x, y = (float(np.ravel(c)[0]) for c in self.ground_map.latlon_to_world(v.lat_deg, v.lon_deg))
-            pose = ExternalPose(x, y, math.pi / 2 - v.heading_rad, v.alt_amsl_m - ground_amsl_m,
-                                v.received_mono_s * sim_speedup)
+            t_s = v.sim_time_s if math.isfinite(v.sim_time_s) else v.received_mono_s * sim_speedup
+            pose = ExternalPose(x, y, math.pi / 2 - v.heading_rad, v.alt_amsl_m - ground_amsl_m, t_s)
             if pad is None:
                 pad = (x, y)
             high = pose.altitude_m >= min_alt
@@ -320,6 +320,8 @@ def run(args: argparse.Namespace, *, out=sys.stdout, should_stop: Callable[[], b
         raise ConfigError(f"--speed {args.speed}: must be >= 0 (1 = real time, 0 = as fast as possible)")
     if not args.demo and not (args.scenario and args.agent):
         raise ConfigError("aerial-loc mavlink: give --scenario and --agent (or --demo for a synthetic track)")
+    if not (math.isfinite(args.sim_speedup) and 0.1 <= args.sim_speedup <= 20.0):
+        raise ConfigError(f"--sim-speedup {args.sim_speedup}: must be in [0.1, 20] (SITL's --speedup)")
     config = sender_config(args)
     if args.demo:
         source: DemoTrack | ScenarioRun = DemoTrack(args.origin, args.seed)
@@ -331,13 +333,12 @@ def run(args: argparse.Namespace, *, out=sys.stdout, should_stop: Callable[[], b
         ground = ground_amsl_m(args.ground_amsl_m, om, args.scenario)
         bridge = EstimateBridge(lambda x, y: source.orthomap.world_to_latlon(x, y),
                                 (om.width_m / 2.0, om.height_m / 2.0), ground_amsl_m=ground)
-        if not (math.isfinite(args.sim_speedup) and 0.1 <= args.sim_speedup <= 20.0):
-            raise ConfigError(f"--sim-speedup {args.sim_speedup}: must be in [0.1, 20] (SITL's --speedup)")
         steps = (source.follow_steps(ground, pad_radius_m=args.pad_radius_m, sim_speedup=args.sim_speedup)
                  if args.follow else source.steps(args.loop))
     sender = MavlinkSender(config, policy=FixPolicy(), origin=bridge.origin)
     tty = hasattr(out, "isatty") and out.isatty()
     t_sim, error_m = 0.0, None
+    t_first: float | None = None      # follow mode: the first step's time on the simulator's clock
     code = 0
     try:
         sender.start()
@@ -351,8 +352,10 @@ def run(args: argparse.Namespace, *, out=sys.stdout, should_stop: Callable[[], b
                 if (args.duration_s > 0 and time.monotonic() - t0 >= args.duration_s) or should_stop():
                     break
                 continue
-            follow_clock = args.follow and not args.demo      # step times: the simulator's scaled monotonic clock
-            t_sim = step.time_s - t0 * args.sim_speedup if follow_clock else step.time_s
+            follow_clock = args.follow and not args.demo      # step times: the simulator's clock
+            if follow_clock and t_first is None:
+                t_first = step.time_s
+            t_sim = step.time_s - t_first if follow_clock else step.time_s
             error_m = step.error_m
             # pace simulated time against the monotonic clock (absolute, no drift); follow runs on the truth's
             if args.speed > 0 and not (args.follow and not args.demo):

@@ -8,6 +8,7 @@ long the simulator or the estimator take. The sender emits whatever fix the slot
 from __future__ import annotations
 
 import collections
+import dataclasses
 import hashlib
 import math
 import re
@@ -22,7 +23,7 @@ from ..errors import ConfigError
 from . import messages as msgs
 from .fix import FixPolicy, FixQuality, FixSlot, GeoOrigin, PoseFix, SlotItem, assess
 from .link import Endpoint, Link, parse_connection
-from .timebase import MonotonicClock, Schedule, signing_timestamp
+from .timebase import MonotonicClock, Schedule, SimClock, signing_timestamp
 
 ARDUPILOT_GPS_TIMEOUT_S = 0.245   # AP_GPS marks a MAVLink GPS unhealthy after gaps longer than this
 MIN_GPS_INPUT_RATE_HZ = 5.0
@@ -49,6 +50,9 @@ class SenderConfig:
     reconnect_s: float = field(default=1.0, metadata=rng(0.05, 60.0))
     baud: int = field(default=57600, metadata=rng(1, 10_000_000))
     request_vehicle_hz: float = field(default=0.0, metadata=rng(0.0, 50.0))  # >0: request SIM_STATE (truth)
+    # following a simulator (request_vehicle_hz > 0): its clock's rate (SITL --speedup); message times, the fix's
+    # age and the truth's times run on the simulator's clock (SYSTEM_TIME), see timebase.SimClock
+    sim_speedup: float = field(default=1.0, metadata=rng(0.1, 20.0))
     allow_slow_gps: bool = False                                      # permit GPS_INPUT below 5 Hz (replay)
 
     def validate(self, where: str) -> None:
@@ -106,6 +110,7 @@ class VehicleState:
     pitch_rad: float
     received_mono_s: float
     system_id: int
+    sim_time_s: float = math.nan   # the simulator's clock at its arrival (SYSTEM_TIME-synced), NaN before synced
 
 
 def vehicle_state(m, now_s: float) -> VehicleState | None:
@@ -201,7 +206,11 @@ class MavlinkSender:
             self._mav.signing.secret_key = secret
             self._mav.signing.link_id = config.signing_link_id
             self._mav.signing.sign_outgoing = True
-        self.clock = MonotonicClock()
+        # message times: the wall clock, or the followed simulator's (an autopilot corrects offboard stamps
+        # against its own clock); MAVLink signing always on the wall clock (receivers check it against theirs)
+        self.wall_clock = MonotonicClock()
+        self.following = config.request_vehicle_hz > 0
+        self.clock: MonotonicClock | SimClock = SimClock(config.sim_speedup) if self.following else self.wall_clock
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._lock = threading.Condition()     # guards the stats; notified when a tick takes a new fix
@@ -214,6 +223,7 @@ class MavlinkSender:
         self._vehicle: VehicleState | None = None
         self._autopilot_sysid: int | None = None   # who answered: the origin's target, and "heard" for udpin
         self._origin_now = False
+        self._sim_time_mono_s: float | None = None
         self._skipped = 0
         self.error: BaseException | None = None
 
@@ -331,7 +341,7 @@ class MavlinkSender:
         item = self.slot.get()
         if item is None:
             return  # nothing estimated yet: heartbeats only
-        age = now - item.received_mono_s
+        age = (now - item.received_mono_s) * (self.config.sim_speedup if self.following else 1.0)
         quality = assess(item.fix, age, self.policy)
         with self._lock:
             self._item, self._age_s, self._quality = item, age, quality
@@ -352,7 +362,7 @@ class MavlinkSender:
     def _send(self, kind: str, message) -> None:
         signing = self._mav.signing
         if signing.sign_outgoing:  # keep signing timestamps >= real time (receivers reject stale streams)
-            signing.timestamp = max(signing.timestamp, signing_timestamp(self.clock.unix_s()))
+            signing.timestamp = max(signing.timestamp, signing_timestamp(self.wall_clock.unix_s()))
         dropped = self._file.dropped
         self._mav.send(message)
         if self._file.dropped == dropped:      # counted only if the link took it (dropped frames count there)
@@ -360,14 +370,18 @@ class MavlinkSender:
                 self._sent[kind] += 1
 
     def _request_vehicle_streams(self) -> None:
-        """Ask for SIM_STATE, the simulator's truth (MAV_CMD_SET_MESSAGE_INTERVAL), until it comes."""
+        """Ask for SIM_STATE, the simulator's truth, and SYSTEM_TIME, its clock, at the same interval
+        (MAV_CMD_SET_MESSAGE_INTERVAL; ArduPilot sends messages of one interval together), until they come."""
         vehicle = self.vehicle()
-        if vehicle is not None and time.monotonic() - vehicle.received_mono_s < 2.0:
-            return
-        target = self.config.target_system or (self.autopilot_sysid or 0)
-        self._send("command_long", mavlink2.MAVLink_command_long_message(
-            target, 1, mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL, 0,
-            float(mavlink2.MAVLINK_MSG_ID_SIM_STATE), 1e6 / self.config.request_vehicle_hz, 0, 0, 0, 0, 0))
+        now = time.monotonic()
+        for msg_id, last in ((mavlink2.MAVLINK_MSG_ID_SIM_STATE, None if vehicle is None else vehicle.received_mono_s),
+                             (mavlink2.MAVLINK_MSG_ID_SYSTEM_TIME, self._sim_time_mono_s)):
+            if last is not None and now - last < 2.0:
+                continue
+            target = self.config.target_system or (self.autopilot_sysid or 0)
+            self._send("command_long", mavlink2.MAVLink_command_long_message(
+                target, 1, mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL, 0,
+                float(msg_id), 1e6 / self.config.request_vehicle_hz, 0, 0, 0, 0, 0))
 
     def _receive(self, max_reads: int = 256) -> None:
         """Parse everything that arrived: a UDP read returns one datagram, and SITL sends many per tick (reading
@@ -390,9 +404,14 @@ class MavlinkSender:
                     self._autopilot_sysid = m.get_srcSystem()
                 if first and self.origin is not None:
                     self._origin_now = True       # the link can reach it now: announce the origin at once
+            elif name == "SYSTEM_TIME" and self.following and m.get_srcComponent() == 1:
+                self.clock.observe(m.time_boot_ms / 1000.0, now)     # the simulator's clock
+                self._sim_time_mono_s = now
             elif name == "SIM_STATE":
                 state = vehicle_state(m, now)
                 if state is not None:
+                    if self.following and self.clock.synced:
+                        state = dataclasses.replace(state, sim_time_s=self.clock.sim_s(now))
                     with self._lock:
                         self._vehicle = state
 

@@ -134,7 +134,8 @@ class SitlProcess:
                                      start_new_session=True, preexec_fn=_die_with_parent)
         return self
 
-    def __exit__(self, *exc: object) -> None:
+    def stop(self) -> None:
+        """End SITL (its process group); idempotent. Its dataflash log stays until the context exits."""
         if self.proc is not None and self.proc.poll() is None:
             os.killpg(self.proc.pid, signal.SIGTERM)
             try:
@@ -142,6 +143,15 @@ class SitlProcess:
             except subprocess.TimeoutExpired:
                 os.killpg(self.proc.pid, signal.SIGKILL)
                 self.proc.wait(5)
+
+    @property
+    def dataflash_log(self) -> Path | None:
+        """The newest dataflash log SITL wrote (logs/NNNNNNNN.BIN in its working folder), None if none."""
+        logs = sorted((self.workdir / "logs").glob("*.BIN")) if self.workdir is not None else []
+        return logs[-1] if logs else None
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
         self.log.close()
         if self.workdir is not None:
             shutil.rmtree(self.workdir, ignore_errors=True)
@@ -155,7 +165,7 @@ class Track:
     ekf: list = field(default_factory=list)
     texts: list = field(default_factory=list)
     ekf_flags: list = field(default_factory=list)
-    gps_gaps_ms: list = field(default_factory=list)   # (time, ms between 3D fixes in SITL's clock)
+    clock: list = field(default_factory=list)         # (time, SITL's boot seconds) from GLOBAL_POSITION_INT
     reached: list = field(default_factory=list)
     acks: list = field(default_factory=list)          # (time, command, result) of COMMAND_ACK
     gps_fix: list = field(default_factory=list)       # (time, fix_type) of GPS_RAW_INT
@@ -174,7 +184,6 @@ class Monitor:
         self.track = Track()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
-        self._last_gps_ms: int | None = None
         self.lock = threading.Lock()
 
     def start(self, timeout_s: float = 60.0) -> None:
@@ -198,9 +207,11 @@ class Monitor:
                 t = self.track
                 if kind == "SIM_STATE" and (msg.lat_int or msg.lon_int):
                     t.truth.append((now, msg.lat_int / 1e7, msg.lon_int / 1e7, float(msg.alt)))
-                elif kind == "GLOBAL_POSITION_INT" and (msg.lat or msg.lon):
-                    t.ekf.append((now, msg.lat / 1e7, msg.lon / 1e7, msg.alt / 1000.0))
-                    t.relative_alt_m = msg.relative_alt / 1000.0
+                elif kind == "GLOBAL_POSITION_INT":
+                    t.clock.append((now, msg.time_boot_ms / 1000.0))
+                    if msg.lat or msg.lon:
+                        t.ekf.append((now, msg.lat / 1e7, msg.lon / 1e7, msg.alt / 1000.0))
+                        t.relative_alt_m = msg.relative_alt / 1000.0
                 elif kind == "EKF_STATUS_REPORT":
                     t.ekf_flags.append((now, int(msg.flags)))
                 elif kind == "STATUSTEXT":
@@ -209,11 +220,6 @@ class Monitor:
                     t.acks.append((now, int(msg.command), int(msg.result)))
                 elif kind == "GPS_RAW_INT":
                     t.gps_fix.append((now, int(msg.fix_type)))
-                    ms = msg.time_usec // 1000     # gaps between 3D fixes, in SITL's own clock
-                    if msg.fix_type >= 3 and self._last_gps_ms is not None and ms > self._last_gps_ms:
-                        t.gps_gaps_ms.append((now, ms - self._last_gps_ms))
-                    if msg.fix_type >= 3:
-                        self._last_gps_ms = ms
                 elif kind == "MISSION_ITEM_REACHED" and msg.seq != 65535 and msg.seq not in t.reached:
                     t.reached.append(int(msg.seq))     # (ArduPilot repeats it; 65535: none reached yet)
                 elif kind == "HEARTBEAT" and msg.get_srcComponent() == 1:
@@ -280,6 +286,41 @@ class Monitor:
         with self.lock:
             texts = [t for _, t in self.track.texts[-8:]]
         raise AerialLocError(f"SITL: timed out after {timeout_s:.0f} s waiting for {what}; last messages: {texts}")
+
+
+def sim_clock(pairs: list[tuple[float, float]]):
+    """Monotonic seconds -> SITL's seconds since boot, from (arrival, time_boot_ms / 1000) pairs: linear between
+    them, extended at the ends at the rate measured over them."""
+    if len(pairs) < 2:
+        raise AerialLocError("SITL: too few GLOBAL_POSITION_INT messages to read its clock")
+    mono, sim = (np.asarray(v, dtype=float) for v in zip(*pairs, strict=True))
+    rate = (sim[-1] - sim[0]) / max(1e-9, mono[-1] - mono[0])
+
+    def to_sim(t: float) -> float:
+        if t < mono[0]:
+            return float(sim[0] + (t - mono[0]) * rate)
+        if t > mono[-1]:
+            return float(sim[-1] + (t - mono[-1]) * rate)
+        return float(np.interp(t, mono, sim))
+    return to_sim
+
+
+def read_dataflash(path: str | os.PathLike) -> dict[str, list]:
+    """What SITL logged, on its own clock (TimeUS as seconds since boot): the truth (SIM), the EKF's position
+    (POS), each as (t, lat, lon, alt AMSL), and GPS 1's update intervals (t, GPA.Delta ms: the time between its
+    last two updates as ArduPilot stamps them; over 245 ms it marks the GPS unhealthy)."""
+    from pymavlink import DFReader
+
+    log = DFReader.DFReader_binary(str(path), zero_time_base=True)
+    out: dict[str, list] = {"truth": [], "ekf": [], "gps_delta_ms": []}
+    while (m := log.recv_match(type=["SIM", "POS", "GPA"])) is not None:
+        t, kind = m.TimeUS / 1e6, m.get_type()
+        if kind == "GPA":
+            if getattr(m, "I", 0) == 0:
+                out["gps_delta_ms"].append((t, int(m.Delta)))
+        else:
+            out["truth" if kind == "SIM" else "ekf"].append((t, float(m.Lat), float(m.Lng), float(m.Alt)))
+    return out
 
 
 def timed_horizontal_errors(truth: list, ekf: list, max_gap_s: float = 0.3) -> list[tuple[float, float]]:
@@ -352,8 +393,9 @@ def fly_mission(scenario: str, agent: str, *, ground_amsl_m: float, vehicle: str
     """ArduPilot SITL on the vision fix, the camera following SITL's truth. Copter (``MISSIONS``: GPS_INPUT,
     ExternalNav, or SITL's GPS then denied): arm in AUTO on the pad fix, take off, a leg east and back, RTL and
     land. Plane (``PLANE_MISSIONS``): arm in AUTO on the pad fix, take off (no fix from leaving the pad until the
-    camera is in range), a loop over the map at the scenario's altitude, RTL and loiter. Returns the monitor's
-    record plus the bridge's steps (the estimator's own error, pad/camera/lost)."""
+    camera is in range), a loop over the map at the scenario's altitude, RTL and loiter. Returns the record,
+    every time on SITL's clock (seconds since its boot): truth and EKF from SITL's dataflash log, the monitor's
+    events, the bridge's steps (the estimator's own error, pad/camera/lost), ArduPilot's GPS update intervals."""
     import gymnasium as gym
 
     import aerial_loc_env.env  # noqa: F401  (registers the scenarios)
@@ -377,14 +419,15 @@ def fly_mission(scenario: str, agent: str, *, ground_amsl_m: float, vehicle: str
     last_wp = len(items) - 1          # the last waypoint before RTL (item 0 is home)
     stop = threading.Event()
     result: dict = {}
-    steps: list = []      # (monotonic time, source, estimator error m, estimate x, y in the map's frame)
+    steps: list = []      # (monotonic time -> SITL's, source, estimator error m, estimate x, y in the map's frame)
     t_denied = None
 
     def on_step(step) -> None:
         src = step.source if step.estimate.status != "lost" else "lost"
         steps.append((time.monotonic(), src, step.error_m, float(step.estimate.x_m), float(step.estimate.y_m)))
 
-    with SitlProcess(vehicle, home, spec.params, speedup=speedup, sitl_dir=sitl_dir) as sitl:
+    # LOG_DISARMED 1: the dataflash log (SITL's own clock: truth, EKF, GPS update intervals) from boot on
+    with SitlProcess(vehicle, home, {**spec.params, "LOG_DISARMED": 1}, speedup=speedup, sitl_dir=sitl_dir) as sitl:
         args = mav_cli.build_parser().parse_args([
             "--scenario", scenario, "--agent", agent, "--follow", "--seed", str(seed),
             "--ground-amsl-m", str(ground_amsl_m), "--connect", f"udpin:127.0.0.1:{sitl.bridge_port}",
@@ -426,24 +469,37 @@ def fly_mission(scenario: str, agent: str, *, ground_amsl_m: float, vehicle: str
             stop.set()
             bridge.join(10)
             monitor.stop()
-        with monitor.lock:
-            tr = monitor.track
-            flight = [s for s in tr.truth if t_armed <= s[0] <= t_end]
-            ekf = [s for s in tr.ekf if t_armed <= s[0] <= t_end]
-            flags = [f for f in tr.ekf_flags if t_armed <= f[0] <= t_end]
-            record = {"vehicle": vehicle, "mission": mission, "last_wp": last_wp, "truth": flight, "ekf": ekf,
-                      "texts": list(tr.texts), "ekf_flags": flags,
-                      # from the EKF taking the fix on (a stall while the bridge starts up is harmless)
-                      "gps_gaps_ms": [g for t, g in tr.gps_gaps_ms if t_fix <= t <= t_end],
-                      "gps_gap_max_before_fix_ms": max((g for t, g in tr.gps_gaps_ms if t < t_fix), default=0),
-                      "reached": list(tr.reached),
-                      "acks": list(tr.acks), "gps_fix": [g for g in tr.gps_fix if t_armed <= g[0] <= t_end],
-                      "fix_to_arm_s": t_armed - t_fix, "flight_s": t_end - t_armed, "bridge_rc": result.get("rc"),
-                      "t_armed": t_armed, "t_end": t_end, "t_denied": t_denied,
-                      "steps": [s for s in steps if t_armed <= s[0] <= t_end],
-                      "estimates": [(s[0], *(float(np.ravel(v)[0]) for v in database.world_to_latlon(s[3], s[4])))
-                                    for s in steps if t_armed <= s[0] <= t_end and s[1] == "camera"],
-                      "ground_amsl_m": ground_amsl_m, "camera_min_alt_m": camera_min_alt_m, "speedup": speedup}
+            sitl.stop()
+        if sitl.dataflash_log is None:
+            raise AerialLocError(f"SITL wrote no dataflash log (LOG_DISARMED 1); its output: "
+                                 f"{(sitl.workdir / 'sitl.log').read_text(errors='replace')[-800:]}")
+        flog = read_dataflash(sitl.dataflash_log)
+    # every time in the record on SITL's clock (seconds since its boot): the log's own stamps, the monitor's
+    # arrivals through SITL's clock as GLOBAL_POSITION_INT.time_boot_ms reported it
+    tr = monitor.track
+    to_sim = sim_clock(tr.clock)
+    mono = {"fix": t_fix, "armed": t_armed, "end": t_end}
+    t_fix, t_armed, t_end = (to_sim(mono[k]) for k in ("fix", "armed", "end"))
+    t_denied = None if t_denied is None else to_sim(t_denied)
+    mapped = lambda rows: [(to_sim(r[0]), *r[1:]) for r in rows]                      # noqa: E731
+    flight = lambda rows: [r for r in rows if t_armed <= r[0] <= t_end]               # noqa: E731
+    gps = flog["gps_delta_ms"]
+    record = {"vehicle": vehicle, "mission": mission, "last_wp": last_wp,
+              "truth": flight(flog["truth"]), "ekf": flight(flog["ekf"]), "texts": mapped(tr.texts),
+              "ekf_flags": flight(mapped(tr.ekf_flags)),
+              # ArduPilot's own interval between GPS updates, from the EKF taking the fix on (a stall while the
+              # bridge starts up is harmless; it is reported apart)
+              "gps_gaps_ms": [d for t, d in gps if t_fix <= t <= t_end],
+              "gps_gap_max_before_fix_ms": max((d for t, d in gps if t < t_fix), default=0),
+              "reached": list(tr.reached), "acks": mapped(tr.acks), "gps_fix": flight(mapped(tr.gps_fix)),
+              "fix_to_arm_s": t_armed - t_fix, "flight_s": t_end - t_armed, "bridge_rc": result.get("rc"),
+              "t_armed": t_armed, "t_end": t_end, "t_denied": t_denied,
+              "steps": flight(mapped(steps)),
+              "ground_amsl_m": ground_amsl_m, "camera_min_alt_m": camera_min_alt_m, "speedup": speedup,
+              # SITL seconds per real second from the fix to the end: SITL keeps its --speedup or falls behind
+              "speedup_achieved": (t_end - t_fix) / max(1e-9, mono["end"] - mono["fix"])}
+    record["estimates"] = [(s[0], *(float(np.ravel(v)[0]) for v in database.world_to_latlon(s[3], s[4])))
+                           for s in record["steps"] if s[1] == "camera"]
     record["timed_errors"] = timed_horizontal_errors(record["truth"], record["ekf"])
     record["horizontal_errors_m"] = [e for _, e in record["timed_errors"]]
     # the AUTO legs on the vision fix: from the first waypoint to the start of RTL
@@ -475,6 +531,12 @@ def summary(record: dict) -> dict:
     legs = np.asarray(record["leg_errors_m"], dtype=float)
     steps = record.get("steps", [])
     est = np.asarray([s[2] for s in steps if s[1] == "camera" and s[2] is not None], dtype=float)
+    frames = [s[0] for s in steps if s[1] == "camera"]
+    # between consecutive camera frames (not across the camera out of range: pad or lost steps between)
+    dt = np.asarray([b[0] - a[0] for a, b in zip(steps, steps[1:], strict=False)
+                     if a[1] == "camera" and b[1] == "camera"], dtype=float)
+    frame_intervals = ({"median": float(np.median(dt)), "p95": float(np.percentile(dt, 95)), "max": float(dt.max())}
+                       if dt.size else {})
     events = [x for _, x in record["texts"] if any(k in x for k in ("ailsafe", "EKF variance", "Glitch",
                                                                      "stopped aiding", "is using", "source"))]
     out = {"mission": record.get("mission", "gps-input"),
@@ -486,10 +548,12 @@ def summary(record: dict) -> dict:
            "ekf_max_m": float(e.max()) if e.size else math.nan,
            "estimator_rmse_m": float(np.sqrt(np.mean(est ** 2))) if est.size else math.nan,
            "estimator_max_m": float(est.max()) if est.size else math.nan,
-           # in SITL's seconds (the record's times are monotonic, SITL runs ``speedup`` times faster)
-           "vision_fix_s": vision_fix_s(steps, record.get("t_denied")) * record.get("speedup", 1.0),
-           "fix_to_arm_s": record["fix_to_arm_s"] * record.get("speedup", 1.0),
-           "flight_s": record["flight_s"] * record.get("speedup", 1.0), "speedup": record.get("speedup", 1.0),
+           # in SITL's seconds (the record's times are on SITL's clock)
+           "vision_fix_s": vision_fix_s(steps, record.get("t_denied")),
+           "fix_to_arm_s": record["fix_to_arm_s"], "flight_s": record["flight_s"],
+           "speedup": record.get("speedup", 1.0), "speedup_achieved": record.get("speedup_achieved", math.nan),
+           # how the agent kept up: camera frames and the intervals between them, SITL seconds
+           "camera_frames": len(frames), "frame_interval_s": frame_intervals,
            "share_of_flight_with_absolute_position": (sum(1 for _, f in record["ekf_flags"] if f & 16)
                                                       / max(1, len(record["ekf_flags"]))),
            "ekf_flags_seen": sorted({f for _, f in record["ekf_flags"]}),

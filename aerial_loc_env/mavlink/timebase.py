@@ -1,4 +1,4 @@
-"""Clocks for the bridge: GPS week time, a monotonic wall clock, and a drift-free periodic schedule.
+"""Clocks for the bridge: GPS week time, a monotonic wall clock, a simulator's clock, and a drift-free schedule.
 
 Why its own module: GPS_INPUT carries GPS time (week, ms of week) while every other message wants a timestamp
 that never jumps backwards; both come from one monotonic anchor so an NTP step cannot disturb the stream.
@@ -57,6 +57,63 @@ class MonotonicClock:
         """Unix time of monotonic instant ``mono_s`` (now if None)."""
         mono = self.monotonic() if mono_s is None else mono_s
         return self.anchor_unix_s + (mono - self.anchor_mono_s)
+
+    def unix_us(self, mono_s: float | None = None) -> int:
+        return int(self.unix_s(mono_s) * 1e6)
+
+
+class SimClock:
+    """Unix time that runs on a simulator's clock (SITL's boot time, SYSTEM_TIME.time_boot_ms), for follow mode.
+
+    Why: an autopilot corrects every offboard timestamp (GPS_INPUT's week time, VISION_POSITION_ESTIMATE's
+    usec) against its own clock, assuming both run at the same rate. SITL at ``--speedup 2`` runs twice as fast
+    as the wall clock, so wall-clock stamps fell behind until ArduPilot clamped them at its jitter limit (2 s for
+    a MAVLink GPS): the EKF fused each fix as that much older. Here each observation (sim seconds, monotonic
+    arrival) re-anchors the clock; between observations it runs at ``rate`` (the nominal speedup). Before the
+    first observation it runs at ``rate`` from its creation, and the first one joins on without a jump. It never
+    steps backwards (an observation behind the extrapolation holds the clock until the simulator catches up).
+    """
+
+    def __init__(self, rate: float = 1.0, monotonic: Callable[[], float] = time.monotonic,
+                 anchor_unix_s: float | None = None) -> None:
+        if not (math.isfinite(rate) and rate > 0):
+            raise ConfigError(f"SimClock: rate must be a finite number > 0 (the simulator's speedup), got {rate!r}")
+        self.rate, self.monotonic = float(rate), monotonic
+        self.anchor_unix_s = time.time() if anchor_unix_s is None else float(anchor_unix_s)
+        self._mono0 = monotonic()
+        self._sim_anchor: tuple[float, float] | None = None     # (sim s, monotonic s) of the latest observation
+        self._offset_s = 0.0         # sim s -> seconds since this clock's anchor (set at the first observation)
+        self._last_s = 0.0
+
+    @property
+    def synced(self) -> bool:
+        """True once the simulator's time has been observed."""
+        return self._sim_anchor is not None
+
+    def observe(self, sim_s: float, mono_s: float | None = None) -> None:
+        """The simulator's clock read ``sim_s`` at monotonic instant ``mono_s`` (its message's arrival)."""
+        mono = self.monotonic() if mono_s is None else mono_s
+        if self._sim_anchor is None:
+            self._offset_s = self.elapsed_s(mono) - sim_s
+        self._sim_anchor = (float(sim_s), mono)
+
+    def elapsed_s(self, mono_s: float | None = None) -> float:
+        """Simulator seconds since this clock's anchor at monotonic instant ``mono_s`` (now if None)."""
+        mono = self.monotonic() if mono_s is None else mono_s
+        if self._sim_anchor is None:
+            t = (mono - self._mono0) * self.rate
+        else:
+            sim, at = self._sim_anchor
+            t = self._offset_s + sim + (mono - at) * self.rate
+        self._last_s = max(self._last_s, t)
+        return self._last_s
+
+    def sim_s(self, mono_s: float | None = None) -> float:
+        """The simulator's own time (its boot seconds once observed) at monotonic instant ``mono_s``."""
+        return self.elapsed_s(mono_s) - self._offset_s
+
+    def unix_s(self, mono_s: float | None = None) -> float:
+        return self.anchor_unix_s + self.elapsed_s(mono_s)
 
     def unix_us(self, mono_s: float | None = None) -> int:
         return int(self.unix_s(mono_s) * 1e6)
