@@ -500,15 +500,13 @@ class AerialLocEnv(gym.Env):
         if a.shape != (2,):
             raise InvalidActionError(f"{self.scenario.id}: action must have shape (2,) (the normalized x, y "
                                      f"estimate), got shape {a.shape}")
-        ax, ay = a.tolist()                     # two floats: plain Python checks beat numpy's per-call cost
-        lim = float(a.dtype.type(1.0 + 1e-5))   # the tolerance in the action's own precision, as numpy compares
-        if not (math.isfinite(ax) and math.isfinite(ay)):
+        if not np.all(np.isfinite(a)):
             raise InvalidActionError(f"{self.scenario.id}: action {a.tolist()} has NaN/inf; an estimate must "
                                      "be finite")
-        if abs(ax) > lim or abs(ay) > lim:
+        if np.any(np.abs(a) > 1.0 + 1e-5):
             raise InvalidActionError(f"{self.scenario.id}: action {a.tolist()} is outside [-1, 1] (the map "
                                      "extent); clip it or convert metres with world_to_action")
-        return np.array([min(max(ax, -1.0), 1.0), min(max(ay, -1.0), 1.0)])
+        return np.clip(a.astype(np.float64), -1.0, 1.0)
 
     def step(self, action: Any):
         a = self._check_action(action)

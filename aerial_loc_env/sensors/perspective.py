@@ -10,12 +10,14 @@ crosses height ``z`` at ``m(z) = g0 + (c - g0) z / H`` (``c`` the nadir point): 
 rises, so every point the camera can see lies inside the ground footprint. The visible point is the ray's first
 intersection from above, the largest ``z`` with ``h(m(z)) >= z``.
 
-1. March: for ``N`` heights ``z_i`` from the footprint's tallest point down, the points ``m(z_i)`` of all rays
-   form the (nadir) camera grid scaled by ``1 - z_i / H`` about the principal point, so each step is one small
-   ``warpAffine`` of the height model's 4 x 4 block maximum sampled on a quarter-resolution camera grid,
-   thresholded at ``z_i`` and max-combined: the highest ``z_i`` at which the ray is at or below the surface,
-   i.e. the first hit from the top to within one step (dilated by a pixel so that no roof edge is lost to
-   the coarse grid; the next step verifies).
+1. March: one ray per 4 x 4 block of camera pixels (its centre's). For ``N`` heights ``z_i`` from the
+   footprint's tallest point down, the points ``m(z_i)`` of these rays are the blocks' ground points scaled by
+   ``1 - z_i / H`` about nadir: an affine image of the block grid (projective for a tilted camera), so each step
+   is one small warp (``warpAffine`` / ``warpPerspective``) of the height model's 4 x 4 block maximum (a
+   contiguous copy of the window under the footprint) onto the block grid, thresholded at ``z_i`` and
+   max-combined: the highest ``z_i`` at which the ray is at or below the surface, i.e. the first hit from the
+   top to within one step (dilated by a block so that no roof edge is lost to the coarse grid; the next step
+   verifies). Each block's pixels start from its z0: a relief block's pixels are listed block by block.
 2. Refine at full resolution on the map's own height model with fixed-point steps ``z_{k+1} = h(m(z_k))``:
    ``z1 = h(m(z0))`` is the height of the surface the ray is in; where the next step leaves it unchanged the ray
    sees that surface at ``m(z1)`` (flat roofs and open ground: most pixels). The rest (walls, roof edges, trees,
@@ -50,7 +52,7 @@ from .camera import CameraModel, apply_affine
 
 _NEAREST = cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP
 _MAX_HEIGHT_FRACTION = 0.95
-GENERATOR_VERSION = 4  # bump whenever the frames change for the same inputs (env/fingerprint.py)
+GENERATOR_VERSION = 5  # bump whenever the frames change for the same inputs (env/fingerprint.py)
 _MARCH_FACTOR = 4      # the march runs on a 1/4-resolution camera grid over the 4 x 4 block maximum of the heights
 _REMAP_MAX_PX = 32767  # cv2.remap's limit on the source's sides
 _ROW_PX = 1024         # 1-D sample points go to remap as rows of this many (remap wants fewer than 32767 rows)
@@ -229,31 +231,40 @@ class ReliefView:
         if self.dsm is None:
             return None if tilt is None else ViewMaps(gx, gy, None, bbox, origin_px=origin)
         big_h = float(altitude_m)
-        margin = 0
-        if tilt is not None:
-            margin = int(math.ceil(np.abs(tilted_corners(camera, tilt) - camera.corners_px()).max())) + 2
-        # coarse grid (1 px = F camera px, with a margin for tilted rays): q = F q_c + (F - 1) / 2 - margin, on
-        # the F x F block maximum of the heights (map px u -> pooled px (u + 0.5) / F - 0.5)
+        # the march grid: one cell per F x F camera block, probed along the ray of the block's centre pixel
+        # (q = F q_c + (F - 1) / 2, through the tilt to the nadir camera, then to the map), on the F x F block
+        # maximum of the heights (map px u -> pooled px (u + 0.5) / F - 0.5)
         f = _MARCH_FACTOR
-        wc, hc = -(-(w + 2 * margin) // f), -(-(h + 2 * margin) // f)
-        grid_to_cam = np.array([[f, 0.0, (f - 1) / 2.0 - margin], [0.0, f, (f - 1) / 2.0 - margin], [0, 0, 1]])
+        wc, hc = -(-w // f), -(-h // f)
+        grid_to_cam = np.array([[f, 0.0, (f - 1) / 2.0], [0.0, f, (f - 1) / 2.0], [0.0, 0.0, 1.0]])
+        to_map = np.vstack([a, [0.0, 0.0, 1.0]]) @ (np.eye(3) if tilt is None else tilt) @ grid_to_cam
         map_to_pool = np.array([[1.0 / f, 0.0, 0.5 / f - 0.5], [0.0, 1.0 / f, 0.5 / f - 0.5], [0, 0, 1]])
-        coarse = (map_to_pool @ np.vstack([a, [0.0, 0.0, 1.0]]) @ grid_to_cam)[:2]
-        heights = cv2.warpAffine(self._march_heights(), coarse, (wc, hc), flags=_NEAREST,
-                                 borderMode=cv2.BORDER_CONSTANT)
+
+        def at_height(src: np.ndarray, k: float, dst: np.ndarray | None = None) -> np.ndarray:
+            """``src`` (pooled grid) at the cells' points m(z) = nadir + k (g - nadir), k = 1 - z / H: one warp."""
+            scaled = np.array([[k, 0.0, nadir_x * (1.0 - k)], [0.0, k, nadir_y * (1.0 - k)], [0.0, 0.0, 1.0]])
+            m = map_to_pool @ scaled @ to_map
+            if tilt is None:
+                return cv2.warpAffine(src, m[:2], (wc, hc), dst=dst, flags=_NEAREST, borderMode=cv2.BORDER_CONSTANT)
+            return cv2.warpPerspective(src, m, (wc, hc), dst=dst, flags=_NEAREST, borderMode=cv2.BORDER_CONSTANT)
+
+        # every m(z) lies in the footprint: the march reads a contiguous copy of the pooled heights under it
+        # (cache-resident for the 11 warps); pooled px (u + 0.5) / F - 0.5 of the window's map px u
+        pooled = self._march_heights()
+        c0, r0, c1, r1 = _window(bbox, 1.0 / f, (0.5 / f - 0.5,) * 2, pooled.shape[1], pooled.shape[0])
+        pooled = np.ascontiguousarray(pooled[r0:r1, c0:c1])
+        map_to_pool[:2, 2] -= (c0, r0)
+        heights = at_height(pooled, 1.0)
         z_raw = float(cv2.minMaxLoc(heights)[1])
         z_top = min(z_raw, _MAX_HEIGHT_FRACTION * big_h)
         if z_top <= 0.0:
             return None if tilt is None else ViewMaps(gx, gy, None, bbox, origin_px=origin)
-        chu, chv = (cu + margin - (f - 1) / 2.0) / f, (cv + margin - (f - 1) / 2.0) / f
         z_hit = np.zeros_like(heights)
         probe = np.empty_like(heights)
         steps = self.config.march_steps
         for i in range(steps):
             z = z_top * (steps - i) / steps
-            s = 1.0 - z / big_h
-            m = np.float64([[s, 0.0, chu * (1.0 - s)], [0.0, s, chv * (1.0 - s)]])
-            cv2.warpAffine(heights, m, (wc, hc), dst=probe, flags=_NEAREST, borderMode=cv2.BORDER_REPLICATE)
+            at_height(pooled, 1.0 - z / big_h, probe)
             cv2.threshold(probe, z - 1e-4, z, cv2.THRESH_BINARY, dst=probe)   # hit: the ray is at/below the surface
             cv2.max(z_hit, probe, dst=z_hit)
         z_hit = cv2.dilate(z_hit, np.ones((3, 3), np.uint8))
@@ -262,27 +273,21 @@ class ReliefView:
         # affine point g: the fixed-point steps below would leave it there (z1 = z2 = 0). Only the other cells'
         # pixels (marked by z0 >= 0; flat ones get -1) are refined, as 1-D arrays.
         reach = 2.0 * max(abs(a[0, 0]) + abs(a[0, 1]), abs(a[1, 0]) + abs(a[1, 1]))   # map px per axis, in a cell
-        ground = cv2.warpAffine(self._ground_heights(int(math.ceil((reach + 1.0) / f))), coarse, (wc, hc),
-                                flags=_NEAREST, borderMode=cv2.BORDER_CONSTANT)
+        ground = at_height(self._ground_heights(int(math.ceil((reach + 1.0) / f)))[r0:r1, c0:c1], 1.0)
         relief = cv2.bitwise_or(cv2.compare(z_hit, 0.0, cv2.CMP_GT), cv2.compare(ground, 0.0, cv2.CMP_GT))
         if cv2.countNonZero(relief) == 0:
             return None if tilt is None else ViewMaps(gx, gy, None, bbox, origin_px=origin)
-        z_hit[relief == 0] = -1.0
         cap = np.float32(_MAX_HEIGHT_FRACTION * big_h) if z_raw > _MAX_HEIGHT_FRACTION * big_h else None
-        if tilt is None and margin == 0 and (wc * f, hc * f) == (w, h):
-            # the march cells are the camera's F x F blocks: the relief pixels block by block, z0 their cell's
-            cells = np.flatnonzero(z_hit >= 0.0)
-            within = (np.arange(f)[:, None] * w + np.arange(f)[None, :]).ravel()
-            idx = (((cells // wc) * (f * w) + (cells % wc) * f)[:, None] + within[None, :]).ravel()
-            z0s = np.repeat(z_hit.ravel()[cells], f * f)
-        else:   # camera pixel -> coarse pixel (q + margin - (F - 1) / 2) / F
-            to_coarse = np.array([[1.0 / f, 0.0, (cu + margin - (f - 1) / 2.0) / f],
-                                  [0.0, 1.0 / f, (cv + margin - (f - 1) / 2.0) / f]])
-            z0 = cv2.remap(z_hit, cv2.addWeighted(ru, to_coarse[0, 0], ru, 0.0, to_coarse[0, 2]),
-                           cv2.addWeighted(rv, to_coarse[1, 1], rv, 0.0, to_coarse[1, 2]), cv2.INTER_NEAREST,
-                           borderMode=cv2.BORDER_REPLICATE)
-            idx = np.flatnonzero(z0 >= 0.0)
-            z0s = z0.ravel()[idx]
+        # the relief cells' pixels, block by block (flat indices), each with its cell's z0
+        cells = np.flatnonzero(relief)
+        rows, cols = np.divmod(cells, wc)
+        within = (np.arange(f)[:, None] * w + np.arange(f)[None, :]).ravel()
+        idx = ((rows * (f * w) + cols * f)[:, None] + within[None, :]).ravel()
+        z0s = np.repeat(z_hit.ravel()[cells], f * f)
+        if w % f or h % f:   # partial blocks at the right and bottom edges: their pixels inside the frame
+            keep = ((rows[:, None] * f + within[None, :] // w < h)
+                    & (cols[:, None] * f + within[None, :] % w < w)).ravel()
+            idx, z0s = idx[keep], z0s[keep]
         nx, ny = np.float32(nadir_x), np.float32(nadir_y)
         rus, rvs = ru.ravel()[idx], rv.ravel()[idx]
         m = a[:, :2].astype(np.float32)
