@@ -376,9 +376,15 @@ class ReliefView:
             towards = view.facing @ np.array([math.sin(az), math.cos(az)], dtype=np.float32)
             direct = (1.0 - amb) * math.cos(el) / max(math.sin(el), 0.05) * np.maximum(towards, 0.0)
             gain = gain * np.minimum(0.5 * amb + direct, 1.5) ** (1.0 / gamma)
-            gain = np.asarray(gain, np.float32)[:, None]
-        flat = image.reshape(-1, image.shape[-1])
-        flat[view.facade] = np.clip(np.rint(flat[view.facade] * gain), 0, 255).astype(np.uint8)
+            gain = np.asarray(gain, np.float32).repeat(image.shape[-1])
+        # the facade pixels' bytes as one 1-D gather/scatter (several times faster than rows of 3 bytes)
+        c = image.shape[-1]
+        at = (view.facade * c).repeat(c)
+        for i in range(1, c):
+            at[i::c] += i
+        raw = image.reshape(-1)
+        vals = raw[at] * gain
+        raw[at] = np.clip(np.rint(vals, out=vals), 0, 255, out=vals)
         return image
 
 
