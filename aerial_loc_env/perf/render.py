@@ -1,6 +1,11 @@
 """Camera rendering speed: one 600 x 400 frame with cast shadows and sensor noise (target 2.0x the floor),
 database patches (the floor itself, ``FLOOR_NAME``: one bare bilinear warp of the frame from the map), and eq. (3)
-projections for many particles."""
+projections for many particles.
+
+The perspective rows (target 3.0x, issue 11) measured 7.2-7.5x (8.2-8.5x with gimbal tilt) before their maps were
+made on the march's block grid and the views sampled the baked shadows, 5.4-5.7x (6.4-6.7x) after (alternating
+runs, load 2.3-2.9 on 2 cores): the per-pixel maps cost about 2x the floor on this scene, the photometry most of
+the rest."""
 
 from __future__ import annotations
 
@@ -63,7 +68,7 @@ def _render_setup(altitude_m: float, shadows: bool, perspective: bool = False,
         state = {"i": 0}
         shading = {"strength": 0.9}
         occlusion = grid if shadows else None
-        if shadows:  # as the env does at reset: shaded into the map over the flight's box (None: perspective)
+        if shadows:  # as the env does at reset: shaded into the map over the flight's box (views sample it too)
             from ..sensors.camera import apply_affine
 
             corners = np.concatenate([apply_affine(renderer.camera_to_map(p), renderer.camera.corners_px())

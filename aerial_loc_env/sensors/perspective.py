@@ -225,11 +225,17 @@ class ReliefView:
             ru, rv = _tilted_rays(ru, rv, camera, tilt)
         origin = (int(origin_px[0]), int(origin_px[1]))
         ox, oy = float(nadir_x) - origin[0], float(nadir_y) - origin[1]    # nadir in the maps' frame
-        # the ground point each ray meets (gx, gy), map px - origin: one pass each
-        gx = cv2.addWeighted(ru, a[0, 0], rv, a[0, 1], ox)
-        gy = cv2.addWeighted(ru, a[1, 0], rv, a[1, 1], oy)
+
+        def ground_points() -> tuple[np.ndarray, np.ndarray]:
+            """The ground point each ray meets (x, y), map px - origin: one pass each."""
+            return cv2.addWeighted(ru, a[0, 0], rv, a[0, 1], ox), cv2.addWeighted(ru, a[1, 0], rv, a[1, 1], oy)
+
+        def flat_view() -> ViewMaps | None:
+            """Flat ground under the footprint: the affine warp (None), or the tilted camera's ground points."""
+            return None if tilt is None else ViewMaps(*ground_points(), None, bbox, origin_px=origin)
+
         if self.dsm is None:
-            return None if tilt is None else ViewMaps(gx, gy, None, bbox, origin_px=origin)
+            return flat_view()
         big_h = float(altitude_m)
         # the march grid: one cell per F x F camera block, probed along the ray of the block's centre pixel
         # (q = F q_c + (F - 1) / 2, through the tilt to the nadir camera, then to the map), on the F x F block
@@ -258,7 +264,7 @@ class ReliefView:
         z_raw = float(cv2.minMaxLoc(heights)[1])
         z_top = min(z_raw, _MAX_HEIGHT_FRACTION * big_h)
         if z_top <= 0.0:
-            return None if tilt is None else ViewMaps(gx, gy, None, bbox, origin_px=origin)
+            return flat_view()
         z_hit = np.zeros_like(heights)
         probe = np.empty_like(heights)
         steps = self.config.march_steps
@@ -276,7 +282,7 @@ class ReliefView:
         ground = at_height(self._ground_heights(int(math.ceil((reach + 1.0) / f)))[r0:r1, c0:c1], 1.0)
         relief = cv2.bitwise_or(cv2.compare(z_hit, 0.0, cv2.CMP_GT), cv2.compare(ground, 0.0, cv2.CMP_GT))
         if cv2.countNonZero(relief) == 0:
-            return None if tilt is None else ViewMaps(gx, gy, None, bbox, origin_px=origin)
+            return flat_view()
         cap = np.float32(_MAX_HEIGHT_FRACTION * big_h) if z_raw > _MAX_HEIGHT_FRACTION * big_h else None
         # the relief cells' pixels, block by block (flat indices), each with its cell's z0
         cells = np.flatnonzero(relief)
@@ -343,6 +349,7 @@ class ReliefView:
             np.negative(facing[:, 0], out=facing[:, 0])
             np.divide(wv, dist, out=facing[:, 1])
         # the visible point: the ground point scaled about nadir, in the maps' frame
+        gx, gy = ground_points()
         gx.ravel()[idx] = du * scale + np.float32(ox)
         gy.ravel()[idx] = dv * scale + np.float32(oy)
         return ViewMaps(gx, gy, facade, bbox, facing, origin)
