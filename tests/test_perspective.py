@@ -253,8 +253,9 @@ def test_flat_ground_keeps_the_affine_map_coordinates_and_the_roof_moves():
     assert np.abs(view.xy[roof] - affine_xy[roof]).max() > 1.0
 
 
-@pytest.mark.parametrize("tilt_rad", [(0.0, 0.0), (0.004, -0.003)])
-def test_visible_point_is_the_first_hit_of_a_fine_ray_cast_away_from_edges(tilt_rad):
+@pytest.mark.parametrize(("tilt_rad", "size"), [((0.0, 0.0), (600, 400)), ((0.004, -0.003), (600, 400)),
+                                                 ((0.004, -0.003), (301, 203))])   # partial 4 x 4 blocks
+def test_visible_point_is_the_first_hit_of_a_fine_ray_cast_away_from_edges(tilt_rad, size):
     """Against a brute-force ray cast (every ray probed every 10 cm from the top down: its point within 0.25 px):
     the coarse march (one ray per 4 x 4 block, 10 heights) plus the fixed-point steps give each non-facade pixel
     the first surface its ray hits, to within 1 px on the map, everywhere farther than one march cell (4 px, + 1
@@ -267,16 +268,17 @@ def test_visible_point_is_the_first_hit_of_a_fine_ray_cast_away_from_edges(tilt_
     for u0, v0, side, h in [(560, 700, 60, 12.0), (900, 620, 90, 25.0), (700, 900, 40, 6.0), (1000, 860, 70, 33.0)]:
         dsm[v0:v0 + side, u0:u0 + side] = h
     om = Orthomap(rgb=om.rgb, gsd_x_m=GSD, gsd_y_m=GSD, georef=om.georef, dsm_m=dsm, name="boxes")
-    r = renderer(om)
+    cam = CameraModel(width_px=size[0], height_px=size[1])
+    r = CameraRenderer(om, cam, Photometry.ideal(), perspective=PerspectiveConfig(enabled=True))
     a = r.camera_to_map(NADIR)
-    tilt = tilt_homography(CAM, *tilt_rad) if any(tilt_rad) else None
-    view = r._view.maps(a, H, CAM, tilt)
-    rays = np.stack(np.meshgrid(np.arange(CAM.width_px, dtype=np.float64), np.arange(CAM.height_px, dtype=np.float64)),
+    tilt = tilt_homography(cam, *tilt_rad) if any(tilt_rad) else None
+    view = r._view.maps(a, H, cam, tilt)
+    rays = np.stack(np.meshgrid(np.arange(cam.width_px, dtype=np.float64), np.arange(cam.height_px, dtype=np.float64)),
                     axis=-1).reshape(-1, 1, 2)
     if tilt is not None:
         rays = cv2.perspectiveTransform(rays, tilt)
-    ground = (rays.reshape(-1, 2) @ a[:, :2].T + a[:, 2]).reshape(CAM.height_px, CAM.width_px, 2)
-    nadir = a[:, :2] @ np.array(CAM.center_px) + a[:, 2]
+    ground = (rays.reshape(-1, 2) @ a[:, :2].T + a[:, 2]).reshape(cam.height_px, cam.width_px, 2)
+    nadir = a[:, :2] @ np.array(cam.center_px) + a[:, 2]
     first = np.full(ground.shape[:2], -1.0)
     for z in np.arange(dsm.max(), -1e-9, -0.1):
         pts = (nadir + (ground - nadir) * (1.0 - z / H)).astype(np.float32)
