@@ -2,10 +2,10 @@
 database patches (the floor itself, ``FLOOR_NAME``: one bare bilinear warp of the frame from the map), and eq. (3)
 projections for many particles.
 
-The perspective rows (target 3.0x, issue 11) measured 7.2-7.5x (8.2-8.5x with gimbal tilt) before their maps were
-made on the march's block grid and the views sampled the baked shadows, 5.4-5.7x (6.4-6.7x) after (alternating
-runs, load 2.3-2.9 on 2 cores): the per-pixel maps cost about 2x the floor on this scene, the photometry most of
-the rest."""
+The perspective rows (target 3.0x, issue 11) measured 7.9-8.3x (9.1x with gimbal tilt) at load 0.7-0.8 and
+7.2-7.5x (8.2-8.5x) at load 2.3-2.9 on 2 cores before their maps were made on the march's block grid and the views
+sampled the baked shadows, 6.3-6.5x (7.3x) and 5.4-5.7x (6.4-6.7x) after (alternating runs; about 25 % less CPU
+per frame): the per-pixel maps cost about 2x the floor on this scene, the photometry most of the rest."""
 
 from __future__ import annotations
 
