@@ -15,7 +15,9 @@ Why it is built this way:
   frame is then ONE warp of the pre-shaded map plus the photometry, instead of the map warp, a float occlusion
   warp and three shading passes. Shading before interpolation differs from shading after it only at shadow edges
   (tests/test_render_bake.py derives the bound); cloud shadows drift and keep the per-frame path, and so do frames
-  the bake cannot serve (pyramid level > 0, perspective or tilted views, a footprint leaving the box).
+  the bake cannot serve (pyramid level > 0, perspective or tilted views, a footprint leaving the box). After the
+  warp a baked frame is the RGB drop, the alpha, one threshold for the mask and its count; the float occlusion is
+  made only if a caller reads ``Frame.occlusion`` (the env and the estimators do not).
 - Photometry stays in integers, uint8 in and uint8 out, one full-frame pass per effect (``_photometry``): the
   shading gain image is three 1-channel LUTs of the quantized occlusion, gamma one uint8 LUT, the white-balance
   and exposure gains one ``cv2.transform`` (all bit-identical to float arithmetic), vignetting one multiply by a
