@@ -153,18 +153,25 @@ def test_schedule_absolute_deadlines_skip_when_late():
 
 def test_sim_clock_runs_on_the_simulators_time_without_jumps_or_steps_back():
     """SITL at --speedup 3: before its time is seen the clock runs 3x from its creation; the first SYSTEM_TIME
-    joins on without a jump; then the simulator's own seconds (re-anchored at each observation, 3x between them);
-    an observation behind the clock holds it (never backwards); a zero or infinite rate is a clear error."""
+    joins on without a jump; then the simulator's own seconds, 3x between messages, from the least delayed of
+    the recent ones (a late message does not pull it back); a simulator that falls behind its speedup for longer
+    than the window is followed, the clock holding (never backwards) until it catches up; a zero or infinite
+    rate is a clear error."""
     now = [10.0]
-    c = SimClock(3.0, monotonic=lambda: now[0], anchor_unix_s=1000.0)
+    c = SimClock(3.0, monotonic=lambda: now[0], anchor_unix_s=1000.0, window=4)
     assert not c.synced and c.unix_s(11.0) == pytest.approx(1003.0)         # 1 real s = 3 sim s
     c.observe(50.0, 11.0)                           # SITL says 50 s since its boot at that instant
     assert c.synced and c.unix_s(11.0) == pytest.approx(1003.0) and c.sim_s(11.0) == pytest.approx(50.0)
     assert c.sim_s(11.5) == pytest.approx(51.5) and c.unix_s(11.5) == pytest.approx(1004.5)
-    c.observe(51.2, 11.5)                           # SITL fell behind its speedup (1.2 s in 0.5 s real)
-    assert c.sim_s(11.5) == pytest.approx(51.5)     # held, not stepped back ...
-    assert c.sim_s(11.6) == pytest.approx(51.5)     # ... until the simulator catches up (51.2 + 0.3)
-    assert c.sim_s(11.7) == pytest.approx(51.8)
+    c.observe(51.2, 11.5)                           # sent at 51.2 (11.4), arrived 0.1 s late: ignored
+    assert c.sim_s(11.6) == pytest.approx(51.8)
+    seen = [c.sim_s(11.6)]
+    for k in range(1, 11):                          # SITL now at half its speedup (1.5 sim s per real s)
+        c.observe(51.8 + 1.5 * 0.1 * k, 11.6 + 0.1 * k)
+        seen.append(c.sim_s(11.6 + 0.1 * k))
+    # followed within the window: ahead of the slower clock by at most its 3 older messages' worth of the
+    # difference in rates (3 x 0.1 s x 1.5), and never backwards
+    assert 0.0 <= seen[-1] - (51.8 + 1.5 * 1.0) <= 3 * 0.1 * 1.5 + 1e-9 and np.all(np.diff(seen) >= 0)
     for bad in (0.0, math.inf):
         with pytest.raises(ConfigError, match="rate"):
             SimClock(bad)

@@ -6,6 +6,7 @@ that never jumps backwards; both come from one monotonic anchor so an NTP step c
 
 from __future__ import annotations
 
+import collections
 import math
 import time
 from collections.abc import Callable
@@ -68,49 +69,50 @@ class SimClock:
     Why: an autopilot corrects every offboard timestamp (GPS_INPUT's week time, VISION_POSITION_ESTIMATE's
     usec) against its own clock, assuming both run at the same rate. SITL at ``--speedup 2`` runs twice as fast
     as the wall clock, so wall-clock stamps fell behind until ArduPilot clamped them at its jitter limit (2 s for
-    a MAVLink GPS): the EKF fused each fix as that much older. Here each observation (sim seconds, monotonic
-    arrival) re-anchors the clock; between observations it runs at ``rate`` (the nominal speedup). Before the
-    first observation it runs at ``rate`` from its creation, and the first one joins on without a jump. It never
-    steps backwards (an observation behind the extrapolation holds the clock until the simulator catches up).
+    a MAVLink GPS): the EKF fused each fix as that much older. Here the clock runs at ``rate`` (the nominal
+    speedup) from the least delayed of the last ``window`` observations (sim seconds, monotonic arrival): a
+    message can only arrive late, never early, so the one that gives the latest time is the truest, as in
+    ArduPilot's own jitter correction; older ones drop out, so a simulator that falls behind its speedup is
+    followed within a window. Before the first observation it runs at ``rate`` from its creation, and the first
+    one joins on without a jump. It never steps backwards (it holds until the simulator catches up).
     """
 
     def __init__(self, rate: float = 1.0, monotonic: Callable[[], float] = time.monotonic,
-                 anchor_unix_s: float | None = None) -> None:
+                 anchor_unix_s: float | None = None, window: int = 20) -> None:
         if not (math.isfinite(rate) and rate > 0):
             raise ConfigError(f"SimClock: rate must be a finite number > 0 (the simulator's speedup), got {rate!r}")
         self.rate, self.monotonic = float(rate), monotonic
         self.anchor_unix_s = time.time() if anchor_unix_s is None else float(anchor_unix_s)
         self._mono0 = monotonic()
-        self._sim_anchor: tuple[float, float] | None = None     # (sim s, monotonic s) of the latest observation
-        self._offset_s = 0.0         # sim s -> seconds since this clock's anchor (set at the first observation)
+        self._offsets: collections.deque[float] = collections.deque(maxlen=window)  # sim s - rate x arrival
+        self._to_elapsed_s = 0.0     # sim s -> seconds since this clock's anchor (set at the first observation)
         self._last_s = 0.0
 
     @property
     def synced(self) -> bool:
         """True once the simulator's time has been observed."""
-        return self._sim_anchor is not None
+        return bool(self._offsets)
 
     def observe(self, sim_s: float, mono_s: float | None = None) -> None:
-        """The simulator's clock read ``sim_s`` at monotonic instant ``mono_s`` (its message's arrival)."""
+        """The simulator's clock read ``sim_s`` when its message arrived at monotonic instant ``mono_s``."""
         mono = self.monotonic() if mono_s is None else mono_s
-        if self._sim_anchor is None:
-            self._offset_s = self.elapsed_s(mono) - sim_s
-        self._sim_anchor = (float(sim_s), mono)
+        if not self._offsets:
+            self._to_elapsed_s = self.elapsed_s(mono) - sim_s
+        self._offsets.append(float(sim_s) - self.rate * mono)
 
     def elapsed_s(self, mono_s: float | None = None) -> float:
         """Simulator seconds since this clock's anchor at monotonic instant ``mono_s`` (now if None)."""
         mono = self.monotonic() if mono_s is None else mono_s
-        if self._sim_anchor is None:
+        if not self._offsets:
             t = (mono - self._mono0) * self.rate
         else:
-            sim, at = self._sim_anchor
-            t = self._offset_s + sim + (mono - at) * self.rate
+            t = self._to_elapsed_s + self.rate * mono + max(self._offsets)
         self._last_s = max(self._last_s, t)
         return self._last_s
 
     def sim_s(self, mono_s: float | None = None) -> float:
         """The simulator's own time (its boot seconds once observed) at monotonic instant ``mono_s``."""
-        return self.elapsed_s(mono_s) - self._offset_s
+        return self.elapsed_s(mono_s) - self._to_elapsed_s
 
     def unix_s(self, mono_s: float | None = None) -> float:
         return self.anchor_unix_s + self.elapsed_s(mono_s)
