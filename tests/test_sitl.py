@@ -112,9 +112,14 @@ def test_sitl_drawing_a_taken_instance_starts_again_on_another(tmp_path):
         assert sitl.proc.poll() is None and (tmp_path / "taken").exists()
         workdir = sitl.workdir
     assert sitl.proc.poll() is not None and not workdir.exists()
-    fake.write_text("#!/bin/sh\necho 'no such model'; exit 2\n")
+    # another exit, even after a start that found its port taken, is not retried
+    (tmp_path / "taken").unlink()
+    fake.write_text(f"#!/bin/sh\necho run >> {tmp_path}/runs\nif [ ! -e {tmp_path}/taken ]; then "
+                    f"touch {tmp_path}/taken; echo 'bind failed on port 6532'; exit 1; fi\n"
+                    "echo 'no such model'; exit 2\n")
     with pytest.raises(AerialLocError, match="exited at start .*no such model"):
         SitlProcess("copter", "0,0,0,0", {}, sitl_dir=tmp_path).__enter__()
+    assert (tmp_path / "runs").read_text().count("run") == 2
 
 
 def test_mission_parameters_follow_ardupilots_external_nav_recipe():

@@ -71,7 +71,7 @@ MISSIONS = {
 # this model), return at the camera's altitude and loiter there (no landing: the camera has no fix below).
 # EK3_GPS_CHECK 0: EKF3 must take the fix again in flight, after the climb with none, and its GPS quality checks
 # (speed accuracy <= 1 m/s, horizontal <= 5 m, hdop) reject an image fix's first frames and its differentiated
-# speed (about 3 m/s accuracy at 22 m/s): with them on, in 3 of 5 runs EKF3 never took the fix again (XKF4.GPS
+# speed (about 3 m/s accuracy at 22 m/s): with them on, in 4 of 6 runs EKF3 never took the fix again (XKF4.GPS
 # 131, EKF_STATUS_REPORT without an absolute position) and the AHRS flew the loop on DCM
 PLANE_GPS_INPUT = {"GPS1_TYPE": 14, "EK3_SRC1_VELZ": 0, "RTL_ALTITUDE": 200, "RTL_AUTOLAND": 0, "EK3_GPS_CHECK": 0}
 PLANE_MISSIONS = {"gps-input": Mission(PLANE_GPS_INPUT, "gps_input", "is using GPS",
@@ -134,6 +134,7 @@ class SitlProcess:
         # UDP 5501 + 10 I for RC input) and exits at once when one is taken, e.g. by another SITL that drew the
         # same instance (seen: "SITL did not speak within 60 s"): draw again while it exits that way
         for attempt in range(6):
+            start = (self.workdir / "sitl.log").stat().st_size
             cmd = [str(self.binary), "--model", self.model, "--speedup", f"{self.speedup:g}", "--home", self.home,
                    "--defaults", f"{self.defaults},{extra}", "--wipe", "-I", str(self.instance),
                    "--serial0", f"udpclient:127.0.0.1:{self.monitor_port}",
@@ -144,7 +145,7 @@ class SitlProcess:
                 self.proc.wait(1.0)          # a bind failure ends it within milliseconds
             except subprocess.TimeoutExpired:
                 return self
-            out = (self.workdir / "sitl.log").read_text(errors="replace")
+            out = (self.workdir / "sitl.log").read_bytes()[start:].decode(errors="replace")    # this start's
             if "bind failed" not in out or attempt == 5:
                 self.__exit__()
                 raise AerialLocError(f"SITL ({self.binary.name}) exited at start (code {self.proc.returncode}): "
