@@ -327,16 +327,21 @@ def sim_clock(pairs: list[tuple[float, float]]):
 def read_dataflash(path: str | os.PathLike) -> dict[str, list]:
     """What SITL logged, on its own clock (TimeUS as seconds since boot): the truth (SIM), the EKF's position
     (POS), each as (t, lat, lon, alt AMSL), and GPS 1's update intervals (t, GPA.Delta ms: the time between its
-    last two updates as ArduPilot stamps them; over 245 ms it marks the GPS unhealthy)."""
+    last two updates as ArduPilot stamps them; over 245 ms it marks the GPS unhealthy; the first is skipped: it
+    has no update before it, ArduPilot logs the time since boot or a wrapped value there)."""
     from pymavlink import DFReader
 
     log = DFReader.DFReader_binary(str(path), zero_time_base=True)
     out: dict[str, list] = {"truth": [], "ekf": [], "gps_delta_ms": []}
+    first_gpa = True
     while (m := log.recv_match(type=["SIM", "POS", "GPA"])) is not None:
         t, kind = m.TimeUS / 1e6, m.get_type()
         if kind == "GPA":
             if getattr(m, "I", 0) == 0:
-                out["gps_delta_ms"].append((t, int(m.Delta)))
+                if first_gpa:
+                    first_gpa = False
+                else:
+                    out["gps_delta_ms"].append((t, int(m.Delta)))
         else:
             out["truth" if kind == "SIM" else "ekf"].append((t, float(m.Lat), float(m.Lng), float(m.Alt)))
     return out
