@@ -122,6 +122,52 @@ def test_sitl_drawing_a_taken_instance_starts_again_on_another(tmp_path):
     assert (tmp_path / "runs").read_text().count("run") == 2
 
 
+def test_monitor_keeps_what_arrives_during_a_mission_upload():
+    """The mission protocol reads the link itself: a STATUSTEXT (and the truth) arriving between its messages
+    is recorded, not dropped (an upload once swallowed "EKF3 IMU0 is using GPS")."""
+    import socket
+    import threading
+
+    from pymavlink.dialects.v20 import ardupilotmega as apm
+
+    from aerial_loc_env.mavlink.selfcheck import free_udp_port
+    from aerial_loc_env.mavlink.sitl import Monitor
+
+    port = free_udp_port()
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock.settimeout(0.2)
+    ap = apm.MAVLink(None, srcSystem=1, srcComponent=1)
+    parser = apm.MAVLink(None)
+    done = threading.Event()
+
+    def autopilot() -> None:          # a fake ArduPilot: heartbeats; answers the upload with a text between
+        while not done.is_set():
+            sock.sendto(ap.heartbeat_encode(2, 3, 0, 0, 3).pack(ap), ("127.0.0.1", port))
+            try:
+                data = sock.recv(4096)
+            except TimeoutError:
+                continue
+            for m in parser.parse_buffer(data) or []:
+                if m.get_type() == "MISSION_COUNT":
+                    sock.sendto(ap.statustext_encode(6, b"EKF3 IMU0 is using GPS").pack(ap), ("127.0.0.1", port))
+                    for seq in range(m.count):
+                        sock.sendto(ap.mission_request_int_encode(250, 0, seq).pack(ap), ("127.0.0.1", port))
+                    sock.sendto(ap.mission_ack_encode(250, 0, 0).pack(ap), ("127.0.0.1", port))
+
+    fake = threading.Thread(target=autopilot, daemon=True)
+    fake.start()
+    monitor = Monitor(port)
+    try:
+        monitor.start(timeout_s=10.0)
+        monitor.upload_mission([(16, 1.0, 2.0, 50.0, 0.0)])
+        assert "EKF3 IMU0 is using GPS" in [t for _, t in monitor.track.texts]
+    finally:
+        done.set()
+        fake.join(2)
+        monitor.stop()
+        sock.close()
+
+
 def test_mission_parameters_follow_ardupilots_external_nav_recipe():
     """ExternalNav: no GNSS, MAVLink visual odometry, EKF position from ExternalNav; the denial keeps ArduPilot's
     GPS sources in set 1 and puts ExternalNav in set 2 (GPS / non-GPS transitions); an unknown mission is a

@@ -218,32 +218,35 @@ class Monitor:
     def _read(self) -> None:
         while not self._stop.is_set():
             msg = self.conn.recv_match(blocking=True, timeout=0.2)
-            if msg is None:
-                continue
-            now = time.monotonic()
-            kind = msg.get_type()
-            with self.lock:
-                t = self.track
-                if kind == "SIM_STATE" and (msg.lat_int or msg.lon_int):
-                    t.truth.append((now, msg.lat_int / 1e7, msg.lon_int / 1e7, float(msg.alt)))
-                elif kind == "GLOBAL_POSITION_INT":
-                    t.clock.append((now, msg.time_boot_ms / 1000.0))
-                    if msg.lat or msg.lon:
-                        t.ekf.append((now, msg.lat / 1e7, msg.lon / 1e7, msg.alt / 1000.0))
-                        t.relative_alt_m = msg.relative_alt / 1000.0
-                elif kind == "EKF_STATUS_REPORT":
-                    t.ekf_flags.append((now, int(msg.flags)))
-                elif kind == "STATUSTEXT":
-                    t.texts.append((now, msg.text))
-                elif kind == "COMMAND_ACK":
-                    t.acks.append((now, int(msg.command), int(msg.result)))
-                elif kind == "GPS_RAW_INT":
-                    t.gps_fix.append((now, int(msg.fix_type)))
-                elif kind == "MISSION_ITEM_REACHED" and msg.seq != 65535 and msg.seq not in t.reached:
-                    t.reached.append(int(msg.seq))     # (ArduPilot repeats it; 65535: none reached yet)
-                elif kind == "HEARTBEAT" and msg.get_srcComponent() == 1:
-                    t.armed = bool(msg.base_mode & mavutil.mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
-                    t.mode = mavutil.mode_string_v10(msg)
+            if msg is not None:
+                self._record(msg)
+
+    def _record(self, msg) -> None:
+        """Keep what the track needs from one message (the reader thread's, or the mission upload's)."""
+        now = time.monotonic()
+        kind = msg.get_type()
+        with self.lock:
+            t = self.track
+            if kind == "SIM_STATE" and (msg.lat_int or msg.lon_int):
+                t.truth.append((now, msg.lat_int / 1e7, msg.lon_int / 1e7, float(msg.alt)))
+            elif kind == "GLOBAL_POSITION_INT":
+                t.clock.append((now, msg.time_boot_ms / 1000.0))
+                if msg.lat or msg.lon:
+                    t.ekf.append((now, msg.lat / 1e7, msg.lon / 1e7, msg.alt / 1000.0))
+                    t.relative_alt_m = msg.relative_alt / 1000.0
+            elif kind == "EKF_STATUS_REPORT":
+                t.ekf_flags.append((now, int(msg.flags)))
+            elif kind == "STATUSTEXT":
+                t.texts.append((now, msg.text))
+            elif kind == "COMMAND_ACK":
+                t.acks.append((now, int(msg.command), int(msg.result)))
+            elif kind == "GPS_RAW_INT":
+                t.gps_fix.append((now, int(msg.fix_type)))
+            elif kind == "MISSION_ITEM_REACHED" and msg.seq != 65535 and msg.seq not in t.reached:
+                t.reached.append(int(msg.seq))     # (ArduPilot repeats it; 65535: none reached yet)
+            elif kind == "HEARTBEAT" and msg.get_srcComponent() == 1:
+                t.armed = bool(msg.base_mode & mavutil.mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
+                t.mode = mavutil.mode_string_v10(msg)
 
     def stop(self) -> None:
         self._stop.set()
@@ -277,9 +280,13 @@ class Monitor:
             self.conn.mav.mission_count_send(1, 1, len(full), mav.MAV_MISSION_TYPE_MISSION)
             end = time.monotonic() + timeout_s
             while time.monotonic() < end:
-                msg = self.conn.recv_match(type=["MISSION_REQUEST_INT", "MISSION_REQUEST", "MISSION_ACK"],
-                                           blocking=True, timeout=1.0)
+                # everything else is recorded as the reader would (a filtered read dropped the STATUSTEXT
+                # "EKF3 IMU0 is using GPS" that came during an upload)
+                msg = self.conn.recv_match(blocking=True, timeout=1.0)
                 if msg is None:
+                    continue
+                if msg.get_type() not in ("MISSION_REQUEST_INT", "MISSION_REQUEST", "MISSION_ACK"):
+                    self._record(msg)
                     continue
                 if msg.get_type() == "MISSION_ACK":
                     if msg.type != mav.MAV_MISSION_ACCEPTED:
