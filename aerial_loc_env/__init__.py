@@ -1,8 +1,8 @@
 """aerial_loc_env: a Gymnasium benchmark for image-based absolute localization of drones without GNSS.
 
-Importing the package registers the scenarios of ``envs/`` with Gymnasium (``AerialLoc/<Name>-v0``), so
-``import aerial_loc_env; gym.make("AerialLoc/PaperShadows-v0")`` works; so does
-``gym.make("aerial_loc_env:AerialLoc/PaperShadows-v0")`` without the explicit import.
+Importing the package registers the scenarios of ``envs/`` with Gymnasium (``AerialLoc/<Name>-v<N>``), so
+``import aerial_loc_env; gym.make("AerialLoc/PaperShadows-v1")`` works; so does
+``gym.make("aerial_loc_env:AerialLoc/PaperShadows-v1")`` without the explicit import.
 """
 
 __version__ = "0.1.0"

@@ -11,7 +11,7 @@ Writes, into ``--out``:
 - ``contact_sheet.png``: all the pairs stacked;
 - with ``--realism``, ``gap_<level>.png``: the map database at the true pose | the camera frame, for each kind
   of realistic map-camera gap alone (epoch change, relief displacement over tall buildings, the map's own sun,
-  the map's own sensor) and all together (``AerialLoc/RealisticPaper-v0``).
+  the map's own sensor) and all together (``AerialLoc/RealisticPaper-v1``).
 """
 
 from __future__ import annotations
@@ -241,8 +241,8 @@ def realism_levels() -> list[tuple[str, str, str, dict, str]]:
     from .env import load_scenario
     from .env.scenarios import SECTIONS
 
-    real = load_scenario("AerialLoc/RealisticPaper-v0").to_dict()
-    season = load_scenario("AerialLoc/SeasonChange-v0").to_dict()
+    real = load_scenario("AerialLoc/RealisticPaper-v1").to_dict()
+    season = load_scenario("AerialLoc/SeasonChange-v1").to_dict()
     # relief alone: Downtown with every other part of the gap back at its default (off)
     relief = {name: config_to_dict(SECTIONS[name]()()) for name in
               ("epoch", "database", "gimbal", "altimeter", "exposure", "haze", "photometry")}
@@ -250,18 +250,18 @@ def realism_levels() -> list[tuple[str, str, str, dict, str]]:
     sun = real["shadows"]["database_sun_deg"]
     return [
         ("paper", "the paper's setting: shadow-free map | camera with cast shadows (PaperShadows)",
-         "AerialLoc/PaperShadows-v0", {}, "middle"),
+         "AerialLoc/PaperShadows-v1", {}, "middle"),
         ("epoch", "epoch change only: map of epoch A | camera over epoch B (SeasonChange's rates)",
-         "AerialLoc/PaperNoShadows-v0", {**_QUIET, "epoch": season["epoch"]}, "middle"),
+         "AerialLoc/PaperNoShadows-v1", {**_QUIET, "epoch": season["epoch"]}, "middle"),
         ("relief", "relief only: affine map patch | perspective camera, tall buildings at the frame edge "
-                   "(Downtown)", "AerialLoc/Downtown-v0", relief, "relief"),
+                   "(Downtown)", "AerialLoc/Downtown-v1", relief, "relief"),
         ("database_sun", f"map with another sun's shadows (az {sun[0]:.0f}, el {sun[1]:.0f} deg) | camera "
-                         "with the flight's sun", "AerialLoc/PaperShadows-v0",
+                         "with the flight's sun", "AerialLoc/PaperShadows-v1",
          {"shadows.database_sun_deg": sun}, "middle"),
         ("acquisition", "map acquired by another sensor (GSD, blur, JPEG, colour, haze, lean, georeference "
-                        "bias) | camera", "AerialLoc/PaperNoShadows-v0", {**_QUIET, "database": real["database"]},
+                        "bias) | camera", "AerialLoc/PaperNoShadows-v1", {**_QUIET, "database": real["database"]},
          "middle"),
-        ("realistic", "everything: RealisticPaper-v0 map | camera", "AerialLoc/RealisticPaper-v0", {}, "middle"),
+        ("realistic", "everything: RealisticPaper-v1 map | camera", "AerialLoc/RealisticPaper-v1", {}, "middle"),
     ]
 
 

@@ -21,7 +21,7 @@ from aerial_loc_env.env import (
 )
 from aerial_loc_env.errors import AerialLocError
 
-SMALL = "AerialLoc/Small-v0"
+SMALL = "AerialLoc/Small-v1"
 SHORT = {"duration_s": 5.0}          # 20 steps: enough for every property, fast
 
 
@@ -296,7 +296,7 @@ def test_file_map_shortens_the_track_and_rejects_a_map_too_small(tmp_path):
     from aerial_loc_env.errors import MapError
 
     path = _png_map(tmp_path / "tile.png", 400)                    # 100 m x 100 m at 0.25 m/px
-    env = gym.make("AerialLoc/RealMap-v0", path=path, altitude_m=40.0, speed_mps=8.0, map={"gsd_m": 0.25},
+    env = gym.make("AerialLoc/RealMap-v1", path=path, altitude_m=40.0, speed_mps=8.0, map={"gsd_m": 0.25},
                    turn_rate_deg_s=5.0).unwrapped
     lengths = []
     for seed in range(3):
@@ -306,7 +306,7 @@ def test_file_map_shortens_the_track_and_rejects_a_map_too_small(tmp_path):
     # 8 m/s with a 92 m turn radius cannot stay 60 s over a ~40 m flyable square: shortened, not refused
     assert all(env.scenario.flight.min_steps <= n < env.scenario.flight.steps for n in lengths)
     with pytest.raises(MapError, match="too small"):
-        gym.make("AerialLoc/RealMap-v0", map={"path": path, "gsd_m": 0.25}, altitude_m=200.0)
+        gym.make("AerialLoc/RealMap-v1", map={"path": path, "gsd_m": 0.25}, altitude_m=200.0)
 
 
 def test_database_with_another_suns_shadows():

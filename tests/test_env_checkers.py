@@ -18,7 +18,7 @@ from gymnasium.utils.env_checker import check_env
 import aerial_loc_env  # noqa: F401  (registers the scenarios)
 from aerial_loc_env.env.scenarios import specs
 
-IDS = [sid for sid in specs() if sid != "AerialLoc/RealMap-v0"]
+IDS = [sid for sid in specs() if sid != "AerialLoc/RealMap-v1"]
 
 
 def _check_silently(sid: str, **kwargs) -> None:
@@ -37,12 +37,12 @@ def test_checkers_pass_without_warnings(sid):
 
 @pytest.mark.parametrize("tile", REAL_TILES)
 def test_real_map_checkers_pass_on_the_shared_tiles(shared_data, tile):
-    _check_silently("AerialLoc/RealMap-v0", path=str(shared_data / tile))
+    _check_silently("AerialLoc/RealMap-v1", path=str(shared_data / tile))
 
 
 @pytest.mark.parametrize("tile", REAL_TILES)
 def test_real_map_tracks_avoid_nodata(shared_data, tile):
-    env = gym.make("AerialLoc/RealMap-v0", path=str(shared_data / tile)).unwrapped
+    env = gym.make("AerialLoc/RealMap-v1", path=str(shared_data / tile)).unwrapped
     om = env.orthomap
     assert om.nodata is not None and om.nodata.any()
     for seed in range(3):
@@ -56,7 +56,7 @@ def test_real_map_tracks_avoid_nodata(shared_data, tile):
 def _kwargs(sid: str, shared: bool) -> dict:
     """Short episodes (2 s, 8 steps) keep these tests fast; the real map flies over the Manila tile."""
     kw: dict = {"duration_s": 2.0}
-    if sid == "AerialLoc/RealMap-v0":
+    if sid == "AerialLoc/RealMap-v1":
         tile = SHARED_DATA / REAL_TILES[0]
         if not shared or not tile.is_file():
             pytest.skip(f"real imagery not available: {tile}")
@@ -111,7 +111,7 @@ def test_sb3_multi_input_policy_accepts_the_observation(tmp_path):
     sb3 = pytest.importorskip("stable_baselines3")
     from stable_baselines3.common.logger import configure
 
-    env = gym.make("AerialLoc/Small-v0", duration_s=2.0)
+    env = gym.make("AerialLoc/Small-v1", duration_s=2.0)
     model = sb3.PPO("MultiInputPolicy", env, n_steps=8, batch_size=8, n_epochs=1, device="cpu", seed=0)
     model.set_logger(configure(str(tmp_path), []))   # SB3's default logger leaves an SB3-<date> folder in /tmp
     model.learn(8)                                   # one rollout and one update through the policy

@@ -13,7 +13,7 @@ import pytest
 import aerial_loc_env  # noqa: F401  (registers the scenarios)
 from aerial_loc_env.env.aerial_loc_env import load_map
 
-SMALL = "AerialLoc/Small-v0"
+SMALL = "AerialLoc/Small-v1"
 SHORT = {"duration_s": 3.0}
 
 

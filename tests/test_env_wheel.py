@@ -30,7 +30,7 @@ ids = sorted(s for s in gym.registry if s.startswith("AerialLoc/"))
 tile = sys.argv[1]
 for sid in ids:
     kw = {}
-    if sid == "AerialLoc/RealMap-v0":
+    if sid == "AerialLoc/RealMap-v1":
         if not tile:
             try:
                 gym.make(sid)

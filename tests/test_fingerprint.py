@@ -11,7 +11,7 @@ from aerial_loc_env.env import fingerprint as fp
 from aerial_loc_env.env import load_scenario
 from aerial_loc_env.world import city
 
-TINY = {"id": "AerialLoc/Small-v0", "overrides": {"flight.duration_s": 2.0}, "label": "tiny"}
+TINY = {"id": "AerialLoc/Small-v1", "overrides": {"flight.duration_s": 2.0}, "label": "tiny"}
 
 
 def _grid(**overrides):
@@ -26,7 +26,7 @@ def test_generator_versions_are_collected_from_the_modules():
 
 
 def test_fingerprint_follows_spec_and_generators_not_description():
-    sc = load_scenario("AerialLoc/Small-v0")
+    sc = load_scenario("AerialLoc/Small-v1")
     spec = sc.to_dict()
     base = fp.fingerprint(spec)
     assert fp.scenario_fingerprint(sc) == base
@@ -34,7 +34,7 @@ def test_fingerprint_follows_spec_and_generators_not_description():
     assert fp.fingerprint({**spec, "flight": {**spec["flight"], "altitude_m": 99.0}}) != base
     bumped = {**fp.generator_versions(), "world.city": city.GENERATOR_VERSION + 1}
     assert fp.fingerprint(spec, bumped) != base
-    resolved = resolve_scenario(ScenarioEntry("AerialLoc/Small-v0"))
+    resolved = resolve_scenario(ScenarioEntry("AerialLoc/Small-v1"))
     assert resolved["fingerprint"] == base and resolved["generators"] == fp.generator_versions()
 
 

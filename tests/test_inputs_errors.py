@@ -31,7 +31,7 @@ LATIN1 = "description = \"caf\xe9\"\n".encode("latin-1")   # a file saved in Lat
 
 
 def _grid(**kw) -> dict:
-    return {"name": "t", "agents": ["dead-reckoning"], "scenarios": ["AerialLoc/Small-v0"], "seeds": 1, **kw}
+    return {"name": "t", "agents": ["dead-reckoning"], "scenarios": ["AerialLoc/Small-v1"], "seeds": 1, **kw}
 
 
 # ------------------------------------------------------------------------------------ configs
@@ -39,7 +39,7 @@ def test_numpy_scalars_are_numbers():
     cfg = build_config(FlightConfig, {"altitude_m": np.float32(120), "min_steps": np.int64(4)})
     assert cfg.altitude_m == 120.0 and type(cfg.altitude_m) is float
     assert cfg.min_steps == 4 and type(cfg.min_steps) is int
-    env = gym.make("AerialLoc/Small-v0", altitude_m=np.float32(110.0))
+    env = gym.make("AerialLoc/Small-v1", altitude_m=np.float32(110.0))
     assert env.unwrapped.scenario.flight.altitude_m == 110.0
     env.close()
 
@@ -88,15 +88,15 @@ def test_one_broken_spec_does_not_take_the_others_down(tmp_path, monkeypatch, ca
     scenarios._scan.cache_clear()
     try:
         ids = scenarios.register_all()
-        assert "AerialLoc/Small-v0" in ids
-        assert scenarios.load_scenario("AerialLoc/Small-v0").flight.altitude_m == 100.0
+        assert "AerialLoc/Small-v1" in ids
+        assert scenarios.load_scenario("AerialLoc/Small-v1").flight.altitude_m == 100.0
         with pytest.raises(ConfigError, match=r"broken\.toml.*invalid TOML"):
             scenarios.load_scenario("broken")
         with pytest.raises(ConfigError, match=r"latin\.toml.*UTF-8"):
             scenarios.load_scenario("AerialLoc/Latin-v0")
         assert scenarios.main([]) == 0
         out = capsys.readouterr().out
-        assert "AerialLoc/Small-v0" in out and "broken.toml" in out and "latin.toml" in out
+        assert "AerialLoc/Small-v1" in out and "broken.toml" in out and "latin.toml" in out
     finally:
         scenarios._scan.cache_clear()
         for sid in ("AerialLoc/Latin-v0", "AerialLoc/Broken-v0"):
@@ -121,7 +121,7 @@ def test_experiment_values_that_are_not_numbers(kw, words):
 
 
 def test_env_reset_refuses_a_boolean_seed():
-    env = gym.make("AerialLoc/Small-v0")
+    env = gym.make("AerialLoc/Small-v1")
     with pytest.raises((ConfigError, ValueError), match="seed"):
         env.reset(seed=True)
     env.close()
@@ -168,8 +168,8 @@ def test_world_file_pixel_size_absurd_for_its_crs(tmp_path, pixel, crs):
 # ------------------------------------------------------------------------------------ agents
 @pytest.mark.parametrize("agent", ["template-ncc", "features-orb", "mcl-ssd"])
 def test_agent_fed_another_scenarios_frames_says_what_differs(agent):
-    a = gym.make("AerialLoc/Small-v0")
-    b = gym.make("AerialLoc/Small-v0", observation={"width_px": 48, "height_px": 32})
+    a = gym.make("AerialLoc/Small-v1")
+    b = gym.make("AerialLoc/Small-v1", observation={"width_px": 48, "height_px": 32})
     _, info = a.reset(seed=0)
     obs_b, _ = b.reset(seed=0)
     est = make_agent(agent, **({"n_particles": 50} if agent.startswith("mcl") else {}))
@@ -195,7 +195,7 @@ def test_bench_refuses_unusable_map_before_running(tmp_path, capsys):
     from aerial_loc_env.cli import main
 
     exp = tmp_path / "exp.toml"
-    exp.write_text('name = "m"\nagents = ["dead-reckoning"]\nseeds = 2\n[[scenarios]]\nid = "AerialLoc/RealMap-v0"\n'
+    exp.write_text('name = "m"\nagents = ["dead-reckoning"]\nseeds = 2\n[[scenarios]]\nid = "AerialLoc/RealMap-v1"\n'
                    'overrides = {"map.path" = "nowhere.tif"}\n')
     rc = main(["bench", str(exp), "--quiet", "--no-plots", "--out", str(tmp_path / "out")])
     err = capsys.readouterr().err
@@ -206,8 +206,8 @@ def test_bench_refuses_unusable_map_before_running(tmp_path, capsys):
 def test_relative_map_path_resolves_against_the_experiment_file(tmp_path, monkeypatch):
     (tmp_path / "maps").mkdir()
     exp = tmp_path / "exp.toml"
-    exp.write_text('name = "m"\nagents = ["dead-reckoning"]\nseeds = 1\n[[scenarios]]\nid = "AerialLoc/RealMap-v0"\n'
-                   'overrides = {"map.path" = "maps/tile.tif"}\n[[scenarios]]\nid = "AerialLoc/RealMap-v0"\n'
+    exp.write_text('name = "m"\nagents = ["dead-reckoning"]\nseeds = 1\n[[scenarios]]\nid = "AerialLoc/RealMap-v1"\n'
+                   'overrides = {"map.path" = "maps/tile.tif"}\n[[scenarios]]\nid = "AerialLoc/RealMap-v1"\n'
                    'label = "b"\noverrides = {map = {path = "maps/other.tif"}}\n')
     monkeypatch.chdir(REPO)
     grid = load_grid(exp)

@@ -30,10 +30,10 @@ def test_speed_zero_delivers_every_frame(run_mavlink_cli):
     """'--speed 0' (replay into a logger) must hand every frame's fix to the wire, not only the last one."""
     pytest.importorskip("aerial_loc_env.estimators.registry", reason="the agents are not available")
     rc, _, msgs = run_mavlink_cli([
-        "--scenario", "AerialLoc/Small-v0", "--agent", "dead-reckoning", "--seed", "1", "--speed", "0",
+        "--scenario", "AerialLoc/Small-v1", "--agent", "dead-reckoning", "--seed", "1", "--speed", "0",
         "--rate-hz", "200", "--ground-amsl-m", "30", "--quiet"])
     assert rc == 0
-    # Small-v0: 15 s at 4 Hz = 60 steps, 61 frames; each frame's fix carries its own GPS time
+    # Small-v1: 15 s at 4 Hz = 60 steps, 61 frames; each frame's fix carries its own GPS time
     times = {(m.time_week, m.time_week_ms) for m in msgs if m.get_type() == "GPS_INPUT"}
     positions = {(m.lat, m.lon) for m in msgs if m.get_type() == "GPS_INPUT"}
     assert len(positions) >= 61, (len(positions), len(times))

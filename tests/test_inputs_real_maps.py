@@ -1,5 +1,5 @@
 """Issue 13, real maps: the CRS of a world file from a .prj / .aux.xml beside the image (US survey feet too), the
-CLI options real maps need, RealMap-v0 shown without a path."""
+CLI options real maps need, RealMap-v1 shown without a path."""
 
 from __future__ import annotations
 
@@ -83,9 +83,9 @@ def test_world_file_without_crs_suggests_how_to_find_it(tmp_path):
 def test_scenarios_show_realmap_without_a_path(capsys):
     from aerial_loc_env.env.scenarios import main
 
-    assert main(["--show", "AerialLoc/RealMap-v0"]) == 0
+    assert main(["--show", "AerialLoc/RealMap-v1"]) == 0
     out = capsys.readouterr().out
-    assert 'id = "AerialLoc/RealMap-v0"' in out and "# path = (required" in out and "altitude_m = 50.0" in out
+    assert 'id = "AerialLoc/RealMap-v1"' in out and "# path = (required" in out and "altitude_m = 50.0" in out
 
 
 def test_pictures_take_crs_and_gsd(manila, tmp_path):
@@ -105,7 +105,7 @@ def test_pictures_take_crs_and_gsd(manila, tmp_path):
 
 
 def test_realmap_clouds_cover_the_flown_window_not_the_whole_map(tmp_path):
-    """RealMap-v0 on a 1 km map: the episode's cloud field spans the track's window plus the drift (no repeat
+    """RealMap-v1 on a 1 km map: the episode's cloud field spans the track's window plus the drift (no repeat
     while the episode flies), at cells matched to the cloud scale, instead of the whole map at 0.5 m."""
     import gymnasium as gym
 
@@ -117,7 +117,7 @@ def test_realmap_clouds_cover_the_flown_window_not_the_whole_map(tmp_path):
     tex = cv2.GaussianBlur(g.integers(0, 255, (2000, 2000, 3)).astype(np.uint8), (0, 0), 3)
     png = tmp_path / "km.png"
     cv2.imwrite(str(png), cv2.normalize(tex, None, 0, 255, cv2.NORM_MINMAX))
-    env = gym.make("AerialLoc/RealMap-v0", path=str(png), **{"map.gsd_m": 0.5})
+    env = gym.make("AerialLoc/RealMap-v1", path=str(png), **{"map.gsd_m": 0.5})
     for seed in range(3):
         env.reset(seed=seed)
         u = env.unwrapped
@@ -138,14 +138,14 @@ def test_realmap_clouds_cover_the_flown_window_not_the_whole_map(tmp_path):
 
 
 def _run(agent: str, tile: Path, seed: int, **overrides):
-    """Errors, statuses of ``agent`` over a RealMap-v0 episode on ``tile``."""
+    """Errors, statuses of ``agent`` over a RealMap-v1 episode on ``tile``."""
     import gymnasium as gym
 
     import aerial_loc_env  # noqa: F401
     from aerial_loc_env.env import world_to_action
     from aerial_loc_env.estimators.registry import make_agent
 
-    env = gym.make("AerialLoc/RealMap-v0", path=str(tile), **overrides)
+    env = gym.make("AerialLoc/RealMap-v1", path=str(tile), **overrides)
     obs, info = env.reset(seed=seed)
     a = make_agent(agent)
     a.reset(env.unwrapped.briefing, seed=seed)
@@ -164,7 +164,7 @@ def _run(agent: str, tile: Path, seed: int, **overrides):
 
 @pytest.mark.slow
 def test_orb_fixes_at_realmap_geometry(shared_data):
-    """At RealMap-v0's geometry (a 37 x 25 m footprint) ORB used to see a 75 x 50 px frame with no keypoints and
+    """At RealMap-v1's geometry (a 37 x 25 m footprint) ORB used to see a 75 x 50 px frame with no keypoints and
     silently equal dead reckoning; its working resolution now follows the footprint."""
     errors, statuses = _run("features-orb", shared_data / "valencia_orchard.tif", 0, **{"flight.duration_s": 15.0})
     assert np.mean([s == "ok" for s in statuses]) > 0.5

@@ -21,7 +21,7 @@ def test_scenario_agent_stream_lands_on_the_map(run_mavlink_cli):
     pytest.importorskip("aerial_loc_env.estimators.registry", reason="the agents are not available")
     from aerial_loc_env.env import world_to_action  # noqa: F401  (registers the scenarios)
 
-    env = gym.make("AerialLoc/Small-v0")
+    env = gym.make("AerialLoc/Small-v1")
     env.reset(seed=3)
     om = env.unwrapped.briefing.orthomap
     corners = np.array([om.world_to_latlon(x, y) for x in (0.0, om.width_m) for y in (0.0, om.height_m)])
@@ -29,7 +29,7 @@ def test_scenario_agent_stream_lands_on_the_map(run_mavlink_cli):
     env.close()
 
     rc, printed, msgs = run_mavlink_cli([
-        "--scenario", "AerialLoc/Small-v0", "--agent", "dead-reckoning", "--seed", "3", "--speed", "10",
+        "--scenario", "AerialLoc/Small-v1", "--agent", "dead-reckoning", "--seed", "3", "--speed", "10",
         "--message", "gps,odometry", "--ground-amsl-m", "400"])
     assert rc == 0
     assert printed.strip().splitlines()[-1].startswith("done:")
@@ -59,13 +59,13 @@ def test_follow_renders_at_the_simulators_truth_and_localizes():
     from aerial_loc_env.env import world_to_action  # noqa: F401  (registers the scenarios)
     from aerial_loc_env.mavlink.selfcheck import free_udp_port
 
-    env = gym.make("AerialLoc/Small-v0")
+    env = gym.make("AerialLoc/Small-v1")
     om = env.unwrapped.orthomap
     env.close()
     ground = 30.0
     port = free_udp_port()
     args = mav_cli.build_parser().parse_args([
-        "--scenario", "AerialLoc/Small-v0", "--agent", "template-ncc", "--follow", "--ground-amsl-m", str(ground),
+        "--scenario", "AerialLoc/Small-v1", "--agent", "template-ncc", "--follow", "--ground-amsl-m", str(ground),
         "--connect", f"udpin:127.0.0.1:{port}", "--duration-s", "9", "--quiet"])
     result = {}
     runner = threading.Thread(target=lambda: result.setdefault("rc", mav_cli.run(args, out=io.StringIO())))

@@ -1,4 +1,4 @@
-"""A short end-to-end check on the env (AerialLoc/Small-v0: 400 m city, cast shadows, 15 m prior, 60 steps):
+"""A short end-to-end check on the env (AerialLoc/Small-v1: 400 m city, cast shadows, 15 m prior, 60 steps):
 every MCL variant beats dead reckoning on 3 seeds. The 20-seed paper-scenario comparison is an experiment
 (``python -m aerial_loc_env.estimators.mcl.evaluate``), not a CI test."""
 
@@ -22,7 +22,7 @@ def test_every_mcl_variant_beats_dead_reckoning_on_the_small_scenario() -> None:
     frames of this scenario with dark (sky-lit) shadows, equalizing the detected regions over-restores them
     and it can lock on a wrong mode (the paper's adverse effect, V.A); on the paper scenario it converges
     (the 20-seed experiment of ``aerial_loc_env.estimators.mcl.evaluate``)."""
-    res = run_episodes("AerialLoc/Small-v0", AGENTS, seeds=range(3))
+    res = run_episodes("AerialLoc/Small-v1", AGENTS, seeds=range(3))
     s = summarize(res)
     dr = s["dead-reckoning"]["median_seed_rmse_m"]
     assert dr > 5.0

@@ -7,8 +7,8 @@ import pytest
 
 from aerial_loc_env.env import load_scenario
 
-PAPER = ("AerialLoc/PaperShadows-v0", "AerialLoc/PaperNoShadows-v0")
-REALISTIC = ("AerialLoc/RealisticPaper-v0", "AerialLoc/SeasonChange-v0", "AerialLoc/Downtown-v0")
+PAPER = ("AerialLoc/PaperShadows-v1", "AerialLoc/PaperNoShadows-v1")
+REALISTIC = ("AerialLoc/RealisticPaper-v1", "AerialLoc/SeasonChange-v1", "AerialLoc/Downtown-v1")
 SETTING = ("flight", "camera", "odometry", "observation", "episode", "reward")
 
 

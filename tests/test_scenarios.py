@@ -32,10 +32,10 @@ def test_every_spec_file_is_registered_and_required_ids_exist():
     ids = [sid for sid in gym.registry if sid.startswith("AerialLoc/")]
     assert len(files) == len(specs()) == len(ids)
     for name in REQUIRED:
-        assert f"AerialLoc/{name}-v0" in ids
+        assert f"AerialLoc/{name}-v1" in ids
 
 
-@pytest.mark.parametrize("sid", [s for s in specs() if s != "AerialLoc/RealMap-v0"])
+@pytest.mark.parametrize("sid", [s for s in specs() if s != "AerialLoc/RealMap-v1"])
 def test_specs_validate_and_round_trip(sid):
     sc = load_scenario(sid)
     again = build_scenario(sc.to_dict(), where="round trip")
@@ -43,7 +43,7 @@ def test_specs_validate_and_round_trip(sid):
 
 
 def test_paper_defaults_follow_table_4():
-    sc = load_scenario("AerialLoc/PaperShadows-v0")
+    sc = load_scenario("AerialLoc/PaperShadows-v1")
     assert sc.flight.altitude_m == 200.0 and sc.flight.duration_s == 60.0 and sc.flight.rate_hz == 4.0
     assert sc.flight.speed_mps * sc.flight.duration_s == pytest.approx(2500.0, rel=1e-3)
     assert (sc.camera.width_px, sc.camera.height_px) == (600, 400)
@@ -76,25 +76,25 @@ def test_three_override_forms_agree():
 ])
 def test_bad_overrides_are_clear_errors(overrides, match):
     with pytest.raises(ConfigError, match=match):
-        load_scenario("AerialLoc/Small-v0", overrides)
+        load_scenario("AerialLoc/Small-v1", overrides)
 
 
 def test_gym_make_validates_overrides():
     with pytest.raises(ConfigError, match="unknown key 'bogus'"):
-        gym.make("AerialLoc/Small-v0", bogus=1)
+        gym.make("AerialLoc/Small-v1", bogus=1)
     with pytest.raises(ConfigError, match="out of range"):
-        gym.make("AerialLoc/Small-v0", speed_mps=1e6)
+        gym.make("AerialLoc/Small-v1", speed_mps=1e6)
 
 
 def test_real_map_needs_an_existing_path(tmp_path):
     with pytest.raises(ConfigError, match="map.path"):
-        gym.make("AerialLoc/RealMap-v0")
+        gym.make("AerialLoc/RealMap-v1")
     with pytest.raises(MapError, match="does not exist"):
-        gym.make("AerialLoc/RealMap-v0", path=str(tmp_path / "nowhere.tif"))
+        gym.make("AerialLoc/RealMap-v1", path=str(tmp_path / "nowhere.tif"))
 
 
 def test_unknown_scenario_lists_the_registered_ones():
-    with pytest.raises(ConfigError, match="AerialLoc/Small-v0"):
+    with pytest.raises(ConfigError, match="AerialLoc/Small-v1"):
         load_scenario("NoSuchScenario")
 
 
@@ -102,14 +102,24 @@ def test_split_overrides_and_spec_dict():
     assert split_overrides({"flight.altitude_m": 1.0, "camera": {"hfov_deg": 50.0}}) == {
         "flight": {"altitude_m": 1.0}, "camera": {"hfov_deg": 50.0}}
     d = scenario_spec_dict("Small", altitude_m=90.0)
-    assert d["id"] == "AerialLoc/Small-v0" and d["flight"]["altitude_m"] == 90.0
+    assert d["id"] == "AerialLoc/Small-v1" and d["flight"]["altitude_m"] == 90.0
 
 
 def test_cli_lists_ids(capsys):
     assert main([]) == 0
     out = capsys.readouterr().out
     for name in REQUIRED:
-        assert f"AerialLoc/{name}-v0" in out
+        assert f"AerialLoc/{name}-v1" in out
     assert main(["--show", "Small"]) == 0
     shown = tomllib.loads(capsys.readouterr().out)          # valid TOML, the full validated spec
     assert build_scenario(shown).sections == load_scenario("Small").sections
+
+
+def test_an_older_version_of_an_id_names_the_registered_one():
+    """The ids went to v1 when their frames changed for the same seed: asking for v0 says which id to use (from
+    the spec loader and from Gymnasium itself), never an unrelated 'unknown scenario'."""
+    with pytest.raises(ConfigError, match=r"'AerialLoc/Small-v0' is not registered.*'AerialLoc/Small-v1'"):
+        load_scenario("AerialLoc/Small-v0")
+    with pytest.warns(DeprecationWarning, match="out of date"), \
+            pytest.raises(gym.error.Error, match=r"AerialLoc/Small-v1"):
+        gym.make("AerialLoc/Small-v0")

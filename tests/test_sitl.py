@@ -39,7 +39,7 @@ def test_home_is_the_map_centre_and_missing_binaries_are_clear_errors(tmp_path):
     gym = pytest.importorskip("gymnasium")
     import aerial_loc_env.env  # noqa: F401
 
-    env = gym.make("AerialLoc/Small-v0")
+    env = gym.make("AerialLoc/Small-v1")
     om = env.unwrapped.database
     lat, lon, alt, hdg = (float(v) for v in sitl_home(om, 30.0, 90.0).split(","))
     x, y = (float(np.ravel(v)[0]) for v in om.latlon_to_world(lat, lon))
@@ -75,7 +75,7 @@ def test_copter_mission_on_the_vision_fix():
     at 10 m/s = 3.5 m, in SITL's seconds whatever the speedup): RMSE under 2 sigma + 3.5 m, max under
     5 sigma + 3.5 m."""
     _sitl_or_skip("arducopter")
-    r = fly_mission("AerialLoc/Small-v0", "template-ncc", ground_amsl_m=30.0, sitl_dir=SITL_DIR,
+    r = fly_mission("AerialLoc/Small-v1", "template-ncc", ground_amsl_m=30.0, sitl_dir=SITL_DIR,
                     speedup=COPTER_SPEEDUP)
     s = summary(r)
     print(s, [t for _, t in r["texts"]][-12:])
@@ -179,7 +179,7 @@ def test_mission_parameters_follow_ardupilots_external_nav_recipe():
     assert gps["GPS1_TYPE"] == 14 and "VISO_TYPE" not in gps
     assert {m.message for m in MISSIONS.values()} == {"gps_input", "vision_position_estimate"}
     with pytest.raises(ConfigError, match="external-nav"):
-        fly_mission("AerialLoc/Small-v0", "template-ncc", ground_amsl_m=30.0, mission="optical-flow")
+        fly_mission("AerialLoc/Small-v1", "template-ncc", ground_amsl_m=30.0, mission="optical-flow")
 
 
 def test_errors_interpolate_the_truth_and_vision_time_counts_camera_steps():
@@ -223,7 +223,7 @@ def test_copter_mission_on_external_nav(mission):
     GPS_INPUT mission (the fix sigma 3 m: RMSE < 2 sigma + 3.5 m, max < 5 sigma + 3.5 m on the legs). About
     3.5 min each at real time: run in CI only with AERIAL_LOC_SITL_ALL=1 (keeps CI within its budget)."""
     _long_mission("arducopter", "3.5 min each")
-    r = fly_mission("AerialLoc/Small-v0", "template-ncc", ground_amsl_m=30.0, sitl_dir=SITL_DIR, mission=mission)
+    r = fly_mission("AerialLoc/Small-v1", "template-ncc", ground_amsl_m=30.0, sitl_dir=SITL_DIR, mission=mission)
     s = summary(r)
     print(s)
     texts = [t for _, t in r["texts"]]
@@ -259,7 +259,7 @@ def test_plane_mission_on_the_vision_fix():
     starts from the scenario's 15 m prior: under 3 prior sigmas + 7.7 m (all in SITL's seconds: SITL at
     PLANE_SPEEDUP)."""
     _sitl_or_skip("arduplane")
-    r = fly_mission("AerialLoc/PaperShadows-v0", "template-ncc", ground_amsl_m=30.0, sitl_dir=SITL_DIR,
+    r = fly_mission("AerialLoc/PaperShadows-v1", "template-ncc", ground_amsl_m=30.0, sitl_dir=SITL_DIR,
                     vehicle="plane", speedup=PLANE_SPEEDUP)
     s = summary(r)
     print(s)

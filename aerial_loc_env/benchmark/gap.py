@@ -460,7 +460,7 @@ def main(argv: list[str] | None = None) -> int:
         pairs += pairs_in(folder)
     if not args.scenarios and not pairs:
         ap.error("give at least one SCENARIO, --pair or --pairs-dir "
-                 "(e.g. aerial-loc gap AerialLoc/PaperShadows-v0 --pairs-dir ../shared/data/pairs/levir-cd "
+                 "(e.g. aerial-loc gap AerialLoc/PaperShadows-v1 --pairs-dir ../shared/data/pairs/levir-cd "
                  "--pair-gsd 0.5)")
     if args.seeds < 1:
         ap.error("--seeds must be >= 1")

@@ -17,7 +17,7 @@ An experiment spec::
     sweep = {"measurement_params.n_pairs" = [10, 30, 50, 70]}   # one agent entry per value (product of keys)
 
     [[scenarios]]
-    id = "AerialLoc/PaperShadows-v0"
+    id = "AerialLoc/PaperShadows-v1"
     overrides = {"flight.duration_s" = 30}   # gym.make overrides
 
 Parameter keys may be dotted (``measurement_params.n_pairs``): they address nested tables of the spec and are
@@ -292,7 +292,7 @@ def check_scenarios(grid: Grid) -> None:
 
 
 def make_grid(name: str, agents: Sequence[Any], scenarios: Sequence[Any], seeds: Any, **options: Any) -> Grid:
-    """A grid from Python: ``make_grid("mine", ["mcl-shadow-aware"], ["AerialLoc/Small-v0"], seeds=5)``."""
+    """A grid from Python: ``make_grid("mine", ["mcl-shadow-aware"], ["AerialLoc/Small-v1"], seeds=5)``."""
     return grid_from_dict({"name": name, "agents": list(agents), "scenarios": list(scenarios), "seeds": seeds,
                            **options}, where=f"grid '{name}'")
 

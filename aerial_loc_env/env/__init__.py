@@ -1,7 +1,7 @@
 """Layer 3: the Gymnasium environment, the agent briefing, the scenario specs and wrappers.
 
-``import aerial_loc_env`` registers every scenario of ``envs/`` (``AerialLoc/<Name>-v0``); then
-``gym.make("AerialLoc/PaperShadows-v0", altitude_m=150)``. ``world_to_action`` / ``action_to_world`` convert
+``import aerial_loc_env`` registers every scenario of ``envs/`` (``AerialLoc/<Name>-v<N>``); then
+``gym.make("AerialLoc/PaperShadows-v1", altitude_m=150)``. ``world_to_action`` / ``action_to_world`` convert
 metres <-> the normalized action; ``env.unwrapped.briefing`` is what an estimator may know.
 """
 

@@ -226,7 +226,7 @@ class AerialLocEnv(gym.Env):
 
     ## Arguments
 
-    ``gym.make("AerialLoc/<Name>-v0", render_mode=None, **overrides)`` or
+    ``gym.make("AerialLoc/<Name>-v<N>", render_mode=None, **overrides)`` or
     ``AerialLocEnv(scenario, render_mode=None, **overrides)``:
 
     - ``scenario``: a registered id (one spec file in ``envs/``; ``aerial-loc scenarios`` lists them,
@@ -251,11 +251,16 @@ class AerialLocEnv(gym.Env):
       on real two-epoch pairs (``aerial-loc gap``): epoch B of the city (``[epoch]``), the map acquired by
       another sensor under another sun (``[database]``, ``shadows.database_sun_deg``), the perspective camera
       (``[perspective]``), the camera's errors (``[gimbal]``, ``[altimeter]``, ``[exposure]``, ``[haze]``).
+    * v1 (every id): the same scenes, frames changed for the same seed: integer photometry (noise drawn once per
+      episode into an int16 bank, read at random offsets; vignetting and gains in uint8, within 2 DN of the
+      float path), cast shadows baked into the map per episode (masks differ only where the occlusion is near
+      0.5), the perspective camera's block-grid ray march and baked shadows (perspective v5). ``gym.make`` of a
+      v0 id names the v1 id (Gymnasium's deprecation error).
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 4}
 
-    def __init__(self, scenario: str | Scenario = "AerialLoc/Small-v0", render_mode: str | None = None,
+    def __init__(self, scenario: str | Scenario = "AerialLoc/Small-v1", render_mode: str | None = None,
                  **overrides: Any) -> None:
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise AerialLocError(f"render_mode {render_mode!r} is not supported; use None or 'rgb_array'")

@@ -208,7 +208,7 @@ def build_scenario(spec: Mapping[str, Any], overrides: Mapping[str, Any] | None 
     sid = spec.get("id")
     if not isinstance(sid, str) or not re.fullmatch(rf"{NAMESPACE}/[A-Za-z0-9_]+-v\d+", sid):
         raise ConfigError(f"{where}: 'id' = {sid!r} must look like '{NAMESPACE}/<Name>-v<version>' "
-                          "(e.g. 'AerialLoc/Small-v0'; bump the version when the scenario's behaviour changes)")
+                          "(e.g. 'AerialLoc/Small-v1'; bump the version when the scenario's behaviour changes)")
     extra = split_overrides(overrides or {}, where=f"{sid} overrides")
     sections = {}
     for name, cls_fn in SECTIONS.items():
@@ -249,7 +249,7 @@ def _scan() -> tuple[dict[str, tuple[Path, dict]], tuple[BrokenSpec, ...]]:
             raw = _read(path)
             sid = raw.get("id")
             if not isinstance(sid, str) or not sid.startswith(f"{NAMESPACE}/"):
-                raise ConfigError(f"{path}: 'id' = {sid!r} must look like '{NAMESPACE}/<Name>-v0'")
+                raise ConfigError(f"{path}: 'id' = {sid!r} must look like '{NAMESPACE}/<Name>-v<N>'")
             if sid in good:
                 raise ConfigError(f"{path}: id {sid!r} is already used by {good[sid][0]}")
         except ConfigError as exc:
@@ -275,7 +275,7 @@ def broken_specs() -> tuple[BrokenSpec, ...]:
 
 
 def resolve(scenario: str) -> tuple[Path, dict]:
-    """Find a spec by full id (``AerialLoc/Small-v0``), short name (``Small``) or file stem (``small``)."""
+    """Find a spec by full id (``AerialLoc/Small-v1``), short name (``Small``) or file stem (``small``)."""
     table = specs()
     if scenario in table:
         return table[scenario]
@@ -283,6 +283,13 @@ def resolve(scenario: str) -> tuple[Path, dict]:
         short = sid.split("/", 1)[1].rsplit("-v", 1)[0]
         if scenario in (short, path.stem):
             return path, raw
+    if scenario.startswith(f"{NAMESPACE}/") and "-v" in scenario:
+        asked = scenario.split("/", 1)[1].rsplit("-v", 1)[0]
+        for sid in table:
+            if sid.split("/", 1)[1].rsplit("-v", 1)[0] == asked:
+                raise ConfigError(f"scenario {scenario!r} is not registered: this version of the package has {sid!r} "
+                                  "(an id's version changes when its frames change for the same seed; see "
+                                  "AerialLocEnv's Version History). Use that id; results of two versions differ.")
     for bad in broken_specs():
         names = {bad.path.stem, bad.id}
         if bad.id and "/" in bad.id:

@@ -284,7 +284,7 @@ class MapRatioShadowDetector:
     per-pixel colour index separates dark asphalt from shadowed grass. The database is downsampled once (area
     filter) to the reduced camera resolution at the nominal altitude; each frame costs one small warp.
 
-    Measured on PaperShadows-v0 (60 frames, pose 1 m off): IoU 0.62, precision 0.72, recall 0.81 (the image
+    Measured on PaperShadows-v1 (60 frames, pose 1 m off): IoU 0.62, precision 0.72, recall 0.81 (the image
     detector: 0.33, 0.38, 0.77); on shadow-free frames 9 % of the frame is taken for shadow (the image
     detector: 46 %). The darkening guard (``min_darkening``) trades the two: weak shadows (strength 0.7, a
     darkening ~0.76) can be turned down on a frame.

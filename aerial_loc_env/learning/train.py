@@ -357,4 +357,4 @@ def load_training_meta(model_path: str | os.PathLike) -> tuple[Recipe, dict]:
         table = meta["recipe"]
     except (OSError, ValueError, KeyError) as exc:
         raise ConfigError(f"'{meta_path}': not a readable training.json with a 'recipe': {exc}") from exc
-    return recipe_from_table(table, str(meta_path)), meta
+    return recipe_from_table(table, str(meta_path), check_scenario=False), meta

@@ -671,8 +671,8 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="aerial-loc sitl", description="fly an ArduPilot SITL mission on the vision "
                                  "fix: SITL on loopback at the map, the bridge with the camera at SITL's truth")
     ap.add_argument("--vehicle", default="copter", choices=tuple(VEHICLES))
-    ap.add_argument("--scenario", default=None, help="default: AerialLoc/Small-v0 (copter), "
-                    "AerialLoc/PaperShadows-v0 (plane: 1.2 x 1.4 km at 200 m, room for a fixed wing's loop)")
+    ap.add_argument("--scenario", default=None, help="default: AerialLoc/Small-v1 (copter), "
+                    "AerialLoc/PaperShadows-v1 (plane: 1.2 x 1.4 km at 200 m, room for a fixed wing's loop)")
     ap.add_argument("--agent", default="template-ncc")
     ap.add_argument("--mission", default="gps-input", choices=tuple(MISSIONS),
                     help="gps-input: GPS_INPUT as GPS1; external-nav: VISION_POSITION_ESTIMATE, no GNSS; "
@@ -683,7 +683,7 @@ def main(argv: list[str] | None = None) -> int:
                     "(frame times and odometry scaled by it): keep it where SITL and the agent keep pace")
     ap.add_argument("--out", default="sitl-run", help="folder for errors.csv and track.png")
     args = ap.parse_args(argv)
-    scenario = args.scenario or ("AerialLoc/Small-v0" if args.vehicle == "copter" else "AerialLoc/PaperShadows-v0")
+    scenario = args.scenario or ("AerialLoc/Small-v1" if args.vehicle == "copter" else "AerialLoc/PaperShadows-v1")
     record = fly_mission(scenario, args.agent, ground_amsl_m=args.ground_amsl_m, vehicle=args.vehicle,
                          mission=args.mission, speedup=args.speedup, sitl_dir=args.sitl_bin, log=sys.stdout)
     paths = write_outputs(record, Path(args.out))

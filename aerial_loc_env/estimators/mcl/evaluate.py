@@ -1,6 +1,6 @@
 """Experiments of issue 4 (not CI tests): several agents in lockstep on the same rendered episodes.
 
-``python -m aerial_loc_env.estimators.mcl.evaluate --scenario AerialLoc/PaperShadows-v0 --seeds 20 \\
+``python -m aerial_loc_env.estimators.mcl.evaluate --scenario AerialLoc/PaperShadows-v1 --seeds 20 \\
     --agents dead-reckoning mcl-conventional mcl-restoration mcl-shadow-aware``
 
 prints, per agent, the RMSE over all steps and seeds (the paper's Table 5 figure), the median of the per-seed
@@ -96,7 +96,7 @@ def summarize(result: dict[str, Any], converge_m: float = 10.0) -> dict[str, dic
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m aerial_loc_env.estimators.mcl.evaluate", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--scenario", default="AerialLoc/PaperShadows-v0")
+    ap.add_argument("--scenario", default="AerialLoc/PaperShadows-v1")
     ap.add_argument("--agents", nargs="+", default=["dead-reckoning", "mcl-conventional", "mcl-restoration",
                                                      "mcl-shadow-aware", "mcl-shadow-aware-tempered"])
     ap.add_argument("--seeds", type=int, default=20)

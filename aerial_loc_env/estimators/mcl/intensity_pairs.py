@@ -44,7 +44,7 @@ pairs with one point in shadow still agree 75 % of the time (93 % for unshadowed
 both points in shadow, 50 % at an unrelated pose), so they carry information: the binomial model's per-bit
 weight logit(p) gives w = logit(0.75) / logit(0.93) ~ 0.4.
 
-What the benchmark says (``python -m aerial_loc_env.estimators.mcl.evaluate``, PaperShadows-v0, 20 seeds,
+What the benchmark says (``python -m aerial_loc_env.estimators.mcl.evaluate``, PaperShadows-v1, 20 seeds,
 N = 700, multinomial resampling every step, binomial kappa = 0.5; RMSE over all steps, metres; dead reckoning
 19.9):
 
