@@ -245,8 +245,22 @@ class LibmavCollector:
 
     def close(self, timeout_s: float = 5.0) -> None:
         """Stop libmav's runtime. Its stop() joins a C++ thread and has been seen to block for good on a
-        loaded machine, so it runs in a daemon thread: a stuck decoder cannot hang the caller."""
+        loaded machine, so it runs in a daemon thread: a stuck decoder cannot hang the caller.
+
+        First wait until no frame has arrived for 0.3 s (the sender has stopped; libmav's receive thread drains
+        its queue): a suite run once hung for good in remove_all_callbacks while frames were still being
+        delivered (most likely the binding holds the GIL there while the receive thread, inside a delivery,
+        waits for it)."""
         if self._conn is not None:
+            deadline = time.monotonic() + timeout_s
+            seen = -1
+            while time.monotonic() < deadline:
+                with self._lock:
+                    n = len(self.messages)
+                if n == seen:
+                    break
+                seen = n
+                time.sleep(0.3)
             self._conn.remove_all_callbacks()
         stopper = threading.Thread(target=self._runtime.stop, name="libmav-stop", daemon=True)
         stopper.start()
