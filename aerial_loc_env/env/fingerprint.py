@@ -3,7 +3,7 @@
 A scenario id names a *setting*; what the env renders for it also depends on the code that generates the world
 and the frames (the city generator changed four times under the same ids). Every module of ``world/`` and
 ``sensors/`` whose output is data (a map, an epoch, an acquisition, a camera model) declares an integer
-``GENERATOR_VERSION`` (or another module-level ``<NAME>_VERSION`` integer, e.g. ``EPOCH_VERSION``) and bumps it
+``GENERATOR_VERSION`` (or another module-level ``<NAME>_VERSION`` integer, e.g. ``BUNDLE_VERSION``) and bumps it
 whenever its output changes for the same inputs; ``generator_versions`` collects them all (a new module that
 declares one joins without being listed anywhere).
 ``scenario_fingerprint`` hashes them with the fully resolved spec: the benchmark puts it in every trial key,
@@ -23,7 +23,7 @@ GENERATOR_PACKAGES = ("aerial_loc_env.world", "aerial_loc_env.sensors")
 
 
 def generator_versions() -> dict[str, int]:
-    """``{"world.city": 4, "world.epochs.EPOCH_VERSION": 1, ...}``: every integer ``*_VERSION`` defined by a
+    """``{"world.city": 4, "world.orthomap.BUNDLE_VERSION": 1, ...}``: every integer ``*_VERSION`` defined by a
     world/sensors module (``GENERATOR_VERSION`` is keyed by the module alone; names imported from elsewhere
     are left to the module that defines them)."""
     out: dict[str, int] = {}

@@ -274,26 +274,30 @@ def broken_specs() -> tuple[BrokenSpec, ...]:
     return _scan()[1]
 
 
+def _short_name(sid: str) -> str:
+    """``Small`` for ``AerialLoc/Small-v1`` (the part between the namespace and the version)."""
+    return sid.split("/", 1)[1].rsplit("-v", 1)[0]
+
+
 def resolve(scenario: str) -> tuple[Path, dict]:
     """Find a spec by full id (``AerialLoc/Small-v1``), short name (``Small``) or file stem (``small``)."""
     table = specs()
     if scenario in table:
         return table[scenario]
     for sid, (path, raw) in table.items():
-        short = sid.split("/", 1)[1].rsplit("-v", 1)[0]
-        if scenario in (short, path.stem):
+        if scenario in (_short_name(sid), path.stem):
             return path, raw
     if scenario.startswith(f"{NAMESPACE}/") and "-v" in scenario:
-        asked = scenario.split("/", 1)[1].rsplit("-v", 1)[0]
+        asked = _short_name(scenario)
         for sid in table:
-            if sid.split("/", 1)[1].rsplit("-v", 1)[0] == asked:
+            if _short_name(sid) == asked:
                 raise ConfigError(f"scenario {scenario!r} is not registered: this version of the package has {sid!r} "
                                   "(an id's version changes when its frames change for the same seed; see "
                                   "AerialLocEnv's Version History). Use that id; results of two versions differ.")
     for bad in broken_specs():
         names = {bad.path.stem, bad.id}
         if bad.id and "/" in bad.id:
-            names.add(bad.id.split("/", 1)[1].rsplit("-v", 1)[0])
+            names.add(_short_name(bad.id))
         if scenario in names:
             raise ConfigError(f"scenario {scenario!r} cannot be used: {bad.error}")
     raise ConfigError(f"unknown scenario {scenario!r}; registered: {', '.join(table)} "

@@ -123,6 +123,12 @@ def _mean_colour(rgb: np.ndarray, labels: np.ndarray, n: int) -> np.ndarray:
     return np.stack([np.bincount(flat, rgb[..., c].ravel(), minlength=n + 1) / count for c in range(3)], axis=1)
 
 
+def _long_axis(mask: np.ndarray) -> float:
+    """The angle (radians) of the long side of the smallest rectangle around ``mask``'s pixels."""
+    (_, _), (rw, rh), ang = cv2.minAreaRect(cv2.findNonZero(mask.astype(np.uint8)))
+    return math.radians(ang) + (0.0 if rw >= rh else math.pi / 2)
+
+
 def _noise(rng: np.random.Generator, h: int, w: int, cell_px: int) -> np.ndarray:
     """Smooth noise in [0, 1] with features about ``cell_px`` pixels across (float32)."""
     ch, cw = h // cell_px + 2, w // cell_px + 2
@@ -190,10 +196,7 @@ class _Buildings:
         """(angle_rad of its long side, median height m) of building ``i``."""
         x, y, w, h, _ = self.stats[i]
         m = self.labels[y:y + h, x:x + w] == i
-        pts = cv2.findNonZero(m.astype(np.uint8))
-        (_, _), (rw, rh), ang = cv2.minAreaRect(pts)
-        a = math.radians(ang) + (0.0 if rw >= rh else math.pi / 2)
-        return a, float(np.median(self.L.a_dsm[y:y + h, x:x + w][m]))
+        return _long_axis(m), float(np.median(self.L.a_dsm[y:y + h, x:x + w][m]))
 
 
 def _place(L: _Layers, rng: np.random.Generator, n: int, allowed: np.ndarray, size_m: tuple[float, float, float,
@@ -443,9 +446,7 @@ def _cars_new(L: _Layers, rng: np.random.Generator, rate: float) -> None:
         if area * L.gsd ** 2 > 30.0:            # a truck or a merged queue: keep to single cars
             continue
         m = labels[y:y + h, x:x + w] == i
-        pts = cv2.findNonZero(m.astype(np.uint8))
-        (_, _), (rw, rh), ang = cv2.minAreaRect(pts)
-        a = math.radians(ang) + (0.0 if rw >= rh else math.pi / 2)   # along the car
+        a = _long_axis(m)                       # along the car
         if rng.random() < 0.5:                  # on along the lane
             d = rng.uniform(6.0, 40.0) * (1 if rng.random() < 0.5 else -1)
             off = np.array([math.cos(a), math.sin(a)]) * d / L.gsd
