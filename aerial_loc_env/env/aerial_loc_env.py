@@ -343,6 +343,7 @@ class AerialLocEnv(gym.Env):
             heading_std_rad=on.heading_std_rad, altitude_std_m=on.altitude_std_m)
         self._sun = sc.shadows.draw_sun(rng)
         self._strength = sc.shadows.draw_strength(rng)
+        self._shading = {"strength": self._strength, **sc.shadows.shading_kwargs()}   # the episode's shading
         self._occlusion = self._episode_occlusion(rng)
         self._noise_seed = int(rng.integers(0, 2**63 - 1))
         self._renderer.reset(np.random.default_rng(self._noise_seed))
@@ -417,8 +418,7 @@ class AerialLocEnv(gym.Env):
         occ = self._occlusion
         if occ is None or len(occ) != 1 or self._shadow_box_px is None:
             return
-        shading = {"strength": self._strength, **self.scenario.shadows.shading_kwargs()}
-        self._baked = self._renderer.bake(occ[0], shading, self._shadow_box_px)
+        self._baked = self._renderer.bake(occ[0], self._shading, self._shadow_box_px)
         self._baked_from = occ
 
     def _cast_shadows(self) -> Any:
@@ -457,12 +457,11 @@ class AerialLocEnv(gym.Env):
     def _observe(self, i: int) -> tuple[dict, dict]:
         pose = self._pose(i)
         sc = self.scenario
-        shading = {"strength": self._strength, **sc.shadows.shading_kwargs()}
         tilt = (0.0, 0.0) if self._attitude is None else (float(self._attitude[i, 0]), float(self._attitude[i, 1]))
         exposure = self._scene_exposure
         # the baked shadows while the occluders are the ones baked (env.external swaps in the whole map's)
         occlusion = self._baked if self._baked is not None and self._occlusion is self._baked_from else self._occlusion
-        frame = self._renderer.render(pose, self.np_random, occlusion, shading,
+        frame = self._renderer.render(pose, self.np_random, occlusion, self._shading,
                                       t_s=float(self._track.t_s[i]), speed_mps=float(self._track.speed_mps[i]),
                                       tilt_rad=tilt, pre_sensor=(lambda image: exposure(image, pose.altitude_m))
                                       if exposure.active else None,
