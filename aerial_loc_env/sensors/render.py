@@ -455,7 +455,7 @@ class CameraRenderer:
         affine = self.camera_to_map(pose, camera)
         level = self.pyramid_level(affine)
         tilt = tilt_homography(camera, *tilt_rad) if any(tilt_rad) else None
-        corners = apply_affine(affine, camera.corners_px() if tilt is None else tilted_corners(camera, tilt))
+        corners = apply_affine(affine, tilted_corners(camera, tilt))
         status = self._status(affine, level, camera, map_corners=corners)
         self._check(pose, status, strict, camera)
         baked = occlusion if isinstance(occlusion, BakedShadows) else None
