@@ -157,8 +157,7 @@ class PatchSampler:
         e = self.grid_to_level(states, altitude_m).astype(np.float32)
         gw = self.geometry.width_px
         cols, rows = self._cols[nodes % gw], self._rows[nodes // gw]
-        mx = (e[:, 0, 0, None] * cols) + (e[:, 0, 1, None] * rows + e[:, 0, 2, None])
-        my = (e[:, 1, 0, None] * cols) + (e[:, 1, 1, None] * rows + e[:, 1, 2, None])
+        mx, my = _node_coords(e, cols, rows)
         chans = () if self._remap_level.ndim == 2 else (self._remap_level.shape[2],)
         out = np.empty((e.shape[0], nodes.size) + chans, np.float32)
         for start in range(0, e.shape[0], _MAX_REMAP_ROWS):
@@ -207,8 +206,7 @@ class PatchSampler:
         corner coordinates computed as ``_maps`` computes them, so the same floats)."""
         gh, gw = self.geometry.height_px, self.geometry.width_px
         cols, rows = self._cols[[0, gw - 1, 0, gw - 1]], self._rows[[0, 0, gh - 1, gh - 1]]
-        cu = (e[:, 0, 0, None] * cols) + (e[:, 0, 1, None] * rows + e[:, 0, 2, None])
-        cv = (e[:, 1, 0, None] * cols) + (e[:, 1, 1, None] * rows + e[:, 1, 2, None])
+        cu, cv = _node_coords(e, cols, rows)
         lw, lh = self.level_size
         return (cu.min(1) >= 0) & (cu.max(1) <= lw - 1) & (cv.min(1) >= 0) & (cv.max(1) <= lh - 1)
 
@@ -253,6 +251,15 @@ class PatchSampler:
             if self.has_nan:
                 ok = ok & ~np.isnan(patches.reshape(stop - start, -1)).any(axis=1)
             yield slice(start, stop), patches, ok
+
+
+def _node_coords(e: np.ndarray, cols: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Level-pixel coordinates (u, v), (N, M) float32, of the M grid nodes at (``cols[j]``, ``rows[j]``) under
+    each particle's affine ``e`` (N, 2, 3): ``e_00 col + (e_01 row + e_02)``, the float32 sums ``_maps``
+    computes for every node."""
+    u = (e[:, 0, 0, None] * cols) + (e[:, 0, 1, None] * rows + e[:, 0, 2, None])
+    v = (e[:, 1, 0, None] * cols) + (e[:, 1, 1, None] * rows + e[:, 1, 2, None])
+    return u, v
 
 
 def _check_states(states: np.ndarray) -> np.ndarray:
