@@ -97,7 +97,8 @@ class WindowMatchingAgent(Agent):
         self.level_gsd = (m.gsd_x_m * sx, m.gsd_y_m * sy)
         self.dr = DeadReckoningAgent()
         self.has_fix = False
-        self.gated_offsets: list[tuple[float, float]] = []          # consecutive gated matches - prediction
+        # consecutive gated matches: (match - prediction x, y, prediction x, y)
+        self.gated_offsets: list[tuple[float, float, float, float]] = []
         return self.dr.reset(briefing, seed=seed)
 
     #: ``work_gsd_m = None``: the template (the square inscribed in the footprint) spans this many pixels
