@@ -25,6 +25,7 @@ import numpy as np
 from pymavlink import mavutil
 
 from ..errors import AerialLocError, ConfigError
+from .cli import EARTH_RADIUS_M
 from .selfcheck import free_udp_port
 
 VEHICLES = {"copter": ("arducopter", "+", "copter.parm"), "plane": ("arduplane", "plane", "plane.parm")}
@@ -374,16 +375,14 @@ def timed_horizontal_errors(truth: list, ekf: list, max_gap_s: float = 0.3) -> l
                 continue
             w = (t - ta) / (tb - ta) if tb > ta else 0.0
             tl, tn = la + w * (lb - la), na + w * (nb - na)
-        dn = math.radians(lat - tl) * 6_371_008.8
-        de = math.radians(lon - tn) * 6_371_008.8 * math.cos(math.radians(tl))
-        out.append((t, math.hypot(dn, de)))
+        out.append((t, _distance_m((t, lat, lon), (t, tl, tn))))
     return out
 
 
 def _distance_m(a: tuple, b: tuple) -> float:
     """Horizontal distance between two (time, lat, lon, ...) rows, metres (equirectangular)."""
-    dn = math.radians(a[1] - b[1]) * 6_371_008.8
-    de = math.radians(a[2] - b[2]) * 6_371_008.8 * math.cos(math.radians(b[1]))
+    dn = math.radians(a[1] - b[1]) * EARTH_RADIUS_M
+    de = math.radians(a[2] - b[2]) * EARTH_RADIUS_M * math.cos(math.radians(b[1]))
     return math.hypot(dn, de)
 
 
@@ -393,8 +392,8 @@ def horizontal_errors_m(truth: list, ekf: list) -> list[float]:
 
 
 def offset_latlon(lat: float, lon: float, east_m: float, north_m: float) -> tuple[float, float]:
-    return (lat + math.degrees(north_m / 6_371_008.8),
-            lon + math.degrees(east_m / (6_371_008.8 * math.cos(math.radians(lat)))))
+    return (lat + math.degrees(north_m / EARTH_RADIUS_M),
+            lon + math.degrees(east_m / (EARTH_RADIUS_M * math.cos(math.radians(lat)))))
 
 
 def _plan(vehicle: str, database: Any, lat0: float, lon0: float, leg_m: float, altitude_m: float) -> list:
@@ -634,8 +633,8 @@ def write_outputs(record: dict, out_dir: Path) -> list[Path]:
         lat0, lon0 = truth[0][1], truth[0][2]
 
         def en(rows):
-            return ([math.radians(r[2] - lon0) * 6_371_008.8 * math.cos(math.radians(lat0)) for r in rows],
-                    [math.radians(r[1] - lat0) * 6_371_008.8 for r in rows])
+            return ([math.radians(r[2] - lon0) * EARTH_RADIUS_M * math.cos(math.radians(lat0)) for r in rows],
+                    [math.radians(r[1] - lat0) * EARTH_RADIUS_M for r in rows])
 
         fig, (ax, ax2) = plt.subplots(1, 2, figsize=(10, 3.6), gridspec_kw={"width_ratios": [1.4, 1]})
         ax.plot(*en(truth), "g-", lw=2, label="SITL truth")
