@@ -339,6 +339,7 @@ def run(args: argparse.Namespace, *, out=sys.stdout, should_stop: Callable[[], b
     tty = hasattr(out, "isatty") and out.isatty()
     t_sim, error_m = 0.0, None
     t_first: float | None = None      # follow mode: the first step's time on the simulator's clock
+    follow_clock = args.follow and not args.demo      # step times: the simulator's clock
     code = 0
     try:
         sender.start()
@@ -352,13 +353,12 @@ def run(args: argparse.Namespace, *, out=sys.stdout, should_stop: Callable[[], b
                 if (args.duration_s > 0 and time.monotonic() - t0 >= args.duration_s) or should_stop():
                     break
                 continue
-            follow_clock = args.follow and not args.demo      # step times: the simulator's clock
             if follow_clock and t_first is None:
                 t_first = step.time_s
             t_sim = step.time_s - t_first if follow_clock else step.time_s
             error_m = step.error_m
             # pace simulated time against the monotonic clock (absolute, no drift); follow runs on the truth's
-            if args.speed > 0 and not (args.follow and not args.demo):
+            if args.speed > 0 and not follow_clock:
                 delay = t0 + t_sim / args.speed - time.monotonic()
                 if delay > 0:
                     time.sleep(delay)
