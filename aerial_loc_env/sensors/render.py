@@ -16,14 +16,17 @@ Why it is built this way:
   warp and three shading passes. Shading before interpolation differs from shading after it only at shadow edges
   (tests/test_render_bake.py derives the bound); cloud shadows drift and keep the per-frame path, and so do frames
   the bake cannot serve (pyramid level > 0, perspective or tilted views, a footprint leaving the box). After the
-  warp a baked frame is the RGB drop, the alpha, one threshold for the mask and its count; the float occlusion is
-  made only if a caller reads ``Frame.occlusion`` (the env and the estimators do not).
-- Photometry stays in integers, uint8 in and uint8 out, one full-frame pass per effect (``_photometry``): the
-  shading gain image is three 1-channel LUTs of the quantized occlusion, gamma one uint8 LUT, the white-balance
-  and exposure gains one ``cv2.transform`` (all bit-identical to float arithmetic), vignetting one multiply by a
-  precomputed uint8 gain, and sensor noise a per-episode int16 bank of standard normals (fixed point, 2**-11)
-  read at a random offset per frame and scaled by an int16 sigma LUT (read + shot noise): within 2 grey levels of
-  the float arithmetic (tests/test_render.py derives the bound).
+  warp a baked frame is one compiled pass (below) that also drops the alpha into the 0/1 shadow mask and counts
+  it; the float occlusion is made only if a caller reads ``Frame.occlusion`` (the env and the estimators do not).
+- Everything after the warp is ONE pass of a numba kernel (``sensors.frame_kernel.finish``), uint8 in and uint8
+  out, row by row while the row is in cache: the shading of a per-frame float occlusion (three 1-channel LUTs of
+  the quantized occlusion), gamma and the white-balance/exposure gains as one per-channel byte table composed per
+  frame by the OpenCV operations themselves over the 256 levels, vignetting by a precomputed uint8 gain, and
+  sensor noise from a per-episode int16 bank of standard normals (fixed point, 2**-11) read at a random offset per
+  frame, scaled by the read + shot noise sigma (int16 fixed point, 2**-8), added with saturation: within 2 grey
+  levels of the float arithmetic (tests/test_render_photometry.py derives the bound) and bit-identical to the
+  OpenCV passes it replaced (tests/test_render_kernel.py keeps them as the reference). Motion blur and scene-side
+  steps (facades of a perspective view, ``pre_sensor``) split the pass in two around them.
 """
 
 from __future__ import annotations
@@ -55,6 +58,23 @@ _NOISE_MARGIN_PX = 97  # the noise bank is this much larger than a frame in each
 _BLOCK_PX = 16  # no-data screening block (map pixels)
 _NOISE_BITS = 11  # the int16 noise bank holds round(z * 2**11), |z| <= 16
 _SIGMA_BITS = 8   # the int16 sigma LUT holds round(sigma * 2**8); sigma <= 71.1 DN within Photometry's ranges
+
+
+_LEVELS = np.repeat(np.arange(256, dtype=np.uint8)[None, :, None], 3, axis=2)  # (1, 256, 3): every level per channel
+_IDENTITY = np.ascontiguousarray(_LEVELS[0].T)                                   # (3, 256) identity tone table
+_IDENTITY_RO = _IDENTITY.copy()
+_IDENTITY_RO.flags.writeable = False   # the dummy shading table (shading LUTs are read-only: one kernel signature)
+_NO_OCC = np.zeros((1, 1), np.float32)   # dummy arguments where the kernel reads nothing
+_NO_VIG = np.zeros((1, 1), np.uint8)
+_NO_BANK = np.zeros((1, 1), np.int16)
+_BAKED_ALPHA = np.zeros((1, 1), np.float32)   # ``_finish``'s marker: the occlusion is src's (baked) alpha
+
+
+def _kernels():
+    """``sensors.frame_kernel``, imported on first use (numba's import costs ~0.2 s: only processes that render)."""
+    from . import frame_kernel
+
+    return frame_kernel
 
 
 @dataclass(frozen=True)
@@ -151,6 +171,43 @@ class BakedShadows:
         return min(us) >= c0 + 1.0 and min(vs) >= r0 + 1.0 and max(us) <= c0 + w - 2.0 and max(vs) <= r0 + h - 2.0
 
 
+@dataclass(frozen=True, eq=False)
+class _SensorParams:
+    """The renderer's fixed sensor arguments of ``frame_kernel.finish``: the vignetting gains (uint8 over 255,
+    (H, 3 W); all 255 when only noise is on) and how the noise sigma is computed. ``sigma_lut`` is the int16 sigma
+    LUT ``rint(256 sqrt(r**2 + g v))`` (float64): the kernel computes it in float32 where that gives all 256
+    values (checked here with the kernel's own arithmetic), else in float64, the LUT's own arithmetic."""
+
+    active: bool               # vignetting or noise
+    vig: np.ndarray
+    sigma_mode: int
+    a32: np.float32
+    b32: np.float32
+    a64: float
+    b64: float
+    sigma_lut: np.ndarray
+
+    @classmethod
+    def build(cls, camera: CameraModel, p: Photometry) -> _SensorParams:
+        fk = _kernels()
+        r2, g = p.read_noise_dn ** 2, p.shot_noise_gain
+        sigma_lut = np.rint(np.sqrt(r2 + g * np.arange(256, dtype=np.float64)) * (1 << _SIGMA_BITS)).astype(np.int16)
+        a32, b32 = np.float32(r2 * (1 << 2 * _SIGMA_BITS)), np.float32(g * (1 << 2 * _SIGMA_BITS))
+        mode = fk.NOISE_OFF
+        if p.has_noise:
+            for mode in (fk.SIGMA_F32, fk.SIGMA_F64):
+                if np.array_equal(fk.sigma_levels(mode, a32, b32, r2, g), sigma_lut):
+                    break
+            else:  # pragma: no cover - float64 is the LUT's own arithmetic
+                raise AssertionError(f"frame_kernel: no sigma arithmetic reproduces the sigma LUT of {p}")
+        vignette = CameraRenderer._vignetting_map(camera, p.vignetting)
+        if vignette is not None:
+            vig = np.rint(vignette * 255.0).astype(np.uint8).reshape(camera.height_px, -1)
+        else:
+            vig = np.full((camera.height_px, 3 * camera.width_px), 255, np.uint8) if p.has_noise else _NO_VIG
+        return cls(vignette is not None or p.has_noise, vig, mode, a32, b32, float(r2), float(g), sigma_lut)
+
+
 class CameraRenderer:
     """Renders camera frames (and shadow-free database patches) of an orthomap for given poses.
 
@@ -193,13 +250,8 @@ class CameraRenderer:
             blocks = padded.reshape(padded.shape[0] // _BLOCK_PX, _BLOCK_PX, padded.shape[1] // _BLOCK_PX,
                                     _BLOCK_PX).max(axis=(1, 3))
             self._nodata_blocks = cv2.integral((blocks > 0).astype(np.uint8))
-        vignette = self._vignetting_map(self.camera, self.photometry.vignetting)
-        self._vignette = None if vignette is None else np.rint(vignette * 255.0).astype(np.uint8)
         self._noise_bank: np.ndarray | None = None
-        self._noise_scratch: np.ndarray | None = None
-        sigma = np.sqrt(self.photometry.read_noise_dn ** 2 + self.photometry.shot_noise_gain
-                        * np.arange(256, dtype=np.float64))
-        self._sigma_lut = np.rint(sigma * (1 << _SIGMA_BITS)).astype(np.int16)
+        self._sensor = _SensorParams.build(self.camera, self.photometry)
         self.reset(noise_seed if isinstance(noise_seed, np.random.Generator) else np.random.default_rng(noise_seed))
 
     # ------------------------------------------------------------------ per-episode state
@@ -376,9 +428,13 @@ class CameraRenderer:
         return self._warp_level(affine, level, camera.width_px, camera.height_px)
 
     def _warp_level(self, affine: np.ndarray, level: int, w: int, h: int) -> np.ndarray:
-        out = cv2.warpAffine(self.map_level(level), affine / (1 << level), (w, h),
-                             flags=_WARP_FLAGS, borderMode=cv2.BORDER_CONSTANT, borderValue=(0, 0, 0, 0))
+        out = self._warp_raw(affine, level, w, h)
         return cv2.cvtColor(out, cv2.COLOR_RGBA2RGB) if self._rgba else out
+
+    def _warp_raw(self, affine: np.ndarray, level: int, w: int, h: int) -> np.ndarray:
+        """The warp of pyramid level ``level`` as the map is held: RGBA (alpha 255) or RGB."""
+        return cv2.warpAffine(self.map_level(level), affine / (1 << level), (w, h),
+                              flags=_WARP_FLAGS, borderMode=cv2.BORDER_CONSTANT, borderValue=(0, 0, 0, 0))
 
     def occlusion_in_camera(self, occlusion: OcclusionSource | Sequence[OcclusionSource], pose: Pose, *,
                             t_s: float = 0.0, camera: CameraModel | None = None) -> np.ndarray:
@@ -471,33 +527,24 @@ class CameraRenderer:
             self._bake_tiles(baked, corners)
             return self._render_baked(baked, affine, pose, rng, speed_mps, status, pre_sensor, view, sun_deg)
         if view is None:
-            image = self._warp(affine, level, camera)
+            image = self._warp_raw(affine, level, camera.width_px, camera.height_px)
         else:
             image = view.sample(self.map_level(level), level)
             image = cv2.cvtColor(image, cv2.COLOR_RGBA2RGB) if self._rgba else image
             self._view.shade_facades(image, view, sun_deg, float((shading_params or {}).get("gamma", 2.2)))
         occ_cam = None
         if occlusion is not None:
-            from ..world.shadows import shade
-
-            occ_cam = self._occlusion(occlusion, affine, pose, t_s, camera, view)
-            shade(image, cv2.convertScaleAbs(occ_cam, alpha=255.0), _shading_lut(shading_params), out=image)
-            mask = occ_cam >= 0.5
-            fraction = cv2.countNonZero(mask.view(np.uint8)) / mask.size
-        else:
-            mask = np.zeros(image.shape[:2], dtype=bool)
-            fraction = 0.0
-        if pre_sensor is not None:
-            image = pre_sensor(image)
-        image = self._photometry(image, rng, speed_mps, camera.gsd_m(pose.altitude_m) * camera.pixel_aspect)
-        return Frame(image=image, shadow_mask=mask, shadow_fraction=float(fraction), valid=status == "valid",
-                     status=status, pose=pose, occlusion=occ_cam, pyramid_level=level)
+            occ_cam = np.ascontiguousarray(self._occlusion(occlusion, affine, pose, t_s, camera, view))
+        image, mask, count = self._finish(image, occ_cam, shading_params, rng, speed_mps, pose,
+                                          [] if pre_sensor is None else [pre_sensor])
+        return Frame(image=image, shadow_mask=mask.view(bool), shadow_fraction=count / mask.size,
+                     valid=status == "valid", status=status, pose=pose, occlusion=occ_cam, pyramid_level=level)
 
     def _render_baked(self, baked: BakedShadows, affine: np.ndarray, pose: Pose, rng: np.random.Generator,
                       speed_mps: float, status: FootprintStatus,
                       pre_sensor: Callable[[np.ndarray], np.ndarray] | None, view: ViewMaps | None = None,
                       sun_deg: tuple[float, float] | None = None) -> Frame:
-        """One warp of the pre-shaded box: RGB and the occlusion (alpha) together, then the photometry.
+        """One warp of the pre-shaded box: RGB and the occlusion (alpha) together, then the finishing pass.
         ``view``: a perspective or tilted view samples the box through its maps instead (facades then shaded)."""
         camera = self.camera
         if view is None:
@@ -506,52 +553,62 @@ class CameraRenderer:
             a[1, 2] -= baked.origin_px[1]
             out = cv2.warpAffine(baked.rgba, a, (camera.width_px, camera.height_px), flags=_WARP_FLAGS,
                                  borderMode=cv2.BORDER_CONSTANT, borderValue=(0, 0, 0, 0))
+            mid: list[Callable[[np.ndarray], np.ndarray]] = []
         else:
             out = view.sample(baked.rgba, origin_px=baked.origin_px)
-        image = cv2.cvtColor(out, cv2.COLOR_RGBA2RGB)
-        if view is not None:
-            self._view.shade_facades(image, view, sun_deg, float(baked.shading_params.get("gamma", 2.2)))
-        alpha = cv2.extractChannel(out, 3)
-        # round(255 occ) >= 128  <=>  occ >= 0.5 (up to interpolation): one threshold to 0/1 bytes, read as bool
-        mask = cv2.threshold(alpha, 127, 1, cv2.THRESH_BINARY)[1]
-        fraction = cv2.countNonZero(mask) / mask.size
+            gamma = float(baked.shading_params.get("gamma", 2.2))
+            mid = [lambda image: self._view.shade_facades(image, view, sun_deg, gamma)]
         if pre_sensor is not None:
-            image = pre_sensor(image)
-        image = self._photometry(image, rng, speed_mps, camera.gsd_m(pose.altitude_m) * camera.pixel_aspect)
-        return Frame(image=image, shadow_mask=mask.view(bool), shadow_fraction=float(fraction),
-                     valid=status == "valid", status=status, pose=pose, pyramid_level=0, occlusion_q=alpha)
+            mid.append(pre_sensor)
+        image, mask, count = self._finish(out, _BAKED_ALPHA, None, rng, speed_mps, pose, mid)
+        # the quantized occlusion is the warp's alpha, left in place (read only if a caller asks for it)
+        return Frame(image=image, shadow_mask=mask.view(bool), shadow_fraction=count / mask.size,
+                     valid=status == "valid", status=status, pose=pose, pyramid_level=0, occlusion_q=out[:, :, 3])
 
     # ------------------------------------------------------------------ photometry
-    def _photometry(self, image: np.ndarray, rng: np.random.Generator, speed_mps: float,
-                    gsd_along_m: float) -> np.ndarray:
-        """Motion blur, gamma, gains, vignetting and noise on a fresh uint8 frame (modified in place where it can).
+    def _finish(self, src: np.ndarray, occ: np.ndarray | None, shading_params: Mapping[str, Any] | None,
+                rng: np.random.Generator, speed_mps: float, pose: Pose,
+                mid: list[Callable[[np.ndarray], np.ndarray]]) -> tuple[np.ndarray, np.ndarray, int]:
+        """The frame from the warped map ``src`` (H, W, 3 or 4): shadows, motion blur, gamma, gains, vignetting,
+        noise (``frame_kernel.finish``); returns (image, uint8 0/1 mask, shadowed pixel count).
 
-        The random draws and their order: ``photometry_draws``, then the noise bank offsets."""
+        ``occ``: the float occlusion to shade with ``shading_params``, or ``_BAKED_ALPHA`` (src's alpha, already
+        shaded), or None. ``mid``: scene-side steps on the shaded RGB image before the sensor (facades, exposure):
+        with them or with motion blur, the pass is split in two around them. The random draws and their order:
+        ``photometry_draws``, then the noise bank offsets."""
+        fk = _kernels()
         p = self.photometry
-        blur_px = speed_mps * p.exposure_time_s / gsd_along_m
-        if blur_px >= 1.0:
-            image = cv2.filter2D(image, -1, _motion_kernel(blur_px), borderType=cv2.BORDER_REPLICATE)
-        gamma, gains = photometry_draws(p, rng)
-        if gamma is not None:
-            cv2.LUT(image, gamma_lut(gamma), dst=image)
-        if gains is not None:
-            cv2.transform(image, np.diag(gains).astype(np.float32), dst=image)  # saturating per-channel gain
-        noise = None
+        h, w, cn = src.shape
+        if occ is None:
+            occ_mode, occ_f, shade, mask = fk.OCC_NONE, _NO_OCC, _IDENTITY_RO, np.zeros((h, w), np.uint8)
+        else:
+            mask = np.empty((h, w), np.uint8)
+            if occ is _BAKED_ALPHA:
+                occ_mode, occ_f, shade = fk.OCC_ALPHA, _NO_OCC, _IDENTITY_RO
+            else:
+                occ_mode, occ_f, shade = fk.OCC_FLOAT, occ, _shading_lut(shading_params)
+        camera = self.camera
+        blur_px = speed_mps * p.exposure_time_s / (camera.gsd_m(pose.altitude_m) * camera.pixel_aspect)
+        sp = self._sensor
+        image = np.empty((h, w, 3), np.uint8)
+        count = 0
+        if mid or blur_px >= 1.0:   # the scene stage alone, the steps between, then the rest in place
+            count = fk.finish(src.reshape(h, w * cn), cn, occ_mode, occ_f, shade, _IDENTITY, image.reshape(h, 3 * w),
+                              mask, False, _NO_VIG, _NO_BANK, 0, 0, fk.NOISE_OFF, sp.a32, sp.b32, sp.a64, sp.b64)
+            for step in mid:
+                image = np.ascontiguousarray(step(image))
+            if blur_px >= 1.0:
+                image = cv2.filter2D(image, -1, _motion_kernel(blur_px), borderType=cv2.BORDER_REPLICATE)
+            src, cn, occ_mode = image, 3, fk.OCC_NONE
+        lut = tone_lut(*photometry_draws(p, rng))
+        bank, dy, dx = _NO_BANK, 0, 0
         if p.has_noise:
             assert self._noise_bank is not None
-            h, w = image.shape[:2]
-            dy, dx = rng.integers(0, _NOISE_MARGIN_PX + 1, size=2)
-            if self._noise_scratch is None or self._noise_scratch.shape != image.shape:
-                self._noise_scratch = np.empty(image.shape, np.int16)
-            # sigma from the level before vignetting (a few % off in the corners; one LUT pass instead of two)
-            sigma = cv2.LUT(image, self._sigma_lut, dst=self._noise_scratch)
-            noise = cv2.multiply(sigma, self._noise_bank[dy:dy + h, dx:dx + w], dst=sigma,
-                                 scale=2.0 ** -(_SIGMA_BITS + _NOISE_BITS))
-        if self._vignette is not None:
-            cv2.multiply(image, self._vignette, dst=image, scale=1.0 / 255.0)
-        if noise is not None:
-            cv2.add(image, noise, dst=image, dtype=cv2.CV_8U)
-        return image
+            dy, dx = rng.integers(0, _NOISE_MARGIN_PX + 1, size=2).tolist()
+            bank = self._noise_bank.reshape(self._noise_bank.shape[0], -1)
+        count += fk.finish(src.reshape(h, w * cn), cn, occ_mode, occ_f, shade, lut, image.reshape(h, 3 * w), mask,
+                           sp.active, sp.vig, bank, dy, 3 * dx, sp.sigma_mode, sp.a32, sp.b32, sp.a64, sp.b64)
+        return image, mask, count
 
     @staticmethod
     def _vignetting_map(camera: CameraModel, strength: float) -> np.ndarray | None:
@@ -631,6 +688,20 @@ def photometry_draws(p: Photometry, rng: np.random.Generator) -> tuple[float | N
 def gamma_lut(gamma: float) -> np.ndarray:
     """uint8 tone curve ``round(255 (v / 255) ** gamma)``."""
     return np.rint(255.0 * (np.arange(256) / 255.0) ** gamma).astype(np.uint8)
+
+
+def tone_lut(gamma: float | None, gains: np.ndarray | None) -> np.ndarray:
+    """The frame's tone curve then per-channel gains as one (3, 256) uint8 table (row c: channel c's output at
+    each input level): the OpenCV operations themselves (``cv2.LUT`` of ``gamma_lut``, a diagonal
+    ``cv2.transform``, saturating) run over the 256 levels, so the table is their arithmetic by construction."""
+    if gamma is None and gains is None:
+        return _IDENTITY
+    levels = _LEVELS.copy()
+    if gamma is not None:
+        cv2.LUT(levels, gamma_lut(gamma), dst=levels)
+    if gains is not None:
+        cv2.transform(levels, np.diag(gains).astype(np.float32), dst=levels)
+    return np.ascontiguousarray(levels[0].T)
 
 
 def noise_bank(rng: np.random.Generator, camera: CameraModel) -> np.ndarray:

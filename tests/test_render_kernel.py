@@ -1,0 +1,251 @@
+"""The compiled finishing pass (``sensors.frame_kernel.finish``) against the OpenCV passes it replaced, bit for bit.
+
+The reference is the renderer as it was: a subclass whose ``_finish`` runs the old OpenCV/NumPy passes (RGB drop,
+alpha threshold and count, or the float occlusion quantized, shaded and thresholded; motion blur; gamma LUT; gains
+``cv2.transform``; the int16 sigma LUT times the noise bank; vignetting multiply; saturating add), with the same
+random draws in the same order. Everything upstream (the warps, the views, the bake) is shared, so any difference
+is the kernel's. The kernel reproduces each pass's arithmetic exactly (see its module docstring), so the frames,
+masks and shadow fractions must be equal, not close.
+"""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import cv2
+import numba
+import numpy as np
+import pytest
+
+from aerial_loc_env.sensors import frame_kernel as fk
+from aerial_loc_env.sensors import render as render_mod
+from aerial_loc_env.sensors.camera import CameraModel, Pose
+from aerial_loc_env.sensors.perspective import PerspectiveConfig
+from aerial_loc_env.sensors.render import CameraRenderer, Photometry, _motion_kernel, gamma_lut, photometry_draws
+from aerial_loc_env.world.shadows import ShadowGrid, shade
+
+CAMERA = CameraModel(width_px=120, height_px=80)        # 0.25 m/px at 40 m: map level 0
+POSES = [Pose(50.0, 50.0, 0.3, 40.0), Pose(47.0, 55.0, -2.1, 40.0)]
+HIGH = Pose(50.0, 50.0, 0.3, 75.0)                        # 0.47 m/px: pyramid level 1 (never baked)
+SHADING = {"strength": 0.9}
+SETTINGS = {
+    "ideal": Photometry.ideal(),
+    "defaults": Photometry(),
+    "strong noise": Photometry(read_noise_dn=20.0, shot_noise_gain=5.0, gamma_std=0.2),
+    "no vignetting": Photometry(vignetting=0.0),
+    "vignetting only": Photometry(read_noise_dn=0.0, shot_noise_gain=0.0, vignetting=1.0),
+    "noise only": Photometry(vignetting=0.0, exposure_std=0.0, white_balance_std=0.0, gamma_std=0.0),
+    "saturating gains": Photometry(gain=2.5, exposure_std=0.5, white_balance_std=0.3, gamma=0.6),
+    "dark gains": Photometry(gain=0.3, gamma=2.0, read_noise_dn=8.0),
+}
+
+
+class _OpenCVRenderer(CameraRenderer):
+    """The renderer with its finishing pass as the OpenCV passes it replaced (the reference)."""
+
+    def _finish(self, src, occ, shading_params, rng, speed_mps, pose, mid):
+        h, w, cn = src.shape
+        image = cv2.cvtColor(src, cv2.COLOR_RGBA2RGB) if cn == 4 else src.copy()
+        if occ is render_mod._BAKED_ALPHA:
+            mask = cv2.threshold(cv2.extractChannel(src, 3), 127, 1, cv2.THRESH_BINARY)[1]
+        elif occ is None:
+            mask = np.zeros((h, w), np.uint8)
+        else:
+            lut = render_mod._shading_lut(shading_params)
+            shade(image, cv2.convertScaleAbs(occ, alpha=255.0), lut, out=image)
+            mask = (occ >= 0.5).view(np.uint8)
+        for step in mid:
+            image = step(image)
+        p, camera = self.photometry, self.camera
+        blur_px = speed_mps * p.exposure_time_s / (camera.gsd_m(pose.altitude_m) * camera.pixel_aspect)
+        if blur_px >= 1.0:
+            image = cv2.filter2D(image, -1, _motion_kernel(blur_px), borderType=cv2.BORDER_REPLICATE)
+        gamma, gains = photometry_draws(p, rng)
+        if gamma is not None:
+            cv2.LUT(image, gamma_lut(gamma), dst=image)
+        if gains is not None:
+            cv2.transform(image, np.diag(gains).astype(np.float32), dst=image)
+        noise = None
+        if p.has_noise:
+            dy, dx = rng.integers(0, render_mod._NOISE_MARGIN_PX + 1, size=2)
+            sigma = cv2.LUT(image, self._sensor.sigma_lut)
+            noise = cv2.multiply(sigma, self._noise_bank[dy:dy + h, dx:dx + w], scale=2.0 ** -19)
+        vignette = self._vignetting_map(camera, p.vignetting)
+        if vignette is not None:
+            cv2.multiply(image, np.rint(vignette * 255.0).astype(np.uint8), dst=image, scale=1.0 / 255.0)
+        if noise is not None:
+            cv2.add(image, noise, dst=image, dtype=cv2.CV_8U)
+        return image, mask, cv2.countNonZero(mask)
+
+
+def _scene(relief: bool = False):
+    """A textured 100 m map (every level, saturated patches) and a soft shadow grid holding 0, 1 and between."""
+    rng = np.random.default_rng(0)
+    rgb = cv2.resize(rng.integers(0, 256, (50, 50, 3), dtype=np.uint8), (400, 400), interpolation=cv2.INTER_CUBIC)
+    rgb[100:140, 100:140] = 255
+    rgb[160:200, 100:140] = 0
+    occ = cv2.resize(rng.random((20, 20), dtype=np.float32), (200, 200), interpolation=cv2.INTER_LINEAR)
+    grid = ShadowGrid(np.clip(2.0 * occ - 0.5, 0.0, 1.0).astype(np.float32), 0.5, 0.5, 2)
+    orthomap = SimpleNamespace(rgb=rgb, gsd_x_m=0.25, gsd_y_m=0.25, height_px=400, width_px=400, nodata=None,
+                               name="kernel-test")
+    if relief:
+        dsm = np.zeros((400, 400), np.float32)
+        dsm[150:200, 215:265] = 12.0
+        orthomap.dsm_m = dsm
+    return orthomap, grid
+
+
+def _pair(photometry, *, rgba=None, perspective=None, relief=False, seed=5):
+    orthomap, grid = _scene(relief)
+    kw = {"noise_seed": seed, "rgba": rgba, "perspective": perspective}
+    return CameraRenderer(orthomap, CAMERA, photometry, **kw), _OpenCVRenderer(orthomap, CAMERA, photometry, **kw), grid
+
+
+def _assert_same(new, ref):
+    np.testing.assert_array_equal(new.image, ref.image)
+    np.testing.assert_array_equal(new.shadow_mask, ref.shadow_mask)
+    assert new.shadow_fraction == ref.shadow_fraction
+    assert new.image.dtype == np.uint8 and new.shadow_mask.dtype == bool and new.image.flags.c_contiguous
+
+
+def _render_both(new_r, ref_r, pose, occlusion, seed, **kw):
+    new = new_r.render(pose, np.random.default_rng(seed), occlusion, SHADING, **kw)
+    ref = ref_r.render(pose, np.random.default_rng(seed), occlusion, SHADING, **kw)
+    _assert_same(new, ref)
+    return new
+
+
+@pytest.mark.parametrize("name", list(SETTINGS))
+def test_baked_per_frame_and_unshadowed_frames_equal_the_opencv_passes(name):
+    """Baked shadows (level 0), the per-frame grid (level 1), no shadows; at rest and with motion blur."""
+    new_r, ref_r, grid = _pair(SETTINGS[name])
+    new_b = new_r.bake(grid, SHADING, (20, 20, 380, 380))
+    ref_b = ref_r.bake(grid, SHADING, (20, 20, 380, 380))
+    for i, pose in enumerate(POSES):
+        for speed_mps in (0.0, 150.0):                       # 150 m/s: a 1.2 px blur between shading and gamma
+            new = new_r.render(pose, np.random.default_rng(i), new_b, None, speed_mps=speed_mps)
+            ref = ref_r.render(pose, np.random.default_rng(i), ref_b, None, speed_mps=speed_mps)
+            _assert_same(new, ref)
+            np.testing.assert_array_equal(new.occlusion_q > 127, new.shadow_mask)   # the warped alpha
+            assert 0.05 < new.shadow_fraction < 0.95
+            _render_both(new_r, ref_r, pose, None, i, speed_mps=speed_mps)
+        frame = _render_both(new_r, ref_r, HIGH, grid, i)
+        assert frame.pyramid_level == 1 and 0.05 < frame.shadow_fraction < 0.95
+    if name == "saturating gains":                           # the gains do clip, both ways
+        assert (frame.image == 255).mean() > 0.05 and (frame.image == 0).any()
+
+
+def test_rgb_maps_scene_steps_and_views_equal_the_opencv_passes():
+    """An RGB-held map (3-channel warps), a pre-sensor step, combined occluders, tilted and perspective views."""
+    p = Photometry(read_noise_dn=4.0, shot_noise_gain=0.3)
+    new_r, ref_r, grid = _pair(p, rgba=False)
+    dim = {"pre_sensor": lambda image: cv2.convertScaleAbs(image, alpha=0.8)}
+    for i, pose in enumerate(POSES):
+        _render_both(new_r, ref_r, pose, grid, i)
+        _render_both(new_r, ref_r, pose, [grid, grid], i, **dim)
+    for relief in (False, True):
+        new_r, ref_r, grid = _pair(p, perspective=PerspectiveConfig(enabled=True), relief=relief)
+        new_b = new_r.bake(grid, SHADING, (20, 20, 380, 380))
+        ref_b = ref_r.bake(grid, SHADING, (20, 20, 380, 380))
+        for i, pose in enumerate(POSES):
+            for kw in ({"tilt_rad": (0.01, -0.008)}, {"tilt_rad": (0.01, -0.008), **dim}):
+                _render_both(new_r, ref_r, pose, grid, i, **kw)
+                new = new_r.render(pose, np.random.default_rng(i), new_b, None, sun_deg=(200.0, 40.0), **kw)
+                ref = ref_r.render(pose, np.random.default_rng(i), ref_b, None, sun_deg=(200.0, 40.0), **kw)
+                _assert_same(new, ref)
+
+
+def _sigma_f32_fails(r: float, g: float) -> bool:
+    a32, b32 = np.float32(r * r * 65536), np.float32(g * 65536)
+    lut = np.rint(np.sqrt(r * r + g * np.arange(256, dtype=np.float64)) * 256).astype(np.int32)
+    return not np.array_equal(fk.sigma_levels(fk.SIGMA_F32, a32, b32, r * r, g), lut)
+
+
+def test_sigma_in_float32_only_where_it_reproduces_the_lut_else_float64():
+    """The renderer computes sigma in float32 only where all 256 levels equal the int16 LUT; a setting where
+    float32 misses one level takes float64, and the frames still equal the LUT-based reference."""
+    rng = np.random.default_rng(0)
+    r, g = next((r, g) for r, g in zip(rng.uniform(0, 50, 500), rng.uniform(0, 10, 500), strict=True)
+                if _sigma_f32_fails(r, g))
+    for read, shot, mode in ((2.0, 0.05, fk.SIGMA_F32), (r, g, fk.SIGMA_F64)):
+        p = Photometry(read_noise_dn=read, shot_noise_gain=shot)
+        new_r, ref_r, grid = _pair(p)
+        assert new_r._sensor.sigma_mode == mode
+        levels = fk.sigma_levels(mode, new_r._sensor.a32, new_r._sensor.b32, new_r._sensor.a64, new_r._sensor.b64)
+        np.testing.assert_array_equal(levels, new_r._sensor.sigma_lut)
+        for i, pose in enumerate(POSES):
+            _render_both(new_r, ref_r, pose, grid, i)
+
+
+def test_kernel_arithmetic_matches_opencv_over_every_level():
+    """Exhaustive: the uint8 x uint8 / 255 multiply over all 65536 pairs (vignetting and shading), and the
+    occlusion's quantization and threshold around every rounding boundary (float32 neighbours of (k + 1/2) / 255
+    and of 1/2)."""
+    a = np.repeat(np.arange(256, dtype=np.uint8), 256).reshape(256, 256)
+    b = np.ascontiguousarray(a.T)
+    src = np.repeat(a[:, :, None], 3, axis=2)
+    vig = np.repeat(b[:, :, None], 3, axis=2).reshape(256, -1)
+    out = np.empty((256, 768), np.uint8)
+    ident = render_mod._IDENTITY
+    fk.finish(src.reshape(256, -1), 3, fk.OCC_NONE, render_mod._NO_OCC, render_mod._IDENTITY_RO, ident, out,
+              np.zeros((1, 1), np.uint8), True, vig, render_mod._NO_BANK, 0, 0, fk.NOISE_OFF,
+              np.float32(0), np.float32(0), 0.0, 0.0)
+    np.testing.assert_array_equal(out.reshape(256, 256, 3), cv2.multiply(src, vig.reshape(256, 256, 3),
+                                                                         scale=1.0 / 255.0))
+    # the occlusion: 41 float32 neighbours of each boundary, shading an all-255 image by a LUT q -> q
+    base = np.concatenate([(np.arange(256) + 0.5) / 255.0, [0.5]]).astype(np.float32)
+    steps = [base]
+    for direction in (np.float32(2.0), np.float32(-1.0)):
+        x = base
+        for _ in range(20):
+            x = np.nextafter(x, direction)
+            steps.append(x)
+    occ = np.clip(np.stack(steps), 0.0, 1.0).astype(np.float32)      # (41, 257)
+    h, w = occ.shape
+    qlut = np.repeat(np.arange(256, dtype=np.uint8)[None], 3, axis=0)
+    qlut.flags.writeable = False
+    white = np.full((h, 3 * w), 255, np.uint8)
+    out, mask = np.empty((h, 3 * w), np.uint8), np.empty((h, w), np.uint8)
+    count = fk.finish(white, 3, fk.OCC_FLOAT, occ, qlut, ident, out, mask, False, render_mod._NO_VIG,
+                      render_mod._NO_BANK, 0, 0, fk.NOISE_OFF, np.float32(0), np.float32(0), 0.0, 0.0)
+    np.testing.assert_array_equal(out.reshape(h, w, 3)[..., 0], cv2.convertScaleAbs(occ, alpha=255.0))
+    np.testing.assert_array_equal(mask, occ >= 0.5)
+    assert count == np.count_nonzero(occ >= 0.5)
+
+
+def test_same_seed_same_frames_and_the_noise_moves():
+    orthomap, grid = _scene()
+    runs = []
+    for _ in range(2):
+        renderer = CameraRenderer(orthomap, CAMERA, Photometry(), noise_seed=11)
+        baked = renderer.bake(grid, SHADING, (20, 20, 380, 380))
+        rng = np.random.default_rng(12)
+        runs.append([renderer.render(POSES[0], rng, baked).image for _ in range(3)])
+    for a, b in zip(*runs, strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert not np.array_equal(runs[0][0], runs[0][1])
+
+
+@numba.njit
+def _noise_terms(s, z):
+    out = np.empty(s.size, np.int32)
+    for i in range(s.size):
+        out[i] = fk._noise(np.float32(s[i]), z[i])
+    return out
+
+
+def test_noise_term_rounds_like_opencv_at_its_ties():
+    """``cv2.multiply(S, Z, scale=2**-19)`` on int16 rounds the product to float32 first: products within half a
+    float32 step of an odd multiple of 2**18 (a tie after scaling) round differently from the exact product.
+    Every sigma the LUT can hold against the draws nearest to such ties, and random pairs."""
+    rng = np.random.default_rng(0)
+    s = np.repeat(np.arange(256, 18_200, 7), 64)
+    k = rng.integers(-1100, 1100, s.size)
+    z = np.rint((2 * k + 1) * 2.0 ** 18 / s) + rng.integers(-2, 3, s.size)
+    keep = np.abs(z) <= 32767
+    s = np.concatenate([s[keep], rng.integers(0, 18_200, 200_000)]).astype(np.int16)
+    z = np.concatenate([z[keep], rng.integers(-32767, 32768, 200_000)]).astype(np.int16)
+    expected = cv2.multiply(s.reshape(-1, 1), z.reshape(-1, 1), scale=2.0 ** -19).ravel()
+    exact = np.rint(s.astype(np.float64) * z * 2.0 ** -19)
+    assert np.count_nonzero(expected != exact) > 10          # the ties are hit: the test can tell the two apart
+    np.testing.assert_array_equal(_noise_terms(s, z), expected)
