@@ -5,27 +5,28 @@ sees a point at height ``h`` and ground distance ``r`` from nadir at ``r H / (H 
 ``r h / (H - h)``; it sees the facades that face the nadir point, and not the ground behind tall buildings. Real
 maps without a height model keep the affine warp (``render.py``).
 
-How (inverse mapping, vectorized with OpenCV): the ray of camera pixel ``q`` meets the ground at ``g0(q)`` and
-crosses height ``z`` at ``m(z) = g0 + (c - g0) z / H`` (``c`` the nadir point): it moves towards nadir as it
-rises, so every point the camera can see lies inside the ground footprint. The visible point is the ray's first
-intersection from above, the largest ``z`` with ``h(m(z)) >= z``.
+How (inverse mapping; compiled kernels in ``perspective_kernels.py``): the ray of camera pixel ``q`` meets the
+ground at ``g0(q)`` and crosses height ``z`` at ``m(z) = g0 + (c - g0) z / H`` (``c`` the nadir point): it moves
+towards nadir as it rises, so every point the camera can see lies inside the ground footprint. The visible point
+is the ray's first intersection from above, the largest ``z`` with ``h(m(z)) >= z``.
 
 1. March: one ray per 4 x 4 block of camera pixels (its centre's). For ``N`` heights ``z_i`` from the
    footprint's tallest point down, the points ``m(z_i)`` of these rays are the blocks' ground points scaled by
-   ``1 - z_i / H`` about nadir: an affine image of the block grid (projective for a tilted camera), so each step
-   is one small warp (``warpAffine`` / ``warpPerspective``) of the height model's 4 x 4 block maximum (a
-   contiguous copy of the window under the footprint) onto the block grid, thresholded at ``z_i`` and
-   max-combined: the highest ``z_i`` at which the ray is at or below the surface, i.e. the first hit from the
-   top to within one step (dilated by a block so that no roof edge is lost to the coarse grid; the next step
-   verifies). Each block's pixels start from its z0: a relief block's pixels are listed block by block.
+   ``1 - z_i / H`` about nadir: an affine image of the block grid (projective for a tilted camera), read
+   (nearest) on the height model's 4 x 4 block maximum (a contiguous copy of the window under the footprint).
+   Each cell stops at its first hit from the top, the highest ``z_i`` at which its ray is at or below the
+   surface (to within one step); z0 is the hits' maximum over the cell and its 8 neighbours (no roof edge is
+   lost to the coarse grid; the next step verifies). Each block's pixels start from its z0.
 2. Refine at full resolution on the map's own height model with fixed-point steps ``z_{k+1} = h(m(z_k))``:
    ``z1 = h(m(z0))`` is the height of the surface the ray is in; where the next step leaves it unchanged the ray
    sees that surface at ``m(z1)`` (flat roofs and open ground: most pixels). The rest (walls, roof edges, trees,
    low objects such as cars) get one more step on that subset; where ``z`` keeps jumping between the street and
    the roof the ray entered through a wall: a facade pixel, coloured from the building where the ray meets the
    ground (inside its footprint) and darkened by ``facade_gain``. Only pixels of march cells with relief (a hit,
-   or a non-zero block maximum within the cell's reach on the ground) are refined, as 1-D arrays: on flat
-   ground the steps would leave the affine point unchanged (a quarter of the pixels in the perf scene remain).
+   or a non-zero block maximum within the cell's reach on the ground) are refined, a band of cells at a time,
+   step by step over the band's list: on flat ground the steps would leave the affine point unchanged (a
+   fifth of the pixels in the perf scene remain). The kernels reproduce the arithmetic of the OpenCV warps and
+   NumPy passes they replaced (perspective v5) bit for bit (see ``perspective_kernels``).
 
 The result is a pair of per-pixel map coordinate planes (x, y) for one ``cv2.remap`` of the map (and of the cast-shadow
 field, which lives in map coordinates on the ground and roofs, so shadows stay on the surfaces they fall on). With
@@ -48,6 +49,7 @@ import cv2
 import numpy as np
 
 from ..config import rng
+from . import perspective_kernels as kernels
 from .camera import CameraModel, apply_affine
 
 _NEAREST = cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP
@@ -55,8 +57,8 @@ _MAX_HEIGHT_FRACTION = 0.95
 GENERATOR_VERSION = 5  # bump whenever the frames change for the same inputs (env/fingerprint.py)
 _MARCH_FACTOR = 4      # the march runs on a 1/4-resolution camera grid over the 4 x 4 block maximum of the heights
 _REMAP_MAX_PX = 32767  # cv2.remap's limit on the source's sides
-_ROW_PX = 1024         # 1-D sample points go to remap as rows of this many (remap wants fewer than 32767 rows)
 _SURFACE_TOL_M = 0.3    # h(m(z1)) within this of z1: the ray sees the surface (ridged roofs vary by less per px)
+_NO_DSM = np.zeros((1, 1), np.float32)   # the kernel's height model argument for flat views (never read)
 
 
 @dataclass(frozen=True)
@@ -167,23 +169,6 @@ class ReliefView:
         self._grids: dict[tuple, Any] = {}
         self._pooled: np.ndarray | None = None
 
-    def _centred_grid(self, camera: CameraModel) -> np.ndarray:
-        """(h, w, 2) float32 pixel offsets from the principal point."""
-        key = (camera.width_px, camera.height_px)
-        if key not in self._grids:
-            cu, cv = camera.center_px
-            u, v = np.meshgrid(np.arange(key[0], dtype=np.float32) - np.float32(cu),
-                               np.arange(key[1], dtype=np.float32) - np.float32(cv))
-            self._grids[key] = np.dstack([u, v])
-        return self._grids[key]
-
-    def _centred_planes(self, camera: CameraModel) -> tuple[np.ndarray, np.ndarray]:
-        """The centred grid as two contiguous (h, w) float32 planes (u, v), once per camera size."""
-        key = ("planes", camera.width_px, camera.height_px)
-        if key not in self._grids:
-            self._grids[key] = tuple(cv2.split(self._centred_grid(camera)))
-        return self._grids[key]
-
     def _ground_heights(self, radius: int) -> np.ndarray:
         """The block maximum dilated by ``radius`` blocks (once per radius): zero where a whole neighbourhood is
         flat ground."""
@@ -220,19 +205,35 @@ class ReliefView:
         nadir_x, nadir_y = a[:, :2] @ np.array([cu, cv]) + a[:, 2]     # the map pixel below the camera
         corners = apply_affine(a, tilted_corners(camera, tilt))
         bbox = (*corners.min(axis=0), *corners.max(axis=0))
-        ru, rv = self._centred_planes(camera)
-        if tilt is not None:
-            ru, rv = _tilted_rays(ru, rv, camera, tilt)
         origin = (int(origin_px[0]), int(origin_px[1]))
         ox, oy = float(nadir_x) - origin[0], float(nadir_y) - origin[1]    # nadir in the maps' frame
+        f = _MARCH_FACTOR
+        wc, hc = -(-w // f), -(-h // f)
 
-        def ground_points() -> tuple[np.ndarray, np.ndarray]:
-            """The ground point each ray meets (x, y), map px - origin: one pass each."""
-            return cv2.addWeighted(ru, a[0, 0], rv, a[0, 1], ox), cv2.addWeighted(ru, a[1, 0], rv, a[1, 1], oy)
+        def pixel_maps(z0: np.ndarray, relief: np.ndarray, consts: tuple[float, ...] = (0.0,) * 7,
+                       window: tuple[int, ...] = (0,) * 5) -> ViewMaps:
+            """The kernel's maps: ground points on flat cells, the refined visible points on relief cells."""
+            gx, gy = np.empty((h, w), np.float32), np.empty((h, w), np.float32)
+            facade, facing = self._facade_buffers(h * w)
+            if tilt is None:
+                conj = np.zeros((3, 3), np.float32)
+            else:
+                shift = np.array([[1.0, 0.0, cu], [0.0, 1.0, cv], [0.0, 0.0, 1.0]])
+                conj = (np.linalg.inv(shift) @ tilt @ shift).astype(np.float32)
+            flat = np.array([[a[0, 0], a[0, 1], ox], [a[1, 0], a[1, 1], oy]], np.float32)
+            n = kernels.view_maps[tilt is not None, bool(window[4])](
+                gx, gy, facade, facing, z0, relief, f, np.array([cu, cv], np.float32), conj, flat,
+                a[:, :2].astype(np.float32), np.array(consts, np.float32),
+                _NO_DSM if self.dsm is None else self.dsm, np.array(window[:4], np.int64))
+            if n == 0:
+                return ViewMaps(gx, gy, None, bbox, None, origin)
+            return ViewMaps(gx, gy, facade[:n].copy(), bbox, facing[:n].copy(), origin)
 
         def flat_view() -> ViewMaps | None:
             """Flat ground under the footprint: the affine warp (None), or the tilted camera's ground points."""
-            return None if tilt is None else ViewMaps(*ground_points(), None, bbox, origin_px=origin)
+            if tilt is None:
+                return None
+            return pixel_maps(np.zeros((hc, wc), np.float32), np.zeros((hc, wc), np.uint8))
 
         if self.dsm is None:
             return flat_view()
@@ -240,171 +241,86 @@ class ReliefView:
         # the march grid: one cell per F x F camera block, probed along the ray of the block's centre pixel
         # (q = F q_c + (F - 1) / 2, through the tilt to the nadir camera, then to the map), on the F x F block
         # maximum of the heights (map px u -> pooled px (u + 0.5) / F - 0.5)
-        f = _MARCH_FACTOR
-        wc, hc = -(-w // f), -(-h // f)
         grid_to_cam = np.array([[f, 0.0, (f - 1) / 2.0], [0.0, f, (f - 1) / 2.0], [0.0, 0.0, 1.0]])
         to_map = np.vstack([a, [0.0, 0.0, 1.0]]) @ (np.eye(3) if tilt is None else tilt) @ grid_to_cam
         map_to_pool = np.array([[1.0 / f, 0.0, 0.5 / f - 0.5], [0.0, 1.0 / f, 0.5 / f - 0.5], [0, 0, 1]])
 
-        def at_height(src: np.ndarray, k: float, dst: np.ndarray | None = None) -> np.ndarray:
-            """``src`` (pooled grid) at the cells' points m(z) = nadir + k (g - nadir), k = 1 - z / H: one warp."""
+        def probe(k: float) -> np.ndarray:
+            """The cells' points m(z) = nadir + k (g - nadir), k = 1 - z / H, in pooled px: (3, 3)."""
             scaled = np.array([[k, 0.0, nadir_x * (1.0 - k)], [0.0, k, nadir_y * (1.0 - k)], [0.0, 0.0, 1.0]])
-            m = map_to_pool @ scaled @ to_map
-            if tilt is None:
-                return cv2.warpAffine(src, m[:2], (wc, hc), dst=dst, flags=_NEAREST, borderMode=cv2.BORDER_CONSTANT)
-            return cv2.warpPerspective(src, m, (wc, hc), dst=dst, flags=_NEAREST, borderMode=cv2.BORDER_CONSTANT)
+            return map_to_pool @ scaled @ to_map
 
         # every m(z) lies in the footprint: the march reads a contiguous copy of the pooled heights under it
-        # (cache-resident for the 11 warps); pooled px (u + 0.5) / F - 0.5 of the window's map px u
+        # (cache-resident); pooled px (u + 0.5) / F - 0.5 of the window's map px u
         pooled = self._march_heights()
         c0, r0, c1, r1 = _window(bbox, 1.0 / f, (0.5 / f - 0.5,) * 2, pooled.shape[1], pooled.shape[0])
         pooled = np.ascontiguousarray(pooled[r0:r1, c0:c1])
         map_to_pool[:2, 2] -= (c0, r0)
-        heights = at_height(pooled, 1.0)
+        ground_m = probe(1.0)
+        if tilt is None:
+            heights = cv2.warpAffine(pooled, ground_m[:2], (wc, hc), flags=_NEAREST, borderMode=cv2.BORDER_CONSTANT)
+        else:
+            heights = cv2.warpPerspective(pooled, ground_m, (wc, hc), flags=_NEAREST, borderMode=cv2.BORDER_CONSTANT)
         z_raw = float(cv2.minMaxLoc(heights)[1])
         z_top = min(z_raw, _MAX_HEIGHT_FRACTION * big_h)
         if z_top <= 0.0:
             return flat_view()
-        z_hit = np.zeros_like(heights)
-        probe = np.empty_like(heights)
+        # the march, top down: a cell's hit is the first height z_i at which its ray is at or below the block
+        # maximum (pooled > z_i - 1e-4), 0 without one; z0 is the hits' 3 x 3 maximum (no roof edge is lost to
+        # the coarse grid; the next steps verify). Flat ground: a cell whose rays hit nothing (z0 = 0) and whose
+        # pixels all look at ground of height 0 (the block maximum dilated by the cell's reach, sampled like the
+        # march) sees the ground at its affine point g: the fixed-point steps would leave it there (z1 = z2 = 0).
         steps = self.config.march_steps
-        for i in range(steps):
-            z = z_top * (steps - i) / steps
-            at_height(pooled, 1.0 - z / big_h, probe)
-            cv2.threshold(probe, z - 1e-4, z, cv2.THRESH_BINARY, dst=probe)   # hit: the ray is at/below the surface
-            cv2.max(z_hit, probe, dst=z_hit)
-        z_hit = cv2.dilate(z_hit, np.ones((3, 3), np.uint8))
-        # Flat ground: a cell whose rays hit nothing in the march (z0 = 0) and whose pixels all look at ground of
-        # height 0 (the block maximum dilated by the cell's reach, sampled like the march) sees the ground at its
-        # affine point g: the fixed-point steps below would leave it there (z1 = z2 = 0). Only the other cells'
-        # pixels (marked by z0 >= 0; flat ones get -1) are refined, as 1-D arrays.
+        levels = [z_top * (steps - i) / steps for i in range(steps)]
+        probes = np.array([ground_m] + [probe(1.0 - z / big_h) for z in levels], np.float32).reshape(-1, 9)
         reach = 2.0 * max(abs(a[0, 0]) + abs(a[0, 1]), abs(a[1, 0]) + abs(a[1, 1]))   # map px per axis, in a cell
-        ground = at_height(self._ground_heights(int(math.ceil((reach + 1.0) / f)))[r0:r1, c0:c1], 1.0)
-        relief = cv2.bitwise_or(cv2.compare(z_hit, 0.0, cv2.CMP_GT), cv2.compare(ground, 0.0, cv2.CMP_GT))
-        if cv2.countNonZero(relief) == 0:
+        z0, relief = np.empty((hc, wc), np.float32), np.empty((hc, wc), np.uint8)
+        count = kernels.march[tilt is not None](
+            z0, relief, probes, np.array([z - 1e-4 for z in levels], np.float32), np.array(levels, np.float32),
+            pooled, np.ascontiguousarray(self._ground_heights(int(math.ceil((reach + 1.0) / f)))[r0:r1, c0:c1]))
+        if count == 0:
             return flat_view()
-        cap = np.float32(_MAX_HEIGHT_FRACTION * big_h) if z_raw > _MAX_HEIGHT_FRACTION * big_h else None
-        # the relief cells' pixels, block by block (flat indices), each with its cell's z0
-        cells = np.flatnonzero(relief)
-        rows, cols = np.divmod(cells, wc)
-        within = (np.arange(f)[:, None] * w + np.arange(f)[None, :]).ravel()
-        idx = ((rows * (f * w) + cols * f)[:, None] + within[None, :]).ravel()
-        z0s = np.repeat(z_hit.ravel()[cells], f * f)
-        if w % f or h % f:   # partial blocks at the right and bottom edges: their pixels inside the frame
-            keep = ((rows[:, None] * f + within[None, :] // w < h)
-                    & (cols[:, None] * f + within[None, :] % w < w)).ravel()
-            idx, z0s = idx[keep], z0s[keep]
-        nx, ny = np.float32(nadir_x), np.float32(nadir_y)
-        rus, rvs = ru.ravel()[idx], rv.ravel()[idx]
-        m = a[:, :2].astype(np.float32)
-        du, dv = m[0, 0] * rus + m[0, 1] * rvs, m[1, 0] * rus + m[1, 1] * rvs     # ground point - nadir, map px
-        bx, by = self._row_buffers(idx.size)
-        big_h32 = np.float32(big_h)
+        cap = _MAX_HEIGHT_FRACTION * big_h if z_raw > _MAX_HEIGHT_FRACTION * big_h else math.inf
+        if max(self.dsm.shape) < _REMAP_MAX_PX:
+            window = (0, 0, self.dsm.shape[1], self.dsm.shape[0], 0)
+        else:   # as remap would read it: a window under the footprint, its border replicated
+            window = (*_window(bbox, 1.0, (0.0, 0.0), self.dsm.shape[1], self.dsm.shape[0]), 1)
+        return pixel_maps(z0, relief, (nadir_x, nadir_y, ox, oy, big_h, _SURFACE_TOL_M, cap), window)
 
-        def height(k: np.ndarray, part: np.ndarray | None = None) -> np.ndarray:
-            """h(m(z)) for the subset's rays (or its ``part``) scaled by k = 1 - z / H about nadir."""
-            n = k.size
-            if n == 0:
-                return k.copy()
-            rows = -(-n // _ROW_PX)
-            sx, sy = bx[:rows], by[:rows]          # sample points written in place (the tail: stale, unread)
-            fx, fy = sx.ravel()[:n], sy.ravel()[:n]
-            np.multiply(du if part is None else du[part], k, out=fx)
-            np.multiply(dv if part is None else dv[part], k, out=fy)
-            fx += nx
-            fy += ny
-            if max(self.dsm.shape) < _REMAP_MAX_PX:
-                hz = cv2.remap(self.dsm, sx, sy, cv2.INTER_NEAREST)
-            else:
-                c0, r0, c1, r1 = _window(bbox, 1.0, (0.0, 0.0), self.dsm.shape[1], self.dsm.shape[0])
-                hz = cv2.remap(self.dsm[r0:r1, c0:c1], sx - np.float32(c0), sy - np.float32(r0), cv2.INTER_NEAREST,
-                               borderMode=cv2.BORDER_REPLICATE)
-            hz = hz.ravel()[:n]
-            return hz if cap is None else np.minimum(hz, cap, out=hz)
-
-        # Fixed-point steps z_{k+1} = h(m(z_k)) from the march's z0 (just below the first hit): z1 is the height
-        # of the surface the ray is in there; where the next step leaves it unchanged the ray sees that surface
-        # (a flat roof, the ground: most pixels). The others (walls, roof edges, trees, low objects) get one
-        # more step; where z keeps jumping between the street and the roof the ray crosses a wall.
-        tol = np.float32(_SURFACE_TOL_M)
-        z1 = height(1.0 - z0s / big_h32)
-        scale = 1.0 - z1 / big_h32
-        z2 = height(scale)
-        moved = np.flatnonzero(np.abs(z2 - z1) > tol)      # not settled on a surface after one step
-        z2 = z2[moved]
-        scale[moved] = k2 = 1.0 - z2 / big_h32
-        wall = moved[np.abs(height(k2, moved) - z2) > tol]
-        facade = facing = None
-        if wall.size:
-            # the ray entered the building through a wall and runs inside down to the ground (unless the
-            # building is thinner than its horizontal travel): the facade takes the building's colour where the
-            # ray meets the ground, one map pixel further from the wall so that bilinear sampling skips the street
-            wu, wv = du[wall], dv[wall]
-            dist = np.maximum(np.hypot(wu, wv), np.float32(1e-3))
-            scale[wall] = 1.0 + 1.0 / dist
-            facade = idx[wall]
-            # a wall the camera sees faces it: towards nadir (map u east, v south)
-            facing = np.empty((wall.size, 2), np.float32)
-            np.divide(wu, dist, out=facing[:, 0])
-            np.negative(facing[:, 0], out=facing[:, 0])
-            np.divide(wv, dist, out=facing[:, 1])
-        # the visible point: the ground point scaled about nadir, in the maps' frame
-        gx, gy = ground_points()
-        gx.ravel()[idx] = du * scale + np.float32(ox)
-        gy.ravel()[idx] = dv * scale + np.float32(oy)
-        return ViewMaps(gx, gy, facade, bbox, facing, origin)
-
-    def _row_buffers(self, n: int) -> tuple[np.ndarray, np.ndarray]:
-        """Two (rows, _ROW_PX) float32 buffers holding n sample points, reused from frame to frame."""
-        rows = max(1, -(-n // _ROW_PX))
-        bufs = self._grids.get("rows")
-        if bufs is None or bufs[0].shape[0] < rows:
-            bufs = self._grids["rows"] = (np.zeros((rows, _ROW_PX), np.float32),
-                                          np.zeros((rows, _ROW_PX), np.float32))
+    def _facade_buffers(self, n: int) -> tuple[np.ndarray, np.ndarray]:
+        """Facade index and facing buffers for up to n pixels, reused from frame to frame."""
+        bufs = self._grids.get("facades")
+        if bufs is None or bufs[0].size < n:
+            bufs = self._grids["facades"] = (np.empty(n, np.int64), np.empty((n, 2), np.float32))
         return bufs
 
     def shade_facades(self, image: np.ndarray, view: ViewMaps, sun_deg: tuple[float, float] | None = None,
                       gamma: float = 2.2) -> np.ndarray:
-        """Shade facade pixels in place (uint8 (h, w, 3)); returns ``image``.
-
-        Without a sun: ``facade_gain`` times the roof colour. With ``sun_deg = (azimuth, elevation)`` (towards
-        the sun, compass degrees) a facade is lit like a vertical wall: in linear light, relative to a sunlit
-        roof (``ambient + direct = 1``, ``direct = (1 - ambient)`` at the sun's elevation), a wall gets half the
-        sky (``ambient / 2``) plus ``direct cos(el) / sin(el) max(0, n . sun)``: walls facing away from the sun
-        are dark, walls facing it at a low sun bright; then ``facade_gain`` (its albedo against the roof's) and
-        the tone curve ``gamma``.
-        """
-        if view.facade is None:
-            return image
-        gain: np.ndarray | float = self.config.facade_gain
-        if sun_deg is not None and view.facing is not None:
-            az, el = (math.radians(a) for a in sun_deg)
-            amb = self.config.ambient
-            towards = view.facing @ np.array([math.sin(az), math.cos(az)], dtype=np.float32)
-            direct = (1.0 - amb) * math.cos(el) / max(math.sin(el), 0.05) * np.maximum(towards, 0.0)
-            gain = gain * np.minimum(0.5 * amb + direct, 1.5) ** (1.0 / gamma)
-            gain = np.asarray(gain, np.float32).repeat(image.shape[-1])
-        # the facade pixels' bytes as one 1-D gather/scatter (several times faster than rows of 3 bytes)
-        c = image.shape[-1]
-        at = (view.facade * c).repeat(c)
-        for i in range(1, c):
-            at[i::c] += i
-        raw = image.reshape(-1)
-        vals = raw[at] * gain
-        raw[at] = np.clip(np.rint(vals, out=vals), 0, 255, out=vals)
+        """Shade facade pixels in place (uint8 (h, w, 3)) by ``facade_gains``; returns ``image``."""
+        if view.facade is not None:
+            kernels.shade_pixels(image.reshape(-1, image.shape[-1]), view.facade,
+                                 self.facade_gains(view, sun_deg, gamma))
         return image
 
+    def facade_gains(self, view: ViewMaps, sun_deg: tuple[float, float] | None = None,
+                     gamma: float = 2.2) -> np.ndarray:
+        """The gain of each facade pixel of ``view`` on its roof's colour.
 
-def _tilted_rays(u: np.ndarray, v: np.ndarray, camera: CameraModel,
-                 tilt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The nadir-camera offsets from the principal point (two (h, w) float32 planes) of the tilted camera's
-    pixels at centred offsets ``u``, ``v``: the homography conjugated by the centring, per plane."""
-    cu, cv = camera.center_px
-    shift = np.array([[1.0, 0.0, cu], [0.0, 1.0, cv], [0.0, 0.0, 1.0]])
-    c = np.linalg.inv(shift) @ tilt @ shift
-    den = cv2.addWeighted(u, c[2, 0], v, c[2, 1], c[2, 2])
-    return (cv2.divide(cv2.addWeighted(u, c[0, 0], v, c[0, 1], c[0, 2]), den),
-            cv2.divide(cv2.addWeighted(u, c[1, 0], v, c[1, 1], c[1, 2]), den))
+        Without a sun: ``facade_gain`` (float64: a byte times a Python float is float64 in NumPy, which the shading
+        reproduces). With ``sun_deg = (azimuth, elevation)`` (towards the sun, compass degrees) a facade is lit
+        like a vertical wall: in linear light, relative to a sunlit roof (``ambient + direct = 1``, ``direct =
+        (1 - ambient)`` at the sun's elevation), a wall gets half the sky (``ambient / 2``) plus ``direct cos(el) /
+        sin(el) max(0, n . sun)``: walls facing away from the sun are dark, walls facing it at a low sun bright;
+        then ``facade_gain`` (its albedo against the roof's) and the tone curve ``gamma`` (float32).
+        """
+        if sun_deg is None or view.facing is None:
+            return np.full(0 if view.facade is None else view.facade.size, self.config.facade_gain)
+        az, el = (math.radians(a) for a in sun_deg)
+        amb = self.config.ambient
+        towards = view.facing @ np.array([math.sin(az), math.cos(az)], dtype=np.float32)
+        direct = (1.0 - amb) * math.cos(el) / max(math.sin(el), 0.05) * np.maximum(towards, 0.0)
+        return np.asarray(self.config.facade_gain * np.minimum(0.5 * amb + direct, 1.5) ** (1.0 / gamma),
+                          np.float32)
 
 
 def sample_grid(view: ViewMaps, data: np.ndarray, factor: int) -> np.ndarray:

@@ -1,0 +1,123 @@
+"""The compiled perspective kernels against the OpenCV/NumPy implementation they replaced (perspective v5, kept in
+``perspective_reference.py``): the same maps, facades and facing directions bit for bit, the same shaded facades,
+over random cities, headings, heights (also above the 0.95 H cap), tilts, box origins, partial march blocks and a
+map beyond remap's size limit."""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+import pytest
+from perspective_reference import reference_maps, reference_shade_facades
+
+from aerial_loc_env.sensors.camera import CameraModel, Pose
+from aerial_loc_env.sensors.perspective import PerspectiveConfig, ReliefView, tilt_homography
+from aerial_loc_env.sensors.render import CameraRenderer, Photometry
+from aerial_loc_env.world.geo import LocalTangentGeoref
+from aerial_loc_env.world.orthomap import Orthomap
+
+GSD = 0.25
+# the kernels reproduce OpenCV 5's nearest-neighbour warp arithmetic (float32 coefficients, FMA); OpenCV 4 rounds
+# its probes in fixed point, so a probe within ~1e-4 px of a pixel boundary may round the other way there
+EXACT = int(cv2.__version__.split(".")[0]) >= 5
+
+
+def city(size_px: int, seed: int, buildings: int, tall_m: float = 40.0) -> Orthomap:
+    """Random box buildings (2-``tall_m`` m, some with a ridge) on textured ground."""
+    rng = np.random.default_rng(seed)
+    rgb = cv2.resize(rng.integers(30, 230, (size_px // 8, size_px // 8, 3), dtype=np.uint8), (size_px, size_px),
+                     interpolation=cv2.INTER_NEAREST)
+    dsm = np.zeros((size_px, size_px), np.float32)
+    for _ in range(buildings):
+        u, v = rng.integers(0, size_px - 60, 2)
+        w, h = rng.integers(8, 60, 2)
+        dsm[v:v + h, u:u + w] = rng.uniform(2.0, tall_m)
+        if rng.random() < 0.3:   # a ridged roof: heights varying across it
+            dsm[v:v + h, u:u + w] += np.abs(np.arange(w, dtype=np.float32) - w / 2) * -0.2 + 2.0
+        rgb[v:v + h, u:u + w] = rng.integers(60, 220, 3)
+    georef = LocalTangentGeoref(origin_lat_deg=47.0, origin_lon_deg=8.0, gsd_x_m=GSD, gsd_y_m=GSD)
+    return Orthomap(rgb=rgb, gsd_x_m=GSD, gsd_y_m=GSD, georef=georef, dsm_m=np.maximum(dsm, 0.0), name="city")
+
+
+def assert_same_view(new, ref) -> None:
+    assert (new is None) == (ref is None)
+    if new is None:
+        return
+    assert new.bbox == ref.bbox and new.origin_px == ref.origin_px
+    if not EXACT:
+        assert np.mean((new.x != ref.x) | (new.y != ref.y)) < 1e-3
+        return
+    assert np.array_equal(new.x.view(np.int32), ref.x.view(np.int32))     # bit for bit (-0.0 too)
+    assert np.array_equal(new.y.view(np.int32), ref.y.view(np.int32))
+    assert (new.facade is None) == (ref.facade is None)
+    if new.facade is not None:
+        assert np.array_equal(new.facade, ref.facade) and np.array_equal(new.facing, ref.facing)
+
+
+@pytest.mark.parametrize(("seed", "size", "tilt_rad"), [
+    (0, (600, 400), (0.0, 0.0)), (1, (600, 400), (0.004, -0.003)), (2, (301, 203), (0.0, 0.0)),
+    (3, (301, 203), (-0.02, 0.015)), (4, (64, 48), (0.0, 0.0))])
+def test_maps_equal_the_opencv_reference_bit_for_bit(seed, size, tilt_rad):
+    om = city(1600, seed, 500)
+    cam = CameraModel(width_px=size[0], height_px=size[1])
+    r = CameraRenderer(om, cam, Photometry.ideal(), perspective=PerspectiveConfig(enabled=True))
+    rng = np.random.default_rng(seed)
+    tilt = tilt_homography(cam, *tilt_rad) if any(tilt_rad) else None
+    facades = 0
+    for altitude in (200.0, 120.0, 60.0, 40.0):      # 40 m: roofs above 0.95 H are capped
+        for _ in range(3):
+            pose = Pose(*rng.uniform(150.0, 250.0, 2), rng.uniform(-math.pi, math.pi), altitude)
+            a = r.camera_to_map(pose)
+            origin = tuple(int(o) for o in rng.integers(0, 400, 2)) if rng.random() < 0.5 else (0, 0)
+            new = r._view.maps(a, altitude, cam, tilt, origin)
+            assert_same_view(new, reference_maps(r._view, a, altitude, cam, tilt, origin))
+            facades += 0 if new is None or new.facade is None else new.facade.size
+    assert facades > 100      # the walls' branch ran
+
+
+def test_flat_and_tilt_only_views_equal_the_reference():
+    """No relief under the footprint (None: the affine warp), and a map without a height model, tilted."""
+    om = city(1600, 5, 0)
+    cam = CameraModel()
+    view = ReliefView(om.dsm_m)
+    flat = ReliefView(None)
+    tilt = tilt_homography(cam, 0.01, -0.004)
+    r = CameraRenderer(om, cam, Photometry.ideal())
+    a = r.camera_to_map(Pose(200.0, 200.0, 0.4, 200.0))
+    assert view.maps(a, 200.0, cam) is None
+    assert_same_view(view.maps(a, 200.0, cam, tilt), reference_maps(view, a, 200.0, cam, tilt))
+    assert_same_view(flat.maps(a, 200.0, cam, tilt, (30, 40)), reference_maps(flat, a, 200.0, cam, tilt, (30, 40)))
+
+
+def test_a_map_beyond_remaps_size_limit_is_read_in_a_window_as_before():
+    """A 32800 px wide height model: remap reads it in a window with the border replicated; so does the kernel."""
+    rng = np.random.default_rng(7)
+    dsm = np.zeros((1200, 32800), np.float32)
+    for _ in range(300):
+        u, v = rng.integers(31000, 32700), rng.integers(0, 1150)
+        dsm[v:v + rng.integers(8, 50), u:u + rng.integers(8, 50)] = rng.uniform(2.0, 40.0)
+    cam = CameraModel()
+    view = ReliefView(dsm)
+    for tilt in (None, tilt_homography(cam, 0.003, 0.002)):
+        for yaw in (0.3, 2.0):
+            c, s = math.cos(yaw), math.sin(yaw)
+            a = np.array([[c, -s, 31900.0 - 299.5 * c + 199.5 * s], [s, c, 600.0 - 299.5 * s - 199.5 * c]])
+            new = view.maps(a, 150.0, cam, tilt)
+            assert new is not None and new.facade is not None
+            assert_same_view(new, reference_maps(view, a, 150.0, cam, tilt))
+
+
+@pytest.mark.parametrize("sun_deg", [None, (250.0, 35.0), (80.0, 12.0)])
+def test_facade_shading_equals_the_reference(sun_deg):
+    om = city(1600, 8, 500)
+    r = CameraRenderer(om, CameraModel(), Photometry.ideal(), perspective=PerspectiveConfig(enabled=True))
+    pose = Pose(200.0, 200.0, 0.7, 80.0)
+    view = r._view.maps(r.camera_to_map(pose), 80.0, r.camera)
+    assert view.facade is not None and view.facade.size > 100
+    image = np.random.default_rng(1).integers(0, 256, (400, 600, 3), dtype=np.uint8)
+    expected = reference_shade_facades(r._view, image.copy(), view, sun_deg, 2.2)
+    got = r._view.shade_facades(image.copy(), view, sun_deg, 2.2)
+    assert np.array_equal(got, expected)
+    assert not np.array_equal(got, image)
