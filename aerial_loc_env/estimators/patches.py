@@ -1,38 +1,39 @@
-"""Reconstructed camera images ("virtual" views of the database) at many poses, with one ``cv2.remap``.
+"""Reconstructed camera images ("virtual" views of the database) at many poses, in one compiled pass.
 
 The dense measurement models (SSD, NCC, MI), abBRIEF and the edge model compare the camera image with the
 database patch each particle would see (Choi & Park, II.B "reconstructed camera image"). Doing that with one
-OpenCV warp per particle is a Python loop of N calls; here the N patches are sampled in ONE ``cv2.remap`` over
-stacked coordinate maps of shape (N * h, w).
+OpenCV warp per particle is a Python loop of N calls; here every particle's patch is sampled straight from the
+stored level by its affine in ``patch_kernels.scan`` (cv2.remap's bilinear values, no coordinate maps) and, for
+the models, scored in the same pass (``PatchSampler.score``): nothing of size N h w is materialized.
 
 Geometry is not re-derived: the per-particle affine camera pixel -> map pixel is ``CameraModel.camera_to_map``
 (eq. (3), ``s R(psi) x + T``). It is composed with two fixed affines (reduced camera grid -> full camera pixels,
-full map pixels -> the pixels of an anti-aliased, downsampled copy of the database), and, because an affine map
-of a regular grid is separable, the (N, h, w) coordinates are built with two broadcast additions.
+full map pixels -> the pixels of an anti-aliased, downsampled copy of the database); a grid node's level
+coordinates are the float32 ``e00 col + (e01 row + e02)``.
 
 Anti-aliasing: the camera image is reduced with ``cv2.INTER_AREA`` (a box filter) and the database is
 downsampled once at reset with ``INTER_AREA`` by the map-pixels-per-patch-pixel factor at the nominal altitude,
 so both sides are low-passed alike before the comparison.
 
-Out-of-map samples and the database's no-data pixels come out as NaN (float32 images); ``sample`` returns a
-per-particle validity flag so that the models give such particles the worst likelihood, never NaN.
+Out-of-map samples and the database's no-data pixels come out as NaN (float32 images); ``sample`` and ``score``
+return a per-particle validity flag so that the models give such particles the worst likelihood, never NaN.
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
 
 from ..errors import ConfigError
+from . import patch_kernels as kernels
+from .patch_kernels import BRIEF, HISTOGRAM, MOMENTS, SAMPLE
 
-#: cv2.remap refuses maps with more rows than this (SHRT_MAX); larger particle sets are sampled in chunks.
-_MAX_REMAP_ROWS = 32000
-#: samples per chunk of ``PatchSampler.sample_chunks``: the chunk's two maps and its samples (1.4 MB at
-#: 120 000 float32 samples) stay in a 2 MB L2 cache until they are scored (50 particles of 60 x 40)
-_CHUNK_SAMPLES = 120_000
+__all__ = ["BRIEF", "HISTOGRAM", "MOMENTS", "SAMPLE", "PatchGeometry", "PatchSampler", "reduce_image", "to_gray"]
+
+#: footprints farther off the level than this (level pixels) are sampled by the kernel's general path only
+_NEAR_PX = 2.0 ** 30
 
 
 def reduce_image(image: np.ndarray, width_px: int, height_px: int) -> np.ndarray:
@@ -106,13 +107,8 @@ class PatchSampler:
             level[bad > 0] = np.nan                 # (all channels; level is a copy of the layer)
         self.level = np.ascontiguousarray(level)
         self.has_nan = bool(np.isnan(self.level).any())
-        # OpenCV's remap has vectorized paths for 1 and 4 float channels only: a 2- or 3-channel level is
-        # sampled as 4 channels (zero padding) and cut back, the same values 4x faster (2 channels)
-        self._channels = 1 if self.level.ndim == 2 else self.level.shape[2]
-        self._remap_level = self.level
-        if self._channels in (2, 3):
-            pad = np.zeros(self.level.shape[:2] + (4 - self._channels,), np.float32)
-            self._remap_level = np.ascontiguousarray(np.concatenate([self.level, pad], axis=2))
+        # the kernel reads channel planes (C, h, w): each channel's neighbours are adjacent floats
+        self.planes = np.ascontiguousarray(np.moveaxis(self.level.reshape(lh, lw, -1), 2, 0))
         self.level_size = (lw, lh)
         # full map pixel -> level pixel (pixel centres at integers on both)
         fx, fy = w / lw, h / lh
@@ -126,7 +122,14 @@ class PatchSampler:
                                     [0.0, 0.0, 1.0]])
         self._cols = np.arange(geometry.width_px, dtype=np.float32)
         self._rows = np.arange(geometry.height_px, dtype=np.float32)
-        self._map_buffers: tuple[np.ndarray, np.ndarray] | None = None
+        # the grid's points as the kernel takes them: (rows, cols) blocks of one grid row each
+        gh, gw = geometry.height_px, geometry.width_px
+        self.grid_points = (np.ascontiguousarray(np.broadcast_to(self._cols, (gh, gw))),
+                            np.ascontiguousarray(np.broadcast_to(self._rows[:, None], (gh, gw))))
+
+    @property
+    def channels(self) -> int:
+        return self.planes.shape[0]
 
     def grid_to_level(self, states: np.ndarray, altitude_m: float) -> np.ndarray:
         """Affines (N, 2, 3): reduced-grid pixel -> stored-level pixel, from ``camera_to_map`` (eq. (3))."""
@@ -137,125 +140,82 @@ class PatchSampler:
         a3[:, 2, 2] = 1.0
         return (self._to_level @ a3 @ self._from_grid)[:, :2]
 
-    def sample_nodes(self, states: np.ndarray, altitude_m: float,
-                     nodes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Only the grid nodes ``nodes`` (flat indices ``row * w + col``) of every patch: (N, len(nodes)[, S])
-        float32 with ``S = node_channels`` (a 2- or 3-channel level comes back with its zero padding to 4
-        channels, the real ones first: no copy to cut it), the same values as
-        ``sample(...)[0].reshape(N, h * w, ...)[:, nodes]`` bit for bit (the same float32 map arithmetic per
-        node), and the same validity. For models that read a few nodes of the grid (abBRIEF's test points).
-        With no-data in the database the whole patch decides the validity, so the whole patch is sampled."""
-        nodes = np.asarray(nodes, dtype=np.intp)
-        if self.has_nan:
-            patches, valid = self.sample(states, altitude_m)
-            n = patches.shape[0]
-            values = patches.reshape((n, -1) + patches.shape[3:])[:, nodes]
-            if self.node_channels != self._channels:
-                values = np.concatenate([values, np.zeros(values.shape[:2] + (4 - self._channels,),
-                                                          np.float32)], axis=2)
-            return np.ascontiguousarray(values), valid
-        e = self.grid_to_level(states, altitude_m).astype(np.float32)
+    def node_points(self, nodes: np.ndarray, block: int = 64) -> tuple[np.ndarray, np.ndarray]:
+        """The grid nodes ``nodes`` (flat indices ``row * w + col``) as the kernel's point blocks (R, ``block``)
+        float32 (cols, rows), the last block padded with the first node; node k is flat point k."""
+        nodes = np.asarray(nodes, dtype=np.intp).ravel()
         gw = self.geometry.width_px
-        cols, rows = self._cols[nodes % gw], self._rows[nodes // gw]
-        mx, my = _node_coords(e, cols, rows)
-        chans = () if self._remap_level.ndim == 2 else (self._remap_level.shape[2],)
-        out = np.empty((e.shape[0], nodes.size) + chans, np.float32)
-        for start in range(0, e.shape[0], _MAX_REMAP_ROWS):
-            stop = min(e.shape[0], start + _MAX_REMAP_ROWS)
-            self._remap_into(out[start:stop], mx[start:stop], my[start:stop])
-        return out, self._footprint_valid(e)
-
-    @property
-    def node_channels(self) -> int:
-        """Channels of ``sample_nodes``' values: the level's, or 4 where it is padded (2 or 3 channels)."""
-        return 1 if self._remap_level.ndim == 2 else self._remap_level.shape[2]
-
-    def _maps(self, e: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Level-pixel coordinates (N, h, w) of every grid node, float32: ``e_00 col + (e_01 row + e_02)``.
-
-        Written into two buffers kept across calls (fresh 7 MB arrays cost their page faults on every step),
-        as a copy of the per-column term then one in-place add of the per-row term: the same float32 sums as
-        a broadcast ``np.add``, in passes with longer inner loops. Valid until the next call.
-        """
-        n = e.shape[0]
-        gh, gw = self.geometry.height_px, self.geometry.width_px
-        if self._map_buffers is None or self._map_buffers[0].shape[0] < n:
-            self._map_buffers = (np.empty((n, gh, gw), np.float32), np.empty((n, gh, gw), np.float32))
-        maps = tuple(b[:n] for b in self._map_buffers)
-        for i, m in enumerate(maps):
-            m[...] = (e[:, i, 0, None] * self._cols)[:, None, :]
-            m += (e[:, i, 1, None] * self._rows + e[:, i, 2, None])[:, :, None]
-        return maps
-
-    def _remap_into(self, out: np.ndarray, mx: np.ndarray, my: np.ndarray) -> None:
-        """Bilinear samples of the level at (mx, my) (any (M, ...) shape, at most 32000 rows once flattened to
-        2-D) written straight into ``out`` (dst=): no second copy of the samples."""
-        cols = mx.shape[-1]
-        dst = out.reshape((-1, cols) + out.shape[mx.ndim:])
-        level = self._remap_level
-        direct = level.ndim == dst.ndim and (level.ndim == 2 or level.shape[2] == dst.shape[2])
-        res = cv2.remap(level, mx.reshape(-1, cols), my.reshape(-1, cols), cv2.INTER_LINEAR,
-                        dst=dst if direct else None, borderMode=cv2.BORDER_CONSTANT, borderValue=float("nan"))
-        if not direct:                       # a padded level: keep the real channels
-            dst[...] = res[..., :dst.shape[-1]]
-        elif not np.shares_memory(res, dst):   # OpenCV reallocated (never expected): copy instead
-            dst[...] = res.reshape(dst.shape)
+        nr = -(-nodes.size // block)
+        padded = np.full(nr * block, nodes[0] if nodes.size else 0, np.intp)
+        padded[:nodes.size] = nodes
+        return (np.ascontiguousarray(self._cols[padded % gw].reshape(nr, block)),
+                np.ascontiguousarray(self._rows[padded // gw].reshape(nr, block)))
 
     def _footprint_valid(self, e: np.ndarray) -> np.ndarray:
         """Footprint inside the level: an affine image of the grid has its extremes at the grid corners (the
-        corner coordinates computed as ``_maps`` computes them, so the same floats)."""
-        gh, gw = self.geometry.height_px, self.geometry.width_px
-        cols, rows = self._cols[[0, gw - 1, 0, gw - 1]], self._rows[[0, 0, gh - 1, gh - 1]]
-        cu, cv = _node_coords(e, cols, rows)
+        corner coordinates computed as the kernel computes every node's, so the same floats)."""
+        cu, cv = self._corners(e)
         lw, lh = self.level_size
         return (cu.min(1) >= 0) & (cu.max(1) <= lw - 1) & (cv.min(1) >= 0) & (cv.max(1) <= lh - 1)
 
+    def _corners(self, e: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        gh, gw = self.geometry.height_px, self.geometry.width_px
+        return _node_coords(e, self._cols[[0, gw - 1, 0, gw - 1]], self._rows[[0, 0, gh - 1, gh - 1]])
+
     def sample(self, states: np.ndarray, altitude_m: float) -> tuple[np.ndarray, np.ndarray]:
-        """Patches (N, h, w[, C]) float32 and validity (N,) bool (footprint inside the map, no no-data)."""
+        """Patches (N, h, w[, C]) float32 and validity (N,) bool (footprint inside the map, no no-data): every
+        grid node's bilinear sample of the level (``cv2.remap``'s values; NaN outside the level)."""
         e = self.grid_to_level(states, altitude_m).astype(np.float32)
         n = e.shape[0]
-        gh, gw = self.geometry.height_px, self.geometry.width_px
-        mx, my = self._maps(e)
-        chans = () if self.level.ndim == 2 else (self.level.shape[2],)
-        out = np.empty((n, gh, gw) + chans, np.float32)
-        per = max(1, _MAX_REMAP_ROWS // gh)
-        for start in range(0, n, per):  # one remap for N <= 32000 / h particles (800 at h = 40)
-            stop = min(n, start + per)
-            self._remap_into(out[start:stop], mx[start:stop], my[start:stop])
+        cols, rows = self.grid_points
+        cu, cv = self._corners(e)
+        near = np.isfinite(cu).all(1) & np.isfinite(cv).all(1) & (np.abs(cu) < _NEAR_PX).all(1) \
+            & (np.abs(cv) < _NEAR_PX).all(1)
+        out = np.empty((n, self.channels) + cols.shape, np.float32)
+        self._scan(e, cols, rows, near, self.channels, SAMPLE, samples=out)
         valid = self._footprint_valid(e)
         if self.has_nan:
             valid &= ~np.isnan(out.reshape(n, -1)).any(axis=1)
-        return out, valid
+        patches = out[:, 0] if self.level.ndim == 2 else np.ascontiguousarray(np.moveaxis(out, 1, -1))
+        return patches, valid
 
-
-    def sample_chunks(self, states: np.ndarray, altitude_m: float, samples_per_chunk: int = _CHUNK_SAMPLES
-                      ) -> Iterator[tuple[slice, np.ndarray, np.ndarray]]:
-        """``sample`` a chunk of particles at a time: yields (the chunk's slice of the particles, its patches
-        (k, h, w[, C]) float32, its validity (k,) bool), the same values as ``sample`` bit for bit (the same
-        float32 maps and remap per sample). The patches live in one buffer that the next chunk overwrites:
-        score them before advancing. Scoring a chunk while its maps and samples are still in the cache is
-        ~7 % faster than scoring the (N, h, w) stack once it is all sampled (SSD at N = 700)."""
+    def score(self, states: np.ndarray, altitude_m: float, mode: int, *, points=None, channels: int = 1,
+              **inputs) -> tuple[np.ndarray, np.ndarray]:
+        """Every particle's view scored in the kernel without materializing it (``patch_kernels.scan``'s
+        ``mode`` and its inputs: ``ref``, ``shift``, ``ref_bins``, ``bins``, ``scale``, ``nlogn``, ``tests``,
+        ``cam_bits``), at the grid or at ``points`` (``node_points``). Returns the statistics (N, 4) float64
+        (rows of particles whose footprint leaves the level untouched) and that footprint validity (N,) bool."""
         e = self.grid_to_level(states, altitude_m).astype(np.float32)
-        n = e.shape[0]
-        gh, gw = self.geometry.height_px, self.geometry.width_px
-        per = max(1, min(samples_per_chunk // (gh * gw), _MAX_REMAP_ROWS // gh))
-        chans = () if self.level.ndim == 2 else (self.level.shape[2],)
-        buffer = np.empty((min(per, n), gh, gw) + chans, np.float32)
+        cols, rows = self.grid_points if points is None else points
         valid = self._footprint_valid(e)
-        for start in range(0, n, per):
-            stop = min(n, start + per)
-            patches = buffer[:stop - start]
-            mx, my = self._maps(e[start:stop])
-            self._remap_into(patches, mx, my)
-            ok = valid[start:stop]
-            if self.has_nan:
-                ok = ok & ~np.isnan(patches.reshape(stop - start, -1)).any(axis=1)
-            yield slice(start, stop), patches, ok
+        stats = np.zeros((e.shape[0], 4))
+        self._scan(e, cols, rows, valid, channels, mode, stats=stats, **inputs)
+        return stats, valid
+
+    def _scan(self, e, cols, rows, active, channels, mode, *, ref=None, shift=0.0, ref_bins=None, bins=0,
+              scale=0.0, nlogn=None, tests=None, cam_bits=None, samples=None, stats=None) -> None:
+        """``patch_kernels.scan`` with every unused input an empty array of the used one's type (one compiled
+        specialization serves every mode)."""
+        kernels.scan(self.planes, e, cols, rows, active, int(channels), int(mode),
+                     _EMPTY_F32_2D if ref is None else ref, float(shift),
+                     _EMPTY_I32_2D if ref_bins is None else ref_bins, int(bins), np.float32(scale),
+                     _EMPTY_F64 if nlogn is None else nlogn, _EMPTY_TESTS if tests is None else tests,
+                     _EMPTY_BOOL if cam_bits is None else cam_bits,
+                     _EMPTY_F32_4D if samples is None else samples, _EMPTY_STATS if stats is None else stats)
+
+
+_EMPTY_F32_2D = np.zeros((0, 0), np.float32)
+_EMPTY_I32_2D = np.zeros((0, 0), np.int32)
+_EMPTY_F64 = np.zeros(0)
+_EMPTY_TESTS = np.zeros((0, 3), np.int64)
+_EMPTY_BOOL = np.zeros(0, np.bool_)
+_EMPTY_F32_4D = np.zeros((0, 0, 0, 0), np.float32)
+_EMPTY_STATS = np.zeros((0, 4))
 
 
 def _node_coords(e: np.ndarray, cols: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Level-pixel coordinates (u, v), (N, M) float32, of the M grid nodes at (``cols[j]``, ``rows[j]``) under
-    each particle's affine ``e`` (N, 2, 3): ``e_00 col + (e_01 row + e_02)``, the float32 sums ``_maps``
+    each particle's affine ``e`` (N, 2, 3): ``e_00 col + (e_01 row + e_02)``, the float32 sums the kernel
     computes for every node."""
     u = (e[:, 0, 0, None] * cols) + (e[:, 0, 1, None] * rows + e[:, 0, 2, None])
     v = (e[:, 1, 0, None] * cols) + (e[:, 1, 1, None] * rows + e[:, 1, 2, None])

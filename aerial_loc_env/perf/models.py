@@ -84,7 +84,7 @@ def _model_step(name: str, **params) -> Callable[[], Callable[[], object]]:
 
 def _ssd_loop_reference() -> Callable[[], object]:
     """What the vectorized models replace: one ``cv2.warpAffine`` per particle (same level, same patches)."""
-    from ..estimators.mcl.dense import SSDModel, msd
+    from ..estimators.mcl.dense import SSDModel
 
     briefing, obs, states = _scene()
     model = SSDModel()
@@ -97,7 +97,7 @@ def _ssd_loop_reference() -> Callable[[], object]:
         affines = sampler.grid_to_level(states, _ALT_M)
         patches = np.stack([cv2.warpAffine(sampler.level, a, size, flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
                             for a in affines])
-        return msd(patches.reshape(len(states), -1), ref)
+        return np.square(patches.reshape(len(states), -1) - ref).mean(axis=1)
 
     return step
 

@@ -15,7 +15,8 @@ check against; these are documented, configurable, and tested for behaviour, not
   ``"Lab"`` or ``"L"`` (plain BRIEF on lightness, for ablations).
 - Smoothing: BRIEF smooths before testing; here both images are box-filtered to a ``grid_width_px x
   grid_height_px`` working grid (the camera with ``INTER_AREA``, the database by ``estimators.patches``), and
-  the test points are nodes of that grid, so all particles' views come from one ``cv2.remap``.
+  the test points are nodes of that grid, so each particle's view is sampled at the pattern's nodes only and
+  its bits compared with the camera's in the same compiled pass (``PatchSampler.score``).
 - Keypoints: a regular ``keypoints_x x keypoints_y`` grid of keypoints over the frame (the camera is nadir and
   gimbaled, so no detector or orientation is needed); each keypoint has ``tests_per_keypoint`` pairs drawn once
   per episode (the agent's seeded Generator) from BRIEF's isotropic Gaussian G II, ``sigma = S / 5`` with
@@ -37,7 +38,7 @@ import numpy as np
 
 from ...config import rng
 from ...errors import ConfigError
-from ..patches import PatchGeometry, PatchSampler, reduce_image
+from ..patches import BRIEF, PatchGeometry, PatchSampler, reduce_image
 from ..protocol import parse_observation
 from .measurement import MeasurementModel, register_model
 
@@ -103,19 +104,6 @@ def reduced_lab(rgb: np.ndarray, channels: str, width_px: int, height_px: int) -
 
 class PreparedBrief(NamedTuple):
     bits: np.ndarray          # (P c,) bool: the camera's descriptor
-    packed: np.ndarray        # the same bits, np.packbits (eight to a byte, zero-padded)
-
-
-#: set bits of every byte value, for numpy < 2 (no np.bitwise_count)
-_POPCOUNT8 = np.array([bin(i).count("1") for i in range(256)], dtype=np.uint8)
-
-
-def popcount(a: np.ndarray) -> np.ndarray:
-    """Set bits of every byte of a uint8 array (``np.bitwise_count`` on numpy >= 2, a table lookup before)."""
-    a = np.asarray(a, dtype=np.uint8)
-    if hasattr(np, "bitwise_count"):
-        return np.bitwise_count(a)
-    return _POPCOUNT8[a]
 
 
 class ABBriefModel(MeasurementModel):
@@ -139,16 +127,17 @@ class ABBriefModel(MeasurementModel):
         # indices into (h w c) rows: test i on channel j is column i c + j
         self._i1 = (idx1[:, None] * c + np.arange(c)).ravel()
         self._i2 = (idx2[:, None] * c + np.arange(c)).ravel()
-        # the particles' views are sampled at the test points only (the distinct nodes of the pattern)
-        self._nodes, inverse = np.unique(np.concatenate([idx1, idx2]), return_inverse=True)
-        j1, j2 = inverse[:idx1.size], inverse[idx1.size:]
-        stride = self.sampler.node_channels      # columns of sample_nodes' (N, nodes * stride) values
-        self._k1 = (j1[:, None] * stride + np.arange(c)).ravel()
-        self._k2 = (j2[:, None] * stride + np.arange(c)).ravel()
-        # one gathered item per test point where the c channels fit one: a float32 (c = 1) or the first two
-        # floats of a padded node read as one complex64 (c = 2): half the gathers for a/b, the same floats
-        self._j = (j1, j2) if (c, stride) in ((1, 1), (2, 4)) else None
-        self._j_items = c
+        # the particles' views are sampled at the pattern's distinct nodes only; with no-data in the database
+        # at every node, since the whole patch decides the validity
+        g = self.sampler.geometry
+        nodes = np.arange(g.n_pixels) if self.sampler.has_nan else np.unique(np.concatenate([idx1, idx2]))
+        self._points = self.sampler.node_points(nodes)
+        position = np.empty(g.n_pixels, np.int64)
+        position[nodes] = np.arange(nodes.size)
+        # the kernel's tests, in the descriptor's order (test i on channel j at i c + j): (first, second, channel)
+        self._tests = np.ascontiguousarray(np.stack([np.repeat(position[idx1], c), np.repeat(position[idx2], c),
+                                                     np.tile(np.arange(c), idx1.size)], axis=1))
+        self._channels = c
 
     def _descriptor(self, values: np.ndarray) -> np.ndarray:
         """Bits (M, P c) of grid values (M, h w c) (nodes x channels flattened, channel fastest)."""
@@ -163,31 +152,25 @@ class ABBriefModel(MeasurementModel):
         small = reduced_lab(obs.image, self.config.channels, g.width_px, g.height_px)
         bits = self._descriptor(small.reshape(1, -1))[0]
         self.last_stats = {"bits": int(bits.size)}
-        return PreparedBrief(bits, np.packbits(bits))
+        return PreparedBrief(bits)
 
     def similarity(self, prepared: PreparedBrief, states: np.ndarray, altitude_m: float) -> np.ndarray:
-        """xi (N,): fraction of the camera's bits that the view at each particle reproduces.
-
-        The views are sampled at the pattern's nodes only (``PatchSampler.sample_nodes``: the same values as
-        the whole patch's), the bits packed eight to a byte and the disagreements counted by popcount of the
-        XOR (an exact integer count: the same xi as comparing the bool descriptors)."""
+        """xi (N,): fraction of the camera's bits that the view at each particle reproduces (eq. (4): the XNOR
+        count over keypoints x tests x channels). The kernel samples each view at the pattern's nodes and counts
+        the disagreeing bits exactly (integers: the same xi as comparing the bool descriptors); a view that
+        leaves the map or touches no-data scores 1/2."""
         if self.sampler is None:
             raise ConfigError("abBRIEF: call reset(briefing, rng) before scoring particles")
-        values, valid = self.sampler.sample_nodes(states, altitude_m, self._nodes)
-        if self._j is not None:
-            n = len(values)
-            items = values.reshape(n, -1) if self._j_items == 1 else \
-                np.ascontiguousarray(values.view(np.complex64)[..., 0])
-            first, second = (np.take(items, j, axis=1, mode="clip").view(np.float32) for j in self._j)
-            db_bits = first > second                   # (N, tests c), channel fastest, as with _k1 / _k2
-        else:
-            values = values.reshape(len(values), -1)
-            db_bits = np.take(values, self._k1, axis=1) > np.take(values, self._k2, axis=1)
-        # eq. (4): XNOR count over all bits (keypoints x tests x channels) = bits - popcount(XOR)
-        n_bits = prepared.bits.size
-        disagree = popcount(np.packbits(db_bits, axis=1) ^ prepared.packed).sum(axis=1, dtype=np.int64)
-        xi = (n_bits - disagree) / float(n_bits)
-        return np.where(valid, xi, 0.5)
+        cam_bits = np.ascontiguousarray(prepared.bits, dtype=np.bool_)
+        if cam_bits.shape != (self._tests.shape[0],):
+            raise ConfigError(f"abBRIEF: the prepared descriptor has {cam_bits.size} bits, the pattern "
+                              f"{self._tests.shape[0]}: prepare() and similarity() of different models")
+        stats, valid = self.sampler.score(states, altitude_m, BRIEF, points=self._points, channels=self._channels,
+                                          tests=self._tests, cam_bits=cam_bits)
+        disagree = stats[:, 0]
+        valid &= disagree >= 0
+        n_bits = cam_bits.size
+        return np.where(valid, (n_bits - disagree) / float(n_bits), 0.5)
 
     def similarity_reference(self, prepared: PreparedBrief, states: np.ndarray, altitude_m: float) -> np.ndarray:
         """The direct form (whole patches, bool descriptors, XNOR count): the tests' reference."""
