@@ -4,22 +4,15 @@ N = 700 particles) on a 2000 x 2000 px, 0.25 m/px synthetic map with the paper's
 Targets (issue 12, ratios to the floor, one bare map warp): SSD and NCC at 60 x 40 patches <= 5x; MI <= 10x;
 abBRIEF <= 8x.
 
-Where the time goes (profiled on the 2-core machine, quiet): SSD and NCC are the patch sampling, one
-``cv2.remap`` of N h w = 1.68 M bilinear samples (~2.9 ms, 1.7 ns a sample) plus its float32 coordinate maps
-(~1.5 ms); the similarity itself is ~0.5 ms. So ~5x is the sampling alone: fixed-point maps, a uint8 level, an
-interleaved map or cache-sized chunks were all measured slower or equal. MI adds the joint histograms (one
-bincount over the N h w samples, ~3-4 ms). abBRIEF samples only its pattern's ~940 distinct nodes (of 2400)
-through a 4-channel padded level (the 2-channel remap is 4x slower) and counts bits by popcount; its camera
-side (CIELab of the whole frame, ~0.9 ms) is a fixed cost.
-
-Since then (bit-identical, tests/test_mcl_step_speedups.py): the dense models sample and score 50 particles at a
-time (``PatchSampler.sample_chunks``) so that each chunk's maps and samples are scored while in the L2 cache, the
-map buffers are kept across steps, NCC's unit reference and MI's reference bins are made once per frame, and
-abBRIEF gathers its a/b test values as one 8-byte item per point. SSD ~6.2 -> ~5.6 ms, MI ~11.1 -> ~9.8 ms,
-abBRIEF ~8.8 -> ~8.1 ms. The floor of SSD/NCC/MI is now the remap itself (~2.9 ms) plus its two float32
-coordinate maps (~1.4 ms, 0.37 ns a coordinate: a copy and one in-place add per map; a flat (N, h w) product,
-a gather of precomputed rows/columns and a batched matmul were all measured slower, and a BLAS or einsum product
-is not the same floats).
+Where the time goes: every model samples each particle's view straight from the stored map level by its affine
+and scores it in the same compiled pass (``estimators/patch_kernels.py``, numba): no coordinate maps, no
+(N, h, w) stack. Before it, SSD and NCC were one ``cv2.remap`` of N h w = 1.68 M samples (~2.9 ms) plus its two
+float32 coordinate maps (~1.4 ms) plus the NumPy similarity (~0.5 ms), MI a bincount of joint bins on top, and
+abBRIEF a remap of its pattern's ~940 distinct nodes through a 4-channel padded level: 6.8x / 7.4x / 11.6x /
+9.3x the floor in one session, 4.1x / 4.2x / 5.7x / 7.0x with the kernel (load 2.6-2.8). The kernel is ~1.8 ns
+a sample (the coordinates in one vectorized loop, the four loads and the fma chain in a second); abBRIEF's camera
+side (CIELab of the whole 600 x 400 frame and its area reduction, ~1 ms) is a fixed cost. The harness's warm-up
+call compiles the kernel (~2.5 s the first time on a machine, cached on disk after).
 """
 
 from __future__ import annotations
