@@ -101,10 +101,13 @@ from ..shadow_detection import (
     restoration_lut,
 )
 from .measurement import MeasurementModel, register_model
+from .pair_kernel import pair_agreements
 
 if TYPE_CHECKING:
     from ...env.briefing import Briefing
 
+#: the kernel's no-data layer when the map has none
+_NO_NODATA = np.zeros(0, np.bool_)
 #: ITU-R 601 luma weights of cv2.COLOR_RGB2GRAY, for single-channel (c = 1) comparisons
 _LUMA = np.array([0.299, 0.587, 0.114], dtype=np.float32)
 
@@ -153,8 +156,7 @@ def xnor_similarity(cam_bits: np.ndarray, db_bits: np.ndarray, keep: np.ndarray 
 
     ``cam_bits`` (K, C) bool; ``db_bits`` (N, K, C) bool; ``keep`` (K,) bool selects the pairs used (eq. 6);
     ``valid`` (N, K) bool marks database pairs with data (an invalid pair counts as half an agreement).
-    ``channels`` (default C): the first ``channels`` are real, the others padding that agrees by construction
-    (the alpha byte of a packed RGBA word: comparing whole 4-byte pixels is 15x faster than strided RGB).
+    ``channels`` (default C): the first ``channels`` are real, the others padding (ignored).
     ``pair_weights`` (K,) >= 0 weights the pairs (the soft allocation): a weighted fraction of agreements.
     Returns (N,) in [0, 1]; 1/2 when no pair is kept.
     """
@@ -164,47 +166,30 @@ def xnor_similarity(cam_bits: np.ndarray, db_bits: np.ndarray, keep: np.ndarray 
         cam_bits, db_bits = cam_bits[keep], db_bits[:, keep]
         valid = None if valid is None else valid[:, keep]
         pair_weights = None if pair_weights is None else pair_weights[keep]
-    n, k, c_all = db_bits.shape
-    c = c_all if channels is None else channels
+    c = db_bits.shape[2] if channels is None else channels
+    counts = np.count_nonzero(db_bits[..., :c] == cam_bits[None, :, :c], axis=2)
+    return similarity_from_counts(counts, counts.sum(axis=1), valid, c, pair_weights)
+
+
+def similarity_from_counts(counts: np.ndarray, sums: np.ndarray, valid: np.ndarray | None, channels: int,
+                           pair_weights: np.ndarray | None = None) -> np.ndarray:
+    """Eq. (4)/(6) from the agreeing bits ``counts`` (N, K) of each pair (of ``channels`` bits) and their sums
+    (N,): all pairs valid and unweighted, the exact fraction (float64); else an invalid pair (``valid`` (N, K)
+    False) counts as half an agreement and ``pair_weights`` (K,) weight the pairs (float32 counts: the sums of
+    halves are exact)."""
+    n, k = counts.shape
+    c = channels
     if valid is None and pair_weights is None:
-        return (k * c - _count_disagreements(db_bits, cam_bits, c)) / (k * c)
-    agree = (db_bits == cam_bits[None])
-    counts = _count_channels(agree) - (c_all - c)                               # (N, K) agreements of c
+        return sums / (k * c)
+    f = counts.astype(np.float32)
     if valid is not None:
-        counts = np.where(valid, counts, 0.5 * c)
+        f = np.where(valid, f, 0.5 * c)
     if pair_weights is None:
-        return counts.sum(axis=1) / (k * c)
+        return f.sum(axis=1) / (k * c)
     total_w = float(np.sum(pair_weights))
     if total_w <= 0:
         return np.full(n, 0.5)
-    return (counts @ pair_weights) / (total_w * c)
-
-
-def _count_disagreements(db_bits: np.ndarray, cam_bits: np.ndarray, c: int) -> np.ndarray:
-    """Disagreeing bits (N,) int64 of the first ``c`` channels of ``db_bits`` (N, K, C) against ``cam_bits``
-    (K, C): an exact integer count, so the similarity is the same float whichever way it is counted.
-
-    For C = 4 (packed RGBA words) and K < 256 the K words of a particle are added as uint32: each byte then
-    holds the count of one channel (at most K, no carry between bytes), read back byte by byte. Half the
-    time of a uint8 reduction over the (N, 4K) bytes. Padding channels (beyond ``c``) agree by construction."""
-    n, k, c_all = db_bits.shape
-    dis = np.not_equal(db_bits, cam_bits[None])
-    if c_all == 4 and k < 256 and dis.flags.c_contiguous:
-        per_byte = dis.view(np.uint32).reshape(n, k).sum(axis=1, dtype=np.uint32)
-        total = (per_byte & np.uint32(0xFF)).astype(np.int64)
-        for shift in (8, 16, 24):     # all four bytes (padding bytes agree): no byte-order assumption
-            total += (per_byte >> np.uint32(shift)) & np.uint32(0xFF)
-        return total
-    return np.count_nonzero(dis[..., :c].reshape(n, k * c), axis=1).astype(np.int64)
-
-
-def _count_channels(agree: np.ndarray) -> np.ndarray:
-    """Sum of a bool (N, K, C) array over its last axis as float32 (N, K). For C = 4 the four bytes of each
-    pair are read as one uint32 and added by a multiply (SWAR): 10x faster than a reduce over a length-4 axis."""
-    if agree.shape[2] == 4 and agree.flags.c_contiguous:
-        word = agree.view(np.uint32)[..., 0]
-        return ((word * np.uint32(0x01010101)) >> np.uint32(24)).astype(np.float32)
-    return agree.sum(axis=2, dtype=np.float32)
+    return (f @ pair_weights) / (total_w * c)
 
 
 #: id(rgb layer) -> (weak reference to it, the no-data layer it was read with, {channels: (words, nodata)})
@@ -213,10 +198,9 @@ _DATABASE_CACHE: dict[int, tuple[weakref.ref, Any, dict[int, tuple[np.ndarray, n
 
 def _database_words(rgb: np.ndarray, nodata: np.ndarray | None,
                     channels: int) -> tuple[np.ndarray, np.ndarray | None]:
-    """The database as one gatherable word per pixel (RGB packed in a uint32, read back as 4 bytes, so one 1-D
-    gather fetches all channels; or the luma byte for c = 1) and the flat no-data mask (None when there is
-    none), read-only. Computed once per map layer and shared by every model on it: the 12 agents of a Table 5
-    episode would otherwise convert the same map 12 times (38 ms each on the paper's map)."""
+    """The database's luma bytes for c = 1 (None for c = 3: the kernel reads the RGB bytes of the map itself) and
+    the flat no-data mask (None when there is none), read-only. Computed once per map layer and shared by every
+    model on it: the 12 agents of a Table 5 episode would otherwise convert the same map 12 times."""
     key = id(rgb)
     entry = _DATABASE_CACHE.get(key)
     if entry is None or entry[0]() is not rgb or entry[1] is not nodata:
@@ -235,10 +219,7 @@ def _database_words(rgb: np.ndarray, nodata: np.ndarray | None,
 def _convert_database(rgb: np.ndarray, nodata: np.ndarray | None,
                       channels: int) -> tuple[np.ndarray, np.ndarray | None]:
     arr = np.ascontiguousarray(rgb)
-    if channels == 1:
-        words = cv2.cvtColor(arr, cv2.COLOR_RGB2GRAY).reshape(-1)
-    else:
-        words = cv2.cvtColor(arr, cv2.COLOR_RGB2RGBA).reshape(-1).view(np.uint32)
+    words = cv2.cvtColor(arr, cv2.COLOR_RGB2GRAY).reshape(-1) if channels == 1 else None
     flat_nodata = None if nodata is None or not np.any(nodata) else \
         np.array(nodata, dtype=bool).reshape(-1)
     for a in (words, flat_nodata):
@@ -295,15 +276,17 @@ class IntensityPairsModel(MeasurementModel):
 
     # ---------------------------------------------------------------- per map
     def reset(self, briefing: Briefing, rng: np.random.Generator) -> None:
-        """Keep the database as one gatherable word per pixel: RGB packed in a uint32 (read back as 4 bytes,
-        so one 1-D gather fetches all channels), or the luma byte for c = 1."""
+        """Keep the database as the bytes the kernel compares: the map's own RGB bytes (a view: no copy, and the
+        lines a frame of the same place brought into the cache), or the luma byte per pixel for c = 1. (An RGBA
+        copy, one 4-byte word a pixel, was 4-8 % slower a step: 16 MB more to keep in the cache.)"""
         m = briefing.orthomap
         self.orthomap, self.camera = m, briefing.camera
         rgb = np.asarray(m.rgb)
         if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
             raise ConfigError(f"{m.name}: the database must be (H, W, 3) uint8 RGB, got {rgb.shape} {rgb.dtype}")
         self._H, self._W = rgb.shape[:2]
-        self._db, self._nodata = _database_words(m.rgb, m.nodata, self.config.channels)
+        words, self._nodata = _database_words(m.rgb, m.nodata, self.config.channels)
+        self._db = words if words is not None else np.ascontiguousarray(rgb).reshape(-1)
         if self.config.detector == "map" and self.config.shadow != "ignore":
             self.map_detector.reset(briefing)
 
@@ -386,23 +369,23 @@ class IntensityPairsModel(MeasurementModel):
         return prepared
 
     # ---------------------------------------------------------------- per particle (vectorized)
+    def _affine_rows(self, states: np.ndarray, altitude_m: float, offset_px: float) -> np.ndarray:
+        """Eq. (3)'s affines from ``CameraModel.camera_to_map`` as (2N, 3) float32 rows: every particle's column
+        row first, then every particle's row row, ``offset_px`` added to the translations (in float32)."""
+        a = self.camera.camera_to_map(self.orthomap, states[:, 0], states[:, 1], states[:, 2], altitude_m)
+        a2 = a.transpose(1, 0, 2).reshape(2 * a.shape[0], 3).astype(np.float32)
+        a2[:, 2] += np.float32(offset_px)
+        return a2
+
     def map_pixels(self, uv: np.ndarray, states: np.ndarray, altitude_m: float,
                    offset_px: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
         """Map pixel columns and rows (N, P) (plus ``offset_px``) of the camera pixels ``uv`` (P, 2) at every
-        particle's pose, float32 (1e-3 px precision on a 10^4 px map).
-
-        The affines are eq. (3) from ``CameraModel.camera_to_map``; they are applied as ONE (2N, 3) x (3, P)
-        float32 product with ``einsum`` (its own loops: a BLAS matmul is 2x faster on an idle core but its
-        threads oversubscribe a loaded machine, 100x slower), several times faster than a broadcast einsum.
-        """
-        a = self.camera.camera_to_map(self.orthomap, states[:, 0], states[:, 1], states[:, 2], altitude_m)
-        n = a.shape[0]
-        a2 = a.transpose(1, 0, 2).reshape(2 * n, 3).astype(np.float32)
-        a2[:, 2] += np.float32(offset_px)
-        uvh = np.ones((3, uv.shape[0]), np.float32)
-        uvh[:2] = uv.T
-        pts = np.einsum("nk,kp->np", a2, uvh)                                         # (2N, P)
-        return pts[:n], pts[n:]
+        particle's pose, float32 (1e-3 px precision on a 10^4 px map): ``(a0 u + a1 v) + a2`` per affine row,
+        the arithmetic ``pair_agreements`` does point by point."""
+        a2 = self._affine_rows(states, altitude_m, offset_px)
+        u, v = (uv[:, i].astype(np.float32)[None] for i in (0, 1))
+        pts = (a2[:, :1] * u + a2[:, 1:2] * v) + a2[:, 2:]
+        return pts[:a2.shape[0] // 2], pts[a2.shape[0] // 2:]
 
     def similarity(self, prepared: PreparedPairs | _PendingPairs, states: np.ndarray, altitude_m: float) -> np.ndarray:
         """xi (N,) of eq. (4) (or eq. (6) over the kept pairs) for every particle."""
@@ -410,38 +393,25 @@ class IntensityPairsModel(MeasurementModel):
             raise ConfigError("intensity pairs: call reset(briefing, rng) before scoring particles")
         if isinstance(prepared, _PendingPairs):
             prepared = self._finish_with_map(prepared, states)
-        cam_bits = prepared.cam_bits if prepared.keep is None else prepared.cam_bits[prepared.keep]
-        weights = prepared.pair_weights
-        if weights is not None and prepared.keep is not None:
-            weights = weights[prepared.keep]
-        K, c = cam_bits.shape
+        keep = prepared.keep
+        pairs = np.arange(prepared.cam_bits.shape[0]) if keep is None else np.flatnonzero(keep)
+        weights = prepared.pair_weights if prepared.pair_weights is None or keep is None else \
+            prepared.pair_weights[keep]
+        K, c = pairs.size, prepared.cam_bits.shape[1]
         if K == 0:
             return np.full(states.shape[0], 0.5)
-        uv = prepared.uv if prepared.keep is None else prepared.uv[np.concatenate([prepared.keep] * 2)]
-        col, row = self.map_pixels(uv, states, altitude_m, offset_px=0.5)  # (N, 2K); +0.5: floor = round
-        W, H = self._W, self._H
-        inside = None
-        if col.min() < 0 or row.min() < 0 or col.max() >= W or row.max() >= H:
-            inside = (col >= 0) & (col < W) & (row >= 0) & (row < H)
-            np.clip(col, 0, W - 1, out=col)
-            np.clip(row, 0, H - 1, out=row)
-        itype = np.int32 if W * H < 2 ** 31 else np.intp                                # 4-byte indices
-        flat = row.astype(itype)                                                        # nearest pixel
-        flat *= itype(W)
-        flat += col.astype(itype)
-        db = self._db[flat]                                                             # (N, 2K) words
-        if c == 3:  # RGBA bytes of the packed words; alpha (255 vs 255) never "greater", like the padding
-            db8 = db.view(np.uint8).reshape(db.shape[0], 2 * K, 4)
-            db_bits = db8[:, :K] > db8[:, K:]                                            # (N, K, 4)
-            cam_bits = np.concatenate([cam_bits, np.zeros((K, 1), bool)], axis=1)
-        else:
-            db_bits = (db[:, :K] > db[:, K:])[..., None]
-        valid = inside
-        if self._nodata is not None:
-            ok = ~self._nodata[flat]
-            valid = ok if valid is None else valid & ok
-        valid_pairs = None if valid is None else valid[:, :K] & valid[:, K:]
-        return xnor_similarity(cam_bits, db_bits, None, valid_pairs, channels=c, pair_weights=weights)
+        a = self.camera.camera_to_map(self.orthomap, states[:, 0], states[:, 1], states[:, 2], altitude_m)
+        n = a.shape[0]
+        counts = np.empty((K, n), np.int8)
+        valid = np.empty((K, n), np.bool_)
+        nodata = _NO_NODATA if self._nodata is None else self._nodata
+        sums, outside = pair_agreements(a, prepared.uv, pairs, self._W, self._H, self._db, c, c, nodata,
+                                        prepared.cam_bits, counts, valid)
+        if not outside and self._nodata is None and weights is None:
+            return sums / (K * c)                                   # every pair valid: the exact fraction
+        return similarity_from_counts(np.ascontiguousarray(counts.T), sums,
+                                      np.ascontiguousarray(valid.T) if outside or self._nodata is not None else None,
+                                      c, weights)
 
     def log_likelihood(self, prepared: PreparedPairs | _PendingPairs, states: np.ndarray,
                        altitude_m: float) -> np.ndarray:

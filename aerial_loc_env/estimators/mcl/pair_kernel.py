@@ -1,0 +1,70 @@
+"""The intensity-pair models' per-particle work in one compiled (numba) pass (issue 12): each particle's 2K pair
+points projected into the map by its affine, rounded to the nearest pixel, looked up in the database and
+compared with the camera's bits (the map's own RGB bytes, or its luma for c = 1), without the (N, 2K) coordinate,
+index and word arrays NumPy needed.
+
+Bit for bit the NumPy path it replaced (its branches kept in ``similarity_from_counts``): the map coordinates are
+the float32 ``(a0 u + a1 v) + a2'`` of the affine rows (``a2'`` = the translation plus 0.5 in float32, so that
+truncation rounds; measured equal to the ``einsum`` they replace on every point of the benchmark's step), clipped
+to the map where a point leaves it (then invalid), the agreements counted as integers.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+
+@njit(cache=True, nogil=True, error_model="numpy", boundscheck=False)
+def pair_agreements(affines, uv, pairs, width, height, db, pixel_bytes, channels, nodata, cam_bits, agree, valid):
+    """For particle n (``affines[n]`` (2, 3) float64, eq. (3)'s camera pixel -> map pixel, used in float32 with
+    0.5 added to the translations so that truncation rounds) and the j-th used pair i = ``pairs[j]`` (camera
+    points ``uv[i]`` and ``uv[K + i]``, K = ``cam_bits.shape[0]``): ``agree[j, n]`` = how many of the
+    ``channels`` bits ``db[p1 B + c] > db[p2 B + c]`` (``db`` the database's bytes, B = ``pixel_bytes`` a pixel)
+    equal ``cam_bits[i, c]``; ``valid[j, n]`` = both points on the map and not ``nodata`` (flat bool, or empty
+    for none). Returns (the agreements of each particle summed (N,) int64, whether any point left the map).
+
+    Pair-major: one pair's points at all particles lie close together on the map (the particles cluster), so
+    their lookups hit the cache; particle-major lookups (NumPy's gather) roam over the whole footprint."""
+    n, k = affines.shape[0], cam_bits.shape[0]
+    sums = np.zeros(n, np.int64)
+    w = np.int32(width)
+    wmax, hmax = np.float32(width - 1), np.float32(height - 1)
+    fw, fh = np.float32(width), np.float32(height)
+    zero, half = np.float32(0.0), np.float32(0.5)
+    has_nodata = nodata.shape[0] > 0
+    c0, c1, c2 = np.empty(n, np.float32), np.empty(n, np.float32), np.empty(n, np.float32)
+    r0, r1, r2 = np.empty(n, np.float32), np.empty(n, np.float32), np.empty(n, np.float32)
+    for m in range(n):
+        c0[m], c1[m], c2[m] = affines[m, 0, 0], affines[m, 0, 1], np.float32(affines[m, 0, 2]) + half
+        r0[m], r1[m], r2[m] = affines[m, 1, 0], affines[m, 1, 1], np.float32(affines[m, 1, 2]) + half
+    q1 = np.empty(n, np.uint64)
+    q2 = np.empty(n, np.uint64)
+    step = np.uint64(pixel_bytes)
+    off = np.int32(0)
+    for j in range(pairs.shape[0]):
+        i = pairs[j]
+        u1, v1 = np.float32(uv[i, 0]), np.float32(uv[i, 1])
+        u2, v2 = np.float32(uv[k + i, 0]), np.float32(uv[k + i, 1])
+        aj, vj = agree[j], valid[j]
+        for m in range(n):                     # the coordinates: one vectorized loop (clipping is a no-op inside)
+            col1 = (c0[m] * u1 + c1[m] * v1) + c2[m]
+            row1 = (r0[m] * u1 + r1[m] * v1) + r2[m]
+            col2 = (c0[m] * u2 + c1[m] * v2) + c2[m]
+            row2 = (r0[m] * u2 + r1[m] * v2) + r2[m]
+            inside = ((col1 >= 0) & (col1 < fw) & (row1 >= 0) & (row1 < fh)
+                      & (col2 >= 0) & (col2 < fw) & (row2 >= 0) & (row2 < fh))
+            off |= np.int32(not inside)
+            vj[m] = inside
+            q1[m] = np.uint64(np.int32(min(max(row1, zero), hmax)) * w + np.int32(min(max(col1, zero), wmax)))
+            q2[m] = np.uint64(np.int32(min(max(row2, zero), hmax)) * w + np.int32(min(max(col2, zero), wmax)))
+        for m in range(n):                     # the lookups
+            b1, b2 = q1[m] * step, q2[m] * step
+            a = 0
+            for c in range(channels):
+                a += np.int64((db[b1 + np.uint64(c)] > db[b2 + np.uint64(c)]) == cam_bits[i, c])
+            aj[m] = a
+            sums[m] += a
+            if has_nodata:
+                vj[m] = vj[m] and not nodata[q1[m]] and not nodata[q2[m]]
+    return sums, off != 0
