@@ -121,3 +121,23 @@ def test_facade_shading_equals_the_reference(sun_deg):
     got = r._view.shade_facades(image.copy(), view, sun_deg, 2.2)
     assert np.array_equal(got, expected)
     assert not np.array_equal(got, image)
+
+
+def test_a_view_the_caller_holds_is_never_overwritten():
+    """The maps' planes are reused from frame to frame only once nothing holds the last frame's view."""
+    om = city(1600, 9, 500)
+    r = CameraRenderer(om, CameraModel(), Photometry.ideal(), perspective=PerspectiveConfig(enabled=True))
+    poses = [Pose(200.0, 200.0, 0.3, 120.0), Pose(190.0, 210.0, 1.3, 120.0)]
+    first = r._view.maps(r.camera_to_map(poses[0]), 120.0, r.camera)
+    kept = first.x.copy(), first.y.copy()
+    second = r._view.maps(r.camera_to_map(poses[1]), 120.0, r.camera)
+    assert not np.shares_memory(first.x, second.x) and not np.shares_memory(first.y, second.y)
+    assert np.array_equal(first.x, kept[0]) and np.array_equal(first.y, kept[1])
+    x_plane = first.x
+    del first
+    third = r._view.maps(r.camera_to_map(poses[1]), 120.0, r.camera)
+    assert not np.shares_memory(x_plane, third.x)          # a plane still held on its own is not reused either
+    assert np.array_equal(third.x, second.x) and not np.shares_memory(third.x, second.x)
+    del second, x_plane
+    fourth = r._view.maps(r.camera_to_map(poses[0]), 120.0, r.camera)
+    assert np.array_equal(fourth.x, kept[0])

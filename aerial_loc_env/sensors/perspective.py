@@ -42,6 +42,7 @@ independent of the scene, composed into the same maps (flat ground: the homograp
 from __future__ import annotations
 
 import math
+import sys
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -177,6 +178,15 @@ class ReliefView:
             self._grids[key] = cv2.dilate(self._march_heights(), np.ones((2 * radius + 1,) * 2, np.uint8))
         return self._grids[key]
 
+    def _block_minima(self) -> np.ndarray:
+        """The height model's block minimum over ``_MARCH_FACTOR`` px (once): with the block maximum, where a
+        cell's lookups all fall on one height."""
+        if "minima" not in self._grids:
+            from ..world.shadows import max_pool  # layer 1
+
+            self._grids["minima"] = np.negative(max_pool(np.negative(self.dsm), _MARCH_FACTOR))
+        return self._grids["minima"]
+
     def _march_heights(self) -> np.ndarray:
         """The height model's block maximum over ``_MARCH_FACTOR`` px (once): the coarse march misses nothing."""
         if self._pooled is None:
@@ -213,7 +223,7 @@ class ReliefView:
         def pixel_maps(z0: np.ndarray, relief: np.ndarray, consts: tuple[float, ...] = (0.0,) * 7,
                        window: tuple[int, ...] = (0,) * 5) -> ViewMaps:
             """The kernel's maps: ground points on flat cells, the refined visible points on relief cells."""
-            gx, gy = np.empty((h, w), np.float32), np.empty((h, w), np.float32)
+            gx, gy = self._map_buffers(h, w)
             facade, facing = self._facade_buffers(h * w)
             if tilt is None:
                 conj = np.zeros((3, 3), np.float32)
@@ -224,7 +234,8 @@ class ReliefView:
             n = kernels.view_maps[tilt is not None, bool(window[4])](
                 gx, gy, facade, facing, z0, relief, f, np.array([cu, cv], np.float32), conj, flat,
                 a[:, :2].astype(np.float32), np.array(consts, np.float32),
-                _NO_DSM if self.dsm is None else self.dsm, np.array(window[:4], np.int64))
+                _NO_DSM if self.dsm is None else self.dsm, np.array(window[:4], np.int64),
+                *((_NO_DSM, _NO_DSM) if self.dsm is None else (self._block_minima(), self._march_heights())))
             if n == 0:
                 return ViewMaps(gx, gy, None, bbox, None, origin)
             return ViewMaps(gx, gy, facade[:n].copy(), bbox, facing[:n].copy(), origin)
@@ -245,22 +256,25 @@ class ReliefView:
         to_map = np.vstack([a, [0.0, 0.0, 1.0]]) @ (np.eye(3) if tilt is None else tilt) @ grid_to_cam
         map_to_pool = np.array([[1.0 / f, 0.0, 0.5 / f - 0.5], [0.0, 1.0 / f, 0.5 / f - 0.5], [0, 0, 1]])
 
-        def probe(k: float) -> np.ndarray:
-            """The cells' points m(z) = nadir + k (g - nadir), k = 1 - z / H, in pooled px: (3, 3)."""
-            scaled = np.array([[k, 0.0, nadir_x * (1.0 - k)], [0.0, k, nadir_y * (1.0 - k)], [0.0, 0.0, 1.0]])
+        def probes(k: np.ndarray) -> np.ndarray:
+            """The cells' points m(z) = nadir + k (g - nadir), k = 1 - z / H, in pooled px: (len(k), 3, 3)."""
+            scaled = np.zeros((k.size, 3, 3))
+            scaled[:, 0, 0] = scaled[:, 1, 1] = k
+            scaled[:, 0, 2], scaled[:, 1, 2], scaled[:, 2, 2] = nadir_x * (1.0 - k), nadir_y * (1.0 - k), 1.0
             return map_to_pool @ scaled @ to_map
 
-        # every m(z) lies in the footprint: the march reads a contiguous copy of the pooled heights under it
-        # (cache-resident); pooled px (u + 0.5) / F - 0.5 of the window's map px u
+        # every m(z) lies in the footprint: the march reads the pooled heights in the window under it; pooled px
+        # (u + 0.5) / F - 0.5 of the window's map px u
         pooled = self._march_heights()
         c0, r0, c1, r1 = _window(bbox, 1.0 / f, (0.5 / f - 0.5,) * 2, pooled.shape[1], pooled.shape[0])
-        pooled = np.ascontiguousarray(pooled[r0:r1, c0:c1])
         map_to_pool[:2, 2] -= (c0, r0)
-        ground_m = probe(1.0)
+        ground_m = probes(np.ones(1))[0]
         if tilt is None:
-            heights = cv2.warpAffine(pooled, ground_m[:2], (wc, hc), flags=_NEAREST, borderMode=cv2.BORDER_CONSTANT)
+            heights = cv2.warpAffine(pooled[r0:r1, c0:c1], ground_m[:2], (wc, hc), flags=_NEAREST,
+                                     borderMode=cv2.BORDER_CONSTANT)
         else:
-            heights = cv2.warpPerspective(pooled, ground_m, (wc, hc), flags=_NEAREST, borderMode=cv2.BORDER_CONSTANT)
+            heights = cv2.warpPerspective(pooled[r0:r1, c0:c1], ground_m, (wc, hc), flags=_NEAREST,
+                                          borderMode=cv2.BORDER_CONSTANT)
         z_raw = float(cv2.minMaxLoc(heights)[1])
         z_top = min(z_raw, _MAX_HEIGHT_FRACTION * big_h)
         if z_top <= 0.0:
@@ -271,13 +285,13 @@ class ReliefView:
         # pixels all look at ground of height 0 (the block maximum dilated by the cell's reach, sampled like the
         # march) sees the ground at its affine point g: the fixed-point steps would leave it there (z1 = z2 = 0).
         steps = self.config.march_steps
-        levels = [z_top * (steps - i) / steps for i in range(steps)]
-        probes = np.array([ground_m] + [probe(1.0 - z / big_h) for z in levels], np.float32).reshape(-1, 9)
+        levels = z_top * np.arange(steps, 0, -1) / steps
+        warps = probes(np.concatenate([[1.0], 1.0 - levels / big_h])).astype(np.float32).reshape(-1, 9)
         reach = 2.0 * max(abs(a[0, 0]) + abs(a[0, 1]), abs(a[1, 0]) + abs(a[1, 1]))   # map px per axis, in a cell
         z0, relief = np.empty((hc, wc), np.float32), np.empty((hc, wc), np.uint8)
         count = kernels.march[tilt is not None](
-            z0, relief, probes, np.array([z - 1e-4 for z in levels], np.float32), np.array(levels, np.float32),
-            pooled, np.ascontiguousarray(self._ground_heights(int(math.ceil((reach + 1.0) / f)))[r0:r1, c0:c1]))
+            z0, relief, warps, (levels - 1e-4).astype(np.float32), levels.astype(np.float32), pooled,
+            self._ground_heights(int(math.ceil((reach + 1.0) / f))), np.array([r0, c0, r1 - r0, c1 - c0]))
         if count == 0:
             return flat_view()
         cap = _MAX_HEIGHT_FRACTION * big_h if z_raw > _MAX_HEIGHT_FRACTION * big_h else math.inf
@@ -286,6 +300,17 @@ class ReliefView:
         else:   # as remap would read it: a window under the footprint, its border replicated
             window = (*_window(bbox, 1.0, (0.0, 0.0), self.dsm.shape[1], self.dsm.shape[0]), 1)
         return pixel_maps(z0, relief, (nadir_x, nadir_y, ox, oy, big_h, _SURFACE_TOL_M, cap), window)
+
+    def _map_buffers(self, h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
+        """Two (h, w) float32 planes for a frame's maps: the last frame's when nothing else holds them any more
+        (the renderer drops its view after sampling), else new ones. Fresh planes cost more than the copy: the
+        kernel's first touch faults their pages in (zeroed) every frame."""
+        last = self._grids.get("maps")
+        # references: the dict's tuple, ``last`` and getrefcount's argument; a live ViewMaps adds its own
+        if last is not None and last[0].shape == (h, w) and all(sys.getrefcount(b) <= 3 for b in last):
+            return last
+        bufs = self._grids["maps"] = (np.empty((h, w), np.float32), np.empty((h, w), np.float32))
+        return bufs
 
     def _facade_buffers(self, n: int) -> tuple[np.ndarray, np.ndarray]:
         """Facade index and facing buffers for up to n pixels, reused from frame to frame."""

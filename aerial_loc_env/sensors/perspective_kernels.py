@@ -25,6 +25,8 @@ from llvmlite import ir
 from numba import types
 from numba.extending import intrinsic
 
+_BLOCK = 4     # the march's skip test: maxima of 4 x 4 pooled pixels
+_POOL = 4      # the maps' skip test: the height model's minima and maxima over 4 x 4 px (perspective's block)
 _LANES = 16    # OpenCV's nearest warps: vector body in blocks of 2 x 8 float32 lanes (AVX2), scalar tail after it
 _JIT = {"cache": True, "nogil": True, "error_model": "numpy", "boundscheck": False}
 _F32 = np.float32
@@ -57,32 +59,45 @@ def _round_px(s: np.float32) -> int:
 # subtract), which made an inlined lookup four times slower.
 
 @numba.njit(inline="always", **_JIT)
-def _warp_point(m0: np.float32, m1: np.float32, m2: np.float32, m3: np.float32, m4: np.float32, m5: np.float32,
-                m6: np.float32, m7: np.float32, m8: np.float32, x: int, y: int, body: bool,
-                perspective: bool) -> tuple[int, int]:
-    """The source pixel OpenCV's nearest warp reads for destination pixel (x, y) through ``m0..m8`` (row-major
-    3 x 3; affine: the last row unused): ``body`` in the row's vector body, else its scalar tail."""
-    xf, yf = _F32(x), _F32(y)
+def _warp_point(c0: np.float32, c1: np.float32, c2: np.float32, v0: np.float32, v1: np.float32, v2: np.float32,
+                t0: np.float32, t1: np.float32, t2: np.float32, m2: np.float32, m5: np.float32, m8: np.float32,
+                x: int, body: bool, perspective: bool) -> tuple[int, int]:
+    """The source pixel OpenCV's nearest warp reads for destination pixel (x, y), from one row of ``_row_terms``:
+    the warp's x coefficients ``c`` (M0, M3, M6), its row terms in the vector body ``v`` (``y M1 + M2`` etc.,
+    rounded) and in the scalar tail ``t`` (``y M1`` etc.; then M2, M5, M8): ``body`` picks the vector body's
+    ``fma(M0, x, .)`` or the compiled tail's ``fma(x, M0, y M1) + M2``."""
+    xf = _F32(x)
     if body:
-        sx = _fma(m0, xf, yf * m1 + m2)
-        sy = _fma(m3, xf, yf * m4 + m5)
+        sx, sy = _fma(c0, xf, v0), _fma(c1, xf, v1)
         if perspective:
-            w = _fma(m6, xf, yf * m7 + m8)
+            w = _fma(c2, xf, v2)
             sx, sy = sx / w, sy / w
     else:
-        sx = _fma(xf, m0, yf * m1) + m2
-        sy = _fma(xf, m3, yf * m4) + m5
+        sx, sy = _fma(xf, c0, t0) + m2, _fma(xf, c1, t1) + m5
         if perspective:
-            w = _fma(xf, m6, yf * m7) + m8
+            w = _fma(xf, c2, t2) + m8
             sx, sy = sx / w, sy / w
     return _round_px(sx), _round_px(sy)
 
 
 @numba.njit(inline="always", **_JIT)
-def _window_index(ix: int, iy: int, rows: int, cols: int) -> int:
-    """Flat index of (ix, iy) in a (rows, cols) window, -1 outside it."""
+def _row_terms(terms: np.ndarray, probes: np.ndarray, y: int) -> None:
+    """``terms`` (n, 12) of row ``y`` for the warps ``probes`` (n, 9) (see ``_warp_point``)."""
+    yf = _F32(y)
+    for i in range(probes.shape[0]):
+        for a in range(3):
+            m0, m1, m2 = probes[i, 3 * a], probes[i, 3 * a + 1], probes[i, 3 * a + 2]
+            terms[i, a] = m0
+            terms[i, 3 + a] = yf * m1 + m2
+            terms[i, 6 + a] = yf * m1
+            terms[i, 9 + a] = m2
+
+
+@numba.njit(inline="always", **_JIT)
+def _window_index(ix: int, iy: int, rows: int, cols: int, stride: int) -> int:
+    """Flat index (rows ``stride`` apart) of (ix, iy) in a (rows, cols) window, -1 outside it."""
     if 0 <= ix < cols and 0 <= iy < rows:
-        return iy * cols + ix
+        return iy * stride + ix
     return -1
 
 
@@ -92,7 +107,7 @@ def _march_kernel(perspective: bool):
 
     @numba.njit(**_JIT)
     def march(z0: np.ndarray, relief: np.ndarray, probes: np.ndarray, thresholds: np.ndarray, levels: np.ndarray,
-              pooled: np.ndarray, ground: np.ndarray) -> int:
+              pooled: np.ndarray, ground: np.ndarray, window: np.ndarray) -> int:
         """The coarse march of ``ReliefView.maps``, one cell of the (hc, wc) grid at a time; returns the number of
         relief cells.
 
@@ -100,26 +115,52 @@ def _march_kernel(perspective: bool):
         the ``ground`` reach is read) and at each march height, top down; a cell's hit height is the first
         ``levels[i]`` whose pooled height exceeds ``thresholds[i]`` (0 without one), ``z0`` the hits' 3 x 3
         maximum; ``relief`` marks cells with ``z0 > 0`` or a non-zero ``ground`` at height 0. ``pooled`` and
-        ``ground``: C-contiguous windows of the same shape, zero outside."""
+        ``ground`` (C-contiguous, of one shape) are read in ``window`` (row0, col0, rows, cols), zero outside."""
         hc, wc = z0.shape
-        nr, nc = pooled.shape
+        nr, nc = window[2], window[3]
+        stride = pooled.shape[1]
+        base = window[0] * stride + window[1]
         pool, reach = pooled.reshape(-1), ground.reshape(-1)
         body = (wc // _LANES) * _LANES
         steps = thresholds.size
+        # Skip test: a cell's probes lie on the segment between its first and last (m(z) is linear in z), so
+        # their pixels lie in that segment's box widened by a pixel (rounding); where the block maximum over the box
+        # is at most the lowest threshold no probe can hit (exact: the same decision as probing every height)
+        bnr, bnc = -(-nr // _BLOCK), -(-nc // _BLOCK)
+        blocks = np.zeros((bnr, bnc), np.float32)
+        for r in range(nr):
+            for c in range(nc):
+                blocks[r // _BLOCK, c // _BLOCK] = max(blocks[r // _BLOCK, c // _BLOCK], pool[base + r * stride + c])
+        low = thresholds[steps - 1]
         hit = np.zeros((hc, wc), np.float32)
+        tm = np.empty((steps + 1, 12), np.float32)     # each warp's terms on the row (_row_terms)
         for y in range(hc):
+            _row_terms(tm, probes, y)
             for x in range(wc):
-                ix, iy = _warp_point(probes[0, 0], probes[0, 1], probes[0, 2], probes[0, 3], probes[0, 4],
-                                     probes[0, 5], probes[0, 6], probes[0, 7], probes[0, 8], x, y, x < body,
-                                     perspective)
-                q = _window_index(ix, iy, nr, nc)
-                relief[y, x] = 1 if q >= 0 and reach[q] > 0.0 else 0
+                ix, iy = _warp_point(tm[0, 0], tm[0, 1], tm[0, 2], tm[0, 3], tm[0, 4], tm[0, 5], tm[0, 6], tm[0, 7],
+                                     tm[0, 8], tm[0, 9], tm[0, 10], tm[0, 11], x, x < body, perspective)
+                q = _window_index(ix, iy, nr, nc, stride)
+                relief[y, x] = 1 if q >= 0 and reach[base + q] > 0.0 else 0
+                ax, ay = _warp_point(tm[1, 0], tm[1, 1], tm[1, 2], tm[1, 3], tm[1, 4], tm[1, 5], tm[1, 6], tm[1, 7],
+                                     tm[1, 8], tm[1, 9], tm[1, 10], tm[1, 11], x, x < body, perspective)
+                n = steps
+                bx, by = _warp_point(tm[n, 0], tm[n, 1], tm[n, 2], tm[n, 3], tm[n, 4], tm[n, 5], tm[n, 6], tm[n, 7],
+                                     tm[n, 8], tm[n, 9], tm[n, 10], tm[n, 11], x, x < body, perspective)
+                c0, c1 = max(min(ax, bx) - 1, 0), min(max(ax, bx) + 1, nc - 1)
+                r0, r1 = max(min(ay, by) - 1, 0), min(max(ay, by) + 1, nr - 1)
+                if c0 > c1 or r0 > r1:
+                    continue            # the whole segment outside the window: reads zeros
+                top = _F32(0.0)
+                for br in range(r0 // _BLOCK, r1 // _BLOCK + 1):
+                    for bc in range(c0 // _BLOCK, c1 // _BLOCK + 1):
+                        top = max(top, blocks[br, bc])
+                if top <= low:
+                    continue
                 for i in range(1, steps + 1):
-                    ix, iy = _warp_point(probes[i, 0], probes[i, 1], probes[i, 2], probes[i, 3], probes[i, 4],
-                                         probes[i, 5], probes[i, 6], probes[i, 7], probes[i, 8], x, y, x < body,
-                                         perspective)
-                    q = _window_index(ix, iy, nr, nc)
-                    if q >= 0 and pool[q] > thresholds[i - 1]:
+                    ix, iy = _warp_point(tm[i, 0], tm[i, 1], tm[i, 2], tm[i, 3], tm[i, 4], tm[i, 5], tm[i, 6], tm[i, 7],
+                                         tm[i, 8], tm[i, 9], tm[i, 10], tm[i, 11], x, x < body, perspective)
+                    q = _window_index(ix, iy, nr, nc, stride)
+                    if q >= 0 and pool[base + q] > thresholds[i - 1]:
                         hit[y, x] = levels[i - 1]
                         break
         count = 0
@@ -150,7 +191,16 @@ def _dsm_index(du: np.float32, dv: np.float32, k: np.float32, nx: np.float32, ny
         ix = min(max(_round_px(fx - _F32(c0)), 0), c1 - c0 - 1) + c0
         iy = min(max(_round_px(fy - _F32(r0)), 0), r1 - r0 - 1) + r0
         return iy * cols + ix
-    return _window_index(_round_px(fx), _round_px(fy), rows, cols)
+    return _window_index(_round_px(fx), _round_px(fy), rows, cols, cols)
+
+
+@numba.njit(inline="always", **_JIT)
+def _span(d0: np.float32, d1: np.float32, d2: np.float32, d3: np.float32, k: np.float32,
+          n: np.float32) -> tuple[int, int]:
+    """The range of rounded ``d k + n`` over a cell's four corner offsets ``d``, widened by a pixel: every pixel of
+    the cell rounds inside it (its offset lies in the corners' hull up to float32 rounding, far below a pixel)."""
+    a, b, c, e = _round_px(d0 * k + n), _round_px(d1 * k + n), _round_px(d2 * k + n), _round_px(d3 * k + n)
+    return min(min(a, b), min(c, e)) - 1, max(max(a, b), max(c, e)) + 1
 
 
 def _maps_kernel(tilted: bool, replicate: bool):
@@ -160,7 +210,8 @@ def _maps_kernel(tilted: bool, replicate: bool):
     @numba.njit(**_JIT)
     def view_maps(out_x: np.ndarray, out_y: np.ndarray, facade: np.ndarray, facing: np.ndarray, z0: np.ndarray,
                   relief: np.ndarray, factor: int, centre: np.ndarray, tilt: np.ndarray, flat: np.ndarray,
-                  lin: np.ndarray, consts: np.ndarray, dsm: np.ndarray, window: np.ndarray) -> int:
+                  lin: np.ndarray, consts: np.ndarray, dsm: np.ndarray, window: np.ndarray, low: np.ndarray,
+                  high: np.ndarray) -> int:
         """The per-pixel maps of ``ReliefView.maps`` into ``out_x``/``out_y`` (h, w) float32; returns the number
         of facade pixels, whose flat indices and facing directions are written to ``facade``/``facing`` (cell by
         cell).
@@ -170,7 +221,8 @@ def _maps_kernel(tilted: bool, replicate: bool):
         gamma) of the ground point ``fma(u, alpha, fma(v, beta, gamma))``. Relief cells: ``lin`` (2, 2) float32
         the affine's linear part (ground point - nadir), ``consts`` float32 (nadir x, nadir y, origin-shifted nadir
         x, y, H, surface tolerance, height cap), fixed-point steps from the cell's ``z0`` on ``dsm`` (C-contiguous;
-        read per ``window``: c0, r0, c1, r1)."""
+        read per ``window``: c0, r0, c1, r1). ``low``/``high``: the height model's minimum/maximum over blocks of
+        ``_POOL`` px: a cell whose lookups all fall in blocks of one height skips them (the same result)."""
         h, w = out_x.shape
         hc, wc = z0.shape
         rows, cols = dsm.shape
@@ -184,33 +236,85 @@ def _maps_kernel(tilted: bool, replicate: bool):
         t20, t21, t22 = tilt[2, 0], tilt[2, 1], tilt[2, 2]
         one, zero = _F32(1.0), _F32(0.0)
         map_x, map_y = out_x.reshape(h * w), out_y.reshape(h * w)
-        # one band of cells (factor rows of pixels) at a time: its relief pixels are listed first, then each
-        # fixed-point step runs over the whole list (independent lookups overlap)
+        # One band of cells (factor rows of pixels) at a time: every pixel's ray and ground point row by row (flat
+        # cells keep it), then the relief cells' pixels listed cell by cell, then each fixed-point step over the
+        # whole list (independent lookups overlap; a pixel's chain of dependent lookups was latency-bound).
         size = factor * w
+        ray_u, ray_v = np.empty(size, np.float32), np.empty(size, np.float32)
         pix = np.empty(size, np.int64)
-        bdu, bdv = np.empty(2 * size, np.float32), np.empty(size, np.float32)
-        bk, bz = np.empty(size, np.float32), np.empty(size, np.float32)
+        bdu, bdv = np.empty(size, np.float32), np.empty(size, np.float32)
+        bk, bz, bz2 = np.empty(size, np.float32), np.empty(size, np.float32), np.empty(size, np.float32)
         n = 0
         for cy in range(hc):
             y0, y1 = cy * factor, min(cy * factor + factor, h)
+            for y in range(y0, y1):
+                v = _F32(y) - cv
+                ru_row, rv_row = ray_u[(y - y0) * w:(y - y0 + 1) * w], ray_v[(y - y0) * w:(y - y0 + 1) * w]
+                gx_row, gy_row = out_x[y], out_y[y]
+                for x in range(w):
+                    u = _F32(x) - cu
+                    if tilted:
+                        den = _fma(u, t20, _fma(v, t21, t22))
+                        ru = _fma(u, t00, _fma(v, t01, t02)) / den
+                        rv = _fma(u, t10, _fma(v, t11, t12)) / den
+                    else:
+                        ru, rv = u, v
+                    ru_row[x], rv_row[x] = ru, rv
+                    gx_row[x] = _fma(ru, a0, _fma(rv, a1, a2))
+                    gy_row[x] = _fma(ru, b0, _fma(rv, b1, b2))
             m = 0
             for cx in range(wc):
-                rel = relief[cy, cx] != 0
+                if relief[cy, cx] == 0:
+                    continue
                 k0 = one - z0[cy, cx] / big_h
-                for y in range(y0, y1):
-                    v = _F32(y) - cv
-                    for x in range(cx * factor, min(cx * factor + factor, w)):
-                        u = _F32(x) - cu
-                        if tilted:
-                            den = _fma(u, t20, _fma(v, t21, t22))
-                            ru = _fma(u, t00, _fma(v, t01, t02)) / den
-                            rv = _fma(u, t10, _fma(v, t11, t12)) / den
+                x0, x1 = cx * factor, min(cx * factor + factor, w)
+                if not replicate:
+                    # the cell's corner rays: every lookup of its pixels at scale k lies in their span
+                    i00, i01 = (y0 - y0) * w + x0, (y0 - y0) * w + x1 - 1
+                    i10, i11 = (y1 - 1 - y0) * w + x0, (y1 - 1 - y0) * w + x1 - 1
+                    du0 = l00 * ray_u[i00] + l01 * ray_v[i00]
+                    du1 = l00 * ray_u[i01] + l01 * ray_v[i01]
+                    du2 = l00 * ray_u[i10] + l01 * ray_v[i10]
+                    du3 = l00 * ray_u[i11] + l01 * ray_v[i11]
+                    dv0 = l10 * ray_u[i00] + l11 * ray_v[i00]
+                    dv1 = l10 * ray_u[i01] + l11 * ray_v[i01]
+                    dv2 = l10 * ray_u[i10] + l11 * ray_v[i10]
+                    dv3 = l10 * ray_u[i11] + l11 * ray_v[i11]
+                    settled = False
+                    z1 = zero
+                    k = k0
+                    for step in range(2):   # z1 = h at k0, then z2 = h at k1 (when k1 differs)
+                        ca, cb = _span(du0, du1, du2, du3, k, nx)
+                        ra, rb = _span(dv0, dv1, dv2, dv3, k, ny)
+                        if ca < 0 or ra < 0 or cb >= cols or rb >= rows:
+                            break
+                        top = high[ra // _POOL, ca // _POOL]
+                        even = True
+                        for br in range(ra // _POOL, rb // _POOL + 1):
+                            for bc in range(ca // _POOL, cb // _POOL + 1):
+                                even = even and low[br, bc] == top and high[br, bc] == top
+                        if not even:
+                            break
+                        z = min(top, cap)
+                        if step == 0:
+                            z1 = z
+                            k = one - z1 / big_h
+                            if k == k0:         # z2 at the same point: z2 = z1
+                                settled = True
+                                break
                         else:
-                            ru, rv = u, v
-                        if not rel:
-                            out_x[y, x] = _fma(ru, a0, _fma(rv, a1, a2))
-                            out_y[y, x] = _fma(ru, b0, _fma(rv, b1, b2))
-                            continue
+                            settled = z == z1
+                    if settled:                 # every pixel: z1 = z2 = the blocks' height, scale k
+                        for y in range(y0, y1):
+                            for x in range(x0, x1):
+                                q = (y - y0) * w + x
+                                ru, rv = ray_u[q], ray_v[q]
+                                out_x[y, x] = (l00 * ru + l01 * rv) * k + ox
+                                out_y[y, x] = (l10 * ru + l11 * rv) * k + oy
+                        continue
+                for y in range(y0, y1):
+                    for x in range(cx * factor, min(cx * factor + factor, w)):
+                        ru, rv = ray_u[(y - y0) * w + x], ray_v[(y - y0) * w + x]
                         pix[m] = y * w + x
                         bdu[m] = l00 * ru + l01 * rv
                         bdv[m] = l10 * ru + l11 * rv
@@ -219,16 +323,17 @@ def _maps_kernel(tilted: bool, replicate: bool):
             for j in range(m):      # z1: the height of the surface the ray is in just below its march hit
                 q = _dsm_index(bdu[j], bdv[j], bk[j], nx, ny, rows, cols, c0, r0, c1, r1, replicate)
                 bz[j] = min(heights[q] if q >= 0 else zero, cap)
-            for j in range(m):      # z2 = h(m(z1)) in bk
-                bk[j] = one - bz[j] / big_h
-                q = _dsm_index(bdu[j], bdv[j], bk[j], nx, ny, rows, cols, c0, r0, c1, r1, replicate)
-                z2 = min(heights[q] if q >= 0 else zero, cap)
-                bz[j] = z2 - bz[j]
-                bdu[m + j] = z2
+            for j in range(m):      # z2 = h(m(z1)) (the same point where z1 = z0, e.g. open ground: no lookup)
+                k1 = one - bz[j] / big_h
+                if k1 != bk[j]:
+                    q = _dsm_index(bdu[j], bdv[j], k1, nx, ny, rows, cols, c0, r0, c1, r1, replicate)
+                    bz2[j] = min(heights[q] if q >= 0 else zero, cap)
+                    bk[j] = k1
+                else:
+                    bz2[j] = bz[j]
             for j in range(m):
-                du, dv, scale = bdu[j], bdv[j], bk[j]
-                if abs(bz[j]) > tol:            # not settled on a surface after one step: one more
-                    z2 = bdu[m + j]
+                du, dv, scale, z1, z2 = bdu[j], bdv[j], bk[j], bz[j], bz2[j]
+                if abs(z2 - z1) > tol:          # not settled on a surface after one step: one more
                     scale = one - z2 / big_h
                     q = _dsm_index(du, dv, scale, nx, ny, rows, cols, c0, r0, c1, r1, replicate)
                     z3 = min(heights[q] if q >= 0 else zero, cap)
