@@ -22,7 +22,7 @@ from aerial_loc_env.sensors import render as render_mod
 from aerial_loc_env.sensors.camera import CameraModel, Pose
 from aerial_loc_env.sensors.perspective import PerspectiveConfig
 from aerial_loc_env.sensors.render import CameraRenderer, Photometry, _motion_kernel, gamma_lut, photometry_draws
-from aerial_loc_env.world.shadows import ShadowGrid, shade
+from aerial_loc_env.world.shadows import ShadowGrid, shade, shading_lut
 
 CAMERA = CameraModel(width_px=120, height_px=80)        # 0.25 m/px at 40 m: map level 0
 POSES = [Pose(50.0, 50.0, 0.3, 40.0), Pose(47.0, 55.0, -2.1, 40.0)]
@@ -249,3 +249,25 @@ def test_noise_term_rounds_like_opencv_at_its_ties():
     exact = np.rint(s.astype(np.float64) * z * 2.0 ** -19)
     assert np.count_nonzero(expected != exact) > 10          # the ties are hit: the test can tell the two apart
     np.testing.assert_array_equal(_noise_terms(s, z), expected)
+
+
+@pytest.mark.parametrize("channels", [3, 4])
+def test_shade_on_strided_tiles_equals_the_opencv_passes(channels):
+    """``world.shadows.shade`` (the bake's tiles: a view of the map into a view of the box, float occlusion from a
+    view of the upsampled grid) against convertScaleAbs, three 1-channel LUTs merged and one multiply."""
+    rng = np.random.default_rng(4)
+    big = rng.integers(0, 256, (90, 130, channels), dtype=np.uint8)
+    big[..., 3:] = 255
+    occ_big = rng.random((90, 130), dtype=np.float32)
+    occ_big[:5] = np.array([0.0, 0.5, 1.0, 127.5 / 255.0, 0.25], np.float32)[:, None]
+    src, occ = big[7:71, 11:107], occ_big[7:71, 11:107]
+    for strength, kwargs in [(0.9, {}), (0.5, {"shadow_ratio": 0.3, "sky_tint_rgb": (0.6, 0.7, 0.9), "gamma": 1.8})]:
+        lut = shading_lut(strength, **kwargs)
+        q = cv2.convertScaleAbs(occ, alpha=255.0)
+        gains = [cv2.LUT(q, lut[c]) for c in range(3)] + ([q] if channels == 4 else [])
+        expected = cv2.multiply(np.ascontiguousarray(src), cv2.merge(gains), scale=1.0 / 255.0)
+        box = np.zeros((80, 120, channels), np.uint8)
+        assert shade(src, occ, lut, out=box[5:69, 9:105]) is not None
+        np.testing.assert_array_equal(box[5:69, 9:105], expected)
+        assert not box[:5].any() and not box[69:].any() and not box[:, :9].any() and not box[:, 105:].any()
+        np.testing.assert_array_equal(shade(src, q, lut), expected)        # uint8 levels, a fresh output

@@ -11,9 +11,8 @@ through both stages while it sits in L1:
 Every step is the arithmetic of the OpenCV passes it replaces, reproduced bit for bit (tests/test_render_kernel.py
 keeps those passes as the reference and compares exactly); what each pass computes, measured exhaustively:
 
-- ``cv2.multiply(a, b, scale=1/255)`` on uint8 is the exactly rounded ``a b / 255`` (never a tie): here
-  ``(p + (p >> 8)) >> 8`` with ``p = a b + 128``, equal over all 65536 pairs;
-- ``cv2.convertScaleAbs(occ, alpha=255)`` is ``rint(|occ * 255|)`` in float32, saturated;
+- the uint8 multiply with scale 1/255 (shading, vignetting) and the occlusion's quantization: see
+  ``world.shading_kernel``, whose two helpers this pass uses;
 - ``cv2.transform`` with a diagonal float32 matrix on uint8 is ``rint(v * g)`` in float32, saturated: a byte
   function per channel, so gamma and gains compose into one table per frame (``CameraRenderer`` builds it by
   running the two OpenCV operations over the 256 levels);
@@ -34,7 +33,9 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
-_JIT = {"cache": True, "nogil": True, "error_model": "numpy", "boundscheck": False}
+from ..world.shading_kernel import JIT as _JIT
+from ..world.shading_kernel import mul255 as _mul255
+from ..world.shading_kernel import quantize as _quantize
 
 #: ``occ_mode`` of ``finish``: where the shadows come from
 OCC_NONE, OCC_ALPHA, OCC_FLOAT = 0, 1, 2
@@ -42,13 +43,6 @@ OCC_NONE, OCC_ALPHA, OCC_FLOAT = 0, 1, 2
 SIGMA_F32, SIGMA_F64, NOISE_OFF = 0, 1, 2
 
 _NOISE_SCALE = np.float32(2.0 ** -19)  # 2**-(sigma bits 8 + noise bank bits 11)
-
-
-@nb.njit(inline="always", **_JIT)
-def _mul255(a, b):
-    """round(a b / 255) for a, b in [0, 255] (int32)."""
-    p = a * b + np.int32(128)
-    return (p + (p >> np.int32(8))) >> np.int32(8)
 
 
 @nb.njit(inline="always", **_JIT)
@@ -93,7 +87,7 @@ def _scene_row(s, o, m, f, cn, w_px, occ_mode, l0, l1, l2, s0, s1, s2):
             k = np.uint8(v >= np.float32(0.5))
             m[x] = k
             count += k
-            q = min(np.int32(np.rint(np.abs(v * np.float32(255.0)))), np.int32(255))
+            q = _quantize(v)
             o[3 * x] = l0[_mul255(np.int32(s[cn * x]), np.int32(s0[q]))]
             o[3 * x + 1] = l1[_mul255(np.int32(s[cn * x + 1]), np.int32(s1[q]))]
             o[3 * x + 2] = l2[_mul255(np.int32(s[cn * x + 2]), np.int32(s2[q]))]

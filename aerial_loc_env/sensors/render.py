@@ -307,13 +307,9 @@ class CameraRenderer:
             y1, x1 = min(h, y0 + _BAKE_TILE_PX), min(w, x0 + _BAKE_TILE_PX)
             u0, v0 = c0 + x0, r0 + y0
             occ = _upsample_tile(data, f, u0, v0, x1 - x0, y1 - y0)
-            # the RGBA map tile (alpha 255) shaded as 4 channels: shaded RGB, alpha = occ_q, in one multiply
-            # written straight into the box (OpenCV writes into the strided view; copied if it ever did not)
-            box = baked.rgba[y0:y1, x0:x1]
-            shaded = shade(self._levels[0][v0:v0 + y1 - y0, u0:u0 + x1 - x0], cv2.convertScaleAbs(occ, alpha=255.0),
-                           lut, out=box)
-            if shaded is not box:
-                box[...] = shaded
+            # the RGBA map tile (alpha 255) shaded as 4 channels: shaded RGB, alpha = occ_q, in one pass written
+            # straight into the box
+            shade(self._levels[0][v0:v0 + y1 - y0, u0:u0 + x1 - x0], occ, lut, out=baked.rgba[y0:y1, x0:x1])
             baked.baked_tiles[ty, tx] = True
 
     # ------------------------------------------------------------------ geometry

@@ -489,7 +489,7 @@ def apply_shading(rgb: np.ndarray, occlusion: np.ndarray, strength: float, *, sh
     if occ.dtype != np.uint8:
         if not np.issubdtype(occ.dtype, np.floating):
             raise ConfigError(f"apply_shading: occlusion must be float in [0, 1] or uint8, got {occ.dtype}")
-        occ = cv2.convertScaleAbs(occ.astype(np.float32, copy=False), alpha=255.0)
+        occ = occ.astype(np.float32, copy=False)
     return shade(img, occ, lut, out=out)
 
 
@@ -507,17 +507,35 @@ def shading_lut(strength: float, *, shadow_ratio: float = 0.15,
     return lut
 
 
-def shade(rgb: np.ndarray, occ_q: np.ndarray, lut: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
-    """``rgb * lut[c, occ_q] / 255`` per channel, rounded (uint8 (H, W, 3) in, uint8 out; ``out`` may be ``rgb``).
+def shade(rgb: np.ndarray, occ: np.ndarray, lut: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    """``rgb * lut[c, q] / 255`` per channel, rounded (uint8 (H, W, 3) in, uint8 out; ``out`` may be ``rgb``).
 
-    The gain image is three 1-channel ``cv2.LUT`` merged: twice as fast as one 3-channel LUT of the grey image,
-    and the same bytes. ``occ_q`` is the occlusion quantized to uint8 (255 = no direct sun). An (H, W, 4) ``rgb``
-    with alpha 255 (the renderer's RGBA map) comes back with ``occ_q`` as its alpha (``255 occ_q / 255``): the
-    shaded colour and the occlusion in one multiply, as ``CameraRenderer.bake`` stores them."""
-    gains = [cv2.LUT(occ_q, lut[c]) for c in range(3)]
-    if rgb.shape[2] == 4:
-        gains.append(occ_q)
-    return cv2.multiply(rgb, cv2.merge(gains), dst=out, scale=1.0 / 255.0)
+    ``occ`` (H, W): the occlusion quantized to uint8 (q, 255 = no direct sun), or float32 in [0, 1], quantized as
+    ``cv2.convertScaleAbs(occ, alpha=255)`` does. One compiled pass (``world.shading_kernel``), bit-identical to
+    the OpenCV passes it replaced (three 1-channel LUTs of q, merged, one multiply with scale 1/255). An (H, W, 4)
+    ``rgb`` with alpha 255 (the renderer's RGBA map) comes back with q as its alpha (``255 q / 255``): the shaded
+    colour and the occlusion in one pass, as ``CameraRenderer.bake`` stores them. Views (map tiles) are fine."""
+    from .shading_kernel import shade_rows
+
+    h, w, cn = rgb.shape
+    target = np.empty_like(rgb) if out is None else out
+    rows = _row_view(target)
+    dst = rows if rows is not None else np.empty((h, w * cn), np.uint8)
+    src = _row_view(rgb)
+    quantized = occ.dtype == np.uint8
+    shade_rows(np.ascontiguousarray(rgb).reshape(h, w * cn) if src is None else src,
+               occ if quantized else occ.astype(np.float32, copy=False), quantized, lut, dst)
+    if rows is None:
+        target[...] = dst.reshape(h, w, cn)
+    return target
+
+
+def _row_view(a: np.ndarray) -> np.ndarray | None:
+    """(H, W, C) as an (H, W C) view without a copy (rows may be strided), or None where the pixels of a row are
+    not contiguous."""
+    if a.strides[2] != a.itemsize or a.strides[1] != a.shape[2] * a.itemsize:
+        return None
+    return np.lib.stride_tricks.as_strided(a, (a.shape[0], a.shape[1] * a.shape[2]), a.strides[:1] + a.strides[2:])
 
 
 def combine_occlusion(*fields: np.ndarray) -> np.ndarray:
