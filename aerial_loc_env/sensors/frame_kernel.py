@@ -34,8 +34,8 @@ import numba as nb
 import numpy as np
 
 from ..world.shading_kernel import JIT as _JIT
+from ..world.shading_kernel import gain_row as _gain_row
 from ..world.shading_kernel import mul255 as _mul255
-from ..world.shading_kernel import quantize as _quantize
 
 #: ``occ_mode`` of ``finish``: where the shadows come from
 OCC_NONE, OCC_ALPHA, OCC_FLOAT = 0, 1, 2
@@ -70,9 +70,19 @@ def sigma_levels(mode, a32, b32, a64, b64):
 
 
 @nb.njit(inline="always", **_JIT)
-def _scene_row(s, o, m, f, cn, w_px, occ_mode, l0, l1, l2, s0, s1, s2):
-    """Stage 1 on one row (``cn`` a constant at each call site, so that the loops specialize)."""
+def _scene_row(s, o, m, f, g, t, cn, w_px, occ_mode, l0, l1, l2, s0, s1, s2):
+    """Stage 1 on one row (``cn`` a constant at each call site, so that the loops specialize); ``g``, ``t``: row
+    buffers of cn W bytes for the shading gains and the shaded row."""
     count = 0
+    if occ_mode == OCC_FLOAT:   # mask, then the shading as in world.shading_kernel, then the lookups below
+        for x in range(w_px):
+            k = np.uint8(f[x] >= np.float32(0.5))
+            m[x] = k
+            count += k
+        _gain_row(f, g, cn, w_px, False, s0, s1, s2)
+        for i in range(cn * w_px):
+            t[i] = _mul255(np.int32(s[i]), np.int32(g[i]))
+        s = t
     if occ_mode == OCC_ALPHA:
         for x in range(w_px):
             k = np.uint8(s[cn * x + 3] > 127)
@@ -81,16 +91,6 @@ def _scene_row(s, o, m, f, cn, w_px, occ_mode, l0, l1, l2, s0, s1, s2):
             o[3 * x] = l0[s[cn * x]]
             o[3 * x + 1] = l1[s[cn * x + 1]]
             o[3 * x + 2] = l2[s[cn * x + 2]]
-    elif occ_mode == OCC_FLOAT:
-        for x in range(w_px):
-            v = f[x]
-            k = np.uint8(v >= np.float32(0.5))
-            m[x] = k
-            count += k
-            q = _quantize(v)
-            o[3 * x] = l0[_mul255(np.int32(s[cn * x]), np.int32(s0[q]))]
-            o[3 * x + 1] = l1[_mul255(np.int32(s[cn * x + 1]), np.int32(s1[q]))]
-            o[3 * x + 2] = l2[_mul255(np.int32(s[cn * x + 2]), np.int32(s2[q]))]
     else:
         for x in range(w_px):
             o[3 * x] = l0[s[cn * x]]
@@ -114,15 +114,17 @@ def finish(src, cn, occ_mode, occ, shade, lut, out, mask, sensor, vig, bank, dy,
     w_px = out.shape[1] // 3
     l0, l1, l2 = lut[0], lut[1], lut[2]
     s0, s1, s2 = shade[0], shade[1], shade[2]
+    g = np.empty(cn * w_px, np.uint8)
+    t = np.empty(cn * w_px, np.uint8)
     count = 0
     for y in range(h_px):
         o = out[y]
         m = mask[y] if occ_mode != OCC_NONE else mask[0]
         f = occ[y] if occ_mode == OCC_FLOAT else occ[0]
         if cn == 4:
-            count += _scene_row(src[y], o, m, f, 4, w_px, occ_mode, l0, l1, l2, s0, s1, s2)
+            count += _scene_row(src[y], o, m, f, g, t, 4, w_px, occ_mode, l0, l1, l2, s0, s1, s2)
         else:
-            count += _scene_row(src[y], o, m, f, 3, w_px, occ_mode, l0, l1, l2, s0, s1, s2)
+            count += _scene_row(src[y], o, m, f, g, t, 3, w_px, occ_mode, l0, l1, l2, s0, s1, s2)
         if sensor:
             v = vig[y]
             if sigma_mode == NOISE_OFF:
