@@ -71,23 +71,21 @@ def sigma_levels(mode, a32, b32, a64, b64):
 
 @nb.njit(inline="always", **_JIT)
 def _scene_row(s, o, m, f, g, t, cn, w_px, occ_mode, l0, l1, l2, s0, s1, s2):
-    """Stage 1 on one row (``cn`` a constant at each call site, so that the loops specialize); ``g``, ``t``: row
-    buffers of cn W bytes for the shading gains and the shaded row."""
+    """Stage 1 on one row into ``o`` (``cn`` a constant at each call site, so that the loops specialize); ``g``,
+    ``t``: row buffers of cn W bytes for the shading gains and the shaded row; returns the shadowed pixels."""
     count = 0
-    if occ_mode == OCC_FLOAT:   # mask, then the shading as in world.shading_kernel, then the lookups below
+    if occ_mode == OCC_FLOAT:   # count, then the shading as in world.shading_kernel, then the lookups below
         for x in range(w_px):
-            k = np.uint8(f[x] >= np.float32(0.5))
-            m[x] = k
-            count += k
+            count += np.int32(f[x] >= np.float32(0.5))
         _gain_row(f, g, cn, w_px, False, s0, s1, s2)
         for i in range(cn * w_px):
             t[i] = _mul255(np.int32(s[i]), np.int32(g[i]))
         s = t
-    if occ_mode == OCC_ALPHA:
+    if occ_mode == OCC_ALPHA:   # the alpha kept (the frame's quantized occlusion) and counted
         for x in range(w_px):
-            k = np.uint8(s[cn * x + 3] > 127)
-            m[x] = k
-            count += k
+            a = s[cn * x + 3]
+            m[x] = a
+            count += np.int32(a > 127)
             o[3 * x] = l0[s[cn * x]]
             o[3 * x + 1] = l1[s[cn * x + 1]]
             o[3 * x + 2] = l2[s[cn * x + 2]]
@@ -100,40 +98,47 @@ def _scene_row(s, o, m, f, g, t, cn, w_px, occ_mode, l0, l1, l2, s0, s1, s2):
 
 
 @nb.njit(**_JIT)
-def finish(src, cn, occ_mode, occ, shade, lut, out, mask, sensor, vig, bank, dy, dx3,
+def finish(src, cn, occ_mode, occ, shade, lut, out, alpha, sensor, vig, bank, dy, dx3,
            sigma_mode, a32, b32, a64, b64):
-    """Write the frame ``out`` (H, 3 W) uint8 from ``src`` (H, cn W) uint8 (``out`` may be ``src`` when cn = 3);
-    returns the number of shadowed pixels (``mask`` (H, W) uint8 gets 1 there; untouched with ``OCC_NONE``).
+    """Write the frame into ``out`` (flat uint8, row y at [3 W y, 3 W (y + 1))) from ``src`` (H, cn W) uint8;
+    returns the number of shadowed pixels. ``out`` may be src's own buffer: each row is made in a row buffer and
+    written back over bytes of rows already read (3 W (y + 1) <= cn W (y + 1)), so a warp's RGBA output becomes
+    the RGB frame in place, without a second frame of memory.
 
-    ``occ_mode``: ``OCC_ALPHA``: src's alpha is the baked occlusion (already shaded), shadowed where > 127;
-    ``OCC_FLOAT``: ``occ`` (H, W) float32 is the occlusion, shadowed where >= 0.5, and src is shaded by
-    ``shade[c, q]`` (uint8 (3, 256) gains at q = the quantized occlusion). ``lut`` (3, 256) uint8: the tone LUT per
-    channel. ``sensor``: then vignetting (``vig`` (H, 3 W) uint8 gains over 255) and noise (``bank`` int16 rows
-    from ``dy``, columns from ``dx3``; ``sigma_mode`` with ``_sigma``'s constants) on the toned levels."""
-    h_px = out.shape[0]
-    w_px = out.shape[1] // 3
+    ``occ_mode``: ``OCC_ALPHA``: src's alpha is the baked occlusion (already shaded), shadowed where > 127 and
+    copied to ``alpha`` (H, W) uint8; ``OCC_FLOAT``: ``occ`` (H, W) float32 is the occlusion, shadowed where
+    >= 0.5, and src is shaded by ``shade[c, q]`` (uint8 (3, 256) gains at q = the quantized occlusion). ``lut``
+    (3, 256) uint8: the tone LUT per channel. ``sensor``: then vignetting (``vig`` uint8 gains over 255, (H, 3 W),
+    or its top rows only when the bottom rows mirror them: row y reads row H - 1 - y below) and noise (``bank``
+    int16 rows from ``dy``, columns from ``dx3``; ``sigma_mode`` with ``_sigma``'s constants) on the toned levels.
+    """
+    h_px = src.shape[0]
+    w_px = src.shape[1] // cn
+    w3 = 3 * w_px
+    n_vig = vig.shape[0]
     l0, l1, l2 = lut[0], lut[1], lut[2]
     s0, s1, s2 = shade[0], shade[1], shade[2]
     g = np.empty(cn * w_px, np.uint8)
     t = np.empty(cn * w_px, np.uint8)
+    o = np.empty(w3, np.uint8)
     count = 0
     for y in range(h_px):
-        o = out[y]
-        m = mask[y] if occ_mode != OCC_NONE else mask[0]
+        m = alpha[y] if occ_mode == OCC_ALPHA else alpha[0]
         f = occ[y] if occ_mode == OCC_FLOAT else occ[0]
         if cn == 4:
             count += _scene_row(src[y], o, m, f, g, t, 4, w_px, occ_mode, l0, l1, l2, s0, s1, s2)
         else:
             count += _scene_row(src[y], o, m, f, g, t, 3, w_px, occ_mode, l0, l1, l2, s0, s1, s2)
         if sensor:
-            v = vig[y]
+            v = vig[y if y < n_vig else h_px - 1 - y]
             if sigma_mode == NOISE_OFF:
-                for x in range(3 * w_px):
+                for x in range(w3):
                     o[x] = _mul255(np.int32(o[x]), np.int32(v[x]))
             else:
-                b = bank[y + dy, dx3:dx3 + 3 * w_px]
-                for x in range(3 * w_px):
+                b = bank[y + dy, dx3:dx3 + w3]
+                for x in range(w3):
                     h = np.int32(o[x])
                     n = _noise(_sigma(h, sigma_mode, a32, b32, a64, b64), b[x])
                     o[x] = min(max(_mul255(h, np.int32(v[x])) + n, np.int32(0)), np.int32(255))
+        out[w3 * y:w3 * (y + 1)] = o
     return count

@@ -113,26 +113,40 @@ class Frame:
 
     ``occlusion`` is (H, W) float32 in [0, 1] in the camera frame, None without shadows. Frames from baked
     shadows carry it quantized (``occlusion_q``: the warped alpha, ``round(255 occ)``) and make the float32
-    image on first read: the env and the estimators never read it, so a frame costs no float pass for it.
+    image on first read; ``shadow_mask`` (bool, True where the occlusion is >= 0.5, i.e. ``occlusion_q`` >= 128)
+    is made from them on first read when not given: the env and the estimators never read them, so a frame costs
+    no pass for them (``shadow_fraction`` is counted in the renderer's pass).
     """
 
     image: np.ndarray             # (H, W, 3) uint8
-    shadow_mask: np.ndarray       # (H, W) bool, True where the occlusion is >= 0.5
     shadow_fraction: float        # fraction of the frame in shadow
     valid: bool                   # the footprint lies inside the map and touches no no-data
     status: FootprintStatus
     pose: Pose
     pyramid_level: int = 0        # the map pyramid level the frame was warped from
 
-    def __init__(self, image: np.ndarray, shadow_mask: np.ndarray, shadow_fraction: float, valid: bool,
+    def __init__(self, image: np.ndarray, shadow_mask: np.ndarray | None, shadow_fraction: float, valid: bool,
                  status: FootprintStatus, pose: Pose, occlusion: np.ndarray | None = None, pyramid_level: int = 0,
                  *, occlusion_q: np.ndarray | None = None) -> None:
         if occlusion is not None and occlusion_q is not None:
             raise ValueError("Frame: give occlusion or occlusion_q, not both")
-        for name, value in (("image", image), ("shadow_mask", shadow_mask), ("shadow_fraction", shadow_fraction),
+        for name, value in (("image", image), ("_shadow_mask", shadow_mask), ("shadow_fraction", shadow_fraction),
                             ("valid", valid), ("status", status), ("pose", pose), ("pyramid_level", pyramid_level),
                             ("_occlusion", occlusion), ("occlusion_q", occlusion_q)):
             object.__setattr__(self, name, value)
+
+    @property
+    def shadow_mask(self) -> np.ndarray:
+        """(H, W) bool, True where the occlusion is >= 0.5."""
+        if self._shadow_mask is None:
+            if self.occlusion_q is not None:
+                mask = self.occlusion_q > 127
+            elif self._occlusion is not None:
+                mask = self._occlusion >= 0.5
+            else:
+                mask = np.zeros(self.image.shape[:2], dtype=bool)
+            object.__setattr__(self, "_shadow_mask", mask)
+        return self._shadow_mask
 
     @property
     def occlusion(self) -> np.ndarray | None:
@@ -203,6 +217,9 @@ class _SensorParams:
         vignette = CameraRenderer._vignetting_map(camera, p.vignetting)
         if vignette is not None:
             vig = np.rint(vignette * 255.0).astype(np.uint8).reshape(camera.height_px, -1)
+            half = (camera.height_px + 1) // 2
+            if np.array_equal(vig, vig[::-1]):   # symmetric about the middle row: its top half (less to read)
+                vig = np.ascontiguousarray(vig[:half])
         else:
             vig = np.full((camera.height_px, 3 * camera.width_px), 255, np.uint8) if p.has_noise else _NO_VIG
         return cls(vignette is not None or p.has_noise, vig, mode, a32, b32, float(r2), float(g), sigma_lut)
@@ -531,9 +548,9 @@ class CameraRenderer:
         occ_cam = None
         if occlusion is not None:
             occ_cam = np.ascontiguousarray(self._occlusion(occlusion, affine, pose, t_s, camera, view))
-        image, mask, count = self._finish(image, occ_cam, shading_params, rng, speed_mps, pose,
-                                          [] if pre_sensor is None else [pre_sensor])
-        return Frame(image=image, shadow_mask=mask.view(bool), shadow_fraction=count / mask.size,
+        image, _, count = self._finish(image, occ_cam, shading_params, rng, speed_mps, pose,
+                                       [] if pre_sensor is None else [pre_sensor])
+        return Frame(image=image, shadow_mask=None, shadow_fraction=count / (camera.width_px * camera.height_px),
                      valid=status == "valid", status=status, pose=pose, occlusion=occ_cam, pyramid_level=level)
 
     def _render_baked(self, baked: BakedShadows, affine: np.ndarray, pose: Pose, rng: np.random.Generator,
@@ -556,17 +573,17 @@ class CameraRenderer:
             mid = [lambda image: self._view.shade_facades(image, view, sun_deg, gamma)]
         if pre_sensor is not None:
             mid.append(pre_sensor)
-        image, mask, count = self._finish(out, _BAKED_ALPHA, None, rng, speed_mps, pose, mid)
-        # the quantized occlusion is the warp's alpha, left in place (read only if a caller asks for it)
-        return Frame(image=image, shadow_mask=mask.view(bool), shadow_fraction=count / mask.size,
-                     valid=status == "valid", status=status, pose=pose, pyramid_level=0, occlusion_q=out[:, :, 3])
+        image, alpha, count = self._finish(out, _BAKED_ALPHA, None, rng, speed_mps, pose, mid)
+        return Frame(image=image, shadow_mask=None, shadow_fraction=count / alpha.size, valid=status == "valid",
+                     status=status, pose=pose, pyramid_level=0, occlusion_q=alpha)
 
     # ------------------------------------------------------------------ photometry
     def _finish(self, src: np.ndarray, occ: np.ndarray | None, shading_params: Mapping[str, Any] | None,
                 rng: np.random.Generator, speed_mps: float, pose: Pose,
                 mid: list[Callable[[np.ndarray], np.ndarray]]) -> tuple[np.ndarray, np.ndarray, int]:
-        """The frame from the warped map ``src`` (H, W, 3 or 4): shadows, motion blur, gamma, gains, vignetting,
-        noise (``frame_kernel.finish``); returns (image, uint8 0/1 mask, shadowed pixel count).
+        """The frame from the warped map ``src`` (a fresh (H, W, 3 or 4) uint8 array, which becomes the frame's
+        memory): shadows, motion blur, gamma, gains, vignetting, noise (``frame_kernel.finish``); returns (image,
+        the alpha (H, W) with ``_BAKED_ALPHA`` else a dummy, the shadowed pixel count).
 
         ``occ``: the float occlusion to shade with ``shading_params``, or ``_BAKED_ALPHA`` (src's alpha, already
         shaded), or None. ``mid``: scene-side steps on the shaded RGB image before the sensor (facades, exposure):
@@ -575,36 +592,36 @@ class CameraRenderer:
         fk = _kernels()
         p = self.photometry
         h, w, cn = src.shape
+        alpha = _NO_VIG
         if occ is None:
-            occ_mode, occ_f, shade, mask = fk.OCC_NONE, _NO_OCC, _IDENTITY_RO, np.zeros((h, w), np.uint8)
+            occ_mode, occ_f, shade = fk.OCC_NONE, _NO_OCC, _IDENTITY_RO
+        elif occ is _BAKED_ALPHA:
+            occ_mode, occ_f, shade, alpha = fk.OCC_ALPHA, _NO_OCC, _IDENTITY_RO, np.empty((h, w), np.uint8)
         else:
-            mask = np.empty((h, w), np.uint8)
-            if occ is _BAKED_ALPHA:
-                occ_mode, occ_f, shade = fk.OCC_ALPHA, _NO_OCC, _IDENTITY_RO
-            else:
-                occ_mode, occ_f, shade = fk.OCC_FLOAT, occ, _shading_lut(shading_params)
+            occ_mode, occ_f, shade = fk.OCC_FLOAT, occ, _shading_lut(shading_params)
         camera = self.camera
         blur_px = speed_mps * p.exposure_time_s / (camera.gsd_m(pose.altitude_m) * camera.pixel_aspect)
         sp = self._sensor
-        image = np.empty((h, w, 3), np.uint8)
         count = 0
         if mid or blur_px >= 1.0:   # the scene stage alone, the steps between, then the rest in place
-            count = fk.finish(src.reshape(h, w * cn), cn, occ_mode, occ_f, shade, _IDENTITY, image.reshape(h, 3 * w),
-                              mask, False, _NO_VIG, _NO_BANK, 0, 0, fk.NOISE_OFF, sp.a32, sp.b32, sp.a64, sp.b64)
+            count = fk.finish(src.reshape(h, w * cn), cn, occ_mode, occ_f, shade, _IDENTITY, src.reshape(-1), alpha,
+                              False, _NO_VIG, _NO_BANK, 0, 0, fk.NOISE_OFF, sp.a32, sp.b32, sp.a64, sp.b64)
+            src = src.reshape(-1)[:h * w * 3].reshape(h, w, 3)
             for step in mid:
-                image = np.ascontiguousarray(step(image))
+                src = np.ascontiguousarray(step(src))
             if blur_px >= 1.0:
-                image = cv2.filter2D(image, -1, _motion_kernel(blur_px), borderType=cv2.BORDER_REPLICATE)
-            src, cn, occ_mode = image, 3, fk.OCC_NONE
+                src = cv2.filter2D(src, -1, _motion_kernel(blur_px), borderType=cv2.BORDER_REPLICATE)
+            cn, occ_mode = 3, fk.OCC_NONE
         lut = tone_lut(*photometry_draws(p, rng))
         bank, dy, dx = _NO_BANK, 0, 0
         if p.has_noise:
             assert self._noise_bank is not None
             dy, dx = rng.integers(0, _NOISE_MARGIN_PX + 1, size=2).tolist()
             bank = self._noise_bank.reshape(self._noise_bank.shape[0], -1)
-        count += fk.finish(src.reshape(h, w * cn), cn, occ_mode, occ_f, shade, lut, image.reshape(h, 3 * w), mask,
-                           sp.active, sp.vig, bank, dy, 3 * dx, sp.sigma_mode, sp.a32, sp.b32, sp.a64, sp.b64)
-        return image, mask, count
+        flat = src.reshape(-1)
+        count += fk.finish(src.reshape(h, w * cn), cn, occ_mode, occ_f, shade, lut, flat, alpha, sp.active, sp.vig,
+                           bank, dy, 3 * dx, sp.sigma_mode, sp.a32, sp.b32, sp.a64, sp.b64)
+        return flat[:h * w * 3].reshape(h, w, 3), alpha, count
 
     @staticmethod
     def _vignetting_map(camera: CameraModel, strength: float) -> np.ndarray | None:
