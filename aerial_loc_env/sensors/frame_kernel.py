@@ -129,16 +129,19 @@ def finish(src, cn, occ_mode, occ, shade, lut, out, alpha, sensor, vig, bank, dy
             count += _scene_row(src[y], o, m, f, g, t, 4, w_px, occ_mode, l0, l1, l2, s0, s1, s2)
         else:
             count += _scene_row(src[y], o, m, f, g, t, 3, w_px, occ_mode, l0, l1, l2, s0, s1, s2)
-        if sensor:
-            v = vig[y if y < n_vig else h_px - 1 - y]
-            if sigma_mode == NOISE_OFF:
-                for x in range(w3):
-                    o[x] = _mul255(np.int32(o[x]), np.int32(v[x]))
-            else:
-                b = bank[y + dy, dx3:dx3 + w3]
-                for x in range(w3):
-                    h = np.int32(o[x])
-                    n = _noise(_sigma(h, sigma_mode, a32, b32, a64, b64), b[x])
-                    o[x] = min(max(_mul255(h, np.int32(v[x])) + n, np.int32(0)), np.int32(255))
-        out[w3 * y:w3 * (y + 1)] = o
+        d = out[w3 * y:w3 * (y + 1)]
+        if not sensor:
+            for x in range(w3):
+                d[x] = o[x]
+            continue
+        v = vig[y if y < n_vig else h_px - 1 - y]
+        if sigma_mode == NOISE_OFF:
+            for x in range(w3):
+                d[x] = _mul255(np.int32(o[x]), np.int32(v[x]))
+        else:
+            b = bank[y + dy, dx3:dx3 + w3]
+            for x in range(w3):
+                h = np.int32(o[x])
+                n = _noise(_sigma(h, sigma_mode, a32, b32, a64, b64), b[x])
+                d[x] = min(max(_mul255(h, np.int32(v[x])) + n, np.int32(0)), np.int32(255))
     return count
