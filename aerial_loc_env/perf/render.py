@@ -7,17 +7,17 @@ The perspective rows (target 3.0x, issue 11) measured 7.9-8.3x (9.1x with gimbal
 sampled the baked shadows, 6.3-6.5x (7.3x) and 5.4-5.7x (6.4-6.7x) after (alternating runs; about 25 % less CPU
 per frame): the per-pixel maps cost about 2x the floor on this scene, the photometry most of the rest.
 
-Where a baked-shadow frame's time goes (line profile, 2-core Xeon VM, load 1-3, floor 0.9 ms): the RGBA warp of
-the baked box 1.0-1.35 ms (more than the floor: a flight reads a new, rotated region each frame, the floor one warm
-region), the photometry 1.05 ms (gamma LUT 0.2, gains transform 0.14, sigma LUT 0.18, noise multiply 0.14,
-vignetting 0.14, saturating add 0.23), the RGB drop, alpha and mask 0.1 ms, the pose geometry 0.1 ms. The
-photometry's passes are each near what OpenCV does per byte; measured and not taken (slower or not worth it):
-gamma and gains composed into one 3-channel ``cv2.LUT`` (a 3-channel table takes 2x a 1-channel one: 0.32 ms vs
-0.16 + 0.09), the sigma LUT composed with them on the pre-photometry image (3-channel again, 0.32 vs 0.17 ms),
-``mixChannels`` for the RGB drop and the alpha (0.18 vs 0.07 ms), the passes run over 64-row bands to stay in
-cache (1 %), and a numba kernel (0.68, cache=True): the whole photometry fused is 1.4 ms (its table lookups do not
-vectorize), the sigma LUT + noise + vignetting + add fused 0.46-0.50 ms against OpenCV's 0.70 ms, about 0.2 ms a
-frame: not worth a compiled dependency. What would reach 2.0x is a SIMD kernel doing all of it in one pass.
+Where a baked-shadow frame's time goes (2-core Xeon VM, load 1-2, floor 0.87-0.95 ms): the RGBA warp of the baked
+box 1.0-1.3 ms (more than the floor: a flight reads a new, rotated region each frame, and the finishing pass in
+between evicts it from L2, which costs the next warp about 0.3 ms), then ONE compiled pass
+(``sensors.frame_kernel.finish``, numba) of 0.55-0.6 ms for everything the six OpenCV passes and the RGB drop, alpha
+and mask did in 1.15 ms (tone lookups 0.2, vignetting and noise with the sigma computed 0.33), the pose geometry
+and the frame's draws 0.05-0.1 ms. Measured and not taken: the sigma read from a table (a gather per element, 0.6-1.0
+ms against 0.33 for the float32 square root: gathers are slow on this CPU), the kernel in bands interleaved with
+warps of those bands (no faster, and not bit-identical: a shifted warp matrix rounds differently), the pass run
+bottom-up, huge pages for the baked box. What is left above 2.0x is the warp, which the kernel cannot fuse without
+redoing OpenCV's bilinear warp slower than OpenCV does it. The first frame of a process compiles the kernels (about
+2.5 s with an empty numba cache, 0.3 s to load them from it): setups render one frame before the timing starts.
 """
 
 from __future__ import annotations
@@ -88,6 +88,8 @@ def _render_setup(altitude_m: float, shadows: bool, perspective: bool = False,
                                       for p in poses])
             box = (*np.floor(corners.min(axis=0)).astype(int), *np.ceil(corners.max(axis=0)).astype(int))
             occlusion = renderer.bake(grid, shading, box) or grid
+
+        renderer.render(poses[0], np.random.default_rng(0), occlusion, shading, tilt_rad=tilt_rad)  # compiles
 
         def run() -> object:
             state["i"] = (state["i"] + 1) % len(poses)

@@ -15,12 +15,14 @@ Why it is built this way:
   frame is then ONE warp of the pre-shaded map plus the photometry, instead of the map warp, a float occlusion
   warp and three shading passes. Shading before interpolation differs from shading after it only at shadow edges
   (tests/test_render_bake.py derives the bound); cloud shadows drift and keep the per-frame path, and so do frames
-  the bake cannot serve (pyramid level > 0, perspective or tilted views, a footprint leaving the box). After the
-  warp a baked frame is one compiled pass (below) that also drops the alpha into the 0/1 shadow mask and counts
-  it; the float occlusion is made only if a caller reads ``Frame.occlusion`` (the env and the estimators do not).
+  the bake cannot serve (pyramid level > 0, a footprint leaving the box). After the warp a baked frame is one
+  compiled pass (below) that also copies the alpha out (the quantized occlusion) and counts the shadowed pixels;
+  the shadow mask and the float occlusion are made only if a caller reads them (the env and the estimators do
+  not).
 - Everything after the warp is ONE pass of a numba kernel (``sensors.frame_kernel.finish``), uint8 in and uint8
-  out, row by row while the row is in cache: the shading of a per-frame float occlusion (three 1-channel LUTs of
-  the quantized occlusion), gamma and the white-balance/exposure gains as one per-channel byte table composed per
+  out, row by row while the row is in cache, the frame written into the warp's own memory: the shading of a
+  per-frame float occlusion (``world.shading_kernel``: per-channel gains of the quantized occlusion, one
+  multiply), gamma and the white-balance/exposure gains as one per-channel byte table composed per
   frame by the OpenCV operations themselves over the 256 levels, vignetting by a precomputed uint8 gain, and
   sensor noise from a per-episode int16 bank of standard normals (fixed point, 2**-11) read at a random offset per
   frame, scaled by the read + shot noise sigma (int16 fixed point, 2**-8), added with saturation: within 2 grey
