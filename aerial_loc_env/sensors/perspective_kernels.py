@@ -1,8 +1,13 @@
 """Compiled kernels of the perspective camera (``perspective.py``): the march, the per-pixel maps, facade shading.
 
 Why: the per-pixel view maps were a dozen OpenCV warps of the march grid plus NumPy passes over 1-D gathers of the
-relief pixels (about 2x the cost of a bare frame warp); one pass per grid, each pixel's ray marched and refined in
-registers, costs a fraction of it.
+relief pixels, each pass writing a temporary array. Here: one pass over the march grid (a cell stops at its first
+hit), and per band of cells one row-major pass for the flat pixels then the relief pixels' fixed-point steps over
+the band's list (independent lookups overlap; one pixel's chain of dependent lookups was latency-bound).
+Where the answer is known without looking, the kernels do not look (the same result, not an approximation):
+a cell whose probe segment crosses no block (``_BLOCK`` pooled px) above the lowest march height cannot hit, and a
+relief cell whose lookups all fall in blocks (``_POOL`` px) of one height reads that height for every pixel.
+What is left is memory-bound: the relief pixels' gathers from the height model and the march's probes.
 
 Exactness: the maps equal those of the OpenCV/NumPy implementation they replace (perspective v5) bit for bit. Every
 float32 operation is the one that implementation did, in the same order:
@@ -14,7 +19,10 @@ float32 operation is the one that implementation did, in the same order:
   float32 division, ``remap`` (nearest) rounds half to even and reads zero outside the source;
 - the refinement's NumPy float32 arithmetic is done operation by operation (products and sums rounded apart: numba
   without fastmath fuses nothing but the explicit ``_fma``), ``np.hypot`` as glibc's ``hypotf`` (double sqrt).
-``tests/test_perspective_kernels.py`` checks all of it against the OpenCV/NumPy reference.
+These are OpenCV 5's kernels as dispatched on x86-64 with AVX2 (measured against it; OpenCV 4 rounded its warps in
+fixed point, so there the old path differed in rare probes). ``tests/test_perspective_kernels.py`` checks all of it
+against the OpenCV/NumPy reference. The kernels compile on first use (about 4 s per view kind: nadir or tilted) and
+are cached beside the module.
 """
 
 from __future__ import annotations
@@ -156,9 +164,15 @@ def _march_kernel(perspective: bool):
                         top = max(top, blocks[br, bc])
                 if top <= low:
                     continue
-                for i in range(1, steps + 1):
-                    ix, iy = _warp_point(tm[i, 0], tm[i, 1], tm[i, 2], tm[i, 3], tm[i, 4], tm[i, 5], tm[i, 6], tm[i, 7],
-                                         tm[i, 8], tm[i, 9], tm[i, 10], tm[i, 11], x, x < body, perspective)
+                for i in range(1, steps + 1):   # the first and last probes are (ax, ay) and (bx, by)
+                    if i == 1:
+                        ix, iy = ax, ay
+                    elif i == steps:
+                        ix, iy = bx, by
+                    else:
+                        ix, iy = _warp_point(tm[i, 0], tm[i, 1], tm[i, 2], tm[i, 3], tm[i, 4], tm[i, 5], tm[i, 6],
+                                             tm[i, 7], tm[i, 8], tm[i, 9], tm[i, 10], tm[i, 11], x, x < body,
+                                             perspective)
                     q = _window_index(ix, iy, nr, nc, stride)
                     if q >= 0 and pool[base + q] > thresholds[i - 1]:
                         hit[y, x] = levels[i - 1]
