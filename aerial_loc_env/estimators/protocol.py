@@ -75,9 +75,11 @@ class Observation(NamedTuple):
     altitude_m: float          # measured altitude above ground
 
 
-def parse_observation(observation: Mapping[str, np.ndarray], briefing: Briefing | None = None) -> Observation:
+def parse_observation(observation: Mapping[str, np.ndarray], briefing: Briefing | None = None,
+                      altitude_range_m: tuple[float, float] | None = None) -> Observation:
     """Unpack ``observation`` (keys image/odometry/yaw/altitude) with a clear error for a malformed one, and,
-    given the ``briefing`` the agent was reset with, for frames that come from another scenario."""
+    given the ``briefing`` the agent was reset with, for frames that come from another scenario (or from
+    outside the agent's ``altitude_range_m``, default ``default_altitude_range_m``)."""
     missing = [k for k in ("image", "odometry", "yaw", "altitude") if k not in observation]
     if missing:
         raise ConfigError(f"observation: missing key(s) {missing}; expected image, odometry, yaw, altitude")
@@ -94,7 +96,7 @@ def parse_observation(observation: Mapping[str, np.ndarray], briefing: Briefing 
     if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
         raise ConfigError(f"observation['image'] must be (H, W, 3) uint8, got {image.shape} {image.dtype}")
     if briefing is not None:
-        check_against_briefing(image, alt, briefing)
+        check_against_briefing(image, alt, briefing, altitude_range_m)
     return Observation(image, float(odo[0]), float(odo[1]), yaw, alt)
 
 
@@ -102,9 +104,18 @@ def parse_observation(observation: Mapping[str, np.ndarray], briefing: Briefing 
 ALTITUDE_MISMATCH_FACTOR = 2.0
 
 
-def check_against_briefing(image: np.ndarray, altitude_m: float, briefing: Briefing) -> None:
-    """Refuse an observation that cannot come from the briefed scenario (image size, altitude), instead of
-    estimating on with a camera model that does not describe the frames."""
+def default_altitude_range_m(briefing: Briefing) -> tuple[float, float]:
+    """The measured altitudes an agent built for the briefing's nominal altitude accepts: within a factor
+    ``ALTITUDE_MISMATCH_FACTOR`` of it (beyond, the frames come from another flight than the briefed one)."""
+    nominal = float(briefing.altitude_m)
+    return nominal / ALTITUDE_MISMATCH_FACTOR, nominal * ALTITUDE_MISMATCH_FACTOR
+
+
+def check_against_briefing(image: np.ndarray, altitude_m: float, briefing: Briefing,
+                           altitude_range_m: tuple[float, float] | None = None) -> None:
+    """Refuse an observation that cannot come from the briefed scenario (image size, altitude outside
+    ``altitude_range_m``, default ``default_altitude_range_m``), instead of estimating on with a camera model
+    that does not describe the frames."""
     cam = briefing.camera
     h, w = image.shape[:2]
     fix = ("the agent was reset with another scenario's briefing than the one producing the frames; reset it "
@@ -112,10 +123,11 @@ def check_against_briefing(image: np.ndarray, altitude_m: float, briefing: Brief
     if (w, h) != (cam.width_px, cam.height_px):
         raise ConfigError(f"observation image is {w} x {h} px but the briefing's camera "
                           f"({briefing.scenario_id}) is {cam.width_px} x {cam.height_px} px: {fix}")
-    nominal = float(briefing.altitude_m)
-    if not nominal / ALTITUDE_MISMATCH_FACTOR <= altitude_m <= nominal * ALTITUDE_MISMATCH_FACTOR:
-        raise ConfigError(f"observation altitude {altitude_m:.1f} m is far from the briefing's nominal "
-                          f"{nominal:.1f} m ({briefing.scenario_id}): {fix}")
+    lo, hi = altitude_range_m or default_altitude_range_m(briefing)
+    if not lo <= altitude_m <= hi:
+        raise ConfigError(f"observation altitude {altitude_m:.1f} m is outside the {lo:.1f}-{hi:.1f} m this agent "
+                          f"estimates at (the briefing's nominal is {float(briefing.altitude_m):.1f} m, "
+                          f"{briefing.scenario_id}): {fix}")
 
 
 class Agent(ABC):
@@ -153,6 +165,13 @@ class Agent(ABC):
 
     def close(self) -> None:  # noqa: B027 - optional hook, deliberately not abstract
         """Release resources (processes, files). The default has none."""
+
+    def altitude_range_m(self, briefing: Briefing) -> tuple[float, float]:
+        """The measured altitudes (m above ground) this agent estimates at with ``briefing``; ``step`` refuses
+        observations outside. A flight that changes altitude (take-off, landing) feeds it frames only within
+        (``aerial-loc mavlink --follow``). Default: ``default_altitude_range_m`` (agents whose measurement
+        model is built for the nominal altitude)."""
+        return default_altitude_range_m(briefing)
 
 
 def prior_estimate(briefing: Briefing, status: str = "ok") -> Estimate:

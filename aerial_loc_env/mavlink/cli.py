@@ -218,18 +218,21 @@ class ScenarioRun:
             self.episode += 1
             t0_s = t_s + float(self.driver.briefing.dt_s)     # simulated time keeps running across episodes
 
-    def follow_steps(self, ground_amsl_m: float, *, pad_std_m: float = 0.5, min_altitude_frac: float = 0.6,
-                     pad_radius_m: float = math.inf, sim_speedup: float = 1.0) -> Iterator[Step | None]:
+    def follow_steps(self, ground_amsl_m: float, *, pad_std_m: float = 0.5, pad_radius_m: float = math.inf,
+                     sim_speedup: float = 1.0) -> Iterator[Step | None]:
         """Frames at the simulator's true vehicle (``self.follow``, set by the caller from SIM_STATE).
 
         The camera frames at the scenario's rate (stream time: the monotonic time SIM_STATE arrived) while the
-        vehicle is above ``min_altitude_frac`` of the scenario's altitude (the range its estimators are built for)
-        with the footprint on the map. Before the first frame the fix is the take-off point (a surveyed pad,
-        ``pad_std_m``), as a vehicle on the ground knows where it stands, while it is within ``pad_radius_m`` of
-        the pad (beyond, e.g. a fixed wing's take-off run and climb, no fix); below that height later (landing) or
-        off the map the fix is lost (the autopilot then lands on inertial navigation). Yields None while no truth
-        has come. Frame times and odometry are in the simulator's seconds: the truth's ``sim_time_s`` (SITL's
-        boot time through SYSTEM_TIME), else its arrival scaled by ``sim_speedup`` (SITL ``--speedup``).
+        vehicle is within the altitudes the agent estimates at (``Agent.altitude_range_m``: template matching
+        down to where its template gets too small, others within a factor 2 of the scenario's altitude) with the
+        footprint on the map; a frame whose *measured* altitude falls outside is not given to the agent (lost),
+        as a companion computer goes by its altimeter. Before the first frame the fix is the take-off point (a
+        surveyed pad, ``pad_std_m``), as a vehicle on the ground knows where it stands, while it is within
+        ``pad_radius_m`` of the pad (beyond, e.g. a fixed wing's take-off run and climb, no fix); below that height
+        later (landing) or off the map the fix is lost (the autopilot then lands on inertial navigation). Yields
+        None while no truth has come. Frame times and odometry are in the simulator's seconds: the truth's
+        ``sim_time_s`` (SITL's boot time through SYSTEM_TIME), else its arrival scaled by ``sim_speedup`` (SITL
+        ``--speedup``).
         """
         from aerial_loc_env.env.external import ExternalFlight, ExternalPose
 
@@ -237,7 +240,15 @@ class ScenarioRun:
         pad: tuple[float, float] | None = None
         started = False
         last_frame: Step | None = None
-        min_alt = min_altitude_frac * float(self.env.unwrapped.scenario.flight.altitude_m)
+        min_alt, max_alt = self.camera_altitude_range_m()
+
+        def lost(pose: ExternalPose, altitude_m: float) -> Step:
+            """No fix: the last frame's estimate flagged lost (a held position sent as valid told the EKF the
+            vehicle had stopped)."""
+            held = last_frame.estimate if last_frame is not None else _Estimate(*pad, None, np.eye(2))
+            est = _Estimate(held.x_m, held.y_m, None, np.asarray(held.cov_xy_m2), "lost")
+            return Step(pose.t_s, est, altitude_m, pose.yaw_rad, math.hypot(pose.x_m - held.x_m, pose.y_m - held.y_m),
+                        "lost")
         seen_s = math.nan
         while True:
             v = self.follow
@@ -250,7 +261,7 @@ class ScenarioRun:
             pose = ExternalPose(x, y, math.pi / 2 - v.heading_rad, v.alt_amsl_m - ground_amsl_m, t_s)
             if pad is None:
                 pad = (x, y)
-            high = pose.altitude_m >= min_alt
+            high = min_alt <= pose.altitude_m <= max_alt
             airborne = high and flight.footprint_inside(pose)
             if not started and not airborne and math.hypot(x - pad[0], y - pad[1]) <= pad_radius_m:
                 est = _Estimate(pad[0], pad[1], None, np.eye(2) * pad_std_m ** 2)
@@ -258,11 +269,7 @@ class ScenarioRun:
                            "pad")
                 continue
             if not airborne:     # landing below the camera's range, or off the map: no fix (lost)
-                # (a held position sent as valid told the EKF the vehicle had stopped)
-                held = last_frame.estimate if last_frame is not None else _Estimate(*pad, None, np.eye(2))
-                est = _Estimate(held.x_m, held.y_m, None, np.asarray(held.cov_xy_m2), "lost")
-                yield Step(pose.t_s, est, max(0.0, pose.altitude_m), pose.yaw_rad, math.hypot(x - held.x_m,
-                                                                                             y - held.y_m), "lost")
+                yield lost(pose, max(0.0, pose.altitude_m))
                 continue
             if not started or flight.due(pose.t_s):
                 if not started:
@@ -271,12 +278,23 @@ class ScenarioRun:
                     started = True
                 else:
                     obs, info = flight.observe(pose)
+                measured = float(obs["altitude"][0])
+                if not min_alt <= measured <= max_alt:      # the altimeter says out of the agent's range
+                    yield lost(pose, measured)
+                    continue
                 est = self.agent.step(obs, info if getattr(self.agent, "uses_ground_truth", False) else None)
                 last_frame = Step(pose.t_s, est, float(obs["altitude"][0]), float(obs["yaw"][0]),
                                   math.hypot(est.x_m - x, est.y_m - y))
                 yield last_frame
             else:
                 yield None
+
+    def camera_altitude_range_m(self) -> tuple[float, float]:
+        """The altitudes (m above ground) at which follow mode gives the agent frames: its own range for this
+        scenario's briefing (``Agent.altitude_range_m``)."""
+        if self.env.unwrapped.briefing is None:       # the briefing exists from the first reset on
+            self.env.reset(seed=self.seed)
+        return tuple(float(v) for v in self.agent.altitude_range_m(self.env.unwrapped.briefing))
 
     def close(self) -> None:
         self.driver.close()

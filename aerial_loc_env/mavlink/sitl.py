@@ -59,6 +59,10 @@ class Mission:
     ready_text: str
     ready_what: str
     deny_gnss: bool = False
+    gps_id: int = 0                       # the GPS instance GPS_INPUT feeds (0 = GPS1, 1 = GPS2)
+    deny_source_set: int | None = 2       # the EKF source set selected at the denial (None: the autopilot's GPS
+    #                                       switching takes the vision GPS itself)
+    deny_after_wp: int = 1                # the denial when this mission item is reached
 
 
 MISSIONS = {
@@ -68,15 +72,25 @@ MISSIONS = {
     "gnss-denial": Mission(COPTER_GNSS_DENIAL, "vision_position_estimate", "is using GPS",
                            "the EKF to use SITL's GPS before the denial", deny_gnss=True),
 }
-# ArduPlane, GPS_INPUT as GPS1, plane.parm's airframe (cruise 22 m/s, at most 30: the paper's 41.7 m/s is beyond
-# this model), return at the camera's altitude and loiter there (no landing: the camera has no fix below).
-# EK3_GPS_CHECK 0: EKF3 must take the fix again in flight, after the climb with none, and its GPS quality checks
-# (speed accuracy <= 1 m/s, horizontal <= 5 m, hdop) reject an image fix's first frames and its differentiated
-# speed (about 3 m/s accuracy at 22 m/s): with them on, in 4 of 6 runs EKF3 never took the fix again (XKF4.GPS
-# 131, EKF_STATUS_REPORT without an absolute position) and the AHRS flew the loop on DCM
-PLANE_GPS_INPUT = {"GPS1_TYPE": 14, "EK3_SRC1_VELZ": 0, "RTL_ALTITUDE": 200, "RTL_AUTOLAND": 0, "EK3_GPS_CHECK": 0}
-PLANE_MISSIONS = {"gps-input": Mission(PLANE_GPS_INPUT, "gps_input", "is using GPS",
-                                       "the EKF to use the vision fix (GPS_INPUT)")}
+# ArduPlane, plane.parm's airframe (cruise 22 m/s, at most 30: the paper's 41.7 m/s is beyond this model); the
+# mission ends in a landing sequence (DO_LAND_START, NAV_LAND), which an RTL also flies (RTL_AUTOLAND 2); disarm
+# 5 s after touchdown. EK3_GPS_CHECK 0: EKF3 must take the fix again in flight, after the climb with none, and its
+# GPS quality checks (speed accuracy <= 1 m/s, horizontal <= 5 m, hdop) reject an image fix's first frames and its
+# differentiated speed (about 3 m/s accuracy at 22 m/s): with them on, in 4 of 6 runs EKF3 never took the fix
+# again (XKF4.GPS 131, EKF_STATUS_REPORT without an absolute position) and the AHRS flew the loop on DCM
+PLANE_FLIGHT = {"EK3_SRC1_VELZ": 0, "RTL_ALTITUDE": 200, "RTL_AUTOLAND": 2, "EK3_GPS_CHECK": 0,
+                "LAND_DISARMDELAY": 5}
+# GPS_INPUT as GPS1
+PLANE_GPS_INPUT = {**PLANE_FLIGHT, "GPS1_TYPE": 14}
+# GNSS denial: SITL's GPS as GPS1 (the primary), the vision fix as GPS2 (GPS_INPUT, gps_id 1); GPS_AUTO_SWITCH 4
+# (use the primary while it has a 3D fix, else the best): when SITL's GPS goes (SIM_GPS1_ENABLE 0) the autopilot
+# itself switches to GPS2, EKF3's source stays "GPS" (no source-set command)
+PLANE_GNSS_DENIAL = {**PLANE_FLIGHT, "GPS2_TYPE": 14, "GPS_AUTO_SWITCH": 4, "GPS_PRIMARY": 0}
+PLANE_MISSIONS = {
+    "gps-input": Mission(PLANE_GPS_INPUT, "gps_input", "is using GPS", "the EKF to use the vision fix (GPS_INPUT)"),
+    "gnss-denial": Mission(PLANE_GNSS_DENIAL, "gps_input", "is using GPS", "the EKF to use SITL's GPS before the "
+                           "denial", deny_gnss=True, gps_id=1, deny_source_set=None, deny_after_wp=2),
+}
 MAV_CMD_SET_EKF_SOURCE_SET = 42007     # ardupilotmega: param1 = source set 1..3
 
 
@@ -332,20 +346,25 @@ def sim_clock(pairs: list[tuple[float, float]]):
     return to_sim
 
 
-def read_dataflash(path: str | os.PathLike) -> dict[str, list]:
+def read_dataflash(path: str | os.PathLike, gps_instance: int = 0) -> dict[str, list]:
     """What SITL logged, on its own clock (TimeUS as seconds since boot): the truth (SIM), the EKF's position
-    (POS), each as (t, lat, lon, alt AMSL), and GPS 1's update intervals (t, GPA.Delta ms: the time between its
-    last two updates as ArduPilot stamps them; over 245 ms it marks the GPS unhealthy; the first is skipped: it
-    has no update before it, ArduPilot logs the time since boot or a wrapped value there)."""
+    (POS), each as (t, lat, lon, alt AMSL), and the update intervals of GPS ``gps_instance`` (0 = GPS1) (t,
+    GPA.Delta ms: the time between its last two updates as ArduPilot stamps them; over 245 ms it marks the GPS
+    unhealthy; the first is skipped: it has no update before it, ArduPilot logs the time since boot or a wrapped
+    value there), and EKF3's own horizontal position variance (t, XKV1.V07 + V08 of its first core, m^2: the
+    north and east position states' variances)."""
     from pymavlink import DFReader
 
     log = DFReader.DFReader_binary(str(path), zero_time_base=True)
-    out: dict[str, list] = {"truth": [], "ekf": [], "gps_delta_ms": []}
+    out: dict[str, list] = {"truth": [], "ekf": [], "gps_delta_ms": [], "ekf_var_m2": []}
     first_gpa = True
-    while (m := log.recv_match(type=["SIM", "POS", "GPA"])) is not None:
+    while (m := log.recv_match(type=["SIM", "POS", "GPA", "XKV1"])) is not None:
         t, kind = m.TimeUS / 1e6, m.get_type()
-        if kind == "GPA":
-            if getattr(m, "I", 0) == 0:
+        if kind == "XKV1":
+            if m.C == 0:
+                out["ekf_var_m2"].append((t, float(m.V07) + float(m.V08)))
+        elif kind == "GPA":
+            if getattr(m, "I", 0) == gps_instance:
                 if first_gpa:
                     first_gpa = False
                 else:
@@ -396,10 +415,15 @@ def offset_latlon(lat: float, lon: float, east_m: float, north_m: float) -> tupl
             lon + math.degrees(east_m / (EARTH_RADIUS_M * math.cos(math.radians(lat)))))
 
 
-def _plan(vehicle: str, database: Any, lat0: float, lon0: float, leg_m: float, altitude_m: float) -> list:
+def _plan(vehicle: str, database: Any, lat0: float, lon0: float, leg_m: float, altitude_m: float,
+          camera_min_alt_m: float = 40.0) -> list:
     """Mission items (command, lat, lon, alt above home, param1). Copter: take off at home, a leg east and back,
-    RTL (lands). Plane: take off north (home in the map's south), a rectangular loop 300 m inside the map's edges
-    (camera footprint and turns stay on the map), RTL (loiters over home at the camera's altitude)."""
+    RTL (lands). Plane: take off north (home in the map's south) to half the loop's altitude (at least 1.5 x the
+    camera's lowest: the agent's first fixes, from the scenario's prior, come during the climb), a rectangular
+    loop 300 m inside the map's edges at ``altitude_m`` (camera footprint and turns stay on the map), then a
+    landing sequence: DO_LAND_START, an approach point north over the map at ``PLANE_APPROACH_ALT_M``
+    and NAV_LAND at home heading south (``PLANE_GLIDE_M`` of final: the vision fix down to ``camera_min_alt_m``,
+    dead reckoning below)."""
     mav = mavutil.mavlink
     if vehicle == "copter":
         return [(mav.MAV_CMD_NAV_TAKEOFF, 0.0, 0.0, altitude_m, 0.0),
@@ -412,23 +436,37 @@ def _plan(vehicle: str, database: Any, lat0: float, lon0: float, leg_m: float, a
         return tuple(float(np.ravel(v)[0]) for v in database.world_to_latlon(x, y))
 
     corners = [(w - m, h - m), (w - m, m), (m, m), (m, h - m)]
-    return ([(mav.MAV_CMD_NAV_TAKEOFF, 0.0, 0.0, 0.65 * altitude_m, 15.0)]      # 15 deg climb to the camera's range
+    hx, hy = (float(np.ravel(v)[0]) for v in database.latlon_to_world(lat0, lon0))
+    climb_m = max(1.5 * camera_min_alt_m, 0.5 * altitude_m)
+    return ([(mav.MAV_CMD_NAV_TAKEOFF, 0.0, 0.0, climb_m, 15.0)]          # 15 deg climb through the camera's range
             + [(mav.MAV_CMD_NAV_WAYPOINT, *at(x, y), altitude_m, 0.0) for x, y in corners]
-            + [(mav.MAV_CMD_NAV_RETURN_TO_LAUNCH, 0.0, 0.0, 0.0, 0.0)])
+            + [(mav.MAV_CMD_DO_LAND_START, 0.0, 0.0, 0.0, 0.0),
+               (mav.MAV_CMD_NAV_WAYPOINT, *at(hx, hy + PLANE_GLIDE_M), PLANE_APPROACH_ALT_M, 0.0),
+               (mav.MAV_CMD_NAV_LAND, lat0, lon0, 0.0, 0.0)])
+
+
+#: the plane's final: from this height above home, this far north of it (a 5.7 deg glide), south to touchdown
+PLANE_APPROACH_ALT_M = 100.0
+PLANE_GLIDE_M = 1000.0
 
 
 def fly_mission(scenario: str, agent: str, *, ground_amsl_m: float, vehicle: str = "copter",
                 mission: str = "gps-input", leg_m: float = 80.0, altitude_m: float | None = None,
-                speedup: float = 1.0, sitl_dir=None, seed: int = 0, timeout_s: float = 300.0, log=None) -> dict:
+                speedup: float = 1.0, sitl_dir=None, seed: int = 0, timeout_s: float = 300.0, log=None,
+                wind: tuple[float, float] | None = None) -> dict:
     """ArduPilot SITL on the vision fix, the camera following SITL's truth. Copter (``MISSIONS``: GPS_INPUT,
     ExternalNav, or SITL's GPS then denied): arm in AUTO on the pad fix, take off, a leg east and back, RTL and
-    land. Plane (``PLANE_MISSIONS``): arm in AUTO on the pad fix, take off (no fix from leaving the pad until the
-    camera is in range), a loop over the map at the scenario's altitude, RTL and loiter. Returns the record,
-    every time on SITL's clock (seconds since its boot): truth and EKF from SITL's dataflash log, the monitor's
-    events, the bridge's steps (the estimator's own error, pad/camera/lost), ArduPilot's GPS update intervals."""
+    land. Plane (``PLANE_MISSIONS``: GPS_INPUT, or SITL's GPS then denied): arm in AUTO (on the pad fix, or on
+    SITL's GPS), take off (no camera fix from leaving the pad until the camera is in range), a loop over the map
+    at the scenario's altitude, the landing sequence (the camera fix down to the agent's lowest altitude, then
+    dead reckoning), touchdown and disarm. Returns the record, every time on SITL's clock (seconds since its
+    boot): truth and EKF from SITL's dataflash log, the monitor's events, the bridge's steps (the estimator's
+    own error, pad/camera/lost), ArduPilot's GPS update intervals, and for the plane the touchdown. ``wind``:
+    SITL's wind (speed m/s, direction it blows from, degrees; SIM_WIND_SPD / SIM_WIND_DIR), none by default."""
     import gymnasium as gym
 
     import aerial_loc_env.env  # noqa: F401  (registers the scenarios)
+    from aerial_loc_env.estimators.registry import make_agent
 
     from . import cli as mav_cli
 
@@ -437,31 +475,41 @@ def fly_mission(scenario: str, agent: str, *, ground_amsl_m: float, vehicle: str
         raise ConfigError(f"--mission {mission!r} for --vehicle {vehicle}: use one of {', '.join(missions)}")
     spec = missions[mission]
     env = gym.make(scenario)
+    env.reset(seed=seed)
     database = env.unwrapped.database
     scenario_alt_m = float(env.unwrapped.scenario.flight.altitude_m)
     altitude_m = scenario_alt_m if altitude_m is None else altitude_m
-    camera_min_alt_m = 0.6 * scenario_alt_m
+    # the camera gives the agent frames within its own altitude range (follow mode), e.g. template-ncc down to 40 m
+    camera_min_alt_m = float(make_agent(agent).altitude_range_m(env.unwrapped.briefing)[0])
     home_xy = None if vehicle == "copter" else (database.width_m / 2.0, 250.0)
     home = sitl_home(database, ground_amsl_m, 0.0, home_xy)
     env.close()
     lat0, lon0 = (float(v) for v in home.split(",")[:2])
-    items = _plan(vehicle, database, lat0, lon0, leg_m, altitude_m)
-    last_wp = len(items) - 1          # the last waypoint before RTL (item 0 is home)
+    items = _plan(vehicle, database, lat0, lon0, leg_m, altitude_m, camera_min_alt_m)
+    # the last item (item 0 is home): RTL (copter, lands) or NAV_LAND (plane); the loop's end: the item after the
+    # last waypoint (RTL, or DO_LAND_START)
+    last_wp = len(items) if vehicle == "plane" else len(items) - 1
+    loop_end = next(i for i, it in enumerate(items, 1) if it[0] in (mavutil.mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH,
+                                                                    mavutil.mavlink.MAV_CMD_DO_LAND_START))
     stop = threading.Event()
     result: dict = {}
     steps: list = []      # (monotonic time -> SITL's, source, estimator error m, estimate x, y in the map's frame)
-    t_denied = None
+    t_denied, denial = None, None
 
     def on_step(step) -> None:
         src = step.source if step.estimate.status != "lost" else "lost"
-        steps.append((time.monotonic(), src, step.error_m, float(step.estimate.x_m), float(step.estimate.y_m)))
+        steps.append((time.monotonic(), src, step.error_m, float(step.estimate.x_m), float(step.estimate.y_m),
+                      float(step.altitude_m)))
 
     # LOG_DISARMED 1: the dataflash log (SITL's own clock: truth, EKF, GPS update intervals) from boot on
-    with SitlProcess(vehicle, home, {**spec.params, "LOG_DISARMED": 1}, speedup=speedup, sitl_dir=sitl_dir) as sitl:
+    sim_wind = {} if wind is None else {"SIM_WIND_SPD": float(wind[0]), "SIM_WIND_DIR": float(wind[1])}
+    with SitlProcess(vehicle, home, {**spec.params, **sim_wind, "LOG_DISARMED": 1}, speedup=speedup,
+                     sitl_dir=sitl_dir) as sitl:
         args = mav_cli.build_parser().parse_args([
             "--scenario", scenario, "--agent", agent, "--follow", "--seed", str(seed),
             "--ground-amsl-m", str(ground_amsl_m), "--connect", f"udpin:127.0.0.1:{sitl.bridge_port}",
             "--message", spec.message, "--rate-hz", str(10.0 * speedup), "--sim-speedup", str(speedup),
+            "--gps-id", str(spec.gps_id),
             *(["--pad-radius-m", "5"] if vehicle == "plane" else []),
             *([] if log is not None else ["--quiet"])])
         bridge = threading.Thread(target=lambda: result.setdefault("rc", mav_cli.run(
@@ -482,18 +530,20 @@ def fly_mission(scenario: str, agent: str, *, ground_amsl_m: float, vehicle: str
                 monitor.arm()
                 time.sleep(1.0)
             t_armed = time.monotonic()
-            if spec.deny_gnss:    # at the top of the climb, over the map with the camera in range: GNSS gone
-                monitor.wait(lambda t: 1 in t.reached, timeout_s / speedup, "the take-off")
+            if spec.deny_gnss:    # over the map with the camera in range (copter: top of the climb): GNSS gone
+                monitor.wait(lambda t: spec.deny_after_wp in t.reached, timeout_s / speedup,
+                             f"mission item {spec.deny_after_wp} before the denial")
                 monitor.set_param("SIM_GPS1_ENABLE", 0)
-                monitor.set_source_set(2)
+                if spec.deny_source_set is not None:
+                    monitor.set_source_set(spec.deny_source_set)
+                denial = "SIM_GPS1_ENABLE 0" + ("" if spec.deny_source_set is None
+                                                else f", EKF source set {spec.deny_source_set}")
                 t_denied = time.monotonic()
-            monitor.wait(lambda t: last_wp in t.reached, timeout_s / speedup, "the mission's last waypoint")
             if vehicle == "copter":
+                monitor.wait(lambda t: loop_end - 1 in t.reached, timeout_s / speedup, "the mission's last waypoint")
                 monitor.wait(lambda t: not t.armed, timeout_s / speedup, "landing and disarming after RTL")
-            else:         # RTL to home, then one loiter circle at the camera's altitude
-                monitor.wait(lambda t: t.truth and _distance_m(t.truth[-1], (0, lat0, lon0)) < 150.0,
-                             timeout_s / speedup, "RTL back over home")
-                time.sleep(25.0 / speedup)
+            else:         # the loop, the landing sequence, touchdown, disarm 5 s later (LAND_DISARMDELAY)
+                monitor.wait(lambda t: not t.armed, 2 * timeout_s / speedup, "the landing and disarming")
             t_end = time.monotonic()
         finally:
             stop.set()
@@ -503,7 +553,7 @@ def fly_mission(scenario: str, agent: str, *, ground_amsl_m: float, vehicle: str
         if sitl.dataflash_log is None:
             raise AerialLocError(f"SITL wrote no dataflash log (LOG_DISARMED 1); its output: "
                                  f"{(sitl.workdir / 'sitl.log').read_text(errors='replace')[-800:]}")
-        flog = read_dataflash(sitl.dataflash_log)
+        flog = read_dataflash(sitl.dataflash_log, spec.gps_id)
     # every time in the record on SITL's clock (seconds since its boot): the log's own stamps, the monitor's
     # arrivals through SITL's clock as GLOBAL_POSITION_INT.time_boot_ms reported it
     tr = monitor.track
@@ -514,7 +564,7 @@ def fly_mission(scenario: str, agent: str, *, ground_amsl_m: float, vehicle: str
     mapped = lambda rows: [(to_sim(r[0]), *r[1:]) for r in rows]                      # noqa: E731
     flight = lambda rows: [r for r in rows if t_armed <= r[0] <= t_end]               # noqa: E731
     gps = flog["gps_delta_ms"]
-    record = {"vehicle": vehicle, "mission": mission, "last_wp": last_wp,
+    record = {"vehicle": vehicle, "mission": mission, "last_wp": last_wp, "loop_end": loop_end, "wind": wind,
               "truth": flight(flog["truth"]), "ekf": flight(flog["ekf"]), "texts": mapped(tr.texts),
               "ekf_flags": flight(mapped(tr.ekf_flags)),
               # ArduPilot's own interval between GPS updates, from the EKF taking the fix on (a stall while the
@@ -523,7 +573,7 @@ def fly_mission(scenario: str, agent: str, *, ground_amsl_m: float, vehicle: str
               "gps_gap_max_before_fix_ms": max((d for t, d in gps if t < t_fix), default=0),
               "reached": list(tr.reached), "acks": mapped(tr.acks), "gps_fix": flight(mapped(tr.gps_fix)),
               "fix_to_arm_s": t_armed - t_fix, "flight_s": t_end - t_armed, "bridge_rc": result.get("rc"),
-              "t_armed": t_armed, "t_end": t_end, "t_denied": t_denied,
+              "t_armed": t_armed, "t_end": t_end, "t_denied": t_denied, "denial": denial,
               "steps": flight(mapped(steps)),
               "ground_amsl_m": ground_amsl_m, "camera_min_alt_m": camera_min_alt_m, "speedup": speedup,
               # SITL seconds per real second from the fix to the end: SITL keeps its --speedup or falls behind
@@ -532,16 +582,48 @@ def fly_mission(scenario: str, agent: str, *, ground_amsl_m: float, vehicle: str
                            for s in record["steps"] if s[1] == "camera"]
     record["timed_errors"] = timed_horizontal_errors(record["truth"], record["ekf"])
     record["horizontal_errors_m"] = [e for _, e in record["timed_errors"]]
-    # the AUTO legs on the vision fix: from the first waypoint to the start of RTL
+    # the AUTO legs on the vision fix: from the first waypoint to the start of RTL / the landing sequence
     starts = {k: next((t for t, x in record["texts"] if x.startswith(f"Mission: {k}")), None)
-              for k in (2, last_wp + 1)}
-    if starts[2] is not None and starts[last_wp + 1] is not None:
-        legs = lambda rows: [r for r in rows if starts[2] <= r[0] <= starts[last_wp + 1]]   # noqa: E731
+              for k in (2, loop_end)}
+    if starts[2] is not None and starts[loop_end] is not None:
+        legs = lambda rows: [r for r in rows if starts[2] <= r[0] <= starts[loop_end]]   # noqa: E731
         record["leg_errors_m"] = horizontal_errors_m(legs(record["truth"]), legs(record["ekf"]))
         record["leg_flags"] = legs(record["ekf_flags"])
     else:
         record["leg_errors_m"], record["leg_flags"] = [], []
+    if vehicle == "plane":
+        record["touchdown"] = touchdown(flog["truth"], record["ekf"], record["steps"], (lat0, lon0),
+                                        starts[loop_end], flog["ekf_var_m2"])
     return record
+
+
+def touchdown(truth: list, ekf: list, steps: list, land_at: tuple[float, float], t_landing: float | None,
+              ekf_var_m2: list | None = None) -> dict:
+    """Where and how the plane came down, on SITL's clock: the first truth sample of the landing sequence
+    (from ``t_landing``) within 0.5 m of the ground height (the truth's median before take-off), the distance
+    from there to the NAV_LAND point (along the final, south, and across it), the EKF's error at that moment and
+    the horizontal accuracy it claimed (sqrt of its north + east position variances, ``ekf_var_m2``: (t, m^2)),
+    where the vehicle stopped; the last camera frame before it (altitude, seconds of dead reckoning)."""
+    if not truth or t_landing is None:
+        return {}
+    ground = float(np.median([r[3] for r in truth[:50]]))
+    down = next((r for r in truth if r[0] >= t_landing and r[3] <= ground + 0.5), None)
+    if down is None:
+        return {"landed": False}
+    t_down = down[0]
+    north = math.radians(down[1] - land_at[0]) * EARTH_RADIUS_M
+    east = math.radians(down[2] - land_at[1]) * EARTH_RADIUS_M * math.cos(math.radians(land_at[0]))
+    at_down = [e for t, e in timed_horizontal_errors(truth, ekf) if abs(t - t_down) <= 0.5]
+    rest = truth[-1]
+    cam = [s for s in steps if s[1] == "camera" and s[0] <= t_down]
+    var = [v for t, v in (ekf_var_m2 or []) if t <= t_down]
+    return {"landed": True, "t_s": t_down, "distance_m": math.hypot(north, east),
+            "along_m": -north, "cross_m": east,     # the final runs south: along = beyond the point, cross = east
+            "ekf_error_m": float(at_down[len(at_down) // 2]) if at_down else math.nan,
+            "ekf_sigma_m": math.sqrt(max(0.0, var[-1])) if var else math.nan,
+            "rest_from_land_point_m": _distance_m(rest, (0.0, *land_at)),
+            "last_fix_alt_m": float(cam[-1][5]) if cam else math.nan,
+            "dead_reckoning_s": t_down - cam[-1][0] if cam else math.nan}
 
 
 def vision_fix_s(steps: list, after: float | None = None) -> float:
@@ -570,8 +652,10 @@ def summary(record: dict) -> dict:
     events = [x for _, x in record["texts"] if any(k in x for k in ("ailsafe", "EKF variance", "Glitch",
                                                                      "stopped aiding", "is using", "source"))]
     out = {"mission": record.get("mission", "gps-input"),
-           "vehicle": record.get("vehicle", "copter"),
-           "mission_completed": record.get("last_wp", 3) in record["reached"],
+           "vehicle": record.get("vehicle", "copter"), "wind": record.get("wind"),
+           # copter: the last waypoint reached (then RTL landed: the run waits for the disarm); plane: touched down
+           "mission_completed": (record.get("touchdown", {}).get("landed", False) if record.get("vehicle") == "plane"
+                                 else record.get("last_wp", 3) in record["reached"]),
            "legs_ekf_rmse_m": float(np.sqrt(np.mean(legs ** 2))) if legs.size else math.nan,
            "legs_ekf_max_m": float(legs.max()) if legs.size else math.nan,
            "ekf_rmse_m": float(np.sqrt(np.mean(e ** 2))) if e.size else math.nan,
@@ -590,6 +674,8 @@ def summary(record: dict) -> dict:
            "gps_gaps_over_245ms": int((g > 245).sum()), "gps_gap_max_ms": float(g.max()) if g.size else math.nan,
            "gps_gap_max_before_fix_ms": float(record.get("gps_gap_max_before_fix_ms", math.nan)),
            "events": list(dict.fromkeys(events))}
+    if record.get("touchdown"):
+        out["touchdown"] = record["touchdown"]
     if record.get("t_denied") is not None:     # the EKF after the GNSS was switched off
         t_d = record["t_denied"]
         after = [r for r in record["truth"] if r[0] >= t_d], [r for r in record["ekf"] if r[0] >= t_d]
@@ -613,7 +699,7 @@ def write_outputs(record: dict, out_dir: Path) -> list[Path]:
     t0 = truth[0][0] if truth else 0.0
     lines = [f"{t - t0:8.1f} s  {x}" for t, x in record["texts"]]
     if record.get("t_denied") is not None:
-        lines.append(f"{record['t_denied'] - t0:8.1f} s  [SIM_GPS1_ENABLE 0, EKF source set 2]")
+        lines.append(f"{record['t_denied'] - t0:8.1f} s  [{record.get('denial', 'SIM_GPS1_ENABLE 0')}]")
     paths[1].write_text("\n".join(sorted(lines, key=lambda x: float(x.split()[0]))) + "\n")
     with open(paths[0], "w", newline="") as f:
         w = csv.writer(f)
@@ -674,17 +760,27 @@ def main(argv: list[str] | None = None) -> int:
                     "AerialLoc/PaperShadows-v1 (plane: 1.2 x 1.4 km at 200 m, room for a fixed wing's loop)")
     ap.add_argument("--agent", default="template-ncc")
     ap.add_argument("--mission", default="gps-input", choices=tuple(MISSIONS),
-                    help="gps-input: GPS_INPUT as GPS1; external-nav: VISION_POSITION_ESTIMATE, no GNSS; "
-                         "gnss-denial: SITL's GPS, switched off after take-off, EKF to ExternalNav (source set 2)")
+                    help="gps-input: GPS_INPUT as GPS1; external-nav (copter): VISION_POSITION_ESTIMATE, no GNSS; "
+                         "gnss-denial: SITL's GPS, switched off in flight; copter: EKF to ExternalNav (source set "
+                         "2); plane: the vision fix as GPS2, the autopilot switches to it (GPS_AUTO_SWITCH 4)")
     ap.add_argument("--ground-amsl-m", type=float, default=30.0, help="SITL's home altitude = the map's ground")
     ap.add_argument("--sitl-bin", default=None, help=f"folder of the SITL binaries (default {DEFAULT_SITL_DIR})")
     ap.add_argument("--speedup", type=float, default=1.0, help="SITL's --speedup; the camera follows SITL's clock "
                     "(frame times and odometry scaled by it): keep it where SITL and the agent keep pace")
+    ap.add_argument("--wind", default=None, metavar="SPEED,FROM_DEG",
+                    help="SITL's wind: speed m/s and the direction it blows from, degrees (e.g. 5,270); default none")
     ap.add_argument("--out", default="sitl-run", help="folder for errors.csv and track.png")
     args = ap.parse_args(argv)
+    try:
+        wind = None if args.wind is None else tuple(float(v) for v in args.wind.split(","))
+    except ValueError:
+        wind = ()
+    if wind is not None and (len(wind) != 2 or not 0 <= wind[0] <= 30):
+        ap.error(f"--wind {args.wind!r}: give SPEED,FROM_DEG with the speed in 0..30 m/s, e.g. 5,270")
     scenario = args.scenario or ("AerialLoc/Small-v1" if args.vehicle == "copter" else "AerialLoc/PaperShadows-v1")
     record = fly_mission(scenario, args.agent, ground_amsl_m=args.ground_amsl_m, vehicle=args.vehicle,
-                         mission=args.mission, speedup=args.speedup, sitl_dir=args.sitl_bin, log=sys.stdout)
+                         mission=args.mission, speedup=args.speedup, sitl_dir=args.sitl_bin, log=sys.stdout,
+                         wind=wind)
     paths = write_outputs(record, Path(args.out))
     print(json.dumps(summary(record), indent=1))
     print("wrote " + ", ".join(str(p) for p in paths))
