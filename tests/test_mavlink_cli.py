@@ -52,9 +52,10 @@ def test_scenario_agent_stream_lands_on_the_map(run_mavlink_cli):
 
 
 def test_follow_renders_at_the_simulators_truth_and_localizes():
-    """A fake SITL streams SIM_STATE: on the ground at the map centre, then climbing and flying east. The
-    bridge sends the take-off pad while the camera sees nothing, then the agent's estimates from frames
-    rendered at the truth: the GPS_INPUT positions follow the true vehicle."""
+    """A fake SITL streams SIM_STATE: on the ground at the map centre, then climbing and flying east, then down
+    at 10 m. The bridge sends the take-off pad while the camera sees nothing, then the agent's estimates from
+    frames rendered at the truth: the GPS_INPUT positions follow the true vehicle; below the agent's lowest
+    altitude (template-ncc on Small-v1: 20 m) GPS_INPUT reports no fix."""
     pytest.importorskip("aerial_loc_env.estimators.registry", reason="the agents are not available")
     from aerial_loc_env.env import world_to_action  # noqa: F401  (registers the scenarios)
     from aerial_loc_env.mavlink.selfcheck import free_udp_port
@@ -66,7 +67,7 @@ def test_follow_renders_at_the_simulators_truth_and_localizes():
     port = free_udp_port()
     args = mav_cli.build_parser().parse_args([
         "--scenario", "AerialLoc/Small-v1", "--agent", "template-ncc", "--follow", "--ground-amsl-m", str(ground),
-        "--connect", f"udpin:127.0.0.1:{port}", "--duration-s", "9", "--quiet"])
+        "--connect", f"udpin:127.0.0.1:{port}", "--duration-s", "11", "--quiet"])
     result = {}
     runner = threading.Thread(target=lambda: result.setdefault("rc", mav_cli.run(args, out=io.StringIO())))
     runner.start()
@@ -79,10 +80,10 @@ def test_follow_renders_at_the_simulators_truth_and_localizes():
                                               0, 0, mavlink2.MAV_STATE_STANDBY, 3)
     cx, cy = om.width_m / 2, om.height_m / 2
 
-    def truth(t):       # 3 s on the ground, a 1 s jump to 100 m (a test, not a copter), then 10 m/s east
+    def truth(t):       # 3 s on the ground, a 1 s jump to 100 m (a test, not a copter), 10 m/s east, then 10 m
         if t < 3.0:
             return cx, cy, 0.0
-        return cx + 10.0 * max(0.0, t - 4.0), cy, 100.0 * min(1.0, t - 3.0)
+        return cx + 10.0 * max(0.0, t - 4.0), cy, 100.0 * min(1.0, t - 3.0) if t < 9.5 else 10.0
 
     gps = []
     t0 = time.monotonic()
@@ -110,9 +111,11 @@ def test_follow_renders_at_the_simulators_truth_and_localizes():
     xy = [(t, *(float(np.ravel(v)[0]) for v in om.latlon_to_world(m.lat / 1e7, m.lon / 1e7)), m) for t, m in gps]
     pad = [(x, y) for t, x, y, m in xy if t < 2.9]    # (the bridge may take a second to start on a busy machine)
     assert pad and all(math.hypot(x - cx, y - cy) < 0.2 for x, y in pad)     # the take-off point
-    flying = [(t, x, y, m) for t, x, y, m in xy if t > 6.0]
+    flying = [(t, x, y, m) for t, x, y, m in xy if 6.0 < t < 9.4]
     assert len(flying) > 20
     # template matching at 1 m/px work resolution: within 3 fix sigmas (3 m) plus the 0.25 s frame age at 10 m/s
     errors = [math.hypot(x - truth(t)[0], y - truth(t)[1]) for t, x, y, _ in flying]
     assert np.median(errors) < 9.0 + 2.5 + 1.0, errors
     assert all(m.alt == pytest.approx(ground + 100.0, abs=4.0) for *_, m in flying)
+    low = [m for t, _, _, m in xy if t > 10.0]
+    assert low and all(m.fix_type < 3 for m in low), [m.fix_type for m in low]
