@@ -178,15 +178,6 @@ class ReliefView:
             self._grids[key] = cv2.dilate(self._march_heights(), np.ones((2 * radius + 1,) * 2, np.uint8))
         return self._grids[key]
 
-    def _block_minima(self) -> np.ndarray:
-        """The height model's block minimum over ``_MARCH_FACTOR`` px (once): with the block maximum, where a
-        cell's lookups all fall on one height."""
-        if "minima" not in self._grids:
-            from ..world.shadows import max_pool  # layer 1
-
-            self._grids["minima"] = np.negative(max_pool(np.negative(self.dsm), _MARCH_FACTOR))
-        return self._grids["minima"]
-
     def _march_heights(self) -> np.ndarray:
         """The height model's block maximum over ``_MARCH_FACTOR`` px (once): the coarse march misses nothing."""
         if self._pooled is None:
@@ -234,8 +225,7 @@ class ReliefView:
             n = kernels.view_maps[tilt is not None, bool(window[4])](
                 gx, gy, facade, facing, z0, relief, f, np.array([cu, cv], np.float32), conj, flat,
                 a[:, :2].astype(np.float32), np.array(consts, np.float32),
-                _NO_DSM if self.dsm is None else self.dsm, np.array(window[:4], np.int64),
-                *((_NO_DSM, _NO_DSM) if self.dsm is None else (self._block_minima(), self._march_heights())))
+                _NO_DSM if self.dsm is None else self.dsm, np.array(window[:4], np.int64))
             if n == 0:
                 return ViewMaps(gx, gy, None, bbox, None, origin)
             return ViewMaps(gx, gy, facade[:n].copy(), bbox, facing[:n].copy(), origin)

@@ -4,10 +4,12 @@ Why: the per-pixel view maps were a dozen OpenCV warps of the march grid plus Nu
 relief pixels, each pass writing a temporary array. Here: one pass over the march grid (a cell stops at its first
 hit), and per band of cells one row-major pass for the flat pixels then the relief pixels' fixed-point steps over
 the band's list (independent lookups overlap; one pixel's chain of dependent lookups was latency-bound).
-Where the answer is known without looking, the kernels do not look (the same result, not an approximation):
-a cell whose probe segment crosses no block (``_BLOCK`` pooled px) above the lowest march height cannot hit, and a
-relief cell whose lookups all fall in blocks (``_POOL`` px) of one height reads that height for every pixel.
-What is left is memory-bound: the relief pixels' gathers from the height model and the march's probes.
+The march skips a cell whose probe segment crosses no block (``_BLOCK`` pooled px) above the lowest march height:
+it cannot hit (the same result, not an approximation). What is left is memory-bound: the relief pixels' gathers
+from the height model and the march's probes. Measured and not kept: a relief cell whose lookups all fall in
+blocks of one height (block minimum = maximum) skipping them (no gain within the noise on the perf scene and on
+RealisticPaper), a uint16 palette of the height model (2-byte gathers: 4 % of the maps kernel), the march
+without early exit (slower).
 
 Exactness: the maps equal those of the OpenCV/NumPy implementation they replace (perspective v5) bit for bit. Every
 float32 operation is the one that implementation did, in the same order:
@@ -34,7 +36,6 @@ from numba import types
 from numba.extending import intrinsic
 
 _BLOCK = 4     # the march's skip test: maxima of 4 x 4 pooled pixels
-_POOL = 4      # the maps' skip test: the height model's minima and maxima over 4 x 4 px (perspective's block)
 _LANES = 16    # OpenCV's nearest warps: vector body in blocks of 2 x 8 float32 lanes (AVX2), scalar tail after it
 _JIT = {"cache": True, "nogil": True, "error_model": "numpy", "boundscheck": False}
 _F32 = np.float32
@@ -208,15 +209,6 @@ def _dsm_index(du: np.float32, dv: np.float32, k: np.float32, nx: np.float32, ny
     return _window_index(_round_px(fx), _round_px(fy), rows, cols, cols)
 
 
-@numba.njit(inline="always", **_JIT)
-def _span(d0: np.float32, d1: np.float32, d2: np.float32, d3: np.float32, k: np.float32,
-          n: np.float32) -> tuple[int, int]:
-    """The range of rounded ``d k + n`` over a cell's four corner offsets ``d``, widened by a pixel: every pixel of
-    the cell rounds inside it (its offset lies in the corners' hull up to float32 rounding, far below a pixel)."""
-    a, b, c, e = _round_px(d0 * k + n), _round_px(d1 * k + n), _round_px(d2 * k + n), _round_px(d3 * k + n)
-    return min(min(a, b), min(c, e)) - 1, max(max(a, b), max(c, e)) + 1
-
-
 def _maps_kernel(tilted: bool, replicate: bool):
     """``view_maps`` for nadir or tilted rays, reading the height model with zeros or (a window of a map beyond
     remap's size limit) its border outside: compile-time constants, as for ``march``."""
@@ -224,8 +216,7 @@ def _maps_kernel(tilted: bool, replicate: bool):
     @numba.njit(**_JIT)
     def view_maps(out_x: np.ndarray, out_y: np.ndarray, facade: np.ndarray, facing: np.ndarray, z0: np.ndarray,
                   relief: np.ndarray, factor: int, centre: np.ndarray, tilt: np.ndarray, flat: np.ndarray,
-                  lin: np.ndarray, consts: np.ndarray, dsm: np.ndarray, window: np.ndarray, low: np.ndarray,
-                  high: np.ndarray) -> int:
+                  lin: np.ndarray, consts: np.ndarray, dsm: np.ndarray, window: np.ndarray) -> int:
         """The per-pixel maps of ``ReliefView.maps`` into ``out_x``/``out_y`` (h, w) float32; returns the number
         of facade pixels, whose flat indices and facing directions are written to ``facade``/``facing`` (cell by
         cell).
@@ -235,8 +226,7 @@ def _maps_kernel(tilted: bool, replicate: bool):
         gamma) of the ground point ``fma(u, alpha, fma(v, beta, gamma))``. Relief cells: ``lin`` (2, 2) float32
         the affine's linear part (ground point - nadir), ``consts`` float32 (nadir x, nadir y, origin-shifted nadir
         x, y, H, surface tolerance, height cap), fixed-point steps from the cell's ``z0`` on ``dsm`` (C-contiguous;
-        read per ``window``: c0, r0, c1, r1). ``low``/``high``: the height model's minimum/maximum over blocks of
-        ``_POOL`` px: a cell whose lookups all fall in blocks of one height skips them (the same result)."""
+        read per ``window``: c0, r0, c1, r1)."""
         h, w = out_x.shape
         hc, wc = z0.shape
         rows, cols = dsm.shape
@@ -281,51 +271,6 @@ def _maps_kernel(tilted: bool, replicate: bool):
                 if relief[cy, cx] == 0:
                     continue
                 k0 = one - z0[cy, cx] / big_h
-                x0, x1 = cx * factor, min(cx * factor + factor, w)
-                if not replicate:
-                    # the cell's corner rays: every lookup of its pixels at scale k lies in their span
-                    i00, i01 = (y0 - y0) * w + x0, (y0 - y0) * w + x1 - 1
-                    i10, i11 = (y1 - 1 - y0) * w + x0, (y1 - 1 - y0) * w + x1 - 1
-                    du0 = l00 * ray_u[i00] + l01 * ray_v[i00]
-                    du1 = l00 * ray_u[i01] + l01 * ray_v[i01]
-                    du2 = l00 * ray_u[i10] + l01 * ray_v[i10]
-                    du3 = l00 * ray_u[i11] + l01 * ray_v[i11]
-                    dv0 = l10 * ray_u[i00] + l11 * ray_v[i00]
-                    dv1 = l10 * ray_u[i01] + l11 * ray_v[i01]
-                    dv2 = l10 * ray_u[i10] + l11 * ray_v[i10]
-                    dv3 = l10 * ray_u[i11] + l11 * ray_v[i11]
-                    settled = False
-                    z1 = zero
-                    k = k0
-                    for step in range(2):   # z1 = h at k0, then z2 = h at k1 (when k1 differs)
-                        ca, cb = _span(du0, du1, du2, du3, k, nx)
-                        ra, rb = _span(dv0, dv1, dv2, dv3, k, ny)
-                        if ca < 0 or ra < 0 or cb >= cols or rb >= rows:
-                            break
-                        top = high[ra // _POOL, ca // _POOL]
-                        even = True
-                        for br in range(ra // _POOL, rb // _POOL + 1):
-                            for bc in range(ca // _POOL, cb // _POOL + 1):
-                                even = even and low[br, bc] == top and high[br, bc] == top
-                        if not even:
-                            break
-                        z = min(top, cap)
-                        if step == 0:
-                            z1 = z
-                            k = one - z1 / big_h
-                            if k == k0:         # z2 at the same point: z2 = z1
-                                settled = True
-                                break
-                        else:
-                            settled = z == z1
-                    if settled:                 # every pixel: z1 = z2 = the blocks' height, scale k
-                        for y in range(y0, y1):
-                            for x in range(x0, x1):
-                                q = (y - y0) * w + x
-                                ru, rv = ray_u[q], ray_v[q]
-                                out_x[y, x] = (l00 * ru + l01 * rv) * k + ox
-                                out_y[y, x] = (l10 * ru + l11 * rv) * k + oy
-                        continue
                 for y in range(y0, y1):
                     for x in range(cx * factor, min(cx * factor + factor, w)):
                         ru, rv = ray_u[(y - y0) * w + x], ray_v[(y - y0) * w + x]
