@@ -64,8 +64,8 @@ def _round_px(s: np.float32) -> int:
     return int(np.rint(s))
 
 
-# The helpers below take scalars only: an array argument costs a reference count per call (an atomic add and
-# subtract), which made an inlined lookup four times slower.
+# The per-probe and per-pixel helpers take scalars only: an array argument costs a reference count per call (an
+# atomic add and subtract), which made an inlined lookup four times slower.
 
 @numba.njit(inline="always", **_JIT)
 def _warp_point(c0: np.float32, c1: np.float32, c2: np.float32, v0: np.float32, v1: np.float32, v2: np.float32,
