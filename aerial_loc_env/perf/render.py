@@ -5,7 +5,11 @@ projections for many particles.
 The perspective rows (target 3.0x, issue 11) measured 7.9-8.3x (9.1x with gimbal tilt) at load 0.7-0.8 and
 7.2-7.5x (8.2-8.5x) at load 2.3-2.9 on 2 cores before their maps were made on the march's block grid and the views
 sampled the baked shadows, 6.3-6.5x (7.3x) and 5.4-5.7x (6.4-6.7x) after (alternating runs; about 25 % less CPU
-per frame): the per-pixel maps cost about 2x the floor on this scene, the photometry most of the rest.
+per frame). With the maps as numba kernels (``sensors.perspective_kernels``, bit-identical) and the compiled
+finishing pass, 4.95-4.97x (5.47-5.73x) at load 1.5-2; in one process, interleaved (load 2.2), the maps cost 2.28x
+the floor inside the render (2.56x tilted) where the OpenCV/NumPy maps cost 2.57x (3.17x): the frame 5.41x against
+6.15x (5.96x against 7.02x). The maps are memory-bound: the relief pixels' gathers from the height model (a fifth
+of this scene's pixels) and the march's probes, after the previous frame's warp and finishing pass evicted them.
 
 Where a baked-shadow frame's time goes (2-core Xeon VM, load 1-2, floor 0.87-0.95 ms): the RGBA warp of the baked
 box 1.0-1.3 ms (more than the floor: a flight reads a new, rotated region each frame, and the finishing pass in
