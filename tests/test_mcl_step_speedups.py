@@ -10,6 +10,7 @@ from __future__ import annotations
 import math
 from types import SimpleNamespace
 
+import cv2
 import numpy as np
 import pytest
 
@@ -17,7 +18,14 @@ from aerial_loc_env.errors import ConfigError
 from aerial_loc_env.estimators.mcl.estimate import max_std_m
 from aerial_loc_env.estimators.mcl.motion import OdometryMotionModel, mid_heading, wrap
 from aerial_loc_env.estimators.protocol import Observation
-from aerial_loc_env.estimators.shadow_detection import ShadowDetector, ShadowMask, _masked_channel_means
+from aerial_loc_env.estimators.shadow_detection import (
+    ShadowDetector,
+    ShadowDetectorConfig,
+    ShadowMask,
+    _masked_channel_means,
+    _pairwise_sum,
+    shadow_index,
+)
 from aerial_loc_env.sensors.camera import CameraModel, world_to_map_affine
 
 
@@ -143,23 +151,53 @@ def test_luminance_means_from_exact_sums_equal_the_masked_means():
             assert ShadowMask(mask, shape).fraction == float(mask.mean())
 
 
-def test_detector_keeps_the_masks_of_the_compress_means():
-    """The detector with the exact-sum means against the one with NumPy's masked means (the replaced code)."""
+def test_pairwise_sum_is_numpys_float32_sum():
+    """The detector's compiled sum against NumPy's float32 ``mean`` (its pairwise ``add.reduce``), sizes from
+    short runs to above 16 384 (three levels of halving), bit for bit."""
+    g = np.random.default_rng(0)
+    for t in range(600):
+        n = int(g.integers(1, 40000)) if t % 3 else int(g.integers(1, 300))
+        a = (g.random(n) * g.uniform(0.1, 300)).astype(np.float32)
+        assert np.float32(_pairwise_sum(a, 0, n)) / np.float32(n) == a.mean()
 
-    class CompressMeans(ShadowDetector):
-        def detect(self, image, small=None):
-            import aerial_loc_env.estimators.shadow_detection as sd
-            saved = sd._masked_channel_means
-            sd._masked_channel_means = lambda lum, mask: (np.array([lum[~mask].mean()]), np.array([lum[mask].mean()]))
-            try:
-                return super().detect(image, small)
-            finally:
-                sd._masked_channel_means = saved
 
+def _detect_reference(det: ShadowDetector, image: np.ndarray) -> np.ndarray:
+    """The detector as it was (before its compiled passes): the float32 index image from ``shadow_index``,
+    NumPy's masked (``compress``) float32 means; the mask (h, w) bool."""
+    small = det.reduce(image)
+    idx, lum, c3 = shadow_index(small, det.config.index)
+    idx8 = np.clip(idx * 255.0, 0, 255).astype(np.uint8)
+    _, binary = cv2.threshold(idx8, 0, 1, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
+    mask = binary.astype(bool)
+    if not mask.any() or mask.all():
+        return np.zeros(mask.shape, bool)
+    inside, outside = mask.ravel(), ~mask.ravel()
+    ratio = float(np.compress(inside, lum).mean()) / max(float(np.compress(outside, lum).mean()), 1e-6)
+    bluer = c3 is None or (float(np.compress(inside, c3).mean()) - float(np.compress(outside, c3).mean())
+                           >= det.config.min_blue_shift)
+    if ratio > det.config.max_luminance_ratio or not bluer:
+        return np.zeros(mask.shape, bool)
+    binary = cv2.morphologyEx(binary, cv2.MORPH_OPEN, det._open)
+    return cv2.morphologyEx(binary, cv2.MORPH_CLOSE, det._close).astype(bool)
+
+
+@pytest.mark.parametrize("index", ["c3_luminance", "c3", "luminance", "tsai"])
+@pytest.mark.parametrize("scale", [0.25, 0.7])
+def test_detector_kernels_keep_the_masks_of_the_numpy_path(index, scale):
+    """The compiled index/quantization and class statistics against the NumPy path (masked means; exact for
+    8-bit luminance sums below 2^24, pairwise float32 above: scale 0.7 of a 600 x 400 frame is 117 600 px),
+    over frames with darkened, blued shadows of many sizes and strengths, and frames without."""
     g = np.random.default_rng(9)
-    for k in range(12):
-        img = np.clip(g.normal(120, 30, (400, 600, 3)), 0, 255).astype(np.uint8)
-        img[50 + 10 * k:220, 80:300] = (img[50 + 10 * k:220, 80:300] * np.array([0.35, 0.4, 0.55])).astype(np.uint8)
-        a, b = ShadowDetector().detect(img), CompressMeans().detect(img)
-        assert a.mask.any() or k > 8                 # mostly real shadows: the means decide something
-        np.testing.assert_array_equal(a.mask, b.mask)
+    det = ShadowDetector(ShadowDetectorConfig(index=index, scale=scale))
+    decided = 0
+    for k in range(24):
+        img = cv2.GaussianBlur(g.normal(120, 40, (400, 600, 3)), (0, 0), 1 + k % 4)
+        img = np.clip(img, 0, 255).astype(np.uint8)
+        if k % 6:
+            y0, x0 = g.integers(0, 300, 2)
+            gain = np.array([0.3, 0.35, 0.5]) + g.uniform(0, 0.4)
+            img[y0:y0 + 40 + 8 * k, x0:x0 + 300] = (img[y0:y0 + 40 + 8 * k, x0:x0 + 300] * gain).astype(np.uint8)
+        mask = det.detect(img).mask
+        np.testing.assert_array_equal(mask, _detect_reference(det, img))
+        decided += bool(mask.any())
+    assert (1 if index == "tsai" else 6) <= decided <= 22   # shadows found on shadowed frames, not on all frames

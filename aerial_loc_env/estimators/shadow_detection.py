@@ -31,6 +31,7 @@ from typing import Any
 
 import cv2
 import numpy as np
+from numba import njit
 
 from ..config import rng
 from ..errors import ConfigError
@@ -122,33 +123,176 @@ class ShadowDetector:
         return cv2.resize(image, (max(1, round(W * s)), max(1, round(H * s))), interpolation=cv2.INTER_LINEAR)
 
     def detect(self, image: np.ndarray, small: np.ndarray | None = None) -> ShadowMask:
-        """The shadow mask of ``image``; ``small`` may pass an already reduced copy."""
+        """The shadow mask of ``image``; ``small`` may pass an already reduced copy.
+
+        The index, its 8-bit quantization and the two classes' statistics after Otsu are two compiled passes
+        (``_index8``, ``_split_stats``) around OpenCV's threshold: the same floats as NumPy's element-wise
+        float32 arithmetic, exact integer luminance sums, and NumPy's pairwise float32 sums for the c3 means
+        (tests/test_shadow_detection.py checks the masks against the NumPy path over many frames)."""
         img = np.asarray(image)
         if img.ndim != 3 or img.shape[2] != 3 or img.dtype != np.uint8:
             raise ConfigError(f"shadow detector: expected an (H, W, 3) uint8 RGB frame, got {img.shape} {img.dtype}")
         small = self.reduce(img) if small is None else small
-        idx, lum, c3 = shadow_index(small, self.config.index)
-        idx8 = np.clip(idx * 255.0, 0, 255).astype(np.uint8)
-        _, binary = cv2.threshold(idx8, 0, 1, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
-        mask = binary.astype(bool)
-        n_in = int(mask.sum())
-        if n_in == 0 or n_in == mask.size:
-            return ShadowMask(np.zeros(mask.shape, bool), img.shape[:2])
-        inside, outside = mask.ravel(), ~mask.ravel()   # np.compress: the same arrays as lum[mask], 2x faster
-        if lum.size * 255 < 2 ** 24:                    # integer luminance: exact sums, no masked copies
-            lum_out, lum_in = (float(m[0]) for m in _masked_channel_means(lum, mask))
+        index = self.config.index
+        lum8 = cv2.cvtColor(small, cv2.COLOR_RGB2GRAY)
+        c3 = c3_invariant(small) if index in ("c3_luminance", "c3") else _NO_C3
+        if index == "tsai":
+            idx8 = np.clip(shadow_index(small, index)[0] * 255.0, 0, 255).astype(np.uint8)
         else:
-            lum_in, lum_out = float(np.compress(inside, lum).mean()), float(np.compress(outside, lum).mean())
-        ratio = lum_in / max(lum_out, 1e-6)
-        bluer = c3 is None or (float(np.compress(inside, c3).mean()) - float(np.compress(outside, c3).mean())
-                               >= self.config.min_blue_shift)
+            idx8 = _index8(lum8, c3, _INDEX_MODES[index])
+        _, binary = cv2.threshold(idx8, 0, 1, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
+        n_in, lum_in, lum_out, c3_in, c3_out = _split_stats(binary, lum8, c3, binary.size * 255 >= 2 ** 24)
+        n_out = binary.size - n_in
+        if n_in == 0 or n_out == 0:
+            return ShadowMask(np.zeros(binary.shape, bool), img.shape[:2])
+        # NumPy's float32 means: the float32 sum divided by the count in float32
+        ratio = _mean32(lum_in, n_in) / max(_mean32(lum_out, n_out), 1e-6)
+        bluer = index not in ("c3_luminance", "c3") or \
+            _mean32(c3_in, n_in) - _mean32(c3_out, n_out) >= self.config.min_blue_shift
         if ratio > self.config.max_luminance_ratio or not bluer:
-            return ShadowMask(np.zeros(mask.shape, bool), img.shape[:2])
+            return ShadowMask(np.zeros(binary.shape, bool), img.shape[:2])
         if self._open is not None:
             binary = cv2.morphologyEx(binary, cv2.MORPH_OPEN, self._open)
         if self._close is not None:
             binary = cv2.morphologyEx(binary, cv2.MORPH_CLOSE, self._close)
         return ShadowMask(binary.astype(bool), img.shape[:2])
+
+
+def _mean32(total: float, count: int) -> float:
+    """NumPy's float32 mean from its float32 sum: ``float32(sum) / count`` in float32."""
+    return float(np.float32(total) / np.float32(count))
+
+
+_NO_C3 = np.zeros((0, 0), np.float32)
+#: ``_index8`` modes: the index from c3 and the luminance, c3 alone, the darkness alone
+_INDEX_MODES = {"c3_luminance": 0, "c3": 1, "luminance": 2}
+_JIT = dict(cache=True, nogil=True, error_model="numpy", boundscheck=False)
+
+
+@njit(**_JIT)
+def _index8(lum8, c3, mode):
+    """``clip(index * 255, 0, 255)`` truncated to uint8, the index in float32 as ``shadow_index`` writes it:
+    ``0.5 (c3 + 1 - lum / 255)`` (mode 0), ``c3`` (1) or ``1 - lum / 255`` (2)."""
+    h, w = lum8.shape
+    out = np.empty((h, w), np.uint8)
+    one, half, k255, zero = np.float32(1.0), np.float32(0.5), np.float32(255.0), np.float32(0.0)
+    for y in range(h):
+        for x in range(w):
+            lum = np.float32(lum8[y, x]) / k255
+            if mode == 0:
+                t = half * ((c3[y, x] + one) - lum)
+            elif mode == 1:
+                t = c3[y, x]
+            else:
+                t = one - lum
+            t = min(max(t * k255, zero), k255)
+            out[y, x] = np.uint8(t)
+    return out
+
+
+@njit(**_JIT)
+def _split_stats(binary, lum8, c3, lum_pairwise):
+    """Pixels inside (``binary`` != 0), the luminance sums inside and outside, and the c3 sums of each class (0
+    where ``c3`` is empty), each class's values added as NumPy's float32 ``compress(...).sum()`` adds them
+    (pairwise, row-major); the luminance sums exact integers unless ``lum_pairwise`` (an image too large for
+    exact float32 sums of 8-bit values: NumPy's float32 mean then, as before)."""
+    h, w = binary.shape
+    n_in = 0
+    for y in range(h):
+        for x in range(w):
+            n_in += np.int64(binary[y, x] != 0)
+    lum_in, lum_out = np.float64(0.0), np.float64(0.0)
+    l_in, l_out = np.empty(n_in, np.float32), np.empty(h * w - n_in, np.float32)
+    c_in, c_out = np.empty(n_in, np.float32), np.empty(h * w - n_in, np.float32)
+    k_in, k_out = 0, 0
+    for y in range(h):
+        for x in range(w):
+            if binary[y, x] != 0:
+                l_in[k_in] = lum8[y, x]
+                if c3.shape[0] > 0:
+                    c_in[k_in] = c3[y, x]
+                k_in += 1
+            else:
+                l_out[k_out] = lum8[y, x]
+                if c3.shape[0] > 0:
+                    c_out[k_out] = c3[y, x]
+                k_out += 1
+    if lum_pairwise:
+        lum_in, lum_out = np.float64(_pairwise_sum(l_in, 0, k_in)), np.float64(_pairwise_sum(l_out, 0, k_out))
+    else:
+        for i in range(k_in):
+            lum_in += l_in[i]
+        for i in range(k_out):
+            lum_out += l_out[i]
+    if c3.shape[0] == 0:
+        return n_in, lum_in, lum_out, np.float32(0.0), np.float32(0.0)
+    return n_in, lum_in, lum_out, _pairwise_sum(c_in, 0, k_in), _pairwise_sum(c_out, 0, k_out)
+
+
+@njit(**_JIT)
+def _pairwise_sum(a, lo, n):
+    """NumPy's float32 pairwise summation of ``a[lo:lo + n]`` as ``np.add.reduce`` does it (its
+    ``pairwise_sum``: blocks of at most 128 added by ``_block_sum``, longer runs halved at a multiple of 8 and
+    the halves' sums added), walked with an explicit stack: numba's on-disk cache does not keep recursive
+    functions (a cached recursive version crashed)."""
+    if n <= 128:
+        return _block_sum(a, lo, n)
+    f_lo, f_n = np.empty(64, np.int64), np.empty(64, np.int64)
+    f_left, f_stage = np.empty(64, np.float32), np.empty(64, np.int64)
+    f_lo[0], f_n[0], f_stage[0] = lo, n, 0
+    top = 1
+    val = np.float32(0.0)
+    while True:
+        f = top - 1
+        half = f_n[f] // 2
+        half -= half % 8
+        if f_stage[f] == 0:                       # first the left half
+            f_stage[f] = 1
+            c_lo, c_n = f_lo[f], half
+        elif f_stage[f] == 1:                     # the left half's sum is in val: then the right half
+            f_left[f] = val
+            f_stage[f] = 2
+            c_lo, c_n = f_lo[f] + half, f_n[f] - half
+        else:                                     # the right half's sum is in val: this run's sum
+            val = f_left[f] + val
+            top -= 1
+            if top == 0:
+                return val
+            continue
+        if c_n <= 128:
+            val = _block_sum(a, c_lo, c_n)
+        else:
+            f_lo[top], f_n[top], f_stage[top] = c_lo, c_n, 0
+            top += 1
+
+
+@njit(**_JIT)
+def _block_sum(a, lo, n):
+    """NumPy's float32 sum of a run of at most 128: in order below 8, else eight running sums combined as
+    ``((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))`` and the rest added in order."""
+    if n < 8:
+        res = np.float32(0.0)
+        for i in range(lo, lo + n):
+            res += a[i]
+        return res
+    r0, r1, r2, r3 = a[lo], a[lo + 1], a[lo + 2], a[lo + 3]
+    r4, r5, r6, r7 = a[lo + 4], a[lo + 5], a[lo + 6], a[lo + 7]
+    i = 8
+    while i < n - (n % 8):
+        r0 += a[lo + i]
+        r1 += a[lo + i + 1]
+        r2 += a[lo + i + 2]
+        r3 += a[lo + i + 3]
+        r4 += a[lo + i + 4]
+        r5 += a[lo + i + 5]
+        r6 += a[lo + i + 6]
+        r7 += a[lo + i + 7]
+        i += 8
+    res = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
+    while i < n:
+        res += a[lo + i]
+        i += 1
+    return res
 
 
 def oracle_mask(info: Mapping[str, Any] | None, frame_shape: tuple[int, int]) -> ShadowMask:
