@@ -201,3 +201,16 @@ def test_detector_kernels_keep_the_masks_of_the_numpy_path(index, scale):
         np.testing.assert_array_equal(mask, _detect_reference(det, img))
         decided += bool(mask.any())
     assert (1 if index == "tsai" else 6) <= decided <= 22   # shadows found on shadowed frames, not on all frames
+
+
+def test_c3_table_holds_the_invariant_of_every_pixel():
+    """The detector looks c3 up by (B, max(R, G)); NumPy's ``arctan2`` gives those floats wherever the pixel
+    sits in the frame (frames of many sizes, every 8-bit value)."""
+    from aerial_loc_env.estimators.shadow_detection import _c3_table, c3_invariant
+
+    table = _c3_table()
+    g = np.random.default_rng(1)
+    for _ in range(100):
+        h, w = g.integers(1, 130, 2)
+        rgb = g.integers(0, 256, (h, w, 3)).astype(np.uint8)
+        np.testing.assert_array_equal(table[rgb[..., 2], np.maximum(rgb[..., 0], rgb[..., 1])], c3_invariant(rgb))

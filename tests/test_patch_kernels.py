@@ -198,3 +198,21 @@ def test_pair_kernel_is_bit_identical_to_the_numpy_path(params, with_nodata):
         assert xi.dtype == ref.dtype
         np.testing.assert_array_equal(xi, ref)
         assert xi[0] > 0.6 and xi[0] > np.median(xi) + 0.1         # the true pose stands out
+
+
+@pytest.mark.parametrize("with_mask", [False, True])
+def test_camera_pairs_kernel_reads_the_pixels_and_the_mask_as_numpy_does(with_mask):
+    """The frame's side of the pairs: the pixels by fancy indexing, the reduced mask by ``ShadowMask.at``."""
+    from aerial_loc_env.estimators.mcl.pair_kernel import camera_pairs
+    from aerial_loc_env.estimators.shadow_detection import ShadowMask
+
+    g = np.random.default_rng(3)
+    for h_w in ((400, 600), (37, 53), (400, 600)):
+        img = g.integers(0, 256, h_w + (3,)).astype(np.uint8)
+        u, v = g.integers(0, h_w[1], 500), g.integers(0, h_w[0], 500)
+        mask = ShadowMask(g.random((max(1, h_w[0] // 4), max(1, h_w[1] // 3))) < 0.4, h_w)
+        vals, in_mask, uv = np.empty((500, 3), np.float32), np.zeros(500, bool), np.empty((500, 2))
+        camera_pairs(img, u, v, mask.mask if with_mask else np.zeros((0, 0), bool), vals, in_mask, uv)
+        np.testing.assert_array_equal(vals, img[v, u].astype(np.float32))
+        np.testing.assert_array_equal(uv, np.column_stack([u, v]).astype(float))
+        np.testing.assert_array_equal(in_mask, mask.at(u, v) if with_mask else np.zeros(500, bool))

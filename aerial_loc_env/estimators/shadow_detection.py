@@ -25,6 +25,7 @@ only. ``mask_quality`` scores a detected mask against the ground truth (IoU, pre
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -135,11 +136,11 @@ class ShadowDetector:
         small = self.reduce(img) if small is None else small
         index = self.config.index
         lum8 = cv2.cvtColor(small, cv2.COLOR_RGB2GRAY)
-        c3 = c3_invariant(small) if index in ("c3_luminance", "c3") else _NO_C3
+        c3 = np.empty(lum8.shape, np.float32) if index in ("c3_luminance", "c3") else _NO_C3
         if index == "tsai":
             idx8 = np.clip(shadow_index(small, index)[0] * 255.0, 0, 255).astype(np.uint8)
         else:
-            idx8 = _index8(lum8, c3, _INDEX_MODES[index])
+            idx8 = _index8(np.ascontiguousarray(small), lum8, _c3_table(), _INDEX_MODES[index], c3)
         _, binary = cv2.threshold(idx8, 0, 1, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
         n_in, lum_in, lum_out, c3_in, c3_out = _split_stats(binary, lum8, c3, binary.size * 255 >= 2 ** 24)
         n_out = binary.size - n_in
@@ -169,16 +170,27 @@ _INDEX_MODES = {"c3_luminance": 0, "c3": 1, "luminance": 2}
 _JIT = dict(cache=True, nogil=True, error_model="numpy", boundscheck=False)
 
 
+@functools.lru_cache(maxsize=1)
+def _c3_table() -> np.ndarray:
+    """``c3_invariant`` of every 8-bit (B, max(R, G)) pair (256, 256) float32: NumPy's own floats (its
+    ``arctan2`` is a function of the two values alone, tested), looked up per pixel instead of recomputed."""
+    b, m = np.meshgrid(np.arange(256, dtype=np.uint8), np.arange(256, dtype=np.uint8), indexing="ij")
+    return np.ascontiguousarray(c3_invariant(np.stack([m, m, b], axis=-1)))
+
+
 @njit(**_JIT)
-def _index8(lum8, c3, mode):
+def _index8(small, lum8, c3_table, mode, c3):
     """``clip(index * 255, 0, 255)`` truncated to uint8, the index in float32 as ``shadow_index`` writes it:
-    ``0.5 (c3 + 1 - lum / 255)`` (mode 0), ``c3`` (1) or ``1 - lum / 255`` (2)."""
+    ``0.5 (c3 + 1 - lum / 255)`` (mode 0), ``c3`` (1) or ``1 - lum / 255`` (2); ``c3`` (h, w) receives the
+    colour invariant (modes 0 and 1) from ``c3_table``."""
     h, w = lum8.shape
     out = np.empty((h, w), np.uint8)
     one, half, k255, zero = np.float32(1.0), np.float32(0.5), np.float32(255.0), np.float32(0.0)
     for y in range(h):
         for x in range(w):
             lum = np.float32(lum8[y, x]) / k255
+            if mode != 2:
+                c3[y, x] = c3_table[small[y, x, 2], max(small[y, x, 0], small[y, x, 1])]
             if mode == 0:
                 t = half * ((c3[y, x] + one) - lum)
             elif mode == 1:

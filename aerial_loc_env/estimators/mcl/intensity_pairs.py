@@ -101,13 +101,14 @@ from ..shadow_detection import (
     restoration_lut,
 )
 from .measurement import MeasurementModel, register_model
-from .pair_kernel import pair_agreements
+from .pair_kernel import camera_pairs, pair_agreements
 
 if TYPE_CHECKING:
     from ...env.briefing import Briefing
 
 #: the kernel's no-data layer when the map has none
 _NO_NODATA = np.zeros(0, np.bool_)
+_NO_MASK = np.zeros((0, 0), np.bool_)
 #: ITU-R 601 luma weights of cv2.COLOR_RGB2GRAY, for single-channel (c = 1) comparisons
 _LUMA = np.array([0.299, 0.587, 0.114], dtype=np.float32)
 
@@ -316,18 +317,20 @@ class IntensityPairsModel(MeasurementModel):
         cfg: IntensityPairsConfig = self.config
         img, u, v = p.image, p.u, p.v
         K = cfg.n_pairs
-        vals = img[v, u].astype(np.float32)                                   # (2K, 3)
+        vals = np.empty((u.size, img.shape[2]), np.float32)                   # (2K, 3) the pixels
+        uv = np.empty((u.size, 2))
+        in_mask = np.zeros(u.size, np.bool_)                                   # (2K,) in shadow
+        camera_pairs(img, u, v, _NO_MASK if smask is None else smask.mask, vals, in_mask, uv)
+        mask_pts = None if smask is None else in_mask
         stats: dict[str, Any] = {"K": K, "num_pairs": K}
-        mask_pts = None
         if smask is not None:
-            mask_pts = smask.at(u, v)                                          # (2K,) bool
             stats["shadow_fraction"] = smask.fraction
             if cfg.shadow == "restore" and mask_pts.any():
                 small = p.small if p.small is not None else self.detector.reduce(img)
                 sm = smask.mask if smask.mask.shape == small.shape[:2] else cv2.resize(
                     smask.mask.astype(np.uint8), small.shape[1::-1], interpolation=cv2.INTER_NEAREST).astype(bool)
                 lut = restoration_lut(small, sm, cfg.restoration)              # (3, 256)
-                restored = lut[np.arange(3)[None, :], img[v, u].astype(np.int64)]   # (2K, 3)
+                restored = lut[np.arange(3)[None, :], vals.astype(np.int64)]       # (2K, 3)
                 vals = np.where(mask_pts[:, None], restored, vals)
         if cfg.channels == 1:
             vals = vals @ _LUMA[:, None]
@@ -349,8 +352,6 @@ class IntensityPairsModel(MeasurementModel):
         elif mask_pts is not None:
             stats["shadow_pairs"] = int(np.count_nonzero(mask_pts[:K] ^ mask_pts[K:]))
         self.last_stats = stats
-        uv = np.empty((u.size, 2))
-        uv[:, 0], uv[:, 1] = u, v
         return PreparedPairs(uv, cam_bits, keep, log_scale, log_offset, pair_weights)
 
     def _finish_with_map(self, p: _PendingPairs, states: np.ndarray) -> PreparedPairs:

@@ -68,3 +68,20 @@ def pair_agreements(affines, uv, pairs, width, height, db, pixel_bytes, channels
             if has_nodata:
                 vj[m] = vj[m] and not nodata[q1[m]] and not nodata[q2[m]]
     return sums, off != 0
+
+
+@njit(cache=True, nogil=True, error_model="numpy", boundscheck=False)
+def camera_pairs(image, u, v, mask, vals, in_mask, uv):
+    """The frame's side of the pairs in one pass: ``vals[j]`` = the pixel (``u[j]``, ``v[j]``) of ``image``
+    (H, W, C) uint8 as float32, ``uv[j]`` = (u, v) as float64 and, for a ``mask`` (h, w) bool at a reduced
+    resolution (empty for none), ``in_mask[j]`` = its value there (``ShadowMask.at``: row ``v h // H`` and
+    column ``u w // W``, clipped)."""
+    big_h, big_w = image.shape[0], image.shape[1]
+    h, w = mask.shape
+    for j in range(u.shape[0]):
+        x, y = u[j], v[j]
+        for c in range(image.shape[2]):
+            vals[j, c] = image[y, x, c]
+        uv[j, 0], uv[j, 1] = x, y
+        if h > 0:
+            in_mask[j] = mask[min((y * h) // big_h, h - 1), min((x * w) // big_w, w - 1)]
