@@ -8,11 +8,12 @@ Where the time goes: every model samples each particle's view straight from the 
 and scores it in the same compiled pass (``estimators/patch_kernels.py``, numba): no coordinate maps, no
 (N, h, w) stack. Before it, SSD and NCC were one ``cv2.remap`` of N h w = 1.68 M samples (~2.9 ms) plus its two
 float32 coordinate maps (~1.4 ms) plus the NumPy similarity (~0.5 ms), MI a bincount of joint bins on top, and
-abBRIEF a remap of its pattern's ~940 distinct nodes through a 4-channel padded level: 6.8x / 7.4x / 11.6x /
-9.3x the floor in one session, 4.1x / 4.2x / 5.7x / 7.0x with the kernel (load 2.6-2.8). The kernel is ~1.8 ns
-a sample (the coordinates in one vectorized loop, the four loads and the fma chain in a second); abBRIEF's camera
-side (CIELab of the whole 600 x 400 frame and its area reduction, ~1 ms) is a fixed cost. The harness's warm-up
-call compiles the kernel (~2.5 s the first time on a machine, cached on disk after).
+abBRIEF a remap of its pattern's ~940 distinct nodes through a 4-channel padded level: 6.3-6.4x / 6.8x /
+10.7-11.1x / 9.0x the floor against 3045540, 4.1-4.2x / 4.1x / 5.5x / 7.0x with the kernel (two alternating
+runs each, load 1.2-1.5). The kernel is ~1.8 ns a sample (the coordinates in one vectorized loop, the four loads
+and the fma chain in a second); abBRIEF's camera side (CIELab of the whole 600 x 400 frame and its area
+reduction, ~1 ms) is a fixed cost. The harness's warm-up call compiles the kernel (~2.5 s the first time on a
+machine, cached on disk after).
 """
 
 from __future__ import annotations
