@@ -129,7 +129,7 @@ class ShadowDetector:
         The index, its 8-bit quantization and the two classes' statistics after Otsu are two compiled passes
         (``_index8``, ``_split_stats``) around OpenCV's threshold: the same floats as NumPy's element-wise
         float32 arithmetic, exact integer luminance sums, and NumPy's pairwise float32 sums for the c3 means
-        (tests/test_shadow_detection.py checks the masks against the NumPy path over many frames)."""
+        (tests/test_mcl_step_speedups.py checks the masks against the NumPy path over many frames)."""
         img = np.asarray(image)
         if img.ndim != 3 or img.shape[2] != 3 or img.dtype != np.uint8:
             raise ConfigError(f"shadow detector: expected an (H, W, 3) uint8 RGB frame, got {img.shape} {img.dtype}")
