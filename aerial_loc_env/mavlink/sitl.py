@@ -582,15 +582,20 @@ def fly_mission(scenario: str, agent: str, *, ground_amsl_m: float, vehicle: str
                            for s in record["steps"] if s[1] == "camera"]
     record["timed_errors"] = timed_horizontal_errors(record["truth"], record["ekf"])
     record["horizontal_errors_m"] = [e for _, e in record["timed_errors"]]
-    # the AUTO legs on the vision fix: from the first waypoint to the start of RTL / the landing sequence
+    # the AUTO legs on the vision fix: from the first waypoint (plane: from the loop's first corner, at its
+    # altitude; the climb-out to it is the agent's acquisition, from its prior) to the start of RTL / the landing
+    loop_start = 2 if vehicle == "copter" else 3
+    record["loop_start"] = loop_start
     starts = {k: next((t for t, x in record["texts"] if x.startswith(f"Mission: {k}")), None)
-              for k in (2, loop_end)}
-    if starts[2] is not None and starts[loop_end] is not None:
-        legs = lambda rows: [r for r in rows if starts[2] <= r[0] <= starts[loop_end]]   # noqa: E731
+              for k in (2, loop_start, loop_end)}
+    if starts[loop_start] is not None and starts[loop_end] is not None:
+        legs = lambda rows: [r for r in rows if starts[loop_start] <= r[0] <= starts[loop_end]]   # noqa: E731
         record["leg_errors_m"] = horizontal_errors_m(legs(record["truth"]), legs(record["ekf"]))
         record["leg_flags"] = legs(record["ekf_flags"])
     else:
         record["leg_errors_m"], record["leg_flags"] = [], []
+    if vehicle == "plane" and starts[loop_start] is not None:    # take-off and climb-out: the acquisition
+        record["acquisition_errors_m"] = [e for t, e in record["timed_errors"] if t < starts[loop_start]]
     if vehicle == "plane":
         record["touchdown"] = touchdown(flog["truth"], record["ekf"], record["steps"], (lat0, lon0),
                                         starts[loop_end], flog["ekf_var_m2"])
@@ -674,6 +679,8 @@ def summary(record: dict) -> dict:
            "gps_gaps_over_245ms": int((g > 245).sum()), "gps_gap_max_ms": float(g.max()) if g.size else math.nan,
            "gps_gap_max_before_fix_ms": float(record.get("gps_gap_max_before_fix_ms", math.nan)),
            "events": list(dict.fromkeys(events))}
+    if record.get("acquisition_errors_m"):
+        out["acquisition_ekf_max_m"] = float(max(record["acquisition_errors_m"]))
     if record.get("touchdown"):
         out["touchdown"] = record["touchdown"]
     if record.get("t_denied") is not None:     # the EKF after the GNSS was switched off
