@@ -34,8 +34,8 @@ import numba as nb
 import numpy as np
 
 from ..world.shading_kernel import JIT as _JIT
-from ..world.shading_kernel import gain_row as _gain_row
 from ..world.shading_kernel import mul255 as _mul255
+from ..world.shading_kernel import quantize as _quantize
 
 #: ``occ_mode`` of ``finish``: where the shadows come from
 OCC_NONE, OCC_ALPHA, OCC_FLOAT = 0, 1, 2
@@ -70,18 +70,25 @@ def sigma_levels(mode, a32, b32, a64, b64):
 
 
 @nb.njit(inline="always", **_JIT)
-def _scene_row(s, o, m, f, g, t, cn, w_px, occ_mode, l0, l1, l2, s0, s1, s2):
-    """Stage 1 on one row into ``o`` (``cn`` a constant at each call site, so that the loops specialize); ``g``,
-    ``t``: row buffers of cn W bytes for the shading gains and the shaded row; returns the shadowed pixels."""
+def _scene_row(s, o, m, f, cn, w_px, occ_mode, l0, l1, l2, s0, s1, s2, lit_same):
+    """Stage 1 on one row into ``o`` (``cn`` a constant at each call site, so that the loops specialize); returns
+    the shadowed pixels. ``lit_same``: the shading leaves occlusion level 0 unchanged (gain 255), so lit pixels
+    skip it (the lookups are scalar code anyway: a branch there costs nothing and saves most of the work)."""
     count = 0
-    if occ_mode == OCC_FLOAT:   # count, then the shading as in world.shading_kernel, then the lookups below
+    if occ_mode == OCC_FLOAT:
         for x in range(w_px):
             count += np.int32(f[x] >= np.float32(0.5))
-        _gain_row(f, g, cn, w_px, False, s0, s1, s2)
-        for i in range(cn * w_px):
-            t[i] = _mul255(np.int32(s[i]), np.int32(g[i]))
-        s = t
-    if occ_mode == OCC_ALPHA:   # the alpha kept (the frame's quantized occlusion) and counted
+        for x in range(w_px):
+            q = _quantize(f[x])
+            a0, a1, a2 = np.int32(s[cn * x]), np.int32(s[cn * x + 1]), np.int32(s[cn * x + 2])
+            if q != 0 or not lit_same:
+                a0 = _mul255(a0, np.int32(s0[q]))
+                a1 = _mul255(a1, np.int32(s1[q]))
+                a2 = _mul255(a2, np.int32(s2[q]))
+            o[3 * x] = l0[a0]
+            o[3 * x + 1] = l1[a1]
+            o[3 * x + 2] = l2[a2]
+    elif occ_mode == OCC_ALPHA:   # the alpha kept (the frame's quantized occlusion) and counted
         for x in range(w_px):
             a = s[cn * x + 3]
             m[x] = a
@@ -118,17 +125,16 @@ def finish(src, cn, occ_mode, occ, shade, lut, out, alpha, sensor, vig, bank, dy
     n_vig = vig.shape[0]
     l0, l1, l2 = lut[0], lut[1], lut[2]
     s0, s1, s2 = shade[0], shade[1], shade[2]
-    g = np.empty(cn * w_px, np.uint8)
-    t = np.empty(cn * w_px, np.uint8)
+    lit_same = s0[0] == 255 and s1[0] == 255 and s2[0] == 255
     o = np.empty(w3, np.uint8)
     count = 0
     for y in range(h_px):
         m = alpha[y] if occ_mode == OCC_ALPHA else alpha[0]
         f = occ[y] if occ_mode == OCC_FLOAT else occ[0]
         if cn == 4:
-            count += _scene_row(src[y], o, m, f, g, t, 4, w_px, occ_mode, l0, l1, l2, s0, s1, s2)
+            count += _scene_row(src[y], o, m, f, 4, w_px, occ_mode, l0, l1, l2, s0, s1, s2, lit_same)
         else:
-            count += _scene_row(src[y], o, m, f, g, t, 3, w_px, occ_mode, l0, l1, l2, s0, s1, s2)
+            count += _scene_row(src[y], o, m, f, 3, w_px, occ_mode, l0, l1, l2, s0, s1, s2, lit_same)
         d = out[w3 * y:w3 * (y + 1)]
         if not sensor:
             for x in range(w3):

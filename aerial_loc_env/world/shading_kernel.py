@@ -31,7 +31,7 @@ def quantize(v):
 
 
 @nb.njit(inline="always", **JIT)
-def gain_row(f, g, cn, w_px, quantized, l0, l1, l2):
+def _gain_row(f, g, cn, w_px, quantized, l0, l1, l2):
     """The row's per-channel gains ``g`` (cn W uint8) at the occlusion row ``f``: the level itself for alpha."""
     for x in range(w_px):
         q = np.int32(f[x]) if quantized else quantize(f[x])
@@ -55,9 +55,9 @@ def shade_rows(src, occ, quantized, lut, out):
     g = np.empty(n, np.uint8)
     for y in range(h_px):
         if cn == 4:
-            gain_row(occ[y], g, 4, w_px, quantized, l0, l1, l2)
+            _gain_row(occ[y], g, 4, w_px, quantized, l0, l1, l2)
         else:
-            gain_row(occ[y], g, 3, w_px, quantized, l0, l1, l2)
+            _gain_row(occ[y], g, 3, w_px, quantized, l0, l1, l2)
         s = src[y]
         o = out[y]
         for i in range(n):
