@@ -63,6 +63,7 @@ _SIGMA_BITS = 8   # the int16 sigma LUT holds round(sigma * 2**8); sigma <= 71.1
 
 
 _LEVELS = np.repeat(np.arange(256, dtype=np.uint8)[None, :, None], 3, axis=2)  # (1, 256, 3): every level per channel
+_UNIT_LEVELS = np.arange(256) / 255.0                                           # the levels in [0, 1] (float64)
 _IDENTITY = np.ascontiguousarray(_LEVELS[0].T)                                   # (3, 256) identity tone table
 _IDENTITY_RO = _IDENTITY.copy()
 _IDENTITY_RO.flags.writeable = False   # the dummy shading table (shading LUTs are read-only: one kernel signature)
@@ -532,7 +533,8 @@ class CameraRenderer:
         baked = occlusion if isinstance(occlusion, BakedShadows) else None
         if baked is not None:
             occlusion, shading_params = baked.grid, baked.shading_params
-            corners = self._view.reads_px(affine, camera, tilt)
+            if self._view.dsm is not None:   # else the reads are the footprint's corners, computed above
+                corners = self._view.reads_px(affine, camera, tilt)
             baked = baked if level == 0 and baked.covers(corners) else None
         # a flat, untilted view needs no per-pixel maps (the affine warp is exact): skip their two float passes;
         # a view's maps come in the baked box's pixels when it serves the frame (no shift of the maps to sample it)
@@ -702,7 +704,7 @@ def photometry_draws(p: Photometry, rng: np.random.Generator) -> tuple[float | N
 
 def gamma_lut(gamma: float) -> np.ndarray:
     """uint8 tone curve ``round(255 (v / 255) ** gamma)``."""
-    return np.rint(255.0 * (np.arange(256) / 255.0) ** gamma).astype(np.uint8)
+    return np.rint(255.0 * _UNIT_LEVELS ** gamma).astype(np.uint8)
 
 
 def tone_lut(gamma: float | None, gains: np.ndarray | None) -> np.ndarray:
