@@ -445,3 +445,67 @@ def test_disc_fraction_computes_the_penumbra_alone_with_the_same_floats():
     inner = (x > -1.0) & (x < 1.0)
     assert 0.1 < inner.mean() < 0.5 and np.all(np.abs(got[inner] - 0.5) <= 0.5 + 1e-6)
     assert np.all(np.diff(got[0][np.argsort(x[0])]) >= -1e-6)        # monotone in x
+
+
+# ------------------------------------------------------------------------------------------ the compiled sweep
+
+def _numpy_sweep(a, geo, soft):
+    """The sweep as it was before the compiled loop (world.kernels.sweep): NumPy vector operations per slice."""
+    from aerial_loc_env.world.shadows import _round_half_up
+
+    n0, n1 = a.shape
+    dtype = a.dtype
+    s = _round_half_up(np.arange(n0, dtype=np.float64) * geo.mu)
+    order = range(n0 - 1, -1, -1) if geo.sun_dir > 0 else range(n0)
+    drop, step = dtype.type(geo.step_m * geo.tan_el), dtype.type(geo.step_m)
+    hor, tmp = np.full(n1, -np.inf, dtype=dtype), np.empty(n1, dtype=dtype)
+    margin, dist_out = np.empty((n0, n1), dtype=dtype), np.empty((n0, n1), dtype=dtype)
+    dist, dtmp, newmax = np.full(n1, step, dtype=dtype), np.empty(n1, dtype=dtype), np.empty(n1, dtype=bool)
+    mask = np.empty((n0, n1), dtype=bool)
+    prev = -1
+    for i in order:
+        if prev >= 0:
+            row = a[prev]
+            d = int(s[prev] - s[i])
+            np.greater_equal(row, hor, out=newmax)
+            np.copyto(dist, 0, where=newmax)
+            np.add(dist, step, out=dtmp)
+            np.maximum(hor, row, out=tmp)
+            tmp -= drop
+            if d == 0:
+                hor, tmp = tmp, hor
+                dist, dtmp = dtmp, dist
+            elif d == 1:
+                hor[:-1], hor[-1] = tmp[1:], -np.inf
+                dist[:-1], dist[-1] = dtmp[1:], step
+            else:
+                hor[1:], hor[0] = tmp[:-1], -np.inf
+                dist[1:], dist[0] = dtmp[:-1], step
+        np.subtract(hor, a[i], out=margin[i])
+        dist_out[i] = dist
+        np.less(a[i], hor, out=mask[i])
+        prev = i
+    return (margin, dist_out) if soft else mask
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_compiled_sweep_is_bit_identical_to_the_numpy_sweep(dtype):
+    """Every sun of SUNS on three grids, hard and soft, on rough ground with boxes, on plateaus of equal heights and
+    on a ramp whose every slice ties with the horizon (a row equal to the horizon restarts the distance)."""
+    from aerial_loc_env.world.shadows import _ray_geometry, _sweep
+
+    rng = np.random.default_rng(7)
+    for sun in SUNS:
+        for gx, gy in GSDS:
+            geo = _ray_geometry(gx, gy, sun)
+            drop = dtype(geo.step_m * geo.tan_el)
+            ramp = np.empty((31, 26), dtype)          # falls by exactly the horizon's drop per slice from the sun:
+            ramp[0 if geo.sun_dir < 0 else -1] = 40.0     # every slice ties with the horizon cast onto it
+            for i in (range(1, 31) if geo.sun_dir < 0 else range(29, -1, -1)):
+                ramp[i] = ramp[i + geo.sun_dir] - drop
+            for dsm in (random_city(rng, 37, 29), np.round(random_city(rng, 23, 44), 0), ramp):
+                a = np.ascontiguousarray(dsm.astype(dtype))
+                np.testing.assert_array_equal(_sweep(a, geo, soft=False), _numpy_sweep(a, geo, soft=False))
+                for got, want in zip(_sweep(a, geo, soft=True), _numpy_sweep(a, geo, soft=True), strict=True):
+                    assert got.dtype == want.dtype == dtype
+                    np.testing.assert_array_equal(got, want)

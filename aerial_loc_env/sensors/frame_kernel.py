@@ -12,7 +12,7 @@ Every step is the arithmetic of the OpenCV passes it replaces, reproduced bit fo
 keeps those passes as the reference and compares exactly); what each pass computes, measured exhaustively:
 
 - the uint8 multiply with scale 1/255 (shading, vignetting) and the occlusion's quantization: see
-  ``world.shading_kernel``, whose two helpers this pass uses;
+  ``world.kernels``, whose two helpers this pass uses;
 - ``cv2.transform`` with a diagonal float32 matrix on uint8 is ``rint(v * g)`` in float32, saturated: a byte
   function per channel, so gamma and gains compose into one table per frame (``CameraRenderer`` builds it by
   running the two OpenCV operations over the 256 levels);
@@ -33,9 +33,9 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
-from ..world.shading_kernel import JIT as _JIT
-from ..world.shading_kernel import mul255 as _mul255
-from ..world.shading_kernel import quantize as _quantize
+from ..world.kernels import JIT as _JIT
+from ..world.kernels import mul255 as _mul255
+from ..world.kernels import quantize as _quantize
 
 #: ``occ_mode`` of ``finish``: where the shadows come from
 OCC_NONE, OCC_ALPHA, OCC_FLOAT = 0, 1, 2

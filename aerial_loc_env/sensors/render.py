@@ -21,7 +21,7 @@ Why it is built this way:
   not).
 - Everything after the warp is ONE pass of a numba kernel (``sensors.frame_kernel.finish``), uint8 in and uint8
   out, row by row while the row is in cache, the frame written into the warp's own memory: the shading of a
-  per-frame float occlusion (``world.shading_kernel``: per-channel gains of the quantized occlusion, one
+  per-frame float occlusion (``world.kernels``: per-channel gains of the quantized occlusion, one
   multiply), gamma and the white-balance/exposure gains as one per-channel byte table composed per
   frame by the OpenCV operations themselves over the 256 levels, vignetting by a precomputed uint8 gain, and
   sensor noise from a per-episode int16 bank of standard normals (fixed point, 2**-11) read at a random offset per

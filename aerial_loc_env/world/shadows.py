@@ -171,61 +171,24 @@ def _sweep(a: np.ndarray, geo: _RayGeometry, soft: bool):
     ``hor[j]`` at slice i is max over the slices i' beyond i (towards the sun) of h(i', line) - |i' - i| * step *
     tan(el): the highest shadow line cast onto pixel (i, j). Pixel (i, j) is in cast shadow iff a[i, j] < hor[j].
     Moving one slice away from the sun updates it as hor <- shift(max(hor, a[prev]) - step * tan(el)), where the
-    shift (-1, 0 or +1 pixel) follows the digital line; so the whole map costs a handful of vector operations per
-    slice. With ``soft`` the sweep also returns the height margin hor - a and the distance to the occluder that
-    set the horizon (for penumbrae).
+    shift (-1, 0 or +1 pixel) follows the digital line; so the whole map costs a handful of operations per pixel
+    (one compiled loop, ``world.kernels.sweep``). With ``soft`` the sweep also returns the height margin hor - a
+    and the distance to the occluder that set the horizon (for penumbrae).
     """
+    from .kernels import sweep
+
     n0, n1 = a.shape
     dtype = a.dtype
     s = _round_half_up(np.arange(n0, dtype=np.float64) * geo.mu)
-    order = range(n0 - 1, -1, -1) if geo.sun_dir > 0 else range(n0)
     drop = dtype.type(geo.step_m * geo.tan_el)
     step = dtype.type(geo.step_m)
-    hor = np.full(n1, -np.inf, dtype=dtype)
-    tmp = np.empty(n1, dtype=dtype)
+    a = np.ascontiguousarray(a)
     if soft:
-        margin = np.empty((n0, n1), dtype=dtype)
-        dist_out = np.empty((n0, n1), dtype=dtype)
-        dist = np.full(n1, step, dtype=dtype)
-        dtmp = np.empty(n1, dtype=dtype)
-        newmax = np.empty(n1, dtype=bool)
-    else:
-        mask = np.empty((n0, n1), dtype=bool)
-    prev = -1
-    for i in order:
-        if prev >= 0:
-            row = a[prev]
-            d = int(s[prev] - s[i])   # the line through (i, j) passes (prev, j + d)
-            if soft:
-                np.greater_equal(row, hor, out=newmax)
-                np.copyto(dist, 0, where=newmax)
-                np.add(dist, step, out=dtmp)
-            np.maximum(hor, row, out=tmp)
-            tmp -= drop
-            if d == 0:
-                hor, tmp = tmp, hor
-                if soft:
-                    dist, dtmp = dtmp, dist
-            elif d == 1:
-                hor[:-1] = tmp[1:]
-                hor[-1] = -np.inf
-                if soft:
-                    dist[:-1] = dtmp[1:]
-                    dist[-1] = step
-            else:
-                hor[1:] = tmp[:-1]
-                hor[0] = -np.inf
-                if soft:
-                    dist[1:] = dtmp[:-1]
-                    dist[0] = step
-        if soft:
-            np.subtract(hor, a[i], out=margin[i])
-            dist_out[i] = dist
-        else:
-            np.less(a[i], hor, out=mask[i])
-        prev = i
-    if soft:
+        margin, dist_out = np.empty((n0, n1), dtype=dtype), np.empty((n0, n1), dtype=dtype)
+        sweep(a, s, geo.sun_dir > 0, drop, step, True, np.empty((1, 1), bool), margin, dist_out)
         return margin, dist_out
+    mask = np.empty((n0, n1), dtype=bool)
+    sweep(a, s, geo.sun_dir > 0, drop, step, False, mask, np.empty((1, 1), dtype), np.empty((1, 1), dtype))
     return mask
 
 
@@ -511,11 +474,11 @@ def shade(rgb: np.ndarray, occ: np.ndarray, lut: np.ndarray, out: np.ndarray | N
     """``rgb * lut[c, q] / 255`` per channel, rounded (uint8 (H, W, 3) in, uint8 out; ``out`` may be ``rgb``).
 
     ``occ`` (H, W): the occlusion quantized to uint8 (q, 255 = no direct sun), or float32 in [0, 1], quantized as
-    ``cv2.convertScaleAbs(occ, alpha=255)`` does. One compiled pass (``world.shading_kernel``), bit-identical to
+    ``cv2.convertScaleAbs(occ, alpha=255)`` does. One compiled pass (``world.kernels``), bit-identical to
     the OpenCV passes it replaced (three 1-channel LUTs of q, merged, one multiply with scale 1/255). An (H, W, 4)
     ``rgb`` with alpha 255 (the renderer's RGBA map) comes back with q as its alpha (``255 q / 255``): the shaded
     colour and the occlusion in one pass, as ``CameraRenderer.bake`` stores them. Views (map tiles) are fine."""
-    from .shading_kernel import shade_rows
+    from .kernels import shade_rows
 
     h, w, cn = rgb.shape
     target = np.empty_like(rgb) if out is None else out

@@ -1,4 +1,11 @@
-"""Shadow shading in one compiled pass (numba): ``rgb * lut[c, q] / 255`` per channel, q the quantized occlusion.
+"""The world layer's compiled passes (numba): the shadow sweep and the shading.
+
+``sweep``: the running horizon of ``shadows._sweep`` (one slice at a time towards the sun), the NumPy per-slice
+vector operations as one loop: the same float operations in the same order (maximum, subtract, compare; no fused
+multiply-add), so the mask, margins and distances are bit-identical (tests/test_shadows.py keeps the NumPy sweep
+as the reference).
+
+``shade_rows``: shadow shading, ``rgb * lut[c, q] / 255`` per channel, q the quantized occlusion.
 
 The OpenCV passes this replaces (quantize the float occlusion with ``cv2.convertScaleAbs``, three 1-channel
 ``cv2.LUT`` of it, ``cv2.merge``, ``cv2.multiply`` with scale 1/255) are reproduced bit for bit, measured
@@ -62,3 +69,55 @@ def shade_rows(src, occ, quantized, lut, out):
         o = out[y]
         for i in range(n):
             o[i] = mul255(np.int32(s[i]), np.int32(g[i]))
+
+
+@nb.njit(**JIT)
+def sweep(a, s, from_last, drop, step, soft, mask, margin, dist_out):
+    """The sweep over the slices (rows) of ``a`` (float32 or float64) from the sun's side (``from_last``: the sun
+    lies beyond the last row, which comes first); ``s`` the digital line's row offsets (integral floats); ``drop``,
+    ``step`` in a's dtype. Writes ``mask`` (bool, ``a < horizon``) or, with ``soft``, ``margin`` (horizon - a) and
+    ``dist_out`` (the distance to the occluder that set the horizon)."""
+    n0, n1 = a.shape
+    hor = np.full(n1, -np.inf, a.dtype)
+    tmp = np.empty(n1, a.dtype)
+    dist = np.full(n1, step, a.dtype)
+    dtmp = np.empty(n1, a.dtype)
+    prev = -1
+    for k in range(n0):
+        i = n0 - 1 - k if from_last else k
+        if prev >= 0:
+            row = a[prev]
+            d = np.int64(s[prev] - s[i])   # the line through (i, j) passes (prev, j + d)
+            if soft:
+                for j in range(n1):   # a new maximum restarts the distance (0 + step is step exactly)
+                    dtmp[j] = step if row[j] >= hor[j] else dist[j] + step
+            for j in range(n1):
+                tmp[j] = np.maximum(hor[j], row[j]) - drop
+            if d == 0:
+                hor, tmp = tmp, hor
+                if soft:
+                    dist, dtmp = dtmp, dist
+            elif d == 1:
+                hor[:n1 - 1] = tmp[1:]
+                hor[n1 - 1] = -np.inf
+                if soft:
+                    dist[:n1 - 1] = dtmp[1:]
+                    dist[n1 - 1] = step
+            else:
+                hor[1:] = tmp[:n1 - 1]
+                hor[0] = -np.inf
+                if soft:
+                    dist[1:] = dtmp[:n1 - 1]
+                    dist[0] = step
+        ai = a[i]
+        if soft:
+            mi = margin[i]
+            di = dist_out[i]
+            for j in range(n1):
+                mi[j] = hor[j] - ai[j]
+                di[j] = dist[j]
+        else:
+            mk = mask[i]
+            for j in range(n1):
+                mk[j] = ai[j] < hor[j]
+        prev = i
