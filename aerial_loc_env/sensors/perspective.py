@@ -50,6 +50,7 @@ import cv2
 import numpy as np
 
 from ..config import rng
+from ..errors import ConfigError
 from . import perspective_kernels as kernels
 from .camera import CameraModel, apply_affine
 
@@ -313,6 +314,11 @@ class ReliefView:
                       gamma: float = 2.2) -> np.ndarray:
         """Shade facade pixels in place (uint8 (h, w, 3)) by ``facade_gains``; returns ``image``."""
         if view.facade is not None:
+            # the kernel writes through a flat view of the frame at the facade indices, unchecked
+            if image.dtype != np.uint8 or image.ndim != 3 or image.shape[:2] != view.x.shape \
+                    or not image.flags.c_contiguous:
+                raise ConfigError(f"shade_facades: expected a C-contiguous uint8 (h, w, c) frame with (h, w) = "
+                                  f"{view.x.shape}, got {image.dtype} {image.shape}")
             kernels.shade_pixels(image.reshape(-1, image.shape[-1]), view.facade,
                                  self.facade_gains(view, sun_deg, gamma))
         return image
