@@ -185,12 +185,45 @@ class PatchSampler:
         ``mode`` and its inputs: ``ref``, ``shift``, ``ref_bins``, ``bins``, ``scale``, ``nlogn``, ``tests``,
         ``cam_bits``), at the grid or at ``points`` (``node_points``). Returns the statistics (N, 4) float64
         (rows of particles whose footprint leaves the level untouched) and that footprint validity (N,) bool."""
-        e = self.grid_to_level(states, altitude_m).astype(np.float32)
         cols, rows = self.grid_points if points is None else points
+        self._check_score_inputs(cols, rows, mode, channels, **inputs)
+        e = self.grid_to_level(states, altitude_m).astype(np.float32)
         valid = self._footprint_valid(e)
         stats = np.zeros((e.shape[0], 4))
         self._scan(e, cols, rows, valid, channels, mode, stats=stats, **inputs)
         return stats, valid
+
+    def _check_score_inputs(self, cols, rows, mode, channels, *, ref=None, ref_bins=None, bins=0, nlogn=None,
+                            tests=None, cam_bits=None, **_) -> None:
+        """The kernel indexes unchecked (``boundscheck=False``): a ``score`` input of the wrong shape or range
+        would read or write out of bounds, so it is refused here."""
+        def refuse(what: str) -> None:
+            raise ConfigError(f"PatchSampler.score: {what}")
+
+        cols, rows = np.asarray(cols), np.asarray(rows)
+        if cols.ndim != 2 or rows.shape != cols.shape:
+            refuse(f"points must be two (R, B) arrays of one shape, got {cols.shape} and {rows.shape}")
+        if not 1 <= channels <= self.channels:
+            refuse(f"channels = {channels} must be in [1, {self.channels}] (the level's)")
+        if mode == MOMENTS:
+            if ref is None or np.shape(ref) != cols.shape:
+                refuse(f"MOMENTS needs ref of the points' shape {cols.shape}, got {np.shape(ref)}")
+        elif mode == HISTOGRAM:
+            if ref_bins is None or np.shape(ref_bins) != cols.shape:
+                refuse(f"HISTOGRAM needs ref_bins of the points' shape {cols.shape}, got {np.shape(ref_bins)}")
+            if bins < 1 or ref_bins.min() < 0 or ref_bins.max() >= bins:
+                refuse(f"HISTOGRAM needs ref_bins in [0, bins) with bins >= 1, bins = {bins}")
+            if nlogn is None or np.ndim(nlogn) != 1 or np.size(nlogn) <= cols.size:
+                refuse(f"HISTOGRAM needs nlogn for the counts 0 .. {cols.size} (dense.nlogn_table)")
+        elif mode == BRIEF:
+            if tests is None or np.ndim(tests) != 2 or np.shape(tests)[1] != 3:
+                refuse(f"BRIEF needs tests (T, 3), got {np.shape(tests)}")
+            if cam_bits is None or np.shape(cam_bits) != (tests.shape[0],):
+                refuse(f"BRIEF needs cam_bits ({tests.shape[0]},), got {np.shape(cam_bits)}")
+            if tests.size and (tests.min() < 0 or tests.max() >= cols.size or tests[:, 2].max() >= channels):
+                refuse(f"BRIEF tests must index the {cols.size} points and {channels} channels")
+        else:
+            refuse(f"mode = {mode!r} must be MOMENTS, HISTOGRAM or BRIEF (SAMPLE: use sample())")
 
     def _scan(self, e, cols, rows, active, channels, mode, *, ref=None, shift=0.0, ref_bins=None, bins=0,
               scale=0.0, nlogn=None, tests=None, cam_bits=None, samples=None, stats=None) -> None:
