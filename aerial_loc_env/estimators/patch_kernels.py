@@ -18,22 +18,10 @@ one thread, explicit float32 arithmetic; the first call of a process compiles (~
 from __future__ import annotations
 
 import numpy as np
-from numba import njit, types
-from numba.extending import intrinsic
+from numba import njit
 
-_JIT = dict(cache=True, nogil=True, error_model="numpy", boundscheck=False)
-
-
-@intrinsic
-def _fma32(typingctx, a, b, c):
-    """``a * b + c`` rounded once (LLVM's fma intrinsic), as OpenCV's ``v_fma``."""
-    sig = types.float32(types.float32, types.float32, types.float32)
-
-    def codegen(context, builder, signature, args):
-        return builder.fma(*args)
-
-    return sig, codegen
-
+from ..world.kernels import JIT as _JIT
+from ..world.kernels import fma32 as _fma32
 
 #: what ``scan`` does with each particle's samples
 SAMPLE, MOMENTS, HISTOGRAM, BRIEF = 0, 1, 2, 3

@@ -36,6 +36,7 @@ from numba import njit
 
 from ..config import rng
 from ..errors import ConfigError
+from ..world.kernels import JIT as _JIT
 
 INDICES = ("c3_luminance", "c3", "luminance", "tsai")
 RESTORATIONS = ("equalize", "gain")
@@ -167,7 +168,6 @@ def _mean32(total: float, count: int) -> float:
 _NO_C3 = np.zeros((0, 0), np.float32)
 #: ``_index8`` modes: the index from c3 and the luminance, c3 alone, the darkness alone
 _INDEX_MODES = {"c3_luminance": 0, "c3": 1, "luminance": 2}
-_JIT = dict(cache=True, nogil=True, error_model="numpy", boundscheck=False)
 
 
 @functools.lru_cache(maxsize=1)

@@ -31,29 +31,13 @@ from __future__ import annotations
 
 import numba
 import numpy as np
-from llvmlite import ir
-from numba import types
-from numba.extending import intrinsic
+
+from ..world.kernels import JIT as _JIT
+from ..world.kernels import fma32 as _fma
 
 _BLOCK = 4     # the march's skip test: maxima of 4 x 4 pooled pixels
 _LANES = 16    # OpenCV's nearest warps: vector body in blocks of 2 x 8 float32 lanes (AVX2), scalar tail after it
-_JIT = {"cache": True, "nogil": True, "error_model": "numpy", "boundscheck": False}
 _F32 = np.float32
-
-
-@intrinsic
-def _fma(typingctx, a, b, c):
-    """float32 a * b + c with one rounding (LLVM's fma: the FMA instruction, or libm's fmaf without one)."""
-    if not all(t == types.float32 for t in (a, b, c)):   # no silent casts: every operand must be float32
-        return None
-    sig = types.float32(types.float32, types.float32, types.float32)
-
-    def codegen(context, builder, signature, args):
-        f32 = ir.FloatType()
-        fn = builder.module.declare_intrinsic("llvm.fma", [f32], ir.FunctionType(f32, [f32, f32, f32]))
-        return builder.call(fn, args)
-
-    return sig, codegen
 
 
 @numba.njit(inline="always", **_JIT)

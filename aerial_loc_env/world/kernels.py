@@ -18,10 +18,26 @@ from __future__ import annotations
 
 import numba as nb
 import numpy as np
+from numba import types
+from numba.extending import intrinsic
 
 #: numba options of the project's kernels: cached compiles, no GIL, NumPy's error model, no bounds checks;
 #: single-threaded on purpose (benchmarks are per core; users parallelize over environments and workers)
 JIT = {"cache": True, "nogil": True, "error_model": "numpy", "boundscheck": False}
+
+
+@intrinsic
+def fma32(typingctx, a, b, c):
+    """float32 ``a * b + c`` rounded once (LLVM's fma: the FMA instruction, or libm's fmaf without one), as
+    OpenCV's ``v_fma``; numba without fastmath fuses nothing else. No silent casts: every operand must be float32."""
+    if not all(t == types.float32 for t in (a, b, c)):
+        return None
+    sig = types.float32(types.float32, types.float32, types.float32)
+
+    def codegen(context, builder, signature, args):
+        return builder.fma(*args)
+
+    return sig, codegen
 
 
 @nb.njit(inline="always", **JIT)

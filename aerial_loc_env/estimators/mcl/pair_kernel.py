@@ -14,8 +14,10 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from ...world.kernels import JIT
 
-@njit(cache=True, nogil=True, error_model="numpy", boundscheck=False)
+
+@njit(**JIT)
 def pair_agreements(affines, uv, pairs, width, height, db, pixel_bytes, channels, nodata, cam_bits, agree, valid):
     """For particle n (``affines[n]`` (2, 3) float64, eq. (3)'s camera pixel -> map pixel, used in float32 with
     0.5 added to the translations so that truncation rounds) and the j-th used pair i = ``pairs[j]`` (camera
@@ -70,7 +72,7 @@ def pair_agreements(affines, uv, pairs, width, height, db, pixel_bytes, channels
     return sums, off != 0
 
 
-@njit(cache=True, nogil=True, error_model="numpy", boundscheck=False)
+@njit(**JIT)
 def camera_pairs(image, u, v, mask, vals, in_mask, uv):
     """The frame's side of the pairs in one pass: ``vals[j]`` = the pixel (``u[j]``, ``v[j]``) of ``image``
     (H, W, C) uint8 as float32, ``uv[j]`` = (u, v) as float64 and, for a ``mask`` (h, w) bool at a reduced
