@@ -29,10 +29,11 @@ import pytest
 from reference_models import mutual_information, pair_similarity_reference, remap_patches
 from test_dense_models import ALT_M, briefing_standin, observation, render_frame, textured_map
 
+from aerial_loc_env.errors import ConfigError
 from aerial_loc_env.estimators.mcl.abbrief import ABBriefConfig, ABBriefModel
 from aerial_loc_env.estimators.mcl.dense import DenseConfig, MIModel, NCCModel, SSDModel, quantize
 from aerial_loc_env.estimators.mcl.intensity_pairs import IntensityPairsConfig, IntensityPairsModel
-from aerial_loc_env.estimators.patches import PatchGeometry, PatchSampler
+from aerial_loc_env.estimators.patches import BRIEF, HISTOGRAM, MOMENTS, SAMPLE, PatchGeometry, PatchSampler
 
 DELTA = 2.0 ** -15
 
@@ -173,6 +174,23 @@ def test_kernel_compiles_once_for_every_mode():
             model.log_likelihood(prep, _states(m, 20), ALT_M)
             model.sampler.sample(_states(m, 5), ALT_M)
     assert len(patch_kernels.scan.signatures) == 1
+
+
+def test_score_refuses_inputs_the_kernel_would_index_out_of_bounds():
+    """``scan`` indexes unchecked (boundscheck=False): shapes and ranges are checked before it runs."""
+    m = _map(1, False)
+    sampler = PatchSampler(m, briefing_standin(m).camera, PatchGeometry(24, 16), m.rgb[..., 0], ALT_M)
+    states = _states(m, 10)[:20]                       # the finite ones at the centre
+    ok_bins, table = np.zeros((16, 24), np.int32), np.zeros(16 * 24 + 1)
+    for mode, inputs in [(MOMENTS, {"ref": np.zeros((15, 24), np.float32)}), (MOMENTS, {}), (SAMPLE, {}),
+                         (MOMENTS, {"ref": np.zeros((16, 24), np.float32), "channels": 2}),
+                         (HISTOGRAM, {"ref_bins": ok_bins + 16, "bins": 16, "nlogn": table}),
+                         (HISTOGRAM, {"ref_bins": ok_bins, "bins": 16, "nlogn": table[:10]}),
+                         (BRIEF, {"tests": np.array([[0, 16 * 24, 0]]), "cam_bits": np.zeros(1, bool)}),
+                         (BRIEF, {"tests": np.array([[0, 1, 1]]), "cam_bits": np.zeros(1, bool)}),
+                         (BRIEF, {"tests": np.array([[0, 1, 0]]), "cam_bits": np.zeros(2, bool)})]:
+        with pytest.raises(ConfigError, match="PatchSampler.score"):
+            sampler.score(states, ALT_M, mode, **inputs)
 
 
 # ---------------------------------------------------------------------- intensity pairs

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 from perspective_reference import reference_maps, reference_shade_facades
 
+from aerial_loc_env.errors import ConfigError
 from aerial_loc_env.sensors.camera import CameraModel, Pose
 from aerial_loc_env.sensors.perspective import PerspectiveConfig, ReliefView, tilt_homography
 from aerial_loc_env.sensors.render import CameraRenderer, Photometry
@@ -141,3 +142,15 @@ def test_a_view_the_caller_holds_is_never_overwritten():
     del second, x_plane
     fourth = r._view.maps(r.camera_to_map(poses[0]), 120.0, r.camera)
     assert np.array_equal(fourth.x, kept[0])
+
+
+def test_facade_shading_refuses_a_frame_the_kernel_cannot_write():
+    """The kernel writes unchecked at the facade indices: a frame of another size, dtype or layout is refused."""
+    om = city(1600, 8, 500)
+    r = CameraRenderer(om, CameraModel(), Photometry.ideal(), perspective=PerspectiveConfig(enabled=True))
+    view = r._view.maps(r.camera_to_map(Pose(200.0, 200.0, 0.7, 80.0)), 80.0, r.camera)
+    assert view.facade is not None
+    image = np.zeros((400, 600, 3), np.uint8)
+    for bad in (image[:200], image.astype(np.float32), image[:, ::-1], image[..., 0]):
+        with pytest.raises(ConfigError, match="shade_facades"):
+            r._view.shade_facades(bad, view)
