@@ -214,3 +214,12 @@ def test_c3_table_holds_the_invariant_of_every_pixel():
         h, w = g.integers(1, 130, 2)
         rgb = g.integers(0, 256, (h, w, 3)).astype(np.uint8)
         np.testing.assert_array_equal(table[rgb[..., 2], np.maximum(rgb[..., 0], rgb[..., 1])], c3_invariant(rgb))
+
+
+def test_detector_refuses_a_reduced_frame_the_c3_table_cannot_index():
+    """The kernel looks c3 up by byte values, unchecked: a reduced frame passed in must be (h, w, 3) uint8 too."""
+    det = ShadowDetector(ShadowDetectorConfig())
+    img = np.full((40, 60, 3), 100, np.uint8)
+    for small in (np.full((10, 15, 3), 300, np.int32), np.zeros((10, 15, 3), np.float32), np.zeros((10, 15), np.uint8)):
+        with pytest.raises(ConfigError, match="reduced frame"):
+            det.detect(img, small=small)

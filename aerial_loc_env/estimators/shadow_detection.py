@@ -131,10 +131,8 @@ class ShadowDetector:
         (``_index8``, ``_split_stats``) around OpenCV's threshold: the same floats as NumPy's element-wise
         float32 arithmetic, exact integer luminance sums, and NumPy's pairwise float32 sums for the c3 means
         (tests/test_mcl_step_speedups.py checks the masks against the NumPy path over many frames)."""
-        img = np.asarray(image)
-        if img.ndim != 3 or img.shape[2] != 3 or img.dtype != np.uint8:
-            raise ConfigError(f"shadow detector: expected an (H, W, 3) uint8 RGB frame, got {img.shape} {img.dtype}")
-        small = self.reduce(img) if small is None else small
+        img = _rgb8(image, "frame")
+        small = self.reduce(img) if small is None else _rgb8(small, "reduced frame")   # (the c3 table: bytes only)
         index = self.config.index
         lum8 = cv2.cvtColor(small, cv2.COLOR_RGB2GRAY)
         c3 = np.empty(lum8.shape, np.float32) if index in ("c3_luminance", "c3") else _NO_C3
@@ -158,6 +156,14 @@ class ShadowDetector:
         if self._close is not None:
             binary = cv2.morphologyEx(binary, cv2.MORPH_CLOSE, self._close)
         return ShadowMask(binary.astype(bool), img.shape[:2])
+
+
+def _rgb8(image: np.ndarray, what: str) -> np.ndarray:
+    """``image`` as an array, refused unless (H, W, 3) uint8."""
+    a = np.asarray(image)
+    if a.ndim != 3 or a.shape[2] != 3 or a.dtype != np.uint8:
+        raise ConfigError(f"shadow detector: expected an (H, W, 3) uint8 RGB {what}, got {a.shape} {a.dtype}")
+    return a
 
 
 def _mean32(total: float, count: int) -> float:
