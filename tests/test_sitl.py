@@ -296,7 +296,8 @@ def _long_mission(binary: str, duration: str) -> None:
     """Skip (with the reason) without the SITL binary, the agents, or AERIAL_LOC_SITL_ALL=1 (CI's time budget)."""
     _sitl_or_skip(binary)
     if os.environ.get("AERIAL_LOC_SITL_ALL") != "1":
-        pytest.skip(f"the ExternalNav SITL missions run with AERIAL_LOC_SITL_ALL=1 ({duration})")
+        pytest.skip(f"the long SITL missions (copter ExternalNav and GNSS denial, plane GNSS denial) run with "
+                    f"AERIAL_LOC_SITL_ALL=1 ({duration})")
 
 
 @pytest.mark.timeout(600)
