@@ -76,10 +76,11 @@ class Observation(NamedTuple):
 
 
 def parse_observation(observation: Mapping[str, np.ndarray], briefing: Briefing | None = None,
-                      altitude_range_m: tuple[float, float] | None = None) -> Observation:
+                      altitude_range_m: tuple[float, float] | None = None, agent: str | None = None) -> Observation:
     """Unpack ``observation`` (keys image/odometry/yaw/altitude) with a clear error for a malformed one, and,
     given the ``briefing`` the agent was reset with, for frames that come from another scenario (or from
-    outside the agent's ``altitude_range_m``, default ``default_altitude_range_m``)."""
+    outside the agent's ``altitude_range_m``, default ``default_altitude_range_m``; ``agent``: its name, for the
+    error)."""
     missing = [k for k in ("image", "odometry", "yaw", "altitude") if k not in observation]
     if missing:
         raise ConfigError(f"observation: missing key(s) {missing}; expected image, odometry, yaw, altitude")
@@ -96,7 +97,7 @@ def parse_observation(observation: Mapping[str, np.ndarray], briefing: Briefing 
     if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
         raise ConfigError(f"observation['image'] must be (H, W, 3) uint8, got {image.shape} {image.dtype}")
     if briefing is not None:
-        check_against_briefing(image, alt, briefing, altitude_range_m)
+        check_against_briefing(image, alt, briefing, altitude_range_m, agent)
     return Observation(image, float(odo[0]), float(odo[1]), yaw, alt)
 
 
@@ -112,22 +113,24 @@ def default_altitude_range_m(briefing: Briefing) -> tuple[float, float]:
 
 
 def check_against_briefing(image: np.ndarray, altitude_m: float, briefing: Briefing,
-                           altitude_range_m: tuple[float, float] | None = None) -> None:
+                           altitude_range_m: tuple[float, float] | None = None, agent: str | None = None) -> None:
     """Refuse an observation that cannot come from the briefed scenario (image size, altitude outside
     ``altitude_range_m``, default ``default_altitude_range_m``), instead of estimating on with a camera model
     that does not describe the frames."""
     cam = briefing.camera
     h, w = image.shape[:2]
-    fix = ("the agent was reset with another scenario's briefing than the one producing the frames; reset it "
-           "with env.unwrapped.briefing of the env that renders them")
+    reset_it = "reset it with env.unwrapped.briefing of the env that renders them"
+    fix = f"the agent was reset with another scenario's briefing than the one producing the frames; {reset_it}"
     if (w, h) != (cam.width_px, cam.height_px):
         raise ConfigError(f"observation image is {w} x {h} px but the briefing's camera "
                           f"({briefing.scenario_id}) is {cam.width_px} x {cam.height_px} px: {fix}")
     lo, hi = altitude_range_m or default_altitude_range_m(briefing)
     if not lo <= altitude_m <= hi:
-        raise ConfigError(f"observation altitude {altitude_m:.1f} m is outside the {lo:.1f}-{hi:.1f} m this agent "
-                          f"estimates at (the briefing's nominal is {float(briefing.altitude_m):.1f} m, "
-                          f"{briefing.scenario_id}): {fix}")
+        raise ConfigError(f"observation altitude {altitude_m:.1f} m is outside the {lo:.1f}-{hi:.1f} m "
+                          f"{agent or 'this agent'} estimates at (Agent.altitude_range_m; the briefing's nominal is "
+                          f"{float(briefing.altitude_m):.1f} m, {briefing.scenario_id}): give it only frames within "
+                          f"that range (`aerial-loc mavlink --follow` does), or, if they come from another scenario, "
+                          f"{reset_it}")
 
 
 class Agent(ABC):

@@ -131,7 +131,7 @@ class WindowMatchingAgent(Agent):
         if self.dr is None:
             raise ConfigError(f"{type(self).__name__}.step called before reset(briefing, seed=...)")
         pred = self.dr.step(observation)
-        obs = parse_observation(observation, self.briefing, self.altitude_range)
+        obs = parse_observation(observation, self.briefing, self.altitude_range, type(self).__name__)
         if self.has_fix or self.briefing.prior.kind == "gaussian" or not self.params.global_search:
             prior = self.briefing.prior
             radius = self.params.search_radius_m
