@@ -587,7 +587,7 @@ def fly_mission(scenario: str, agent: str, *, ground_amsl_m: float, vehicle: str
     loop_start = 2 if vehicle == "copter" else 3
     record["loop_start"] = loop_start
     starts = {k: next((t for t, x in record["texts"] if x.startswith(f"Mission: {k}")), None)
-              for k in (2, loop_start, loop_end)}
+              for k in (loop_start, loop_end)}
     if starts[loop_start] is not None and starts[loop_end] is not None:
         legs = lambda rows: [r for r in rows if starts[loop_start] <= r[0] <= starts[loop_end]]   # noqa: E731
         record["leg_errors_m"] = horizontal_errors_m(legs(record["truth"]), legs(record["ekf"]))
@@ -782,8 +782,9 @@ def main(argv: list[str] | None = None) -> int:
         wind = None if args.wind is None else tuple(float(v) for v in args.wind.split(","))
     except ValueError:
         wind = ()
-    if wind is not None and (len(wind) != 2 or not 0 <= wind[0] <= 30):
-        ap.error(f"--wind {args.wind!r}: give SPEED,FROM_DEG with the speed in 0..30 m/s, e.g. 5,270")
+    if wind is not None and (len(wind) != 2 or not 0 <= wind[0] <= 30 or not math.isfinite(wind[1])):
+        ap.error(f"--wind {args.wind!r}: give SPEED,FROM_DEG with the speed in 0..30 m/s and the direction the wind "
+                 f"blows from in degrees, e.g. 5,270")
     scenario = args.scenario or ("AerialLoc/Small-v1" if args.vehicle == "copter" else "AerialLoc/PaperShadows-v1")
     record = fly_mission(scenario, args.agent, ground_amsl_m=args.ground_amsl_m, vehicle=args.vehicle,
                          mission=args.mission, speedup=args.speedup, sitl_dir=args.sitl_bin, log=sys.stdout,
