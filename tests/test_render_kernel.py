@@ -292,3 +292,34 @@ def test_shade_on_strided_tiles_equals_the_opencv_passes(channels):
         np.testing.assert_array_equal(box[5:69, 9:105], expected)
         assert not box[:5].any() and not box[69:].any() and not box[:, :9].any() and not box[:, 105:].any()
         np.testing.assert_array_equal(shade(src, q, lut), expected)        # uint8 levels, a fresh output
+
+
+def test_shade_refuses_what_its_kernel_would_index_out_of_bounds():
+    """``shade``'s kernel runs without bounds checks: a wrong dtype, shape, table or output is a ConfigError."""
+    from aerial_loc_env.errors import ConfigError
+
+    rgb, occ, lut = np.zeros((8, 6, 3), np.uint8), np.zeros((8, 6), np.float32), shading_lut(0.9)
+    bad = [(rgb.astype(np.float32), occ, lut, None), (rgb[..., :2], occ, lut, None), (rgb[0], occ[0], lut, None),
+           (rgb, occ[:7], lut, None), (rgb, occ.T, lut, None), (rgb, occ.astype(np.int16), lut, None),
+           (rgb, occ, lut[:, :255], None), (rgb, occ, lut.astype(np.int16), None), (rgb, occ, lut[:2], None),
+           (rgb, occ, lut, np.zeros((8, 5, 3), np.uint8)), (rgb, occ, lut, np.zeros((8, 6, 3), np.float32)),
+           (rgb, occ, lut, np.zeros((8, 6, 4), np.uint8))]
+    for args in bad:
+        with pytest.raises(ConfigError, match="shade: "):
+            shade(*args[:3], out=args[3])
+
+
+def test_quantize_saturates_nan_inf_and_huge_occlusion_as_opencv():
+    """NaN, inf and occlusions beyond int32 levels quantize as convertScaleAbs does (to 0), not to an index out of
+    the shading table; the occlusion's float path (``shade`` and the frame kernel) goes through the same helper."""
+    from aerial_loc_env.world.shadows import apply_shading
+
+    occ = np.float32([[np.nan, np.inf, -np.inf, 1e10, -1e10, 8.4e6, 2.0, -0.5, 1.0, 0.25, 3e7 / 255, 2.2e9 / 255]])
+    rgb = np.full(occ.shape + (3,), 200, np.uint8)
+    lut = shading_lut(0.9)
+    q = cv2.convertScaleAbs(occ, alpha=255.0)
+    assert q[0, 0] == q[0, 1] == q[0, 3] == 0 and q[0, 5] == 255     # the cases hit: 0 and the saturation
+    expected = shade(rgb, q, lut)
+    np.testing.assert_array_equal(shade(rgb, occ, lut), expected)
+    np.testing.assert_array_equal(apply_shading(rgb, occ, 0.9), expected)
+

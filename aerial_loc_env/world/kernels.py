@@ -10,7 +10,8 @@ as the reference).
 The OpenCV passes this replaces (quantize the float occlusion with ``cv2.convertScaleAbs``, three 1-channel
 ``cv2.LUT`` of it, ``cv2.merge``, ``cv2.multiply`` with scale 1/255) are reproduced bit for bit, measured
 exhaustively (tests/test_render_kernel.py): the uint8 multiply is the exactly rounded ``a b / 255`` (never a tie),
-here ``(p + (p >> 8)) >> 8`` with ``p = a b + 128``; the quantization is ``rint(|occ * 255|)`` in float32, saturated.
+here ``(p + (p >> 8)) >> 8`` with ``p = a b + 128``; the quantization is ``rint(|occ * 255|)`` in float32, saturated
+(NaN, inf and levels beyond int32 to 0, as OpenCV).
 ``sensors.frame_kernel`` uses the same two helpers for the frames' shading and vignetting.
 """
 
@@ -49,8 +50,12 @@ def mul255(a, b):
 
 @nb.njit(inline="always", **JIT)
 def quantize(v):
-    """The occlusion level of a float occlusion ``v``: ``cv2.convertScaleAbs(v, alpha=255)`` (int32)."""
-    return min(np.int32(np.rint(np.abs(v * np.float32(255.0)))), np.int32(255))
+    """The occlusion level of a float occlusion ``v``: ``cv2.convertScaleAbs(v, alpha=255)`` (int32 in [0, 255]).
+    NaN and levels beyond int32 give 0, as OpenCV's (cvRound's INT_MIN saturated), never an out-of-range index."""
+    x = np.abs(v * np.float32(255.0))
+    if x <= np.float32(255.0):
+        return np.int32(np.rint(x))
+    return np.int32(255) if x < np.float32(2147483648.0) else np.int32(0)   # NaN: both comparisons False
 
 
 @nb.njit(inline="always", **JIT)

@@ -480,6 +480,7 @@ def shade(rgb: np.ndarray, occ: np.ndarray, lut: np.ndarray, out: np.ndarray | N
     colour and the occlusion in one pass, as ``CameraRenderer.bake`` stores them. Views (map tiles) are fine."""
     from .kernels import shade_rows
 
+    _check_shade_args(rgb, occ, lut, out)
     h, w, cn = rgb.shape
     target = np.empty_like(rgb) if out is None else out
     rows = _row_view(target)
@@ -491,6 +492,25 @@ def shade(rgb: np.ndarray, occ: np.ndarray, lut: np.ndarray, out: np.ndarray | N
     if rows is None:
         target[...] = dst.reshape(h, w, cn)
     return target
+
+
+def _check_shade_args(rgb: np.ndarray, occ: np.ndarray, lut: np.ndarray, out: np.ndarray | None) -> None:
+    """``shade``'s contract, checked: its kernel (no bounds checks) would read or write out of bounds, or compute
+    garbage, on anything else."""
+    if not (isinstance(rgb, np.ndarray) and rgb.dtype == np.uint8 and rgb.ndim == 3 and rgb.shape[2] in (3, 4)):
+        raise ConfigError(f"shade: rgb must be an (H, W, 3 or 4) uint8 array, got {np.shape(rgb)} "
+                          f"{getattr(rgb, 'dtype', type(rgb).__name__)}")
+    if not (isinstance(occ, np.ndarray) and occ.shape == rgb.shape[:2]
+            and (occ.dtype == np.uint8 or np.issubdtype(occ.dtype, np.floating))):
+        raise ConfigError(f"shade: occ must be uint8 or float of shape {rgb.shape[:2]}, got {np.shape(occ)} "
+                          f"{getattr(occ, 'dtype', type(occ).__name__)}")
+    if not (isinstance(lut, np.ndarray) and lut.dtype == np.uint8 and lut.shape == (3, 256)):
+        raise ConfigError(f"shade: lut must be a (3, 256) uint8 array, got {np.shape(lut)} "
+                          f"{getattr(lut, 'dtype', type(lut).__name__)}")
+    if out is not None and not (isinstance(out, np.ndarray) and out.dtype == np.uint8 and out.shape == rgb.shape
+                                and out.flags.writeable):
+        raise ConfigError(f"shade: out must be a writeable uint8 array of shape {rgb.shape}, got {np.shape(out)} "
+                          f"{getattr(out, 'dtype', type(out).__name__)}")
 
 
 def _row_view(a: np.ndarray) -> np.ndarray | None:
