@@ -323,3 +323,36 @@ def test_quantize_saturates_nan_inf_and_huge_occlusion_as_opencv():
     np.testing.assert_array_equal(shade(rgb, occ, lut), expected)
     np.testing.assert_array_equal(apply_shading(rgb, occ, 0.9), expected)
 
+
+def test_pre_sensor_must_return_the_uint8_frame():
+    """The image ``pre_sensor`` returns goes on into the kernel, which indexes its tables by the bytes: anything but
+    the (H, W, 3) uint8 frame is a ConfigError (an int16 image would read out of the tone table)."""
+    from aerial_loc_env.errors import ConfigError
+
+    renderer, _, grid = _pair(SETTINGS["defaults"])
+    for step in (lambda im: im.astype(np.int16) + 300, lambda im: im[:, :, 0], lambda im: np.ascontiguousarray(
+            im.transpose(1, 0, 2))):
+        with pytest.raises(ConfigError, match="pre_sensor"):
+            renderer.render(POSES[0], np.random.default_rng(0), grid, SHADING, pre_sensor=step)
+
+
+def test_a_held_frame_is_its_own_memory():
+    """A frame's image is a view into the memory its warp wrote (no copy): it must be that frame's alone, so that a
+    recorded episode or an estimator keeping the previous frame sees it unchanged by the frames rendered after
+    it, and a caller writing into one frame's image changes no other frame (baked, per-frame and unshadowed)."""
+    renderer, _, grid = _pair(SETTINGS["defaults"])
+    baked = renderer.bake(grid, SHADING, (20, 20, 380, 380))
+    for occlusion in (baked, grid, None):
+        rng = np.random.default_rng(1)
+        first = renderer.render(POSES[0], rng, occlusion, SHADING)
+        assert (first.occlusion_q is not None) == (occlusion is baked)     # each path taken
+        kept = first.image.copy(), first.shadow_mask.copy(), None if first.occlusion is None else first.occlusion.copy()
+        later = [renderer.render(pose, rng, occlusion, SHADING) for pose in (POSES[1], POSES[0], POSES[1])]
+        np.testing.assert_array_equal(first.image, kept[0])
+        np.testing.assert_array_equal(first.shadow_mask, kept[1])
+        if kept[2] is not None:
+            np.testing.assert_array_equal(first.occlusion, kept[2])
+        for frame in later:
+            assert not np.shares_memory(frame.image, first.image)
+        first.image[...] = 0
+        assert later[1].image.any()

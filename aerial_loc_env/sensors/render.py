@@ -613,6 +613,9 @@ class CameraRenderer:
             src = src.reshape(-1)[:h * w * 3].reshape(h, w, 3)
             for step in mid:
                 src = np.ascontiguousarray(step(src))
+                if src.dtype != np.uint8 or src.shape != (h, w, 3):   # the kernel indexes tables by its bytes
+                    raise ConfigError(f"render: pre_sensor must return the ({h}, {w}, 3) uint8 image, got "
+                                      f"{src.shape} {src.dtype}")
             if blur_px >= 1.0:
                 src = cv2.filter2D(src, -1, _motion_kernel(blur_px), borderType=cv2.BORDER_REPLICATE)
             cn, occ_mode = 3, fk.OCC_NONE
