@@ -1,6 +1,8 @@
-"""The compiled finishing pass (``sensors.frame_kernel.finish``) against the OpenCV passes it replaced, bit for bit.
+"""The compiled finishing pass (``sensors.frame_kernel.finish``, and ``warp_finish`` with the baked box's warp) against
+the OpenCV passes it replaced, bit for bit.
 
-The reference is the renderer as it was: a subclass whose ``_finish`` runs the old OpenCV/NumPy passes (RGB drop,
+The reference is the renderer as it was: a subclass whose ``_finish`` runs the old OpenCV/NumPy passes (the baked
+box's ``cv2.warpAffine``, RGB drop,
 alpha threshold and count, or the float occlusion quantized, shaded and thresholded; motion blur; gamma LUT; gains
 ``cv2.transform``; the int16 sigma LUT times the noise bank; vignetting multiply; saturating add), with the same
 random draws in the same order. Everything upstream (the warps, the views, the bake) is shared, so any difference
@@ -49,6 +51,8 @@ class _OpenCVRenderer(CameraRenderer):
         self.masks: list[np.ndarray] = []
 
     def _finish(self, src, occ, shading_params, rng, speed_mps, pose, mid):
+        if isinstance(src, render_mod._BoxWarp):
+            src = _warp_box(src.box, src.matrix, src.width_px, src.height_px)
         h, w, cn = src.shape
         image = cv2.cvtColor(src, cv2.COLOR_RGBA2RGB) if cn == 4 else src.copy()
         alpha = render_mod._NO_VIG
@@ -84,6 +88,13 @@ class _OpenCVRenderer(CameraRenderer):
             cv2.add(image, noise, dst=image, dtype=cv2.CV_8U)
         self.masks.append(mask.view(bool))
         return image, alpha, cv2.countNonZero(mask)
+
+
+def _warp_box(box, matrix, width_px, height_px):
+    """The reference warp of a baked box (uint32 RGBA pixels): OpenCV's."""
+    rgba = box.view(np.uint8).reshape(*box.shape, 4)
+    return cv2.warpAffine(rgba, matrix, (width_px, height_px), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                          borderMode=cv2.BORDER_CONSTANT, borderValue=(0, 0, 0, 0))
 
 
 def _scene(relief: bool = False):
@@ -356,3 +367,37 @@ def test_a_held_frame_is_its_own_memory():
             assert not np.shares_memory(frame.image, first.image)
         first.image[...] = 0
         assert later[1].image.any()
+
+
+@pytest.mark.parametrize("size", [(600, 400), (120, 80), (128, 40), (37, 9)])
+def test_box_warp_equals_opencv_warp_affine_over_random_affines(size):
+    """``warp_finish``'s warp against ``cv2.warpAffine`` (8UC4, INTER_LINEAR, zero border): rotations, scales
+    0.5-2, subpixel offsets, footprints inside, across and off the box's edges; widths with and without the
+    scalar tail (W mod ``WARP_STEP_PX``). Where OpenCV dispatches its AVX2 kernel (x86-64 since 2013, this
+    project's machines) the RGB, alpha and count are equal; elsewhere its coordinates can differ by an ulp or two,
+    which moves a value by one level where the bilinear sum is within ~1e-3 of a rounding tie: at most one level,
+    in few values."""
+    w, h = size
+    rng = np.random.default_rng(w)
+    box = rng.integers(0, 256, (460, 620, 4), dtype=np.uint8)
+    box[40:70, 50:90] = 255                                      # saturated patches
+    box[90:120, 20:60] = 0
+    box32 = box.view(np.uint32).reshape(460, 620)
+    ident = np.tile(np.arange(256, dtype=np.uint8), (3, 1))
+    exact = cv2.checkHardwareSupport(13)     # CV_CPU_AVX2 (the Python module of OpenCV 5 exports no name for it)
+    for t in range(40):
+        angle, scale = rng.uniform(-np.pi, np.pi), rng.uniform(0.5, 2.0)
+        m = scale * np.array([[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]])
+        centre = rng.uniform(-150.0, 770.0, 2) if t % 4 == 0 else rng.uniform(150.0, 310.0, 2)  # across / inside
+        matrix = np.hstack([m, (centre - m @ (np.array([w, h]) / 2.0 + rng.uniform(0.0, 1.0, 2)))[:, None]])
+        out = np.empty(h * w * 3, np.uint8)
+        alpha = np.empty((h, w), np.uint8)
+        count = fk.warp_finish(box32, matrix, ident, out, alpha, False, render_mod._NO_VIG, render_mod._NO_BANK, 0,
+                               0, fk.NOISE_OFF, np.float32(0), np.float32(0), 0.0, 0.0)
+        ref = _warp_box(box32, matrix, w, h)
+        got = np.dstack([out.reshape(h, w, 3), alpha])
+        if exact:
+            np.testing.assert_array_equal(got, ref)
+        else:
+            assert np.abs(got.astype(int) - ref).max() <= 1 and (got != ref).mean() < 0.01
+        assert count == np.count_nonzero(alpha > 127)

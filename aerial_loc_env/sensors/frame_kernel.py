@@ -34,6 +34,7 @@ import numba as nb
 import numpy as np
 
 from ..world.kernels import JIT as _JIT
+from ..world.kernels import fma32 as _fma32
 from ..world.kernels import mul255 as _mul255
 from ..world.kernels import quantize as _quantize
 
@@ -104,6 +105,26 @@ def _scene_row(s, o, m, f, cn, w_px, occ_mode, l0, l1, l2, s0, s1, s2, lit_same)
     return count
 
 
+@nb.njit(inline="always", **_JIT)
+def _sensor_row(o, d, y, h_px, sensor, vig, bank, dy, dx3, sigma_mode, a32, b32, a64, b64):
+    """Stage 2 on row y's toned levels ``o`` into ``d`` (a copy without ``sensor``); see ``finish``."""
+    w3 = o.shape[0]
+    if not sensor:
+        for x in range(w3):
+            d[x] = o[x]
+        return
+    v = vig[y if y < vig.shape[0] else h_px - 1 - y]
+    if sigma_mode == NOISE_OFF:
+        for x in range(w3):
+            d[x] = _mul255(np.int32(o[x]), np.int32(v[x]))
+    else:
+        b = bank[y + dy, dx3:dx3 + w3]
+        for x in range(w3):
+            h = np.int32(o[x])
+            n = _noise(_sigma(h, sigma_mode, a32, b32, a64, b64), b[x])
+            d[x] = min(max(_mul255(h, np.int32(v[x])) + n, np.int32(0)), np.int32(255))
+
+
 @nb.njit(**_JIT)
 def finish(src, cn, occ_mode, occ, shade, lut, out, alpha, sensor, vig, bank, dy, dx3,
            sigma_mode, a32, b32, a64, b64):
@@ -122,7 +143,6 @@ def finish(src, cn, occ_mode, occ, shade, lut, out, alpha, sensor, vig, bank, dy
     h_px = src.shape[0]
     w_px = src.shape[1] // cn
     w3 = 3 * w_px
-    n_vig = vig.shape[0]
     l0, l1, l2 = lut[0], lut[1], lut[2]
     s0, s1, s2 = shade[0], shade[1], shade[2]
     lit_same = s0[0] == 255 and s1[0] == 255 and s2[0] == 255
@@ -135,19 +155,118 @@ def finish(src, cn, occ_mode, occ, shade, lut, out, alpha, sensor, vig, bank, dy
             count += _scene_row(src[y], o, m, f, 4, w_px, occ_mode, l0, l1, l2, s0, s1, s2, lit_same)
         else:
             count += _scene_row(src[y], o, m, f, 3, w_px, occ_mode, l0, l1, l2, s0, s1, s2, lit_same)
-        d = out[w3 * y:w3 * (y + 1)]
-        if not sensor:
-            for x in range(w3):
-                d[x] = o[x]
-            continue
-        v = vig[y if y < n_vig else h_px - 1 - y]
-        if sigma_mode == NOISE_OFF:
-            for x in range(w3):
-                d[x] = _mul255(np.int32(o[x]), np.int32(v[x]))
-        else:
-            b = bank[y + dy, dx3:dx3 + w3]
-            for x in range(w3):
-                h = np.int32(o[x])
-                n = _noise(_sigma(h, sigma_mode, a32, b32, a64, b64), b[x])
-                d[x] = min(max(_mul255(h, np.int32(v[x])) + n, np.int32(0)), np.int32(255))
+        _sensor_row(o, out[w3 * y:w3 * (y + 1)], y, h_px, sensor, vig, bank, dy, dx3, sigma_mode, a32, b32, a64, b64)
     return count
+
+
+#: pixels per vector step of OpenCV's warpAffine (8UC4, INTER_LINEAR) on x86-64 with AVX2: a row's last
+#: ``W mod WARP_STEP_PX`` pixels take its scalar formula for the source coordinates (see ``warp_finish``)
+WARP_STEP_PX = 16
+
+
+@nb.njit(**_JIT)
+def warp_finish(box, m, lut, out, alpha, sensor, vig, bank, dy, dx3, sigma_mode, a32, b32, a64, b64):
+    """``finish`` (``OCC_ALPHA``) of the bilinear warp of the baked box, each row warped into a row buffer and
+    finished while it sits in L1: no warped RGBA frame goes through memory, and the box's pixels stay in cache
+    from one frame to the next (between a ``cv2.warpAffine`` and a separate pass, the pass evicted them).
+
+    ``box`` (bh, bw) uint32: the box's RGBA pixels (``rgba.view(np.uint32)``: the bytes are only moved, so the
+    channel order is memory order on any endianness); ``m`` (2, 3) float64: the inverse affine (frame pixel ->
+    box pixel); ``alpha`` (H, W) uint8 receives the warped alpha; the rest as ``finish``; returns the number of
+    shadowed pixels. The warp is ``cv2.warpAffine(rgba, m, (W, H), INTER_LINEAR | WARP_INVERSE_MAP,
+    BORDER_CONSTANT 0)`` of OpenCV 5 bit for bit, its arithmetic found by measurement (tests/test_render_kernel.py
+    compares over random affines, borders included): the float32 source point of pixel (x, y) is
+    ``fma(m00, x, m01 y + m02)`` with float32 coefficients (the row's base rounded, then one fused step), except
+    in a row's last ``W mod WARP_STEP_PX`` pixels, where it is ``fma(m00, x, m01 y) + m02``; the value is the fma
+    chain of ``estimators.patch_kernels`` on the four neighbours (the border's 0 outside), rounded half to even.
+
+    Loops (measured on a 600 x 400 flight): the coordinates with the weights spread to the four channels, the
+    four neighbours' gathers (one uint32 load each), one loop over the row's 4 W channel values (vectorized),
+    then ``finish``'s tone lookups and sensor stage. A row whose neighbours are not all inside the box takes the
+    general path (floor, border) in its coordinate and gather loops only.
+    """
+    h_px, w_px = alpha.shape
+    bh, bw = box.shape
+    w3 = 3 * w_px
+    flat = box.reshape(bh * bw)
+    l0, l1, l2 = lut[0], lut[1], lut[2]
+    m0, m1, m2 = np.float32(m[0, 0]), np.float32(m[0, 1]), np.float32(m[0, 2])
+    m3, m4, m5 = np.float32(m[1, 0]), np.float32(m[1, 1]), np.float32(m[1, 2])
+    fu = np.empty(w_px, np.float32)
+    fv = np.empty(w_px, np.float32)
+    fa = np.empty(4 * w_px, np.float32)
+    fb = np.empty(4 * w_px, np.float32)
+    idx = np.empty(w_px, np.uint32)
+    q = np.empty((4, w_px), np.uint32)
+    q00, q01, q10, q11 = q[0], q[1], q[2], q[3]
+    c00, c01, c10, c11 = q00.view(np.uint8), q01.view(np.uint8), q10.view(np.uint8), q11.view(np.uint8)
+    rgba = np.empty(4 * w_px, np.uint8)
+    o = np.empty(w3, np.uint8)
+    no_occ = np.empty(1, np.float32)     # (the float occlusion and shading of ``_scene_row``: unused here)
+    x_tail = w_px - w_px % WARP_STEP_PX
+    umax, vmax = np.float32(bw - 1), np.float32(bh - 1)
+    stride, one = np.uint32(bw), np.uint32(1)
+    count = 0
+    for y in range(h_px):
+        yf = np.float32(y)
+        bu, bv = m1 * yf + m2, m4 * yf + m5
+        for x in range(w_px):
+            fu[x] = _fma32(m0, np.float32(x), bu)
+            fv[x] = _fma32(m3, np.float32(x), bv)
+        pu, pv = m1 * yf, m4 * yf
+        for x in range(x_tail, w_px):
+            fu[x] = _fma32(m0, np.float32(x), pu) + m2
+            fv[x] = _fma32(m3, np.float32(x), pv) + m5
+        outside = np.int32(0)
+        for x in range(w_px):
+            u, v = fu[x], fv[x]
+            iu, iv = np.int32(u), np.int32(v)        # the floor where the row is inside (checked on the floats)
+            a, b = u - np.float32(iu), v - np.float32(iv)
+            for c in range(4):
+                fa[4 * x + c] = a
+                fb[4 * x + c] = b
+            idx[x] = np.uint32(iv) * stride + np.uint32(iu)
+            outside |= np.int32((u < 0) | (v < 0) | (u >= umax) | (v >= vmax))
+        if outside == 0:
+            for x in range(w_px):
+                k = idx[x]
+                q00[x] = flat[k]
+                q01[x] = flat[k + one]
+                q10[x] = flat[k + stride]
+                q11[x] = flat[k + stride + one]
+        else:
+            _border_row(box, fu, fv, fa, fb, q00, q01, q10, q11)
+        for j in range(4 * w_px):
+            p00, p01 = np.float32(c00[j]), np.float32(c01[j])
+            p10, p11 = np.float32(c10[j]), np.float32(c11[j])
+            a = fa[j]
+            v0 = _fma32(a, p01 - p00, p00)
+            v1 = _fma32(a, p11 - p10, p10)
+            rgba[j] = np.uint8(np.int32(np.rint(_fma32(fb[j], v1 - v0, v0))))
+        count += _scene_row(rgba, o, alpha[y], no_occ, 4, w_px, OCC_ALPHA, l0, l1, l2, l0, l1, l2, False)
+        _sensor_row(o, out[w3 * y:w3 * (y + 1)], y, h_px, sensor, vig, bank, dy, dx3, sigma_mode, a32, b32, a64, b64)
+    return count
+
+
+@nb.njit(**_JIT)
+def _border_row(box, fu, fv, fa, fb, q00, q01, q10, q11):
+    """The general path of a ``warp_finish`` row: the floor (clamped to [-2, size + 1]: any point beyond is as
+    far outside, and the conversion stays defined), the weights, and the four neighbours, 0 outside the box."""
+    bh, bw = box.shape
+    zero = np.uint32(0)
+    for x in range(fu.shape[0]):
+        u, v = fu[x], fv[x]
+        cu = min(max(u, np.float32(-2.0)), np.float32(bw + 1))
+        cv = min(max(v, np.float32(-2.0)), np.float32(bh + 1))
+        x0, y0 = np.int32(cu), np.int32(cv)
+        x0 -= np.int32(np.float32(x0) > cu)
+        y0 -= np.int32(np.float32(y0) > cv)
+        a, b = u - np.float32(x0), v - np.float32(y0)
+        for c in range(4):
+            fa[4 * x + c] = a
+            fb[4 * x + c] = b
+        in_x0, in_x1, in_y0, in_y1 = 0 <= x0 < bw, 0 <= x0 + 1 < bw, 0 <= y0 < bh, 0 <= y0 + 1 < bh
+        q00[x] = box[y0, x0] if in_x0 and in_y0 else zero
+        q01[x] = box[y0, x0 + 1] if in_x1 and in_y0 else zero
+        q10[x] = box[y0 + 1, x0] if in_x0 and in_y1 else zero
+        q11[x] = box[y0 + 1, x0 + 1] if in_x1 and in_y1 else zero

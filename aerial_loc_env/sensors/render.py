@@ -189,6 +189,19 @@ class BakedShadows:
 
 
 @dataclass(frozen=True, eq=False)
+class _BoxWarp:
+    """The baked box's warp for a frame, done row by row inside the finishing pass (``frame_kernel.warp_finish``:
+    bit for bit ``cv2.warpAffine`` INTER_LINEAR | WARP_INVERSE_MAP with a zero border, 0.2 ms a frame less than the
+    warp and a separate pass at 600 x 400). ``box``: the box's RGBA pixels as uint32 (h, w); ``matrix``: frame
+    pixel -> box pixel, (2, 3) float64."""
+
+    box: np.ndarray
+    matrix: np.ndarray
+    height_px: int
+    width_px: int
+
+
+@dataclass(frozen=True, eq=False)
 class _SensorParams:
     """The renderer's fixed sensor arguments of ``frame_kernel.finish``: the vignetting gains (uint8 over 255,
     (H, 3 W); all 255 when only noise is on) and how the noise sigma is computed. ``sigma_lut`` is the int16 sigma
@@ -561,15 +574,17 @@ class CameraRenderer:
                       speed_mps: float, status: FootprintStatus,
                       pre_sensor: Callable[[np.ndarray], np.ndarray] | None, view: ViewMaps | None = None,
                       sun_deg: tuple[float, float] | None = None) -> Frame:
-        """One warp of the pre-shaded box: RGB and the occlusion (alpha) together, then the finishing pass.
-        ``view``: a perspective or tilted view samples the box through its maps instead (facades then shaded)."""
+        """One warp of the pre-shaded box: RGB and the occlusion (alpha) together, inside the finishing pass
+        (``_BoxWarp``). ``view``: a perspective or tilted view samples the box through its maps instead (facades
+        then shaded)."""
         camera = self.camera
         if view is None:
             a = affine.copy()
             a[0, 2] -= baked.origin_px[0]
             a[1, 2] -= baked.origin_px[1]
-            out = cv2.warpAffine(baked.rgba, a, (camera.width_px, camera.height_px), flags=_WARP_FLAGS,
-                                 borderMode=cv2.BORDER_CONSTANT, borderValue=(0, 0, 0, 0))
+            h, w = baked.rgba.shape[:2]
+            out: np.ndarray | _BoxWarp = _BoxWarp(baked.rgba.view(np.uint32).reshape(h, w), a,
+                                                  camera.height_px, camera.width_px)
             mid: list[Callable[[np.ndarray], np.ndarray]] = []
         else:
             out = view.sample(baked.rgba, origin_px=baked.origin_px)
@@ -582,11 +597,12 @@ class CameraRenderer:
                      status=status, pose=pose, pyramid_level=0, occlusion_q=alpha)
 
     # ------------------------------------------------------------------ photometry
-    def _finish(self, src: np.ndarray, occ: np.ndarray | None, shading_params: Mapping[str, Any] | None,
+    def _finish(self, src: np.ndarray | _BoxWarp, occ: np.ndarray | None, shading_params: Mapping[str, Any] | None,
                 rng: np.random.Generator, speed_mps: float, pose: Pose,
                 mid: list[Callable[[np.ndarray], np.ndarray]]) -> tuple[np.ndarray, np.ndarray, int]:
         """The frame from the warped map ``src`` (a fresh (H, W, 3 or 4) uint8 array, which becomes the frame's
-        memory): shadows, motion blur, gamma, gains, vignetting, noise (``frame_kernel.finish``); returns (image,
+        memory), or the baked box's warp to do in the first pass (``_BoxWarp``, with ``_BAKED_ALPHA``): shadows,
+        motion blur, gamma, gains, vignetting, noise (``frame_kernel.finish``, ``warp_finish``); returns (image,
         the alpha (H, W) with ``_BAKED_ALPHA`` else a dummy, the shadowed pixel count).
 
         ``occ``: the float occlusion to shade with ``shading_params``, or ``_BAKED_ALPHA`` (src's alpha, already
@@ -595,7 +611,12 @@ class CameraRenderer:
         ``photometry_draws``, then the noise bank offsets."""
         fk = _kernels()
         p = self.photometry
-        h, w, cn = src.shape
+        warp = src if isinstance(src, _BoxWarp) else None
+        if warp is not None:   # the warp is done in the first pass, into the frame's memory
+            h, w, cn = warp.height_px, warp.width_px, 4
+            src = np.empty((h, w, 3), np.uint8)
+        else:
+            h, w, cn = src.shape
         alpha = _NO_VIG
         if occ is None:
             occ_mode, occ_f, shade = fk.OCC_NONE, _NO_OCC, _IDENTITY_RO
@@ -608,8 +629,13 @@ class CameraRenderer:
         sp = self._sensor
         count = 0
         if mid or blur_px >= 1.0:   # the scene stage alone, the steps between, then the rest in place
-            count = fk.finish(src.reshape(h, w * cn), cn, occ_mode, occ_f, shade, _IDENTITY, src.reshape(-1), alpha,
-                              False, _NO_VIG, _NO_BANK, 0, 0, fk.NOISE_OFF, sp.a32, sp.b32, sp.a64, sp.b64)
+            if warp is not None:
+                count = fk.warp_finish(warp.box, warp.matrix, _IDENTITY, src.reshape(-1), alpha, False, _NO_VIG,
+                                       _NO_BANK, 0, 0, fk.NOISE_OFF, sp.a32, sp.b32, sp.a64, sp.b64)
+                warp = None
+            else:
+                count = fk.finish(src.reshape(h, w * cn), cn, occ_mode, occ_f, shade, _IDENTITY, src.reshape(-1),
+                                  alpha, False, _NO_VIG, _NO_BANK, 0, 0, fk.NOISE_OFF, sp.a32, sp.b32, sp.a64, sp.b64)
             src = src.reshape(-1)[:h * w * 3].reshape(h, w, 3)
             for step in mid:
                 src = np.ascontiguousarray(step(src))
@@ -626,8 +652,12 @@ class CameraRenderer:
             dy, dx = rng.integers(0, _NOISE_MARGIN_PX + 1, size=2).tolist()
             bank = self._noise_bank.reshape(self._noise_bank.shape[0], -1)
         flat = src.reshape(-1)
-        count += fk.finish(src.reshape(h, w * cn), cn, occ_mode, occ_f, shade, lut, flat, alpha, sp.active, sp.vig,
-                           bank, dy, 3 * dx, sp.sigma_mode, sp.a32, sp.b32, sp.a64, sp.b64)
+        if warp is not None:
+            count += fk.warp_finish(warp.box, warp.matrix, lut, flat, alpha, sp.active, sp.vig, bank, dy, 3 * dx,
+                                    sp.sigma_mode, sp.a32, sp.b32, sp.a64, sp.b64)
+        else:
+            count += fk.finish(src.reshape(h, w * cn), cn, occ_mode, occ_f, shade, lut, flat, alpha, sp.active,
+                               sp.vig, bank, dy, 3 * dx, sp.sigma_mode, sp.a32, sp.b32, sp.a64, sp.b64)
         return flat[:h * w * 3].reshape(h, w, 3), alpha, count
 
     @staticmethod
