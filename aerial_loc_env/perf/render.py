@@ -19,9 +19,11 @@ and mask did in 1.15 ms (tone lookups 0.2, vignetting and noise with the sigma c
 and the frame's draws 0.05-0.1 ms. Measured and not taken: the sigma read from a table (a gather per element, 0.6-1.0
 ms against 0.33 for the float32 square root: gathers are slow on this CPU), the kernel in bands interleaved with
 warps of those bands (no faster, and not bit-identical: a shifted warp matrix rounds differently), the pass run
-bottom-up, huge pages for the baked box. What is left above 2.0x is the warp, which the kernel cannot fuse without
-redoing OpenCV's bilinear warp slower than OpenCV does it. The first frame of a process compiles the kernels (about
-2.5 s with an empty numba cache, 0.3 s to load them from it): setups render one frame before the timing starts.
+bottom-up, huge pages for the baked box. Since then the warp is done inside the pass (``frame_kernel.warp_finish``:
+OpenCV 5's warpAffine arithmetic reproduced bit for bit, each row warped and finished in L1, the box's rows 8 frame
+rows ahead prefetched): 2.42-2.51x -> 2.08-2.16x (2.15-2.29 -> 1.85-1.90 ms; the env step 2.40-2.47 -> 2.14-2.19
+ms) in three alternating runs at load 0.8-1.0. The first frame of a process compiles the kernels (about 3 s with an
+empty numba cache, 0.3-0.4 s to load them from it): setups render one frame before the timing starts.
 """
 
 from __future__ import annotations

@@ -19,7 +19,9 @@ from __future__ import annotations
 
 import numba as nb
 import numpy as np
+from llvmlite import ir
 from numba import types
+from numba.core import cgutils
 from numba.extending import intrinsic
 
 #: numba options of the project's kernels: cached compiles, no GIL, NumPy's error model, no bounds checks;
@@ -37,6 +39,26 @@ def fma32(typingctx, a, b, c):
 
     def codegen(context, builder, signature, args):
         return builder.fma(*args)
+
+    return sig, codegen
+
+
+@intrinsic
+def prefetch(typingctx, arr, k):
+    """A read prefetch of element ``k`` of the array ``arr`` into every cache level (LLVM's ``llvm.prefetch``: a
+    hint, never a fault, wherever ``k`` points): for gathers whose addresses are known a few rows ahead."""
+    if not isinstance(arr, types.Array) or not isinstance(k, types.Integer):
+        return None
+    sig = types.void(arr, k)
+
+    def codegen(context, builder, signature, args):
+        data = context.make_array(signature.args[0])(context, builder, args[0]).data
+        i8p, i32 = ir.IntType(8).as_pointer(), ir.IntType(32)
+        fn = cgutils.get_or_insert_function(builder.module, ir.FunctionType(ir.VoidType(), [i8p, i32, i32, i32]),
+                                            "llvm.prefetch.p0i8")
+        ptr = builder.bitcast(builder.gep(data, [args[1]]), i8p)
+        builder.call(fn, [ptr, ir.Constant(i32, 0), ir.Constant(i32, 3), ir.Constant(i32, 1)])
+        return context.get_dummy_value()
 
     return sig, codegen
 
