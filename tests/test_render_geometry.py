@@ -1,0 +1,48 @@
+"""The renderer's per-frame geometry and tone table in scalar form give the library's numpy results bit for bit."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import cv2
+import numpy as np
+import pytest
+
+from aerial_loc_env.sensors.camera import CameraModel, Pose, apply_affine
+from aerial_loc_env.sensors.render import CameraRenderer, gamma_lut, tone_lut
+
+
+def _map(gsd_x: float, gsd_y: float) -> SimpleNamespace:
+    rgb = np.zeros((300, 500, 3), np.uint8)
+    return SimpleNamespace(rgb=rgb, gsd_x_m=gsd_x, gsd_y_m=gsd_y, height_px=300, width_px=500, nodata=None)
+
+
+@pytest.mark.parametrize("camera", [CameraModel(), CameraModel(width_px=321, height_px=203, hfov_deg=57.3,
+                                                                 pixel_aspect=1.137)])
+@pytest.mark.parametrize("gsd", [(0.25, 0.25), (0.3137, 0.2719), (np.float32(0.41), np.float32(0.23))])
+def test_pose_affine_and_corners_equal_camera_to_map_bit_for_bit(camera, gsd):
+    renderer = CameraRenderer(_map(*gsd), camera)
+    rng = np.random.default_rng(5)
+    for x, y, yaw, alt in zip(rng.uniform(-50, 200, 300), rng.uniform(-50, 200, 300), rng.uniform(-7, 7, 300),
+                              rng.uniform(20, 900, 300), strict=True):
+        pose = Pose(float(x), float(y), float(yaw), float(alt))
+        expected = renderer.camera_to_map(pose)
+        got = renderer._pose_affine(pose, camera)
+        assert got.dtype == expected.dtype and got.tobytes() == expected.tobytes()
+        corners = (got @ renderer._geometry(camera)[1]).T
+        assert corners.tobytes() == np.ascontiguousarray(apply_affine(expected, camera.corners_px())).tobytes()
+
+
+def test_tone_lut_is_the_opencv_operations_over_all_levels():
+    levels = np.repeat(np.arange(256, dtype=np.uint8)[None, :, None], 3, axis=2)
+    rng = np.random.default_rng(2)
+    for gamma, gains in [(None, None), (0.83, None), (None, np.array([0.7, 1.0, 1.6])),
+                         *[(float(g), rng.uniform(0.5, 2.5, 3)) for g in rng.uniform(0.5, 2.0, 20)]]:
+        ref = levels.copy()
+        if gamma is not None:
+            cv2.LUT(ref, gamma_lut(gamma), dst=ref)
+        if gains is not None:
+            cv2.transform(ref, np.diag(gains).astype(np.float32), dst=ref)
+        got = tone_lut(gamma, gains)
+        assert got.flags.c_contiguous and got.shape == (3, 256)
+        np.testing.assert_array_equal(got, ref[0].T)
