@@ -35,6 +35,7 @@ Why it is built this way:
 from __future__ import annotations
 
 import math
+import sys
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Literal
@@ -72,13 +73,15 @@ _NO_OCC = np.zeros((1, 1), np.float32)   # dummy arguments where the kernel read
 _NO_VIG = np.zeros((1, 1), np.uint8)
 _NO_BANK = np.zeros((1, 1), np.int16)
 _BAKED_ALPHA = np.zeros((1, 1), np.float32)   # ``_finish``'s marker: the occlusion is src's (baked) alpha
+_FRAME_KERNEL = __name__.rpartition(".")[0] + ".frame_kernel"
 
 
 def _kernels():
     """``sensors.frame_kernel``, imported on first use (numba's import costs ~0.2 s: only processes that render)."""
-    from . import frame_kernel
-
-    return frame_kernel
+    fk = sys.modules.get(_FRAME_KERNEL)
+    if fk is None:   # the import statement's lookups cost more than the frame's other Python steps, cold
+        from . import frame_kernel as fk
+    return fk
 
 
 @dataclass(frozen=True)
@@ -180,6 +183,7 @@ class BakedShadows:
     rgba: np.ndarray                  # (h, w, 4) uint8: shaded RGB, alpha = round(255 occlusion), where baked
     origin_px: tuple[int, int]        # (column, row) of rgba[0, 0] in the map (level 0)
     baked_tiles: np.ndarray           # (rows, columns) bool: the tiles of rgba filled so far
+    done_range: list[int] = field(default_factory=lambda: [0, 0, 0, 0])  # (ty0, ty1, tx0, tx1) a frame found baked
 
     def covers(self, corners_px: np.ndarray) -> bool:
         """Whether map points (n, 2) lie in the box with the bilinear kernel's margin."""
@@ -321,8 +325,6 @@ class CameraRenderer:
 
     def _bake_tiles(self, baked: BakedShadows, corners_px: np.ndarray) -> None:
         """Shade the tiles of ``baked`` that the bilinear warp over map points ``corners_px`` reads, if not yet."""
-        from ..world.shadows import shade
-
         c0, r0 = baked.origin_px
         # the tile range in plain Python (a frame's 4 corners: numpy's per-call overhead would cost more)
         us, vs = corners_px[:, 0].tolist(), corners_px[:, 1].tolist()
@@ -330,9 +332,15 @@ class CameraRenderer:
         ty0 = max((math.floor(min(vs)) - r0 - 1) // _BAKE_TILE_PX, 0)
         tx1 = (math.floor(max(us)) - c0 + 2) // _BAKE_TILE_PX + 1
         ty1 = (math.floor(max(vs)) - r0 + 2) // _BAKE_TILE_PX + 1
+        last = baked.done_range
+        if last[0] <= ty0 and ty1 <= last[1] and last[2] <= tx0 and tx1 <= last[3]:
+            return   # inside the range a frame found baked (tiles stay baked): no numpy call
         done = baked.baked_tiles[ty0:ty1, tx0:tx1]
         if done.all():
+            baked.done_range[:] = (ty0, ty1, tx0, tx1)
             return
+        from ..world.shadows import shade
+
         data, f = self._grid(baked.grid)
         lut = _shading_lut(baked.shading_params)
         h, w = baked.rgba.shape[:2]
