@@ -26,10 +26,10 @@ def test_pose_affine_and_corners_equal_camera_to_map_bit_for_bit(camera, gsd):
     for x, y, yaw, alt in zip(rng.uniform(-50, 200, 300), rng.uniform(-50, 200, 300), rng.uniform(-7, 7, 300),
                               rng.uniform(20, 900, 300), strict=True):
         pose = Pose(float(x), float(y), float(yaw), float(alt))
-        expected = renderer.camera_to_map(pose)
-        got = renderer._pose_affine(pose, camera)
+        expected = camera.camera_to_map(renderer.orthomap, *pose)
+        got = camera.project_pose(renderer.orthomap, pose)
         assert got.dtype == expected.dtype and got.tobytes() == expected.tobytes()
-        corners = (got @ renderer._geometry(camera)[1]).T
+        corners = (got @ renderer._hom_corners(camera)).T
         assert corners.tobytes() == np.ascontiguousarray(apply_affine(expected, camera.corners_px())).tobytes()
 
 

@@ -188,8 +188,19 @@ class CameraModel:
         return apply_affine(a, uv)
 
     def project_pose(self, orthomap: MapGrid, pose: Pose) -> np.ndarray:
-        """``camera_to_map`` (2, 3) for a single ``Pose``."""
-        return self.camera_to_map(orthomap, pose.x_m, pose.y_m, pose.yaw_rad, pose.altitude_m)
+        """``camera_to_map`` (2, 3) for a single ``Pose``, in scalar float64 arithmetic: the same operations in the
+        same order as ``camera_to_world`` then ``camera_to_map`` (the same floats; tests/test_render_geometry.py
+        checks them bit for bit) without a dozen numpy calls on 0-d arrays (the renderer calls it every frame)."""
+        x, y, yaw, alt = (float(v) for v in pose)
+        (wx, _, ox), (_, wy, oy) = world_to_map_affine(orthomap).tolist()
+        cu, cv = self.center_px
+        gu = self.gsd_m(alt)
+        gv = gu * self.pixel_aspect
+        c, s = float(np.cos(yaw)), float(np.sin(yaw))   # numpy's cos/sin, as camera_to_world's
+        a00, a01, a10, a11 = gu * s, -gv * c, -gu * c, -gv * s
+        a02 = x - a00 * cu - a01 * cv
+        a12 = y - a10 * cu - a11 * cv
+        return np.array([[a00 * wx, a01 * wx, a02 * wx + ox], [a10 * wy, a11 * wy, a12 * wy + oy]])
 
 
 # ---------------------------------------------------------------------- affine helpers

@@ -45,7 +45,7 @@ import numpy as np
 
 from ..config import rng as range_meta
 from ..errors import ConfigError, FootprintError
-from .camera import CameraModel, Pose, apply_affine, world_to_map_affine
+from .camera import CameraModel, Pose, apply_affine
 from .perspective import PerspectiveConfig, ReliefView, ViewMaps, sample_grid, tilt_homography, tilted_corners
 
 FootprintStatus = Literal["valid", "outside", "nodata"]
@@ -289,7 +289,7 @@ class CameraRenderer:
                                     _BLOCK_PX).max(axis=(1, 3))
             self._nodata_blocks = cv2.integral((blocks > 0).astype(np.uint8))
         self._noise_bank: np.ndarray | None = None
-        self._geometry_of: tuple[Any, Any] = (None, None)
+        self._hom_corners_of: tuple[Any, Any] = (None, None)
         self._sensor = _SensorParams.build(self.camera, self.photometry)
         self.reset(noise_seed if isinstance(noise_seed, np.random.Generator) else np.random.default_rng(noise_seed))
 
@@ -358,33 +358,14 @@ class CameraRenderer:
     # ------------------------------------------------------------------ geometry
     def camera_to_map(self, pose: Pose, camera: CameraModel | None = None) -> np.ndarray:
         """The (2, 3) affine camera pixel -> map pixel (level 0) for ``pose``."""
-        x, y, yaw, alt = _pose_tuple(pose)
-        return (camera or self.camera).camera_to_map(self.orthomap, x, y, yaw, alt)
+        return (camera or self.camera).project_pose(self.orthomap, _pose_tuple(pose))
 
-    def _geometry(self, camera: CameraModel) -> tuple[tuple[float, ...], np.ndarray]:
-        """Per-camera constants of a frame's geometry, kept while ``camera`` stays the same: the scalars of
-        ``_pose_affine`` and the image corners (3, 4) in homogeneous coordinates (``apply_affine``'s ``hom``)."""
-        if self._geometry_of[0] is not camera:
+    def _hom_corners(self, camera: CameraModel) -> np.ndarray:
+        """The image corners (3, 4) in homogeneous coordinates (``apply_affine``'s ``hom``), kept per camera."""
+        if self._hom_corners_of[0] is not camera:
             corners = camera.corners_px()
-            w = world_to_map_affine(self.orthomap).tolist()
-            cu, cv = camera.center_px
-            consts = (float(camera.pixel_aspect), cu, cv, w[0][0], w[0][2], w[1][1], w[1][2])
-            self._geometry_of = (camera, (consts, np.vstack([corners.T, np.ones(corners.shape[0])])))
-        return self._geometry_of[1]
-
-    def _pose_affine(self, pose: Pose, camera: CameraModel) -> np.ndarray:
-        """``camera_to_map`` (2, 3) of one pose in scalar float64 arithmetic: the same operations in the same order
-        as ``CameraModel.camera_to_world`` then ``camera_to_map`` (so the same floats, tests/test_render_geometry.py
-        checks them bit for bit) without a dozen numpy calls on 0-d arrays (~10 us a frame)."""
-        x, y, yaw, alt = pose
-        aspect, cu, cv, wx, ox, wy, oy = self._geometry(camera)[0]
-        gu = camera.gsd_m(alt)
-        gv = gu * aspect
-        c, s = float(np.cos(yaw)), float(np.sin(yaw))   # numpy's cos/sin, as camera_to_world's
-        a00, a01, a10, a11 = gu * s, -gv * c, -gu * c, -gv * s
-        a02 = x - a00 * cu - a01 * cv
-        a12 = y - a10 * cu - a11 * cv
-        return np.array([[a00 * wx, a01 * wx, a02 * wx + ox], [a10 * wy, a11 * wy, a12 * wy + oy]])
+            self._hom_corners_of = (camera, np.vstack([corners.T, np.ones(corners.shape[0])]))
+        return self._hom_corners_of[1]
 
     def pyramid_level(self, affine: np.ndarray) -> int:
         """The pyramid level whose pixels are closest to one camera pixel (log2 of the sampling step, rounded)."""
@@ -572,12 +553,12 @@ class CameraRenderer:
         pose = Pose(*_pose_tuple(pose))
         strict = self.strict if strict is None else strict
         camera = self.camera
-        affine = self._pose_affine(pose, camera)
+        affine = self.camera_to_map(pose, camera)
         level = self.pyramid_level(affine)
         tilt = tilt_homography(camera, *tilt_rad) if any(tilt_rad) else None
         # the untilted corners: the same matrix product as ``apply_affine`` with the homogeneous corners kept
         corners = apply_affine(affine, tilted_corners(camera, tilt)) if tilt is not None else \
-            (affine @ self._geometry(camera)[1]).T
+            (affine @ self._hom_corners(camera)).T
         status = self._status(affine, level, camera, map_corners=corners)
         self._check(pose, status, strict, camera)
         baked = occlusion if isinstance(occlusion, BakedShadows) else None
