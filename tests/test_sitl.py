@@ -417,3 +417,15 @@ def test_plane_gnss_denial():
     assert any(f < 3 for t, f in r["gps_fix"] if t > t_d + 2.0), "SITL's GPS still had a fix"
     _plane_loop_and_landing(r, s)
     assert s["denied_ekf_max_m"] < 5 * 3.0 + 7.7 and s["vision_fix_s"] > 100.0, s
+
+
+@pytest.mark.parametrize("wind", ["5", "x,3", "40,270", "5,270,1", "5,nan", "-1,90"])
+def test_wind_option_refuses_a_malformed_value_naming_the_form(wind, capsys):
+    """--wind is checked before SITL starts: a clear usage error naming the option and its form, exit 2."""
+    from aerial_loc_env.mavlink.sitl import main
+
+    with pytest.raises(SystemExit) as exc:
+        main(["--vehicle", "plane", f"--wind={wind}", "--sitl-bin", "/nonexistent"])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert f"--wind {wind!r}" in err and "SPEED,FROM_DEG" in err and "0..30 m/s" in err
