@@ -39,6 +39,7 @@ from ..world.kernels import fma32 as _fma32
 from ..world.kernels import mul255 as _mul255
 from ..world.kernels import prefetch as _prefetch
 from ..world.kernels import quantize as _quantize
+from ..world.kernels import wide_vectors as _wide_vectors
 
 #: ``occ_mode`` of ``finish``: where the shadows come from
 OCC_NONE, OCC_ALPHA, OCC_FLOAT = 0, 1, 2
@@ -142,6 +143,7 @@ def finish(src, cn, occ_mode, occ, shade, lut, out, alpha, sensor, vig, bank, dy
     or its top rows only when the bottom rows mirror them: row y reads row H - 1 - y below) and noise (``bank``
     int16 rows from ``dy``, columns from ``dx3``; ``sigma_mode`` with ``_sigma``'s constants) on the toned levels.
     """
+    _wide_vectors()
     h_px = src.shape[0]
     w_px = src.shape[1] // cn
     w3 = 3 * w_px
@@ -191,6 +193,7 @@ def warp_finish(box, m, lut, out, alpha, sensor, vig, bank, dy, dx3, sigma_mode,
     neighbours are not all inside the box takes the general path (floor, border) in its coordinate and gather
     loops only.
     """
+    _wide_vectors()
     h_px, w_px = alpha.shape
     bh, bw = box.shape
     w3 = 3 * w_px
