@@ -22,7 +22,12 @@ warps of those bands (no faster, and not bit-identical: a shifted warp matrix ro
 bottom-up, huge pages for the baked box. Since then the warp is done inside the pass (``frame_kernel.warp_finish``:
 OpenCV 5's warpAffine arithmetic reproduced bit for bit, each row warped and finished in L1, the box's rows 8 frame
 rows ahead prefetched): 2.42-2.51x -> 2.08-2.16x (2.15-2.29 -> 1.85-1.90 ms; the env step 2.40-2.47 -> 2.14-2.19
-ms) in three alternating runs at load 0.8-1.0. The first frame of a process compiles the kernels (about 3 s with an
+ms) in three alternating runs at load 0.8-1.0. Then 2.04-2.15x -> 1.75-1.84x (1.78-1.90 -> 1.54-1.57 ms) with the
+pass compiled for 512-bit vectors throughout (``world.kernels.wide_vectors``): with LLVM's default mix of 256- and
+512-bit loops the pass took 1.25 ms back to back but 1.45-1.75 ms after 4 ms of other work (the floor warps
+between frames here, the estimators in an episode; a bare Python loop did it too), 1.10 and 1.11-1.15 ms with it.
+The same hint on the perspective maps and the MCL kernels: no gain on the maps, SSD/NCC and the pair models slower
+(4.3x -> 5.1x), so it is not there. The first frame of a process compiles the kernels (about 3 s with an
 empty numba cache, 0.3-0.4 s to load them from it): setups render one frame before the timing starts.
 """
 

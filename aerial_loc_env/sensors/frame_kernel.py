@@ -24,7 +24,9 @@ keeps those passes as the reference and compares exactly); what each pass comput
   (checked per renderer with this module's own arithmetic, ``sigma_mode``), else in float64, which is the
   LUT's own arithmetic.
 
-Loops run over 2-D row slices with explicit narrow casts so that LLVM vectorizes them; single-threaded on
+Loops run over 2-D row slices with explicit narrow casts so that LLVM vectorizes them, with 512-bit vectors
+preferred (``world.kernels.wide_vectors``: LLVM's default on AVX-512 Intel cores mixes 256- and 512-bit loops in
+these two functions, which cost a frame 0.2-0.5 ms whenever other work ran before it; same bytes); single-threaded on
 purpose (benchmarks are per core; users parallelize over environments). The first call of a process compiles
 (about 2 s) unless numba's cache (``cache=True``, next to this file or in numba's user cache) already holds it.
 """
