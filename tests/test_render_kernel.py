@@ -401,3 +401,35 @@ def test_box_warp_equals_opencv_warp_affine_over_random_affines(size):
         else:
             assert np.abs(got.astype(int) - ref).max() <= 1 and (got != ref).mean() < 0.01
         assert count == np.count_nonzero(alpha > 127)
+
+
+def test_wide_vectors_marks_the_calling_kernel_only():
+    """The frame pass's codegen hint (``world.kernels.wide_vectors``) reaches LLVM as an attribute of the function
+    that calls it, which stays a function of its own (noinline: inlined into numba's wrappers it would take theirs),
+    and changes nothing computed: the hinted and plain versions of one loop agree bit for bit."""
+    from aerial_loc_env.world.kernels import fma32, wide_vectors
+
+    def body(a, out):
+        for i in range(a.shape[0]):
+            out[i] = np.rint(fma32(a[i], np.float32(1.7), np.float32(0.3)))
+
+    @numba.njit
+    def hinted(a, out):
+        wide_vectors()
+        body_jit(a, out)
+
+    body_jit = numba.njit(inline="always")(body)
+    plain = numba.njit(body)
+    a = np.random.default_rng(3).normal(0.0, 100.0, 4099).astype(np.float32)
+    out_h, out_p = np.empty_like(a), np.empty_like(a)
+    hinted(a, out_h)
+    plain(a, out_p)
+    assert np.array_equal(out_h, out_p)
+    ir = next(iter(hinted.inspect_llvm().values()))
+    define = next(line for line in ir.splitlines() if line.startswith("define") and "hinted" in line
+                  and "cpython" not in line and "cfunc" not in line)
+    group = define.rsplit("#", 1)[1].split()[0]
+    attrs = next(line for line in ir.splitlines() if line.startswith(f"attributes #{group} "))
+    assert '"prefer-vector-width"="512"' in attrs and "noinline" in attrs
+    plain_ir = next(iter(plain.inspect_llvm().values()))
+    assert "prefer-vector-width" not in plain_ir
