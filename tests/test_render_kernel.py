@@ -49,12 +49,20 @@ class _OpenCVRenderer(CameraRenderer):
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
         self.masks: list[np.ndarray] = []
+        self.facades: list[int] = []      # the facade pixels of each view sampled from the baked box
 
     def _finish(self, src, occ, shading_params, rng, speed_mps, pose, mid):
+        facades = None
         if isinstance(src, render_mod._BoxWarp):
             src = _warp_box(src.box, src.matrix, src.width_px, src.height_px)
+        elif isinstance(src, render_mod._MapWarp):
+            facades = src.shade_px, src.shade_gain
+            src = _remap_box(src.box, src.map_x, src.map_y)
         h, w, cn = src.shape
         image = cv2.cvtColor(src, cv2.COLOR_RGBA2RGB) if cn == 4 else src.copy()
+        if facades is not None:
+            self.facades.append(facades[0].size)
+            _shade_pixels(image, *facades)
         alpha = render_mod._NO_VIG
         if occ is render_mod._BAKED_ALPHA:
             alpha = cv2.extractChannel(src, 3)
@@ -95,6 +103,18 @@ def _warp_box(box, matrix, width_px, height_px):
     rgba = box.view(np.uint8).reshape(*box.shape, 4)
     return cv2.warpAffine(rgba, matrix, (width_px, height_px), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
                           borderMode=cv2.BORDER_CONSTANT, borderValue=(0, 0, 0, 0))
+
+
+def _remap_box(box, map_x, map_y):
+    """The reference sampling of a baked box (uint32 RGBA pixels) through a view's maps: OpenCV's."""
+    rgba = box.view(np.uint8).reshape(*box.shape, 4)
+    return cv2.remap(rgba, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+
+
+def _shade_pixels(image, pixels, gains):
+    """The facades' shading as NumPy does it: the RGB bytes of ``pixels`` times their gain, rounded, clipped."""
+    flat = image.reshape(-1, 3)
+    flat[pixels] = np.clip(np.rint(flat[pixels] * gains[:, None]), 0, 255).astype(np.uint8)
 
 
 def _scene(relief: bool = False):
@@ -172,11 +192,15 @@ def test_rgb_maps_scene_steps_and_views_equal_the_opencv_passes():
         new_b = new_r.bake(grid, SHADING, (20, 20, 380, 380))
         ref_b = ref_r.bake(grid, SHADING, (20, 20, 380, 380))
         for i, pose in enumerate(POSES):
-            for kw in ({"tilt_rad": (0.01, -0.008)}, {"tilt_rad": (0.01, -0.008), **dim}):
-                _render_both(new_r, ref_r, pose, grid, i, **kw)
-                new = new_r.render(pose, np.random.default_rng(i), new_b, None, sun_deg=(200.0, 40.0), **kw)
-                ref = ref_r.render(pose, np.random.default_rng(i), ref_b, None, sun_deg=(200.0, 40.0), **kw)
-                _assert_same(new, ref, ref_r)
+            for kw in ({"tilt_rad": (0.01, -0.008)}, {"tilt_rad": (0.01, -0.008), **dim}, {}, dim):
+                if kw or relief:      # (a flat untilted view is the affine warp)
+                    _render_both(new_r, ref_r, pose, grid, i, **kw)
+                for sun in ((200.0, 40.0), None):   # float32 / float64 facade gains
+                    new = new_r.render(pose, np.random.default_rng(i), new_b, None, sun_deg=sun, **kw)
+                    ref = ref_r.render(pose, np.random.default_rng(i), ref_b, None, sun_deg=sun, **kw)
+                    _assert_same(new, ref, ref_r)
+        if relief:    # the baked views went through remap_finish, facades included
+            assert len(ref_r.facades) == 16 and min(ref_r.facades) > 0
 
 
 def _sigma_f32_fails(r: float, g: float) -> bool:
@@ -401,6 +425,55 @@ def test_box_warp_equals_opencv_warp_affine_over_random_affines(size):
         else:
             assert np.abs(got.astype(int) - ref).max() <= 1 and (got != ref).mean() < 0.01
         assert count == np.count_nonzero(alpha > 127)
+
+
+@pytest.mark.parametrize("size", [(600, 400), (120, 80), (37, 9)])
+def test_map_warp_equals_opencv_remap_then_facades_over_random_maps(size):
+    """``remap_finish`` against ``cv2.remap`` (8UC4, INTER_LINEAR, zero border) then the facades' gains: maps of
+    random rotations and scales with per-pixel jitter (as relief displaces a view's points), inside the box, across
+    its edges and beyond them, integral and half-integral points (rounding ties of the weights); facade pixels in
+    random order (the maps kernel lists them by cell) with float32 and float64 gains (with and without a sun),
+    saturating both ways. The RGB, alpha and count are equal where OpenCV runs its AVX2 kernel, as for
+    ``warp_finish``."""
+    w, h = size
+    rng = np.random.default_rng(h)
+    box = rng.integers(0, 256, (300, 420, 4), dtype=np.uint8)
+    box[40:70, 50:90] = 255
+    box32 = box.view(np.uint32).reshape(300, 420)
+    ident = np.tile(np.arange(256, dtype=np.uint8), (3, 1))
+    exact = cv2.checkHardwareSupport(13)
+    ys, xs = np.mgrid[0:h, 0:w].astype(np.float64)
+    clipped = False
+    for t in range(24):
+        angle, scale = rng.uniform(-np.pi, np.pi), rng.uniform(0.5, 2.0)
+        centre = rng.uniform(-100.0, 520.0, 2) if t % 3 == 0 else rng.uniform(120.0, 300.0, 2)
+        u, v = xs - w / 2.0, ys - h / 2.0
+        map_x = centre[0] + scale * (np.cos(angle) * u - np.sin(angle) * v) + rng.normal(0.0, 2.0, (h, w))
+        map_y = centre[1] + scale * (np.sin(angle) * u + np.cos(angle) * v) + rng.normal(0.0, 2.0, (h, w))
+        if t % 4 == 1:
+            map_x, map_y = np.round(map_x * 2.0) / 2.0, np.round(map_y * 2.0) / 2.0
+        map_x, map_y = map_x.astype(np.float32), map_y.astype(np.float32)
+        pixels = rng.choice(h * w, size=(h * w) // 5, replace=False).astype(np.int64)
+        gains = rng.uniform(0.2, 1.6, pixels.size)
+        gains = gains.astype(np.float32) if t % 2 else gains
+        out = np.empty(h * w * 3, np.uint8)
+        alpha = np.empty((h, w), np.uint8)
+        count = fk.remap_finish(box32, map_x, map_y, pixels, gains, ident, out, alpha, False, render_mod._NO_VIG,
+                                render_mod._NO_BANK, 0, 0, fk.NOISE_OFF, np.float32(0), np.float32(0), 0.0, 0.0)
+        ref = _remap_box(box32, map_x, map_y)
+        ref_alpha = ref[..., 3].copy()
+        ref = np.ascontiguousarray(ref[..., :3])
+        _shade_pixels(ref, pixels, gains)
+        got = out.reshape(h, w, 3)
+        gain_px = got.reshape(-1, 3)[pixels]
+        if exact:
+            np.testing.assert_array_equal(got, ref)
+            np.testing.assert_array_equal(alpha, ref_alpha)
+        else:
+            assert np.abs(got.astype(int) - ref).max() <= 1 and (got != ref).mean() < 0.01
+        assert count == np.count_nonzero(alpha > 127)
+        clipped |= bool((gain_px == 255).any())
+    assert clipped     # some gain saturated a shaded byte
 
 
 def test_wide_vectors_marks_the_calling_kernel_only():

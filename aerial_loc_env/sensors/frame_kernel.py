@@ -216,7 +216,7 @@ def warp_finish(box, m, lut, out, alpha, sensor, vig, bank, dy, dx3, sigma_mode,
     no_occ = np.empty(1, np.float32)     # (the float occlusion and shading of ``_scene_row``: unused here)
     x_tail = w_px - w_px % WARP_STEP_PX
     umax, vmax = np.float32(bw - 1), np.float32(bh - 1)
-    stride, one = np.uint32(bw), np.uint32(1)
+    stride = np.uint32(bw)
     ahead = np.int64(np.rint(8.0 * m[1, 1])) * bw + np.int64(np.rint(8.0 * m[0, 1]))   # 8 frame rows down
     count = 0
     for y in range(h_px):
@@ -229,39 +229,135 @@ def warp_finish(box, m, lut, out, alpha, sensor, vig, bank, dy, dx3, sigma_mode,
         for x in range(x_tail, w_px):
             fu[x] = _fma32(m0, np.float32(x), pu) + m2
             fv[x] = _fma32(m3, np.float32(x), pv) + m5
-        outside = np.int32(0)
-        for x in range(w_px):
-            u, v = fu[x], fv[x]
-            iu, iv = np.int32(u), np.int32(v)        # the floor where the row is inside (checked on the floats)
-            a, b = u - np.float32(iu), v - np.float32(iv)
-            for c in range(4):
-                fa[4 * x + c] = a
-                fb[4 * x + c] = b
-            idx[x] = np.uint32(iv) * stride + np.uint32(iu)
-            outside |= np.int32((u < 0) | (v < 0) | (u >= umax) | (v >= vmax))
-        if outside == 0:
+        if _weights_row(fu, fv, fa, fb, idx, stride, umax, vmax) == 0:
             for x in range(0, w_px, 4):     # the box's rows that row y + 8 will read (frames start cold there)
                 k = np.int64(idx[x]) + ahead
                 _prefetch(flat, k)
                 _prefetch(flat, k + bw)
-            for x in range(w_px):
-                k = idx[x]
-                q00[x] = flat[k]
-                q01[x] = flat[k + one]
-                q10[x] = flat[k + stride]
-                q11[x] = flat[k + stride + one]
+            _gather_row(flat, idx, stride, q00, q01, q10, q11)
         else:
             _border_row(box, fu, fv, fa, fb, q00, q01, q10, q11)
-        for j in range(4 * w_px):
-            p00, p01 = np.float32(c00[j]), np.float32(c01[j])
-            p10, p11 = np.float32(c10[j]), np.float32(c11[j])
-            a = fa[j]
-            v0 = _fma32(a, p01 - p00, p00)
-            v1 = _fma32(a, p11 - p10, p10)
-            rgba[j] = np.uint8(np.int32(np.rint(_fma32(fb[j], v1 - v0, v0))))
+        _blend_row(c00, c01, c10, c11, fa, fb, rgba)
         count += _scene_row(rgba, o, alpha[y], no_occ, 4, w_px, OCC_ALPHA, l0, l1, l2, l0, l1, l2, False)
         _sensor_row(o, out[w3 * y:w3 * (y + 1)], y, h_px, sensor, vig, bank, dy, dx3, sigma_mode, a32, b32, a64, b64)
     return count
+
+
+@nb.njit(**_JIT)
+def remap_finish(box, map_x, map_y, shade_px, shade_gain, lut, out, alpha, sensor, vig, bank, dy, dx3, sigma_mode,
+                 a32, b32, a64, b64):
+    """``warp_finish`` through per-pixel maps (a perspective or tilted view of the baked box): each row sampled
+    at ``map_x``/``map_y`` (H, W) float32 box pixels, bit for bit OpenCV 5's ``cv2.remap(rgba, map_x, map_y,
+    INTER_LINEAR, BORDER_CONSTANT 0)`` (the floor, weights and fma chain of its warps; tests/test_render_kernel.py
+    compares), then the pixels ``shade_px`` (flat indices, each once, in any order) scaled by ``shade_gain``
+    (``gain_byte``: a view's facades, after the alpha is taken and before the tone), then ``finish``'s stages.
+    One pass instead of a remap, a finishing pass, the facades and a second finishing pass: no RGBA frame and no
+    intermediate RGB frame in memory. The box rows that row y + 8 reads are prefetched, as in ``warp_finish``.
+    """
+    _wide_vectors()
+    h_px, w_px = alpha.shape
+    bh, bw = box.shape
+    w3 = 3 * w_px
+    flat = box.reshape(bh * bw)
+    l0, l1, l2 = lut[0], lut[1], lut[2]
+    fa = np.empty(4 * w_px, np.float32)
+    fb = np.empty(4 * w_px, np.float32)
+    idx = np.empty(w_px, np.uint32)
+    q = np.empty((4, w_px), np.uint32)
+    q00, q01, q10, q11 = q[0], q[1], q[2], q[3]
+    c00, c01, c10, c11 = q00.view(np.uint8), q01.view(np.uint8), q10.view(np.uint8), q11.view(np.uint8)
+    rgba = np.empty(4 * w_px, np.uint8)
+    o = np.empty(w3, np.uint8)
+    no_occ = np.empty(1, np.float32)
+    umax, vmax = np.float32(bw - 1), np.float32(bh - 1)
+    stride = np.uint32(bw)
+    top, last = np.float32(bh - 2), np.int64(bh * bw - 1)
+    first = np.zeros(h_px + 1, np.int64)          # the shaded pixels by row (a counting sort): row y's are
+    for i in range(shade_px.shape[0]):            # shade_px[order[first[y]:first[y + 1]]]
+        first[shade_px[i] // w_px + 1] += 1
+    for y in range(h_px):
+        first[y + 1] += first[y]
+    order, fill = np.empty(shade_px.shape[0], np.int64), first[:h_px].copy()
+    for i in range(shade_px.shape[0]):
+        r = shade_px[i] // w_px
+        order[fill[r]] = i
+        fill[r] += 1
+    count = 0
+    for y in range(h_px):
+        fu, fv = map_x[y], map_y[y]
+        if _weights_row(fu, fv, fa, fb, idx, stride, umax, vmax) == 0:
+            if y + 8 < h_px:
+                au, av = map_x[y + 8], map_y[y + 8]
+                for x in range(0, w_px, 4):
+                    v = min(max(av[x], np.float32(0.0)), top)
+                    k = min(np.int64(v) * bw + np.int64(max(au[x], np.float32(0.0))), last)
+                    _prefetch(flat, k)
+                    _prefetch(flat, k + bw)
+            _gather_row(flat, idx, stride, q00, q01, q10, q11)
+        else:
+            _border_row(box, fu, fv, fa, fb, q00, q01, q10, q11)
+        _blend_row(c00, c01, c10, c11, fa, fb, rgba)
+        for t in range(first[y], first[y + 1]):
+            i = order[t]
+            p = 4 * (shade_px[i] - y * w_px)
+            g = shade_gain[i]
+            rgba[p] = gain_byte(rgba[p], g)
+            rgba[p + 1] = gain_byte(rgba[p + 1], g)
+            rgba[p + 2] = gain_byte(rgba[p + 2], g)
+        count += _scene_row(rgba, o, alpha[y], no_occ, 4, w_px, OCC_ALPHA, l0, l1, l2, l0, l1, l2, False)
+        _sensor_row(o, out[w3 * y:w3 * (y + 1)], y, h_px, sensor, vig, bank, dy, dx3, sigma_mode, a32, b32, a64, b64)
+    return count
+
+
+@nb.njit(inline="always", **_JIT)
+def gain_byte(v, g):
+    """``rint(v g)`` clipped to 0..255 for a byte ``v`` and a gain ``g`` (NumPy's ``uint8 * float32`` in float32,
+    or in float64 for a float64 gain)."""
+    return np.uint8(min(max(np.rint(np.float32(v) * g), np.float32(0.0)), np.float32(255.0)))
+
+
+@nb.njit(inline="always", **_JIT)
+def _weights_row(fu, fv, fa, fb, idx, stride, umax, vmax):
+    """A row's source points (``fu``, ``fv``) -> the bilinear weights spread to the four channels (``fa``, ``fb``)
+    and the top-left neighbours' flat indices (``idx``), the floor taken by truncation; returns non-zero where a
+    point is not inside ``[0, umax) x [0, vmax)`` (then the row takes ``_border_row``: the truncation is no floor
+    there)."""
+    outside = np.int32(0)
+    for x in range(fu.shape[0]):
+        u, v = fu[x], fv[x]
+        iu, iv = np.int32(u), np.int32(v)        # the floor where the row is inside (checked on the floats)
+        a, b = u - np.float32(iu), v - np.float32(iv)
+        for c in range(4):
+            fa[4 * x + c] = a
+            fb[4 * x + c] = b
+        idx[x] = np.uint32(iv) * stride + np.uint32(iu)
+        outside |= np.int32((u < 0) | (v < 0) | (u >= umax) | (v >= vmax))
+    return outside
+
+
+@nb.njit(inline="always", **_JIT)
+def _gather_row(flat, idx, stride, q00, q01, q10, q11):
+    """The four neighbours (uint32 RGBA pixels) of each point of a row inside the box."""
+    one = np.uint32(1)
+    for x in range(idx.shape[0]):
+        k = idx[x]
+        q00[x] = flat[k]
+        q01[x] = flat[k + one]
+        q10[x] = flat[k + stride]
+        q11[x] = flat[k + stride + one]
+
+
+@nb.njit(inline="always", **_JIT)
+def _blend_row(c00, c01, c10, c11, fa, fb, rgba):
+    """The bilinear value of each channel (the neighbours' bytes ``c..``, weights ``fa``/``fb``): the fma chain of
+    ``estimators.patch_kernels``, rounded half to even."""
+    for j in range(rgba.shape[0]):
+        p00, p01 = np.float32(c00[j]), np.float32(c01[j])
+        p10, p11 = np.float32(c10[j]), np.float32(c11[j])
+        a = fa[j]
+        v0 = _fma32(a, p01 - p00, p00)
+        v1 = _fma32(a, p11 - p10, p10)
+        rgba[j] = np.uint8(np.int32(np.rint(_fma32(fb[j], v1 - v0, v0))))
 
 
 @nb.njit(**_JIT)

@@ -31,7 +31,8 @@ is the ray's first intersection from above, the largest ``z`` with ``h(m(z)) >= 
 The result is a pair of per-pixel map coordinate planes (x, y) for one ``cv2.remap`` of the map (and of the cast-shadow
 field, which lives in map coordinates on the ground and roofs, so shadows stay on the surfaces they fall on). With
 the shadows baked into a box of the map (``render.CameraRenderer.bake``) the frame is one remap of that box, RGB and
-occlusion together: the maps are then made in the box's pixels (``origin_px``) so that no pass shifts them.
+occlusion together, done inside the frame's finishing pass (``frame_kernel.remap_finish``, the facades shaded
+there): the maps are then made in the box's pixels (``origin_px``) so that no pass shifts them.
 Heights are clipped below ``0.95 H`` (a camera below the roofs has no downward view). Features thinner than one
 march step (about ``H_max / N`` of height, ``r H_max / (N H)`` on the ground) may be missed at the frame edge.
 

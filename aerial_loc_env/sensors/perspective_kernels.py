@@ -34,6 +34,7 @@ import numpy as np
 
 from ..world.kernels import JIT as _JIT
 from ..world.kernels import fma32 as _fma
+from .frame_kernel import gain_byte
 
 _BLOCK = 4     # the march's skip test: maxima of 4 x 4 pooled pixels
 _LANES = 16    # OpenCV's nearest warps: vector body in blocks of 2 x 8 float32 lanes (AVX2), scalar tail after it
@@ -302,7 +303,7 @@ def shade_pixels(image: np.ndarray, pixels: np.ndarray, gain: np.ndarray) -> Non
     for j in range(pixels.size):
         p, g = pixels[j], gain[j]
         for i in range(c):
-            image[p, i] = np.uint8(min(max(np.rint(_F32(image[p, i]) * g), _F32(0.0)), _F32(255.0)))
+            image[p, i] = gain_byte(image[p, i], g)
 
 
 march = {tilted: _march_kernel(tilted) for tilted in (False, True)}     # by tilt: affine / projective probes

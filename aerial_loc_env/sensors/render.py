@@ -28,8 +28,10 @@ Why it is built this way:
   sensor noise from a per-episode int16 bank of standard normals (fixed point, 2**-11) read at a random offset per
   frame, scaled by the read + shot noise sigma (int16 fixed point, 2**-8), added with saturation: within 2 grey
   levels of the float arithmetic (tests/test_render_photometry.py derives the bound) and bit-identical to the
-  OpenCV passes it replaced (tests/test_render_kernel.py keeps them as the reference). Motion blur and scene-side
-  steps (facades of a perspective view, ``pre_sensor``) split the pass in two around them.
+  OpenCV passes it replaced (tests/test_render_kernel.py keeps them as the reference). A perspective or tilted
+  view samples the baked box through its per-pixel maps inside the same pass, its facades shaded there too
+  (``frame_kernel.remap_finish``, bit for bit ``cv2.remap`` and the facade gains). Motion blur and ``pre_sensor``
+  steps split the pass in two around them.
 """
 
 from __future__ import annotations
@@ -73,6 +75,7 @@ _NO_OCC = np.zeros((1, 1), np.float32)   # dummy arguments where the kernel read
 _NO_VIG = np.zeros((1, 1), np.uint8)
 _NO_BANK = np.zeros((1, 1), np.int16)
 _BAKED_ALPHA = np.zeros((1, 1), np.float32)   # ``_finish``'s marker: the occlusion is src's (baked) alpha
+_NO_PIXELS = np.zeros(0, np.int64)   # no facade pixels
 _FRAME_KERNEL = __name__.rpartition(".")[0] + ".frame_kernel"
 
 
@@ -171,8 +174,9 @@ class BakedShadows:
     to uint8 in the alpha channel (the channel the renderer warps anyway), so the per-frame occlusion warp and
     shading disappear. ``rgba`` is filled lazily in tiles of ``_BAKE_TILE_PX``, each the first time a footprint
     needs it: an episode shades the strip it flies over, not its whole bounding box, and the memory of tiles never
-    touched is never committed (``np.empty``). A tile's bytes do not depend on when it is baked. Frames that cannot
-    use it (pyramid level > 0, a perspective or tilted view, a footprint leaving the box) render from ``grid`` and
+    touched is never committed (``np.empty``). A tile's bytes do not depend on when it is baked. Perspective and
+    tilted views sample it through their maps. Frames that cannot use it (pyramid level > 0, a footprint or a
+    view's reads leaving the box) render from ``grid`` and
     ``shading_params`` as before. The shading is applied before the interpolation instead of after it: the same
     bytes away from shadow edges up to rounding, and within the bound tests/test_render_bake.py derives at the
     edges; the shadow mask is the warped alpha >= 128.
@@ -204,6 +208,30 @@ class _BoxWarp:
     matrix: np.ndarray
     height_px: int
     width_px: int
+
+    def finish(self, fk: Any, *args: Any) -> int:
+        """``warp_finish`` of this warp with the finishing arguments ``args`` (lut, out, alpha, sensor ...)."""
+        return fk.warp_finish(self.box, self.matrix, *args)
+
+
+@dataclass(frozen=True, eq=False)
+class _MapWarp:
+    """The baked box sampled through a view's per-pixel maps inside the finishing pass (``frame_kernel.remap_finish``:
+    bit for bit ``cv2.remap`` INTER_LINEAR with a zero border, then the facades' gains), instead of a remap, two
+    finishing passes and the facade shading between them. ``shade_px``: the facade pixels' flat indices,
+    ``shade_gain`` their gains (``ReliefView.facade_gains``)."""
+
+    box: np.ndarray
+    map_x: np.ndarray
+    map_y: np.ndarray
+    shade_px: np.ndarray
+    shade_gain: np.ndarray
+    height_px: int
+    width_px: int
+
+    def finish(self, fk: Any, *args: Any) -> int:
+        """``remap_finish`` of this warp with the finishing arguments ``args``."""
+        return fk.remap_finish(self.box, self.map_x, self.map_y, self.shade_px, self.shade_gain, *args)
 
 
 @dataclass(frozen=True, eq=False)
@@ -596,18 +624,23 @@ class CameraRenderer:
         (``_BoxWarp``). ``view``: a perspective or tilted view samples the box through its maps instead (facades
         then shaded)."""
         camera = self.camera
+        h, w = baked.rgba.shape[:2]
+        box = baked.rgba.view(np.uint32).reshape(h, w)
+        mid: list[Callable[[np.ndarray], np.ndarray]] = []
         if view is None:
             a = affine.copy()
             a[0, 2] -= baked.origin_px[0]
             a[1, 2] -= baked.origin_px[1]
-            h, w = baked.rgba.shape[:2]
-            out: np.ndarray | _BoxWarp = _BoxWarp(baked.rgba.view(np.uint32).reshape(h, w), a,
-                                                  camera.height_px, camera.width_px)
-            mid: list[Callable[[np.ndarray], np.ndarray]] = []
+            out: np.ndarray | _BoxWarp | _MapWarp = _BoxWarp(box, a, camera.height_px, camera.width_px)
+        elif view.origin_px == baked.origin_px and h * w < 1 << 31:   # the maps in the box's pixels
+            gamma = float(baked.shading_params.get("gamma", 2.2))
+            gains = self._view.facade_gains(view, sun_deg, gamma)
+            pixels = _NO_PIXELS if view.facade is None else view.facade
+            out = _MapWarp(box, view.x, view.y, pixels, gains, camera.height_px, camera.width_px)
         else:
             out = view.sample(baked.rgba, origin_px=baked.origin_px)
             gamma = float(baked.shading_params.get("gamma", 2.2))
-            mid = [lambda image: self._view.shade_facades(image, view, sun_deg, gamma)]
+            mid.append(lambda image: self._view.shade_facades(image, view, sun_deg, gamma))
         if pre_sensor is not None:
             mid.append(pre_sensor)
         image, alpha, count = self._finish(out, _BAKED_ALPHA, None, rng, speed_mps, pose, mid)
@@ -615,12 +648,13 @@ class CameraRenderer:
                      status=status, pose=pose, pyramid_level=0, occlusion_q=alpha)
 
     # ------------------------------------------------------------------ photometry
-    def _finish(self, src: np.ndarray | _BoxWarp, occ: np.ndarray | None, shading_params: Mapping[str, Any] | None,
-                rng: np.random.Generator, speed_mps: float, pose: Pose,
+    def _finish(self, src: np.ndarray | _BoxWarp | _MapWarp, occ: np.ndarray | None,
+                shading_params: Mapping[str, Any] | None, rng: np.random.Generator, speed_mps: float, pose: Pose,
                 mid: list[Callable[[np.ndarray], np.ndarray]]) -> tuple[np.ndarray, np.ndarray, int]:
         """The frame from the warped map ``src`` (a fresh (H, W, 3 or 4) uint8 array, which becomes the frame's
-        memory), or the baked box's warp to do in the first pass (``_BoxWarp``, with ``_BAKED_ALPHA``): shadows,
-        motion blur, gamma, gains, vignetting, noise (``frame_kernel.finish``, ``warp_finish``); returns (image,
+        memory), or the baked box's warp to do in the first pass (``_BoxWarp``, ``_MapWarp``, with ``_BAKED_ALPHA``):
+        shadows, motion blur, gamma, gains, vignetting, noise (``frame_kernel.finish``, ``warp_finish``,
+        ``remap_finish``); returns (image,
         the alpha (H, W) with ``_BAKED_ALPHA`` else a dummy, the shadowed pixel count).
 
         ``occ``: the float occlusion to shade with ``shading_params``, or ``_BAKED_ALPHA`` (src's alpha, already
@@ -629,7 +663,7 @@ class CameraRenderer:
         ``photometry_draws``, then the noise bank offsets."""
         fk = _kernels()
         p = self.photometry
-        warp = src if isinstance(src, _BoxWarp) else None
+        warp = src if isinstance(src, (_BoxWarp, _MapWarp)) else None
         if warp is not None:   # the warp is done in the first pass, into the frame's memory
             h, w, cn = warp.height_px, warp.width_px, 4
             src = np.empty((h, w, 3), np.uint8)
@@ -648,8 +682,8 @@ class CameraRenderer:
         count = 0
         if mid or blur_px >= 1.0:   # the scene stage alone, the steps between, then the rest in place
             if warp is not None:
-                count = fk.warp_finish(warp.box, warp.matrix, _IDENTITY, src.reshape(-1), alpha, False, _NO_VIG,
-                                       _NO_BANK, 0, 0, fk.NOISE_OFF, sp.a32, sp.b32, sp.a64, sp.b64)
+                count = warp.finish(fk, _IDENTITY, src.reshape(-1), alpha, False, _NO_VIG, _NO_BANK, 0, 0,
+                                    fk.NOISE_OFF, sp.a32, sp.b32, sp.a64, sp.b64)
                 warp = None
             else:
                 count = fk.finish(src.reshape(h, w * cn), cn, occ_mode, occ_f, shade, _IDENTITY, src.reshape(-1),
@@ -671,8 +705,8 @@ class CameraRenderer:
             bank = self._noise_bank.reshape(self._noise_bank.shape[0], -1)
         flat = src.reshape(-1)
         if warp is not None:
-            count += fk.warp_finish(warp.box, warp.matrix, lut, flat, alpha, sp.active, sp.vig, bank, dy, 3 * dx,
-                                    sp.sigma_mode, sp.a32, sp.b32, sp.a64, sp.b64)
+            count += warp.finish(fk, lut, flat, alpha, sp.active, sp.vig, bank, dy, 3 * dx, sp.sigma_mode, sp.a32,
+                                 sp.b32, sp.a64, sp.b64)
         else:
             count += fk.finish(src.reshape(h, w * cn), cn, occ_mode, occ_f, shade, lut, flat, alpha, sp.active,
                                sp.vig, bank, dy, 3 * dx, sp.sigma_mode, sp.a32, sp.b32, sp.a64, sp.b64)
