@@ -252,7 +252,7 @@ def remap_finish(box, map_x, map_y, shade_px, shade_gain, lut, out, alpha, senso
     compares), then the pixels ``shade_px`` (flat indices, each once, in any order) scaled by ``shade_gain``
     (``gain_byte``: a view's facades, after the alpha is taken and before the tone), then ``finish``'s stages.
     One pass instead of a remap, a finishing pass, the facades and a second finishing pass: no RGBA frame and no
-    intermediate RGB frame in memory. The box rows that row y + 8 reads are prefetched, as in ``warp_finish``.
+    intermediate RGB frame in memory.
     """
     _wide_vectors()
     h_px, w_px = alpha.shape
@@ -271,7 +271,6 @@ def remap_finish(box, map_x, map_y, shade_px, shade_gain, lut, out, alpha, senso
     no_occ = np.empty(1, np.float32)
     umax, vmax = np.float32(bw - 1), np.float32(bh - 1)
     stride = np.uint32(bw)
-    top, last = np.float32(bh - 2), np.int64(bh * bw - 1)
     first = np.zeros(h_px + 1, np.int64)          # the shaded pixels by row (a counting sort): row y's are
     for i in range(shade_px.shape[0]):            # shade_px[order[first[y]:first[y + 1]]]
         first[shade_px[i] // w_px + 1] += 1
@@ -286,13 +285,6 @@ def remap_finish(box, map_x, map_y, shade_px, shade_gain, lut, out, alpha, senso
     for y in range(h_px):
         fu, fv = map_x[y], map_y[y]
         if _weights_row(fu, fv, fa, fb, idx, stride, umax, vmax) == 0:
-            if y + 8 < h_px:
-                au, av = map_x[y + 8], map_y[y + 8]
-                for x in range(0, w_px, 4):
-                    v = min(max(av[x], np.float32(0.0)), top)
-                    k = min(np.int64(v) * bw + np.int64(max(au[x], np.float32(0.0))), last)
-                    _prefetch(flat, k)
-                    _prefetch(flat, k + bw)
             _gather_row(flat, idx, stride, q00, q01, q10, q11)
         else:
             _border_row(box, fu, fv, fa, fb, q00, q01, q10, q11)
