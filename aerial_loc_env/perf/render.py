@@ -97,7 +97,9 @@ def _render_setup(altitude_m: float, shadows: bool, perspective: bool = False,
 
             corners = np.concatenate([apply_affine(renderer.camera_to_map(p), renderer.camera.corners_px())
                                       for p in poses])
-            box = (*np.floor(corners.min(axis=0)).astype(int), *np.ceil(corners.max(axis=0)).astype(int))
+            pad = 2 * grid.factor    # as the env pads it (else a view's reads leave the box at the circle's extremes)
+            box = (*(np.floor(corners.min(axis=0)).astype(int) - pad),
+                   *(np.ceil(corners.max(axis=0)).astype(int) + pad))
             occlusion = renderer.bake(grid, shading, box) or grid
 
         renderer.render(poses[0], np.random.default_rng(0), occlusion, shading, tilt_rad=tilt_rad)  # compiles
