@@ -22,7 +22,9 @@ from aerial_loc_env.estimators.shadow_detection import (
     ShadowDetector,
     ShadowDetectorConfig,
     ShadowMask,
+    _disc,
     _masked_channel_means,
+    _OpenClose,
     _pairwise_sum,
     shadow_index,
 )
@@ -101,6 +103,27 @@ def test_gsd_of_a_plain_number_equals_the_array_path_and_bad_altitudes_still_fai
             cam.camera_to_map(SimpleNamespace(gsd_x_m=1.0, gsd_y_m=1.0, height_px=10), 0.0, 0.0, 0.0, bad)
 
 
+
+@pytest.mark.parametrize("gsd_xy", [(0.25, 0.25), (0.3, 0.21), (1.0, 0.5)])
+def test_pair_kernels_affine_is_camera_to_map_bit_for_bit(gsd_xy):
+    """``pair_kernel.pose_affine`` (the pair kernel's per-particle affine, from NumPy's cos and sin of the yaw
+    column) gives ``camera_to_map``'s floats: on- and off-map poses, any yaw, several altitudes and cameras."""
+    from aerial_loc_env.estimators.mcl.pair_kernel import affine_terms, pose_affines
+
+    grid = SimpleNamespace(gsd_x_m=gsd_xy[0], gsd_y_m=gsd_xy[1], height_px=1234)
+    g = np.random.default_rng(8)
+    n = 5000
+    states = np.column_stack([g.uniform(-50, 900, n), g.uniform(-50, 900, n), g.uniform(-7, 7, n)])
+    states[:3] = [[np.nan, 1.0, 0.0], [1.0, np.inf, 0.3], [2.0, 3.0, np.nan]]
+    for cam in (CameraModel(), CameraModel(width_px=640, height_px=360, hfov_deg=50.0, pixel_aspect=1.1)):
+        for alt in (200.0, 173, np.float64(88.8), np.float32(123.4)):
+            ref = cam.camera_to_map(grid, states[:, 0], states[:, 1], states[:, 2], alt)
+            yaw = states[:, 2]
+            out = pose_affines(affine_terms(cam, grid, alt), states, np.cos(yaw), np.sin(yaw), np.empty((n, 2, 3)))
+            np.testing.assert_array_equal(out, ref)
+    with pytest.raises(ConfigError, match="altitude_m"):
+        affine_terms(CameraModel(), grid, float("nan"))
+
 # ---------------------------------------------------------------------- motion
 @pytest.mark.parametrize("state", ["xy", "xyyaw"])
 @pytest.mark.parametrize("jitter", [0.0, 0.5])
@@ -113,13 +136,59 @@ def test_one_normal_draw_moves_the_particles_as_one_call_per_term(state, jitter,
     s0 = np.column_stack([g.uniform(0, 500, 700), g.uniform(0, 500, 700), g.uniform(-np.pi, np.pi, 700)])
     a, b = s0.copy(), s0.copy()
     ra, rb = np.random.default_rng(11), np.random.default_rng(11)
-    for t in range(4):
-        obs = Observation(np.zeros((4, 4, 3), np.uint8), 12.0 + t, 0.02 * t, 0.4 - 0.1 * t, 200.0)
+    for t, yaw in enumerate((0.4, 3.13, -3.1405, 1e-17, -np.pi, 2.0)):   # headings across the wrap too
+        obs = Observation(np.zeros((4, 4, 3), np.uint8), 12.0 + t, 0.02 * t - 0.05, yaw, 200.0)
         new.propagate(a, obs, ra)
         _propagate_reference(ref, b, obs, rb)
         np.testing.assert_array_equal(a, b)
     assert ra.random() == rb.random()        # the same number of draws: later draws are unchanged too
 
+
+
+def _normalize_reference(log_w: np.ndarray) -> tuple[np.ndarray, float]:
+    """``normalize_log_weights`` as it was: the non-finite values masked to -inf first, always."""
+    lw = np.where(np.isfinite(log_w), log_w, -np.inf)
+    m = float(np.max(lw))
+    if not np.isfinite(m):
+        return np.full(lw.shape[0], 1.0 / lw.shape[0]), -np.inf
+    w = np.exp(lw - m)
+    s = float(w.sum())
+    return w / s, m + float(np.log(s / lw.shape[0]))
+
+
+def test_normalization_skips_the_mask_only_where_it_changes_nothing():
+    """Weights and log-mean (also ``log_mean_weight`` alone) equal the always-masking form bit for bit: finite
+    log-weights of many scales, with -inf, +inf and NaN among them, and none finite."""
+    from aerial_loc_env.estimators.mcl.resampling import log_mean_weight, normalize_log_weights
+
+    g = np.random.default_rng(4)
+    for t in range(300):
+        n = int(g.integers(1, 900))
+        lw = g.normal(g.uniform(-1e3, 1e3), 10 ** g.uniform(-3, 3), n)
+        for bad, p in ((-np.inf, 0.2), (np.inf, 0.01), (np.nan, 0.01)):
+            if t % 4 == 1 or (t % 4 == 2 and bad != -np.inf):
+                lw[g.random(n) < p] = bad
+        if t % 50 == 3:
+            lw[:] = [-np.inf, np.nan][t % 2]
+        W, lm = normalize_log_weights(lw)
+        ref_W, ref_lm = _normalize_reference(lw)
+        np.testing.assert_array_equal(W, ref_W)
+        assert lm == ref_lm or (np.isnan(lm) and np.isnan(ref_lm))
+        assert log_mean_weight(lw) == lm or (np.isnan(lm) and np.isnan(log_mean_weight(lw)))
+
+
+def test_one_frames_activation_is_the_array_forms_float():
+    """Eq. (8) for one frame (int K and lc, float gain) in Python floats, against its array form."""
+    from aerial_loc_env.estimators.mcl.intensity_pairs import activation
+
+    g = np.random.default_rng(6)
+    for K in (1, 7, 30, 70, 333, 10_000):
+        for lc in sorted({0, 1, K // 2, K - 1, K, *(int(v) for v in g.integers(0, K + 1, 20))}):
+            for gain in (0.0, 1.0, 10.0, 47.3, 1000.0):
+                a = gain / K
+                fast = activation(K, lc, a)
+                assert isinstance(fast, float)
+                assert fast == float(activation(np.array([K]), np.array([lc]), np.array([a]))[0])
 
 # ---------------------------------------------------------------------- estimate
 def test_closed_form_spread_matches_eigvalsh():
@@ -177,8 +246,34 @@ def _detect_reference(det: ShadowDetector, image: np.ndarray) -> np.ndarray:
                            >= det.config.min_blue_shift)
     if ratio > det.config.max_luminance_ratio or not bluer:
         return np.zeros(mask.shape, bool)
-    binary = cv2.morphologyEx(binary, cv2.MORPH_OPEN, det._open)
-    return cv2.morphologyEx(binary, cv2.MORPH_CLOSE, det._close).astype(bool)
+    return _open_close_reference(binary, det.config.open_px, det.config.close_px)
+
+
+def _open_close_reference(binary: np.ndarray, open_px: int, close_px: int) -> np.ndarray:
+    """The detectors' morphology as it was: OpenCV's opening, then closing, by discs; the mask as bool."""
+    if open_px > 0:
+        binary = cv2.morphologyEx(binary, cv2.MORPH_OPEN, _disc(open_px))
+    if close_px > 0:
+        binary = cv2.morphologyEx(binary, cv2.MORPH_CLOSE, _disc(close_px))
+    return binary.astype(bool)
+
+
+@pytest.mark.parametrize("radii", [(1, 1), (0, 1), (1, 0), (0, 0), (2, 3), (5, 1), (12, 7)])
+def test_compiled_opening_and_closing_are_opencvs(radii):
+    """``_OpenClose`` against ``cv2.morphologyEx`` with the same discs: masks of many sizes (down to one pixel,
+    one row, one column, smaller than the disc), densities and blob sizes, specks and holes at the borders."""
+    op = _OpenClose(*radii)
+    g = np.random.default_rng(sum(radii) + 10 * radii[0])
+    for t in range(60):
+        h, w = (int(v) for v in g.integers(1, 160, 2)) if t % 4 else [(1, 1), (1, 57), (43, 1), (3, 4)][t // 4 % 4]
+        mask = g.random((h, w)) < g.uniform(0.02, 0.98)
+        if t % 2:                                    # blobs: a blurred field thresholded
+            mask = cv2.GaussianBlur(g.random((h, w)).astype(np.float32), (0, 0), 1 + t % 5) > 0.5
+        binary = mask.astype(np.uint8)
+        out = op(binary)
+        assert out.dtype == np.bool_ and out.shape == (h, w)
+        np.testing.assert_array_equal(out, _open_close_reference(binary, *radii))
+        np.testing.assert_array_equal(binary, mask)          # the input is left as it was
 
 
 @pytest.mark.parametrize("index", ["c3_luminance", "c3", "luminance", "tsai"])

@@ -134,7 +134,7 @@ class ParticleFilter:
         ll = ll + self.motion.compass_log_likelihood(self.states, obs.yaw_rad)
         self.log_w = self.log_w + ll
         self.W, _ = resampling.normalize_log_weights(self.log_w)
-        _, log_mean_lik = resampling.normalize_log_weights(ll)
+        log_mean_lik = resampling.log_mean_weight(ll)
         ess = resampling.ess(self.W)
         n_inject = self._injection_count(log_mean_lik)
         resampled = cfg.resample == "always" or ess < cfg.ess_threshold * self.W.shape[0] or n_inject > 0

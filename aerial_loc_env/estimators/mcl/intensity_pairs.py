@@ -101,7 +101,7 @@ from ..shadow_detection import (
     restoration_lut,
 )
 from .measurement import MeasurementModel, register_model
-from .pair_kernel import camera_pairs, pair_agreements
+from .pair_kernel import affine_terms, camera_pairs, pair_agreements, pose_affines
 
 if TYPE_CHECKING:
     from ...env.briefing import Briefing
@@ -145,6 +145,8 @@ class IntensityPairsConfig:
 
 def activation(K: int | np.ndarray, lc: int | np.ndarray, a: float | np.ndarray) -> np.ndarray | float:
     """Eq. (8): ``sigma_m(K, lc) = 1 - 1 / (1 + exp(-a (lc - K / 2)))``, in (0, 1), 1/2 at lc = K/2."""
+    if isinstance(K, int) and isinstance(lc, int) and isinstance(a, float):   # one frame's: float64 arithmetic
+        return float(1.0 - 1.0 / (1.0 + np.exp(-a * (float(lc) - K / 2.0))))    # without the 0-d arrays
     z = -np.asarray(a, dtype=np.float64) * (np.asarray(lc, dtype=np.float64) - np.asarray(K) / 2.0)
     out = 1.0 - 1.0 / (1.0 + np.exp(z))
     return float(out) if np.ndim(out) == 0 else out
@@ -274,6 +276,7 @@ class IntensityPairsModel(MeasurementModel):
         self.map_detector = MapRatioShadowDetector(build_config(
             MapRatioDetectorConfig, cfg.map_detector_params, where="intensity pairs: map_detector_params"))
         self._db: np.ndarray | None = None
+        self._terms: tuple[float, np.ndarray] | None = None
 
     # ---------------------------------------------------------------- per map
     def reset(self, briefing: Briefing, rng: np.random.Generator) -> None:
@@ -282,6 +285,7 @@ class IntensityPairsModel(MeasurementModel):
         copy, one 4-byte word a pixel, was 4-8 % slower a step: 16 MB more to keep in the cache.)"""
         m = briefing.orthomap
         self.orthomap, self.camera = m, briefing.camera
+        self._terms: tuple[float, np.ndarray] | None = None
         rgb = np.asarray(m.rgb)
         if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
             raise ConfigError(f"{m.name}: the database must be (H, W, 3) uint8 RGB, got {rgb.shape} {rgb.dtype}")
@@ -370,10 +374,21 @@ class IntensityPairsModel(MeasurementModel):
         return prepared
 
     # ---------------------------------------------------------------- per particle (vectorized)
+    def _affine_terms(self, altitude_m: float) -> np.ndarray:
+        """``pair_kernel.affine_terms`` at ``altitude_m``, kept for the last altitude (the same every step)."""
+        alt = float(altitude_m)
+        if self._terms is None or self._terms[0] != alt:
+            self._terms = (alt, affine_terms(self.camera, self.orthomap, alt))
+        return self._terms[1]
+
     def _affine_rows(self, states: np.ndarray, altitude_m: float, offset_px: float) -> np.ndarray:
-        """Eq. (3)'s affines from ``CameraModel.camera_to_map`` as (2N, 3) float32 rows: every particle's column
-        row first, then every particle's row row, ``offset_px`` added to the translations (in float32)."""
-        a = self.camera.camera_to_map(self.orthomap, states[:, 0], states[:, 1], states[:, 2], altitude_m)
+        """Eq. (3)'s affines (``CameraModel.camera_to_map``'s floats, as ``pair_agreements`` computes them) as
+        (2N, 3) float32 rows: every particle's column row first, then every particle's row row, ``offset_px`` added
+        to the translations (in float32)."""
+        states = np.asarray(states, dtype=np.float64)
+        yaw = states[:, 2]
+        a = pose_affines(self._affine_terms(altitude_m), states, np.cos(yaw), np.sin(yaw),
+                         np.empty((states.shape[0], 2, 3)))
         a2 = a.transpose(1, 0, 2).reshape(2 * a.shape[0], 3).astype(np.float32)
         a2[:, 2] += np.float32(offset_px)
         return a2
@@ -401,12 +416,14 @@ class IntensityPairsModel(MeasurementModel):
         K, c = pairs.size, prepared.cam_bits.shape[1]
         if K == 0:
             return np.full(states.shape[0], 0.5)
-        a = self.camera.camera_to_map(self.orthomap, states[:, 0], states[:, 1], states[:, 2], altitude_m)
-        n = a.shape[0]
+        states = np.asarray(states, dtype=np.float64)
+        n = states.shape[0]
         counts = np.empty((K, n), np.int8)
         valid = np.empty((K, n), np.bool_)
         nodata = _NO_NODATA if self._nodata is None else self._nodata
-        sums, outside = pair_agreements(a, prepared.uv, pairs, self._W, self._H, self._db, c, c, nodata,
+        yaw = states[:, 2]                  # camera_to_map's cos and sin: NumPy's, of the same column
+        sums, outside = pair_agreements(states, np.cos(yaw), np.sin(yaw), self._affine_terms(altitude_m),
+                                        prepared.uv, pairs, self._W, self._H, self._db, c, c, nodata,
                                         prepared.cam_bits, counts, valid)
         if not outside and self._nodata is None and weights is None:
             return sums / (K * c)                                   # every pair valid: the exact fraction

@@ -14,21 +14,57 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from ...sensors.camera import world_to_map_affine
 from ...world.kernels import JIT
 
 
+def affine_terms(camera, orthomap, altitude_m: float) -> np.ndarray:
+    """The scalars of ``CameraModel.camera_to_map`` at one altitude, as ``pose_affine`` takes them (float64):
+    the pixel's ground size along u and v, the image centre (u, v), and the world -> map affine's x scale, x
+    offset, y scale and y offset."""
+    gu = camera.gsd_m(float(altitude_m))
+    w = world_to_map_affine(orthomap)
+    return np.array([gu, gu * camera.pixel_aspect, *camera.center_px, w[0, 0], w[0, 2], w[1, 1], w[1, 2]])
+
+
 @njit(**JIT)
-def pair_agreements(affines, uv, pairs, width, height, db, pixel_bytes, channels, nodata, cam_bits, agree, valid):
-    """For particle n (``affines[n]`` (2, 3) float64, eq. (3)'s camera pixel -> map pixel, used in float32 with
-    0.5 added to the translations so that truncation rounds) and the j-th used pair i = ``pairs[j]`` (camera
-    points ``uv[i]`` and ``uv[K + i]``, K = ``cam_bits.shape[0]``): ``agree[j, n]`` = how many of the
+def pose_affine(terms, x, y, c, s):
+    """``CameraModel.camera_to_map`` of one pose (x, y, its yaw's cos ``c`` and sin ``s``, NumPy's) as six
+    float64 (a00, a01, a02, a10, a11, a12): the same operations in the same order as its vectorized form
+    (``camera_to_world``'s rows, then each row scaled and its translation shifted), so the same floats (numba
+    fuses no multiply-add; tests/test_mcl_step_speedups.py checks it bit for bit)."""
+    gu, gv, cu, cv, wx, ox, wy, oy = terms[0], terms[1], terms[2], terms[3], terms[4], terms[5], terms[6], terms[7]
+    a00, a01 = gu * s, -gv * c
+    a10, a11 = -gu * c, -gv * s
+    a02 = x - a00 * cu - a01 * cv
+    a12 = y - a10 * cu - a11 * cv
+    return a00 * wx, a01 * wx, a02 * wx + ox, a10 * wy, a11 * wy, a12 * wy + oy
+
+
+@njit(**JIT)
+def pose_affines(terms, poses, cos, sin, out):
+    """``pose_affine`` of every pose: ``out`` (N, 2, 3) = ``camera_to_map`` of ``poses`` (N, >= 2) [x_m, y_m, ...]
+    with ``cos``/``sin`` (N,) of their yaws."""
+    for m in range(poses.shape[0]):
+        a = pose_affine(terms, poses[m, 0], poses[m, 1], cos[m], sin[m])
+        out[m, 0, 0], out[m, 0, 1], out[m, 0, 2], out[m, 1, 0], out[m, 1, 1], out[m, 1, 2] = a
+    return out
+
+
+@njit(**JIT)
+def pair_agreements(poses, cos, sin, terms, uv, pairs, width, height, db, pixel_bytes, channels, nodata, cam_bits,
+                    agree, valid):
+    """For particle n (its affine ``pose_affine(terms, poses[n, 0], poses[n, 1], cos[n], sin[n])``, eq. (3)'s
+    camera pixel -> map pixel, used in float32 with 0.5 added to the translations so that truncation rounds) and
+    the j-th used pair i = ``pairs[j]`` (camera points ``uv[i]`` and ``uv[K + i]``, K = ``cam_bits.shape[0]``):
+    ``agree[j, n]`` = how many of the
     ``channels`` bits ``db[p1 B + c] > db[p2 B + c]`` (``db`` the database's bytes, B = ``pixel_bytes`` a pixel)
     equal ``cam_bits[i, c]``; ``valid[j, n]`` = both points on the map and not ``nodata`` (flat bool, or empty
     for none). Returns (the agreements of each particle summed (N,) int64, whether any point left the map).
 
     Pair-major: one pair's points at all particles lie close together on the map (the particles cluster), so
     their lookups hit the cache; particle-major lookups (NumPy's gather) roam over the whole footprint."""
-    n, k = affines.shape[0], cam_bits.shape[0]
+    n, k = poses.shape[0], cam_bits.shape[0]
     sums = np.zeros(n, np.int64)
     w = np.int32(width)
     wmax, hmax = np.float32(width - 1), np.float32(height - 1)
@@ -38,8 +74,9 @@ def pair_agreements(affines, uv, pairs, width, height, db, pixel_bytes, channels
     c0, c1, c2 = np.empty(n, np.float32), np.empty(n, np.float32), np.empty(n, np.float32)
     r0, r1, r2 = np.empty(n, np.float32), np.empty(n, np.float32), np.empty(n, np.float32)
     for m in range(n):
-        c0[m], c1[m], c2[m] = affines[m, 0, 0], affines[m, 0, 1], np.float32(affines[m, 0, 2]) + half
-        r0[m], r1[m], r2[m] = affines[m, 1, 0], affines[m, 1, 1], np.float32(affines[m, 1, 2]) + half
+        a00, a01, a02, a10, a11, a12 = pose_affine(terms, poses[m, 0], poses[m, 1], cos[m], sin[m])
+        c0[m], c1[m], c2[m] = a00, a01, np.float32(a02) + half
+        r0[m], r1[m], r2[m] = a10, a11, np.float32(a12) + half
     q1 = np.empty(n, np.uint64)
     q2 = np.empty(n, np.uint64)
     step = np.uint64(pixel_bytes)

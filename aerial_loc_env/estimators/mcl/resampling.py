@@ -9,6 +9,7 @@ systematic resampling written as one comb of M teeth. All are O(N + M) via cumul
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 
 import numpy as np
@@ -87,14 +88,35 @@ def normalize_log_weights(log_w: np.ndarray) -> tuple[np.ndarray, float]:
     Non-finite log-weights (-inf for impossible particles, NaN never expected) count as weight 0; if every
     weight is 0 the result is uniform and the log-mean is -inf, which the core treats as a collapse.
     """
-    lw = np.where(np.isfinite(log_w), log_w, -np.inf)
-    m = float(np.max(lw))
-    if not np.isfinite(m):
-        n = lw.shape[0]
+    w, m = _exp_below_max(log_w)
+    if w is None:
+        n = log_w.shape[0]
         return np.full(n, 1.0 / n), -np.inf
-    w = np.exp(lw - m)
     s = float(w.sum())
-    return w / s, m + float(np.log(s / lw.shape[0]))
+    return w / s, m + float(np.log(s / log_w.shape[0]))
+
+
+def log_mean_weight(log_w: np.ndarray) -> float:
+    """``normalize_log_weights(log_w)[1]`` without the normalized weights (the core needs only this of the
+    step's likelihoods)."""
+    w, m = _exp_below_max(log_w)
+    if w is None:
+        return -np.inf
+    return m + float(np.log(float(w.sum()) / log_w.shape[0]))
+
+
+def _exp_below_max(log_w: np.ndarray) -> tuple[np.ndarray | None, float]:
+    """``exp(lw - max(lw))`` and that maximum, ``lw`` = ``log_w`` with its non-finite values as -inf; (None, -inf)
+    when none is finite. A finite maximum of ``log_w`` itself means it holds no NaN (the maximum would be NaN) nor
+    +inf: then ``lw`` is ``log_w`` (its -inf stay -inf), and the masking pass is skipped."""
+    m = float(np.max(log_w))
+    lw = log_w
+    if not math.isfinite(m):
+        lw = np.where(np.isfinite(log_w), log_w, -np.inf)
+        m = float(np.max(lw))
+        if not math.isfinite(m):
+            return None, -np.inf
+    return np.exp(lw - m), m
 
 
 def ess(W: np.ndarray) -> float:
