@@ -298,6 +298,24 @@ def test_detector_kernels_keep_the_masks_of_the_numpy_path(index, scale):
     assert (1 if index == "tsai" else 6) <= decided <= 22   # shadows found on shadowed frames, not on all frames
 
 
+def test_quarter_reduction_is_cv2_resize():
+    """The default scale's reduction (1/4 of a frame whose sides are multiples of 4) against ``cv2.resize``'s
+    bilinear result: random bytes over every value, frames from 4 x 4 up, and the detector's ``reduce`` still
+    OpenCV's at other scales and sizes."""
+    from aerial_loc_env.estimators.shadow_detection import _quarter
+
+    g = np.random.default_rng(12)
+    for h, w in [(400, 600), (4, 4), (8, 12), (404, 604), (1200, 1600), (36, 4), (4, 88)]:
+        img = g.integers(0, 256, (h, w, 3)).astype(np.uint8)
+        ref = cv2.resize(img, (w // 4, h // 4), interpolation=cv2.INTER_LINEAR)
+        np.testing.assert_array_equal(_quarter(img), ref)
+        np.testing.assert_array_equal(ShadowDetector(ShadowDetectorConfig(scale=0.25)).reduce(img), ref)
+    img = g.integers(0, 256, (402, 600, 3)).astype(np.uint8)
+    for scale in (0.25, 0.3, 0.5):
+        size = (round(600 * scale), round(402 * scale))
+        np.testing.assert_array_equal(ShadowDetector(ShadowDetectorConfig(scale=scale)).reduce(img),
+                                      cv2.resize(img, size, interpolation=cv2.INTER_LINEAR))
+
 def test_c3_table_holds_the_invariant_of_every_pixel():
     """The detector looks c3 up by (B, max(R, G)); NumPy's ``arctan2`` gives those floats wherever the pixel
     sits in the frame (frames of many sizes, every 8-bit value)."""

@@ -80,6 +80,8 @@ def pair_agreements(poses, cos, sin, terms, uv, pairs, width, height, db, pixel_
     q1 = np.empty(n, np.uint64)
     q2 = np.empty(n, np.uint64)
     step = np.uint64(pixel_bytes)
+    rgb = channels == 3 and pixel_bytes == 3
+    one, two = np.uint64(1), np.uint64(2)
     off = np.int32(0)
     for j in range(pairs.shape[0]):
         i = pairs[j]
@@ -97,14 +99,24 @@ def pair_agreements(poses, cos, sin, terms, uv, pairs, width, height, db, pixel_
             vj[m] = inside
             q1[m] = np.uint64(np.int32(min(max(row1, zero), hmax)) * w + np.int32(min(max(col1, zero), wmax)))
             q2[m] = np.uint64(np.int32(min(max(row2, zero), hmax)) * w + np.int32(min(max(col2, zero), wmax)))
-        for m in range(n):                     # the lookups
-            b1, b2 = q1[m] * step, q2[m] * step
-            a = 0
-            for c in range(channels):
-                a += np.int64((db[b1 + np.uint64(c)] > db[b2 + np.uint64(c)]) == cam_bits[i, c])
-            aj[m] = a
-            sums[m] += a
-            if has_nodata:
+        if rgb:                                # the lookups: RGB unrolled, the pair's camera bits hoisted
+            g0, g1, g2 = cam_bits[i, 0], cam_bits[i, 1], cam_bits[i, 2]
+            for m in range(n):
+                b1, b2 = q1[m] * step, q2[m] * step
+                a = (np.int64((db[b1] > db[b2]) == g0) + np.int64((db[b1 + one] > db[b2 + one]) == g1)
+                     + np.int64((db[b1 + two] > db[b2 + two]) == g2))
+                aj[m] = a
+                sums[m] += a
+        else:
+            for m in range(n):
+                b1, b2 = q1[m] * step, q2[m] * step
+                a = 0
+                for c in range(channels):
+                    a += np.int64((db[b1 + np.uint64(c)] > db[b2 + np.uint64(c)]) == cam_bits[i, c])
+                aj[m] = a
+                sums[m] += a
+        if has_nodata:
+            for m in range(n):
                 vj[m] = vj[m] and not nodata[q1[m]] and not nodata[q2[m]]
     return sums, off != 0
 
