@@ -431,7 +431,8 @@ def test_box_warp_equals_opencv_warp_affine_over_random_affines(size):
 def test_map_warp_equals_opencv_remap_then_facades_over_random_maps(size):
     """``remap_finish`` against ``cv2.remap`` (8UC4, INTER_LINEAR, zero border) then the facades' gains: maps of
     random rotations and scales with per-pixel jitter (as relief displaces a view's points), inside the box, across
-    its edges and beyond them, integral and half-integral points (rounding ties of the weights); facade pixels in
+    its edges and beyond them, integral and half-integral points (rounding ties of the weights), NaN and infinite
+    points (zero, not a read outside the box); facade pixels in
     random order (the maps kernel lists them by cell) with float32 and float64 gains (with and without a sun),
     saturating both ways. The RGB, alpha and count are equal where OpenCV runs its AVX2 kernel, as for
     ``warp_finish``."""
@@ -453,6 +454,10 @@ def test_map_warp_equals_opencv_remap_then_facades_over_random_maps(size):
         if t % 4 == 1:
             map_x, map_y = np.round(map_x * 2.0) / 2.0, np.round(map_y * 2.0) / 2.0
         map_x, map_y = map_x.astype(np.float32), map_y.astype(np.float32)
+        if t % 5 == 2:        # non-finite points read the border, as in cv2.remap (and never outside the box)
+            map_x.flat[rng.choice(h * w, 5)] = np.nan
+            map_y.flat[rng.choice(h * w, 5)] = np.inf
+            map_x.flat[rng.choice(h * w, 5)] = -np.inf
         pixels = rng.choice(h * w, size=(h * w) // 5, replace=False).astype(np.int64)
         gains = rng.uniform(0.2, 1.6, pixels.size)
         gains = gains.astype(np.float32) if t % 2 else gains

@@ -323,7 +323,8 @@ def _weights_row(fu, fv, fa, fb, idx, stride, umax, vmax):
             fa[4 * x + c] = a
             fb[4 * x + c] = b
         idx[x] = np.uint32(iv) * stride + np.uint32(iu)
-        outside |= np.int32((u < 0) | (v < 0) | (u >= umax) | (v >= vmax))
+        inside = (u >= 0) & (v >= 0) & (u < umax) & (v < vmax)     # (false for NaN)
+        outside |= np.int32(not inside)
     return outside
 
 
@@ -354,14 +355,17 @@ def _blend_row(c00, c01, c10, c11, fa, fb, rgba):
 
 @nb.njit(**_JIT)
 def _border_row(box, fu, fv, fa, fb, q00, q01, q10, q11):
-    """The general path of a ``warp_finish`` row: the floor (clamped to [-2, size + 1]: any point beyond is as
-    far outside, and the conversion stays defined), the weights, and the four neighbours, 0 outside the box."""
+    """The general path of a ``warp_finish`` row: the floor (clamped to [-2, size + 1]: any point beyond, or NaN,
+    is as far outside, and the conversion stays defined), the weights, and the four neighbours, 0 outside the
+    box."""
     bh, bw = box.shape
     zero = np.uint32(0)
     for x in range(fu.shape[0]):
         u, v = fu[x], fv[x]
-        cu = min(max(u, np.float32(-2.0)), np.float32(bw + 1))
-        cv = min(max(v, np.float32(-2.0)), np.float32(bh + 1))
+        cu = u if u > np.float32(-2.0) else np.float32(-2.0)      # NaN -> -2: outside (as cv2.remap reads it)
+        cv = v if v > np.float32(-2.0) else np.float32(-2.0)
+        cu = cu if cu < np.float32(bw + 1) else np.float32(bw + 1)
+        cv = cv if cv < np.float32(bh + 1) else np.float32(bh + 1)
         x0, y0 = np.int32(cu), np.int32(cv)
         x0 -= np.int32(np.float32(x0) > cu)
         y0 -= np.int32(np.float32(y0) > cv)
