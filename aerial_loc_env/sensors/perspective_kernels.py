@@ -5,11 +5,34 @@ relief pixels, each pass writing a temporary array. Here: one pass over the marc
 hit), and per band of cells one row-major pass for the flat pixels then the relief pixels' fixed-point steps over
 the band's list (independent lookups overlap; one pixel's chain of dependent lookups was latency-bound).
 The march skips a cell whose probe segment crosses no block (``_BLOCK`` pooled px) above the lowest march height:
-it cannot hit (the same result, not an approximation). What is left is memory-bound: the relief pixels' gathers
-from the height model and the march's probes. Measured and not kept: a relief cell whose lookups all fall in
-blocks of one height (block minimum = maximum) skipping them (no gain within the noise on the perf scene and on
-RealisticPaper), a uint16 palette of the height model (2-byte gathers: 4 % of the maps kernel), the march
-without early exit (slower).
+it cannot hit (the same result, not an approximation).
+
+How the loops are laid out (LLVM vectorizes a loop only when it can bound every address it touches: one load from a
+computed index, one store through a computed index, or one signed index that numba wraps when negative keeps the
+whole loop scalar): each fixed-point step is a vectorized pass computing the pixel indices (rounding and window test
+on the floats, branch-free: ``_round_px``, ``_dsm_index``; int32 flat indices), then a scalar pass of the loads
+alone (``_gather``), then the next vectorized pass; the third lookup is done for every listed pixel (cheaper than a
+branch); the maps are scattered cell by cell, four pixels at a time (loads first, then stores, at unsigned indices:
+SLP-vectorized); the facades are listed branch-free only in cells with a wall, and their facing (a float64 square
+root) computed over that list alone; untilted rays are the pixel offsets themselves, computed where listed (no
+per-pixel ray planes). The march computes every probe's pixel for a whole row of cells in vectorized loops
+(``_probe_row``), then the per-cell skip test and first-hit search read them; the 3 x 3 maximum is separable over a
+zero-padded hit grid.
+
+Measured (2-core Xeon VM, one core, replaying the 121 frames of the perf flight; medians, before -> after,
+interleaved in one process at load 1.4-2.2; "in flight": after two floor warps as in the benchmark): ``view_maps``
+1.15-1.25 -> 0.58-0.80 ms in flight, 1.04-1.11 -> 0.48-0.54 ms back to back; ``march`` 0.62-0.74 -> 0.45-0.67 ms
+in flight, 0.56-0.67 -> 0.39-0.42 ms back to back (nadir and tilted alike). In the render of the perf flight
+(load 2.0): march 0.64 -> 0.54, view_maps 1.16 -> 0.57 ms a frame; the benchmark's perspective rows (three
+alternating runs, load 1.4-1.7): 4.38-4.67x -> 3.75-3.92x the floor (3.87-4.02 -> 3.33-3.39 ms), with gimbal tilt
+4.78-4.95x -> 3.99-4.08x (4.14-4.19 -> 3.43-3.53 ms). Where view_maps' cycles went before (rdtsc per
+section): the relief list 23 %, the three steps' scalar index and lookup passes 32 %, the facade's float64 square
+root for every relief pixel 15 %, the scatter 13 %, the flat pass 13 %. Measured and not kept: a relief cell whose
+lookups all fall in blocks of one height (block minimum = maximum) skipping them (no gain within the noise on the
+perf scene and on RealisticPaper), a uint16 palette of the height model (2-byte gathers: 4 % of the maps kernel), the
+march without early exit (slower), the lookups inside the index passes (LLVM then kept those loops scalar: it
+cannot bound a computed index; slower than before), the third lookup only where the second step moved (the
+pixel's index set to 0 elsewhere: no gain), 512-bit vectors (``world.kernels.wide_vectors``: within the noise).
 
 Exactness: the maps equal those of the OpenCV/NumPy implementation they replace (perspective v5) bit for bit. Every
 float32 operation is the one that implementation did, in the same order:
@@ -31,6 +54,8 @@ from __future__ import annotations
 
 import numba
 import numpy as np
+from numba import types
+from numba.extending import intrinsic
 
 from ..world.kernels import JIT as _JIT
 from ..world.kernels import fma32 as _fma
@@ -39,44 +64,32 @@ from .frame_kernel import gain_byte
 _BLOCK = 4     # the march's skip test: maxima of 4 x 4 pooled pixels
 _LANES = 16    # OpenCV's nearest warps: vector body in blocks of 2 x 8 float32 lanes (AVX2), scalar tail after it
 _F32 = np.float32
+_FAR = -(1 << 30)   # an int32 pixel far outside any window (below every rounded coordinate within +-1e9)
+
+
+@intrinsic
+def _index32(typingctx, row, stride, col):
+    """int32 ``row * stride + col`` in 32-bit arithmetic (numba widens int32 products to int64, which costs a
+    64-bit vector multiply); the caller keeps it below 2**31."""
+    if not all(t == types.int32 for t in (row, stride, col)):
+        return None
+
+    def codegen(context, builder, signature, args):
+        return builder.add(builder.mul(args[0], args[1], flags=["nsw"]), args[2], flags=["nsw"])
+
+    return types.int32(types.int32, types.int32, types.int32), codegen
 
 
 @numba.njit(inline="always", **_JIT)
-def _round_px(s: np.float32) -> int:
-    """Round half to even (cvRound / v_round); far outside any image (or NaN) -> a large negative index."""
-    if not (-1.0e9 < s < 1.0e9):
-        return -(1 << 40)
-    return int(np.rint(s))
-
-
-# The per-probe and per-pixel helpers take scalars only: an array argument costs a reference count per call (an
-# atomic add and subtract), which made an inlined lookup four times slower.
-
-@numba.njit(inline="always", **_JIT)
-def _warp_point(c0: np.float32, c1: np.float32, c2: np.float32, v0: np.float32, v1: np.float32, v2: np.float32,
-                t0: np.float32, t1: np.float32, t2: np.float32, m2: np.float32, m5: np.float32, m8: np.float32,
-                x: int, body: bool, perspective: bool) -> tuple[int, int]:
-    """The source pixel OpenCV's nearest warp reads for destination pixel (x, y), from one row of ``_row_terms``:
-    the warp's x coefficients ``c`` (M0, M3, M6), its row terms in the vector body ``v`` (``y M1 + M2`` etc.,
-    rounded) and in the scalar tail ``t`` (``y M1`` etc.; then M2, M5, M8): ``body`` picks the vector body's
-    ``fma(M0, x, .)`` or the compiled tail's ``fma(x, M0, y M1) + M2``."""
-    xf = _F32(x)
-    if body:
-        sx, sy = _fma(c0, xf, v0), _fma(c1, xf, v1)
-        if perspective:
-            w = _fma(c2, xf, v2)
-            sx, sy = sx / w, sy / w
-    else:
-        sx, sy = _fma(xf, c0, t0) + m2, _fma(xf, c1, t1) + m5
-        if perspective:
-            w = _fma(xf, c2, t2) + m8
-            sx, sy = sx / w, sy / w
-    return _round_px(sx), _round_px(sy)
+def _round_px(s: np.float32) -> np.int32:
+    """Round half to even (cvRound / v_round) to int32; far outside any image (or NaN) -> ``_FAR``, below every
+    window. Branch-free (a select): the loops calling it vectorize."""
+    return np.int32(np.rint(s if _F32(-1.0e9) < s < _F32(1.0e9) else _F32(_FAR)))
 
 
 @numba.njit(inline="always", **_JIT)
 def _row_terms(terms: np.ndarray, probes: np.ndarray, y: int) -> None:
-    """``terms`` (n, 12) of row ``y`` for the warps ``probes`` (n, 9) (see ``_warp_point``)."""
+    """``terms`` (n, 12) of row ``y`` for the warps ``probes`` (n, 9) (see ``_probe_row``)."""
     yf = _F32(y)
     for i in range(probes.shape[0]):
         for a in range(3):
@@ -93,6 +106,31 @@ def _window_index(ix: int, iy: int, rows: int, cols: int, stride: int) -> int:
     if 0 <= ix < cols and 0 <= iy < rows:
         return iy * stride + ix
     return -1
+
+
+@numba.njit(inline="always", **_JIT)
+def _probe_row(px: np.ndarray, py: np.ndarray, c0: np.float32, c1: np.float32, c2: np.float32, v0: np.float32,
+               v1: np.float32, v2: np.float32, t0: np.float32, t1: np.float32, t2: np.float32, m2: np.float32,
+               m5: np.float32, m8: np.float32, body: int, perspective: bool) -> None:
+    """The source pixels OpenCV's nearest warp reads for the destination pixels (x, y) of a row, into ``px``/``py``
+    (int32, ``_round_px``), from one row of ``_row_terms``: the warp's x coefficients ``c`` (M0, M3, M6), its row
+    terms in the vector body ``v`` (``y M1 + M2`` etc., rounded) and in the scalar tail ``t`` (``y M1`` etc.; then
+    M2, M5, M8): the vector body's ``fma(M0, x, .)`` for x < ``body``, the compiled tail's ``fma(x, M0, y M1) + M2``
+    after it (two vectorized loops)."""
+    for x in range(body):
+        xf = _F32(x)
+        sx, sy = _fma(c0, xf, v0), _fma(c1, xf, v1)
+        if perspective:
+            w = _fma(c2, xf, v2)
+            sx, sy = sx / w, sy / w
+        px[x], py[x] = _round_px(sx), _round_px(sy)
+    for x in range(body, px.size):
+        xf = _F32(x)
+        sx, sy = _fma(xf, c0, t0) + m2, _fma(xf, c1, t1) + m5
+        if perspective:
+            w = _fma(xf, c2, t2) + m8
+            sx, sy = sx / w, sy / w
+        px[x], py[x] = _round_px(sx), _round_px(sy)
 
 
 def _march_kernel(perspective: bool):
@@ -126,20 +164,19 @@ def _march_kernel(perspective: bool):
             for c in range(nc):
                 blocks[r // _BLOCK, c // _BLOCK] = max(blocks[r // _BLOCK, c // _BLOCK], pool[base + r * stride + c])
         low = thresholds[steps - 1]
-        hit = np.zeros((hc, wc), np.float32)
+        hit = np.zeros((hc + 2, wc + 2), np.float32)   # zero-padded for the 3 x 3 maximum
         tm = np.empty((steps + 1, 12), np.float32)     # each warp's terms on the row (_row_terms)
+        px, py = np.empty((steps + 1, wc), np.int32), np.empty((steps + 1, wc), np.int32)
         for y in range(hc):
             _row_terms(tm, probes, y)
+            for i in range(steps + 1):      # every probe's pixel on the row (vectorized; x < body: the vector body)
+                _probe_row(px[i], py[i], tm[i, 0], tm[i, 1], tm[i, 2], tm[i, 3], tm[i, 4], tm[i, 5], tm[i, 6],
+                           tm[i, 7], tm[i, 8], tm[i, 9], tm[i, 10], tm[i, 11], body, perspective)
+            hit_row = hit[y + 1]
             for x in range(wc):
-                ix, iy = _warp_point(tm[0, 0], tm[0, 1], tm[0, 2], tm[0, 3], tm[0, 4], tm[0, 5], tm[0, 6], tm[0, 7],
-                                     tm[0, 8], tm[0, 9], tm[0, 10], tm[0, 11], x, x < body, perspective)
-                q = _window_index(ix, iy, nr, nc, stride)
+                q = _window_index(px[0, x], py[0, x], nr, nc, stride)
                 relief[y, x] = 1 if q >= 0 and reach[base + q] > 0.0 else 0
-                ax, ay = _warp_point(tm[1, 0], tm[1, 1], tm[1, 2], tm[1, 3], tm[1, 4], tm[1, 5], tm[1, 6], tm[1, 7],
-                                     tm[1, 8], tm[1, 9], tm[1, 10], tm[1, 11], x, x < body, perspective)
-                n = steps
-                bx, by = _warp_point(tm[n, 0], tm[n, 1], tm[n, 2], tm[n, 3], tm[n, 4], tm[n, 5], tm[n, 6], tm[n, 7],
-                                     tm[n, 8], tm[n, 9], tm[n, 10], tm[n, 11], x, x < body, perspective)
+                ax, ay, bx, by = px[1, x], py[1, x], px[steps, x], py[steps, x]
                 c0, c1 = max(min(ax, bx) - 1, 0), min(max(ax, bx) + 1, nc - 1)
                 r0, r1 = max(min(ay, by) - 1, 0), min(max(ay, by) + 1, nr - 1)
                 if c0 > c1 or r0 > r1:
@@ -150,48 +187,64 @@ def _march_kernel(perspective: bool):
                         top = max(top, blocks[br, bc])
                 if top <= low:
                     continue
-                for i in range(1, steps + 1):   # the first and last probes are (ax, ay) and (bx, by)
-                    if i == 1:
-                        ix, iy = ax, ay
-                    elif i == steps:
-                        ix, iy = bx, by
-                    else:
-                        ix, iy = _warp_point(tm[i, 0], tm[i, 1], tm[i, 2], tm[i, 3], tm[i, 4], tm[i, 5], tm[i, 6],
-                                             tm[i, 7], tm[i, 8], tm[i, 9], tm[i, 10], tm[i, 11], x, x < body,
-                                             perspective)
-                    q = _window_index(ix, iy, nr, nc, stride)
+                for i in range(1, steps + 1):
+                    q = _window_index(px[i, x], py[i, x], nr, nc, stride)
                     if q >= 0 and pool[base + q] > thresholds[i - 1]:
-                        hit[y, x] = levels[i - 1]
+                        hit_row[x + 1] = levels[i - 1]
                         break
         count = 0
-        for y in range(hc):
+        across = np.empty((3, wc), np.float32)     # the rows' maxima over x - 1..x + 1, cycled
+        for y in range(-2, hc):
+            if y + 2 < hc + 2:
+                row, out = hit[y + 2], across[(y + 2) % 3]
+                for x in range(wc):
+                    out[x] = max(max(row[x], row[x + 1]), row[x + 2])
+            if y < 0:
+                continue
+            a0, a1, a2 = across[y % 3], across[(y + 1) % 3], across[(y + 2) % 3]
+            z_row, r_row = z0[y], relief[y]
             for x in range(wc):
-                z = hit[y, x]
-                for yy in range(max(y - 1, 0), min(y + 2, hc)):
-                    for xx in range(max(x - 1, 0), min(x + 2, wc)):
-                        z = max(z, hit[yy, xx])
-                z0[y, x] = z
-                if z > 0.0:
-                    relief[y, x] = 1
-                count += relief[y, x]
+                z = max(max(a0[x], a1[x]), a2[x])
+                z_row[x] = z
+                rel = r_row[x] | np.uint8(z > 0.0)
+                r_row[x] = rel
+                count += rel
         return count
-
     return march
 
 
 @numba.njit(inline="always", **_JIT)
 def _dsm_index(du: np.float32, dv: np.float32, k: np.float32, nx: np.float32, ny: np.float32, rows: int, cols: int,
-               c0: int, r0: int, c1: int, r1: int, replicate: bool) -> int:
-    """The flat index of h(m(z)) in the (rows, cols) height model, nearest to nadir + k (du, dv); -1 outside it
-    (height 0), or (``replicate``) the border of the window (c0, r0, c1, r1) replicated (maps beyond remap's
-    size limit are read in a window)."""
+               c0: int, r0: int, c1: int, r1: int, replicate: bool) -> tuple[np.int32, np.int32, bool]:
+    """The pixel of h(m(z)) in the (rows, cols) height model nearest to nadir + k (du, dv): its flat index (int32:
+    the sides are below remap's limit), 0 and whether it is inside (height 0 outside; the index is then 0); or
+    (``replicate``: maps beyond remap's size limit are read in a window) its column and row in the window (c0, r0,
+    c1, r1), its border replicated. Branch-free, so that the loops computing indices vectorize: the rounding
+    (``_round_px``) and the window test on the rounded floats (exact integers: the same decisions)."""
     fx = du * k + nx
     fy = dv * k + ny
     if replicate:
-        ix = min(max(_round_px(fx - _F32(c0)), 0), c1 - c0 - 1) + c0
-        iy = min(max(_round_px(fy - _F32(r0)), 0), r1 - r0 - 1) + r0
-        return iy * cols + ix
-    return _window_index(_round_px(fx), _round_px(fy), rows, cols, cols)
+        sx, sy = fx - _F32(c0), fy - _F32(r0)
+        ix = min(max(_round_px(sx), np.int32(0)), np.int32(c1 - c0 - 1))  # far outside or NaN: the first pixel
+        iy = min(max(_round_px(sy), np.int32(0)), np.int32(r1 - r0 - 1))
+        return ix + np.int32(c0), iy + np.int32(r0), True
+    rx, ry = np.rint(fx), np.rint(fy)
+    inside = (rx >= _F32(0.0)) & (rx < _F32(cols)) & (ry >= _F32(0.0)) & (ry < _F32(rows))   # False for NaN
+    ix = np.int32(rx) if inside else np.int32(0)
+    iy = np.int32(ry) if inside else np.int32(0)
+    return _index32(iy, np.int32(cols), ix), np.int32(0), inside
+
+
+@numba.njit(inline="always", **_JIT)
+def _gather(heights: np.ndarray, cols: int, ix: np.ndarray, iy: np.ndarray, out: np.ndarray, m: int,
+            flat: bool) -> None:
+    """``out[:m]``: the heights (flat, rows ``cols`` apart) at the flat indices ``ix`` or (not ``flat``) the pixels
+    (``ix``, ``iy``) (int32, inside): the loads alone (scalar; the loops computing the indices vectorize)."""
+    for j in range(m):
+        if flat:
+            out[j] = heights[np.uint64(np.uint32(ix[j]))]
+        else:
+            out[j] = heights[np.uint64(iy[j]) * np.uint64(cols) + np.uint64(ix[j])]
 
 
 def _maps_kernel(tilted: bool, replicate: bool):
@@ -229,16 +282,21 @@ def _maps_kernel(tilted: bool, replicate: bool):
         # cells keep it), then the relief cells' pixels listed cell by cell, then each fixed-point step over the
         # whole list (independent lookups overlap; a pixel's chain of dependent lookups was latency-bound).
         size = factor * w
-        ray_u, ray_v = np.empty(size, np.float32), np.empty(size, np.float32)
-        pix = np.empty(size, np.int64)
+        band_du, band_dv = np.empty(size, np.float32), np.empty(size, np.float32)
+        cells = np.empty(wc, np.int64)
         bdu, bdv = np.empty(size, np.float32), np.empty(size, np.float32)
         bk, bz, bz2 = np.empty(size, np.float32), np.empty(size, np.float32), np.empty(size, np.float32)
+        bk1, wall = np.empty(size, np.float32), np.empty(size, np.int32)
+        pix_x, pix_y, ins = np.empty(size, np.int32), np.empty(size, np.int32), np.empty(size, np.bool_)
+        got = np.empty(size, np.float32)
+        wall_u, wall_v = np.empty(size, np.float32), np.empty(size, np.float32)
         n = 0
         for cy in range(hc):
             y0, y1 = cy * factor, min(cy * factor + factor, h)
             for y in range(y0, y1):
                 v = _F32(y) - cv
-                ru_row, rv_row = ray_u[(y - y0) * w:(y - y0 + 1) * w], ray_v[(y - y0) * w:(y - y0 + 1) * w]
+                o = (y - y0) * w
+                du_row, dv_row = band_du[o:o + w], band_dv[o:o + w]
                 gx_row, gy_row = out_x[y], out_y[y]
                 for x in range(w):
                     u = _F32(x) - cu
@@ -248,48 +306,133 @@ def _maps_kernel(tilted: bool, replicate: bool):
                         rv = _fma(u, t10, _fma(v, t11, t12)) / den
                     else:
                         ru, rv = u, v
-                    ru_row[x], rv_row[x] = ru, rv
                     gx_row[x] = _fma(ru, a0, _fma(rv, a1, a2))
                     gy_row[x] = _fma(ru, b0, _fma(rv, b1, b2))
+                    if tilted:      # (untilted: the rays are the offsets, computed where listed)
+                        du_row[x] = l00 * ru + l01 * rv
+                        dv_row[x] = l10 * ru + l11 * rv
             m = 0
+            n_cells = 0
             for cx in range(wc):
                 if relief[cy, cx] == 0:
                     continue
+                cells[n_cells] = cx
+                n_cells += 1
                 k0 = one - z0[cy, cx] / big_h
+                xa, xb = cx * factor, min(cx * factor + factor, w)
                 for y in range(y0, y1):
-                    for x in range(cx * factor, min(cx * factor + factor, w)):
-                        ru, rv = ray_u[(y - y0) * w + x], ray_v[(y - y0) * w + x]
-                        pix[m] = y * w + x
-                        bdu[m] = l00 * ru + l01 * rv
-                        bdv[m] = l10 * ru + l11 * rv
-                        bk[m] = k0
-                        m += 1
+                    o = (y - y0) * w
+                    v = _F32(y) - cv
+                    if xb - xa == 4:        # a whole cell of the march's 4 x 4 blocks: loads, then stores (SLP;
+                        a, b = np.uint64(o + xa), np.uint64(m)     # unsigned: no negative-index wraparound)
+                        if tilted:
+                            u0, u1, u2, u3 = band_du[a], band_du[a + 1], band_du[a + 2], band_du[a + 3]
+                            v0, v1, v2, v3 = band_dv[a], band_dv[a + 1], band_dv[a + 2], band_dv[a + 3]
+                        else:
+                            x0 = _F32(xa)
+                            r0_, r1_ = x0 - cu, (x0 + _F32(1.0)) - cu
+                            r2_, r3_ = (x0 + _F32(2.0)) - cu, (x0 + _F32(3.0)) - cu
+                            u0, u1 = l00 * r0_ + l01 * v, l00 * r1_ + l01 * v
+                            u2, u3 = l00 * r2_ + l01 * v, l00 * r3_ + l01 * v
+                            v0, v1 = l10 * r0_ + l11 * v, l10 * r1_ + l11 * v
+                            v2, v3 = l10 * r2_ + l11 * v, l10 * r3_ + l11 * v
+                        bdu[b], bdu[b + 1], bdu[b + 2], bdu[b + 3] = u0, u1, u2, u3
+                        bdv[b], bdv[b + 1], bdv[b + 2], bdv[b + 3] = v0, v1, v2, v3
+                        bk[b], bk[b + 1], bk[b + 2], bk[b + 3] = k0, k0, k0, k0
+                        m += 4
+                    else:
+                        for x in range(xa, xb):
+                            if tilted:
+                                bdu[m] = band_du[o + x]
+                                bdv[m] = band_dv[o + x]
+                            else:
+                                u = _F32(x) - cu
+                                bdu[m] = l00 * u + l01 * v
+                                bdv[m] = l10 * u + l11 * v
+                            bk[m] = k0
+                            m += 1
             for j in range(m):      # z1: the height of the surface the ray is in just below its march hit
-                q = _dsm_index(bdu[j], bdv[j], bk[j], nx, ny, rows, cols, c0, r0, c1, r1, replicate)
-                bz[j] = min(heights[q] if q >= 0 else zero, cap)
-            for j in range(m):      # z2 = h(m(z1)) (the same point where z1 = z0, e.g. open ground: no lookup)
-                k1 = one - bz[j] / big_h
-                if k1 != bk[j]:
-                    q = _dsm_index(bdu[j], bdv[j], k1, nx, ny, rows, cols, c0, r0, c1, r1, replicate)
-                    bz2[j] = min(heights[q] if q >= 0 else zero, cap)
-                    bk[j] = k1
-                else:
-                    bz2[j] = bz[j]
-            for j in range(m):
-                du, dv, scale, z1, z2 = bdu[j], bdv[j], bk[j], bz[j], bz2[j]
-                if abs(z2 - z1) > tol:          # not settled on a surface after one step: one more
-                    scale = one - z2 / big_h
-                    q = _dsm_index(du, dv, scale, nx, ny, rows, cols, c0, r0, c1, r1, replicate)
-                    z3 = min(heights[q] if q >= 0 else zero, cap)
-                    if abs(z3 - z2) > tol:      # still jumping: the ray entered through a wall
-                        dist = max(_F32(np.sqrt(np.float64(du) * du + np.float64(dv) * dv)), _F32(1e-3))
-                        scale = one + one / dist
-                        facade[n] = pix[j]
-                        facing[n, 0] = -(du / dist)
-                        facing[n, 1] = dv / dist
-                        n += 1
-                map_x[pix[j]] = du * scale + ox
-                map_y[pix[j]] = dv * scale + oy
+                pix_x[j], pix_y[j], ins[j] = _dsm_index(bdu[j], bdv[j], bk[j], nx, ny, rows, cols, c0, r0, c1, r1,
+                                                        replicate)
+            _gather(heights, cols, pix_x, pix_y, got, m, not replicate)
+            for j in range(m):      # z2 = h(m(z1)) (the same point where z1 = z0, e.g. open ground)
+                z1 = min(got[j] if ins[j] else zero, cap)
+                bz[j] = z1
+                k1 = one - z1 / big_h
+                bk1[j] = k1
+                pix_x[j], pix_y[j], ins[j] = _dsm_index(bdu[j], bdv[j], k1, nx, ny, rows, cols, c0, r0, c1, r1,
+                                                        replicate)
+            _gather(heights, cols, pix_x, pix_y, got, m, not replicate)
+            for j in range(m):      # not settled on a surface after one step: one more (z3)
+                k1 = bk1[j]
+                z1 = bz[j]
+                same = k1 == bk[j]
+                z2 = z1 if same else min(got[j] if ins[j] else zero, cap)
+                bz2[j] = z2
+                bk[j] = bk[j] if same else k1
+                k2 = one - z2 / big_h
+                bk1[j] = k2
+                pix_x[j], pix_y[j], ins[j] = _dsm_index(bdu[j], bdv[j], k2, nx, ny, rows, cols, c0, r0, c1, r1,
+                                                        replicate)
+            _gather(heights, cols, pix_x, pix_y, got, m, not replicate)
+            for j in range(m):      # settled (or a wall: below) at the last step's point
+                z1, z2 = bz[j], bz2[j]
+                z3 = min(got[j] if ins[j] else zero, cap)
+                again = abs(z2 - z1) > tol
+                scale = bk1[j] if again else bk[j]
+                bz[j] = bdu[j] * scale + ox
+                bz2[j] = bdv[j] * scale + oy
+                wall[j] = np.int32(again & (abs(z3 - z2) > tol))  # still jumping: the ray entered through a wall
+            n0 = n
+            j = 0
+            for c in range(n_cells):    # scattered to the maps
+                xa, xb = cells[c] * factor, min(cells[c] * factor + factor, w)
+                for y in range(y0, y1):
+                    row_x, row_y = out_x[y], out_y[y]
+                    if xb - xa == 4:        # loads, then stores (SLP)
+                        a, b = np.uint64(j), np.uint64(xa)
+                        u0, u1, u2, u3 = bz[a], bz[a + 1], bz[a + 2], bz[a + 3]
+                        v0, v1, v2, v3 = bz2[a], bz2[a + 1], bz2[a + 2], bz2[a + 3]
+                        row_x[b], row_x[b + 1], row_x[b + 2], row_x[b + 3] = u0, u1, u2, u3
+                        row_y[b], row_y[b + 1], row_y[b + 2], row_y[b + 3] = v0, v1, v2, v3
+                        j += 4
+                    else:
+                        for x in range(xa, xb):
+                            row_x[x] = bz[j]
+                            row_y[x] = bz2[j]
+                            j += 1
+            j = 0
+            for c in range(n_cells):    # the walls listed (written at n, kept where a wall), in cells with one
+                xa, xb = cells[c] * factor, min(cells[c] * factor + factor, w)
+                size_c = (y1 - y0) * (xb - xa)
+                any_wall = np.int32(0)
+                for i in range(size_c):
+                    any_wall |= wall[np.uint64(j + i)]
+                if any_wall == 0:
+                    j += size_c
+                    continue
+                for y in range(y0, y1):
+                    for x in range(xa, xb):
+                        ju, iu = np.uint64(j), np.uint64(n - n0)
+                        facade[np.uint64(n)] = y * w + x
+                        wall_u[iu] = bdu[ju]
+                        wall_v[iu] = bdv[ju]
+                        n += wall[ju]
+                        j += 1
+            for i in range(n - n0):     # walls: coloured from where the ray meets the ground, facing it
+                du, dv = wall_u[i], wall_v[i]
+                dist = max(_F32(np.sqrt(np.float64(du) * du + np.float64(dv) * dv)), _F32(1e-3))
+                scale = one + one / dist
+                wall_u[i] = du * scale + ox
+                wall_v[i] = dv * scale + oy
+                bdu[i] = -(du / dist)
+                bdv[i] = dv / dist
+            for i in range(n - n0):
+                p = facade[n0 + i]
+                map_x[p] = wall_u[i]
+                map_y[p] = wall_v[i]
+                facing[n0 + i, 0] = bdu[i]
+                facing[n0 + i, 1] = bdv[i]
         return n
 
     return view_maps
