@@ -29,6 +29,39 @@ conventional 1.12-1.15x -> 0.77-0.80x, restoration 1.70-1.72x -> 1.27-1.29x. Wha
 after a floor warp: detection 0.21 ms (0.07 of it OpenCV's reduction, then cvtColor, Otsu and two morphology
 passes), the pair kernel ~0.25 (cold: its lookups miss), ``camera_to_map`` ~0.14, the two ``rng.integers`` ~0.08,
 motion ~0.13, the two observation parses ~0.12, estimate ~0.09.
+
+Then fewer fixed costs and a prefetch (same bytes: the tests above, tests/test_mcl_step_speedups.py, and an 8-agent,
+2-episode, 41-step PaperShadows run equal estimate for estimate, particle for particle): each particle's
+``camera_to_map`` affine inside the pair kernel (``pair_kernel.pose_affine``, NumPy's cos/sin), the motion's
+per-particle arithmetic one pass, the detector's opening and closing one call (``_OpenClose``), its 1/4 reduction
+(``_quarter``, cv2.resize's bytes) and exact luminance sums compiled, the likelihoods' log-mean without the
+normalized weights, the pair lookups unrolled for RGB, and each pair's map lines prefetched while the previous
+pair's lookups run (every step draws new pairs, whose lines no step touched: 4.5 -> 3.6 us a pair after floor
+warps, 6.6 -> 4.4 on a 5 m cloud). Three runs each alternating with 57ad3e6 in one session on the 2-core Xeon VM
+(load 1.55-1.92 from ``uptime``, another engineer's benchmarks on the other core; floor 0.84-0.89 ms):
+
+=============================================  ===============  ===============
+row                                            57ad3e6          now
+=============================================  ===============  ===============
+shadow-aware N=700 K=70 c=3                    0.96-0.98x       0.73-0.74x
+conventional                                   0.80-0.81x       0.60-0.61x
+restoration                                    1.30-1.32x       1.02-1.03x
+shadow-weighted, map detector                  1.36-1.39x       1.13-1.14x
+SSD / NCC 60x40 (perf/models.py)               4.22-4.31x /     4.19-4.26x /
+                                               4.32-4.36x       4.32-4.38x
+MI / abBRIEF / edges                           5.87-5.94x /     5.87-5.93x /
+                                               7.29-7.36x /     7.29-7.33x /
+                                               6.68-6.72x       6.66-6.78x
+=============================================  ===============  ===============
+
+What is left of a shadow-aware step after floor warps (instrumented, wall us, load 0.5): the first observation parse
+~48 (6 warm: whatever runs first after the floor pays ~40), motion ~75 (the 3.5k normal draws ~35), the two
+``rng.integers`` ~24, reduction ~38 (reading the cold frame), detection ~110 (cvtColor 10, the c3-table index 42,
+Otsu 13, class statistics 29, morphology 25), the frame's pairs ~33, the pair kernel ~165 (~34 pairs kept), the
+two log-sum-exps ~27, resampling ~37 plus the gather 10, estimate ~48. Tried and not kept: one ``rng.integers``
+with per-element bounds (the same draws) was slower in the step (28 vs 24 us); the luminance (cvtColor's 15-bit
+fixed point, exact over all 2^24 colours) inside the index pass made that pass as much slower as cvtColor cost;
+prefetching every 4th or 16th particle, or two pairs ahead, was no better than every particle one pair ahead.
 """
 
 from __future__ import annotations
