@@ -1,38 +1,38 @@
 """Compiled kernels of the perspective camera (``perspective.py``): the march, the per-pixel maps, facade shading.
 
 Why: the per-pixel view maps were a dozen OpenCV warps of the march grid plus NumPy passes over 1-D gathers of the
-relief pixels, each pass writing a temporary array. Here: one pass over the march grid (a cell stops at its first
-hit), and per band of cells one row-major pass for the flat pixels then the relief pixels' fixed-point steps over
-the band's list (independent lookups overlap; one pixel's chain of dependent lookups was latency-bound).
-The march skips a cell whose probe segment crosses no block (``_BLOCK`` pooled px) above the lowest march height:
-it cannot hit (the same result, not an approximation).
+relief pixels, each pass writing a temporary array. Here: one pass over the march grid, and per band of cells one
+row-major pass for the flat pixels then the relief pixels' fixed-point steps over the band's list (independent
+lookups overlap; one pixel's chain of dependent lookups was latency-bound).
 
 How the loops are laid out (LLVM vectorizes a loop only when it can bound every address it touches: one load from a
 computed index, one store through a computed index, or one signed index that numba wraps when negative keeps the
-whole loop scalar): each fixed-point step is a vectorized pass computing the pixel indices (rounding and window test
-on the floats, branch-free: ``_round_px``, ``_dsm_index``; int32 flat indices), then a scalar pass of the loads
-alone (``_gather``), then the next vectorized pass; the third lookup is done for every listed pixel (cheaper than a
+whole loop scalar): index passes, vectorized and branch-free (rounding and window tests on the floats:
+``_round_px``, ``_window_index``, ``_dsm_index``; int32 flat indices), then a scalar pass of the loads alone
+(``_read_row``, ``_gather``), then the next vectorized pass. The march reads every probe of every cell (a row of
+cells at a time) and takes the highest level hit (the first from the top: levels decrease); it used to stop at a
+cell's first hit and to skip cells whose probe segment crossed no block above the lowest height, whose branches
+cost more than the loads they saved. In the maps: the third lookup is done for every listed pixel (cheaper than a
 branch); the maps are scattered cell by cell, four pixels at a time (loads first, then stores, at unsigned indices:
 SLP-vectorized); the facades are listed branch-free only in cells with a wall, and their facing (a float64 square
-root) computed over that list alone; untilted rays are the pixel offsets themselves, computed where listed (no
-per-pixel ray planes). The march computes every probe's pixel for a whole row of cells in vectorized loops
-(``_probe_row``), then the per-cell skip test and first-hit search read them; the 3 x 3 maximum is separable over a
-zero-padded hit grid.
+root) computed over that list alone; untilted rays are the pixel offsets themselves, computed where listed. Both
+kernels prefer 512-bit vectors (``world.kernels.wide_vectors``: 0.21 -> 0.19 ms (march), 0.55 -> 0.53 ms (maps) a
+frame in flight).
 
-Measured (2-core Xeon VM, one core, replaying the 121 frames of the perf flight; medians, before -> after,
-interleaved in one process at load 1.4-2.2; "in flight": after two floor warps as in the benchmark): ``view_maps``
-1.15-1.25 -> 0.58-0.80 ms in flight, 1.04-1.11 -> 0.48-0.54 ms back to back; ``march`` 0.62-0.74 -> 0.45-0.67 ms
-in flight, 0.56-0.67 -> 0.39-0.42 ms back to back (nadir and tilted alike). In the render of the perf flight
-(load 2.0): march 0.64 -> 0.54, view_maps 1.16 -> 0.57 ms a frame; the benchmark's perspective rows (three
-alternating runs, load 1.4-1.7): 4.38-4.67x -> 3.75-3.92x the floor (3.87-4.02 -> 3.33-3.39 ms), with gimbal tilt
-4.78-4.95x -> 3.99-4.08x (4.14-4.19 -> 3.43-3.53 ms). Where view_maps' cycles went before (rdtsc per
-section): the relief list 23 %, the three steps' scalar index and lookup passes 32 %, the facade's float64 square
-root for every relief pixel 15 %, the scatter 13 %, the flat pass 13 %. Measured and not kept: a relief cell whose
-lookups all fall in blocks of one height (block minimum = maximum) skipping them (no gain within the noise on the
-perf scene and on RealisticPaper), a uint16 palette of the height model (2-byte gathers: 4 % of the maps kernel), the
-march without early exit (slower), the lookups inside the index passes (LLVM then kept those loops scalar: it
-cannot bound a computed index; slower than before), the third lookup only where the second step moved (the
-pixel's index set to 0 elsewhere: no gain), 512-bit vectors (``world.kernels.wide_vectors``: within the noise).
+Measured (2-core Xeon VM, one core): replaying the 121 frames of the perf flight (medians, interleaved in one
+process at load 0.6-2.2; "in flight": after two floor warps), before -> after: ``view_maps`` 1.15-1.25 -> 0.58-0.80
+ms in flight, 1.04-1.11 -> 0.48-0.54 ms back to back; ``march`` 0.62-0.74 -> 0.21-0.24 ms in flight, 0.55-0.66 ->
+0.15-0.18 ms back to back (nadir and tilted alike). In the render of the perf flight (load 1.5): march 0.47 -> 0.19
+ms, view_maps 1.16 -> 0.53 ms a frame. The benchmark's perspective rows (two alternating runs against the commit
+before, load 1.3-1.6): 4.40-4.49x -> 3.16-3.26x the floor (3.82-3.86 -> 2.74-2.75 ms), with gimbal tilt 4.81-4.87x
+-> 3.34-3.41x (4.15-4.22 -> 2.83-2.90 ms). Where the cycles went before (rdtsc per section): view_maps: the relief
+list 23 %, the three steps' scalar index and lookup passes 32 %, the facade's float64 square root for every relief
+pixel 15 %, the scatter 13 %, the flat pass 13 %; march: the per-cell skip test and probe loop (branch-bound) 75 %,
+the block maxima 6 %, the 3 x 3 maximum 18 %. Measured and not kept: a relief cell whose lookups all fall in blocks
+of one height skipping them (no gain within the noise), a uint16 palette of the height model (4 % of the maps
+kernel), the lookups inside the index passes (LLVM then kept those loops scalar: slower than before), the third
+lookup only where the second step moved (the index set to 0 elsewhere: no gain), the march's skip test with
+precomputed block maxima of the whole map and one lookup of 2 x 2 blocks (no gain: its branches were the cost).
 
 Exactness: the maps equal those of the OpenCV/NumPy implementation they replace (perspective v5) bit for bit. Every
 float32 operation is the one that implementation did, in the same order:
@@ -59,9 +59,9 @@ from numba.extending import intrinsic
 
 from ..world.kernels import JIT as _JIT
 from ..world.kernels import fma32 as _fma
+from ..world.kernels import wide_vectors as _wide
 from .frame_kernel import gain_byte
 
-_BLOCK = 4     # the march's skip test: maxima of 4 x 4 pooled pixels
 _LANES = 16    # OpenCV's nearest warps: vector body in blocks of 2 x 8 float32 lanes (AVX2), scalar tail after it
 _F32 = np.float32
 _FAR = -(1 << 30)   # an int32 pixel far outside any window (below every rounded coordinate within +-1e9)
@@ -101,36 +101,44 @@ def _row_terms(terms: np.ndarray, probes: np.ndarray, y: int) -> None:
 
 
 @numba.njit(inline="always", **_JIT)
-def _window_index(ix: int, iy: int, rows: int, cols: int, stride: int) -> int:
-    """Flat index (rows ``stride`` apart) of (ix, iy) in a (rows, cols) window, -1 outside it."""
-    if 0 <= ix < cols and 0 <= iy < rows:
-        return iy * stride + ix
-    return -1
+def _window_index(ix: np.int32, iy: np.int32, rows: int, cols: int, stride: int) -> np.int32:
+    """Flat index (int32, rows ``stride`` apart) of (ix, iy) in a (rows, cols) window, -1 outside it
+    (branch-free)."""
+    inside = (ix >= 0) & (ix < cols) & (iy >= 0) & (iy < rows)
+    return _index32(iy, np.int32(stride), ix) if inside else np.int32(-1)
 
 
 @numba.njit(inline="always", **_JIT)
-def _probe_row(px: np.ndarray, py: np.ndarray, c0: np.float32, c1: np.float32, c2: np.float32, v0: np.float32,
-               v1: np.float32, v2: np.float32, t0: np.float32, t1: np.float32, t2: np.float32, m2: np.float32,
-               m5: np.float32, m8: np.float32, body: int, perspective: bool) -> None:
-    """The source pixels OpenCV's nearest warp reads for the destination pixels (x, y) of a row, into ``px``/``py``
-    (int32, ``_round_px``), from one row of ``_row_terms``: the warp's x coefficients ``c`` (M0, M3, M6), its row
-    terms in the vector body ``v`` (``y M1 + M2`` etc., rounded) and in the scalar tail ``t`` (``y M1`` etc.; then
-    M2, M5, M8): the vector body's ``fma(M0, x, .)`` for x < ``body``, the compiled tail's ``fma(x, M0, y M1) + M2``
-    after it (two vectorized loops)."""
+def _probe_row(q: np.ndarray, c0: np.float32, c1: np.float32, c2: np.float32, v0: np.float32, v1: np.float32,
+               v2: np.float32, t0: np.float32, t1: np.float32, t2: np.float32, m2: np.float32, m5: np.float32,
+               m8: np.float32, body: int, rows: int, cols: int, stride: int, perspective: bool) -> None:
+    """The source pixels OpenCV's nearest warp reads for the destination pixels (x, y) of a row, as flat indices
+    ``q`` (int32, rows ``stride`` apart) in a (rows, cols) window, -1 outside it, from one row of ``_row_terms``: the
+    warp's x coefficients ``c`` (M0, M3, M6), its row terms in the vector body ``v`` (``y M1 + M2`` etc., rounded)
+    and in the scalar tail ``t`` (``y M1`` etc.; then M2, M5, M8): the vector body's ``fma(M0, x, .)`` for x <
+    ``body``, the compiled tail's ``fma(x, M0, y M1) + M2`` after it (two vectorized loops)."""
     for x in range(body):
         xf = _F32(x)
         sx, sy = _fma(c0, xf, v0), _fma(c1, xf, v1)
         if perspective:
             w = _fma(c2, xf, v2)
             sx, sy = sx / w, sy / w
-        px[x], py[x] = _round_px(sx), _round_px(sy)
-    for x in range(body, px.size):
+        q[x] = _window_index(_round_px(sx), _round_px(sy), rows, cols, stride)
+    for x in range(body, q.size):
         xf = _F32(x)
         sx, sy = _fma(xf, c0, t0) + m2, _fma(xf, c1, t1) + m5
         if perspective:
             w = _fma(xf, c2, t2) + m8
             sx, sy = sx / w, sy / w
-        px[x], py[x] = _round_px(sx), _round_px(sy)
+        q[x] = _window_index(_round_px(sx), _round_px(sy), rows, cols, stride)
+
+
+@numba.njit(inline="always", **_JIT)
+def _read_row(flat: np.ndarray, base: int, q: np.ndarray, out: np.ndarray) -> None:
+    """``out[x] = flat[base + q[x]]`` where ``q[x] >= 0``, ``flat[base]`` elsewhere (the caller ignores it): the
+    loads alone, unconditional (scalar; the loops around them vectorize)."""
+    for x in range(q.size):
+        out[x] = flat[np.uint64(base + max(q[x], np.int32(0)))]
 
 
 def _march_kernel(perspective: bool):
@@ -140,7 +148,8 @@ def _march_kernel(perspective: bool):
     @numba.njit(**_JIT)
     def march(z0: np.ndarray, relief: np.ndarray, probes: np.ndarray, thresholds: np.ndarray, levels: np.ndarray,
               pooled: np.ndarray, ground: np.ndarray, window: np.ndarray) -> int:
-        """The coarse march of ``ReliefView.maps``, one cell of the (hc, wc) grid at a time; returns the number of
+        """The coarse march of ``ReliefView.maps`` over the (hc, wc) grid, a row of cells at a time: every probe's
+        pixel (vectorized), the heights there (the loads alone), then the hits (vectorized); returns the number of
         relief cells.
 
         ``probes`` (steps + 1, 9) float32: the warp of cell (x, y) to the pooled window at height 0 (row 0: where
@@ -148,6 +157,7 @@ def _march_kernel(perspective: bool):
         ``levels[i]`` whose pooled height exceeds ``thresholds[i]`` (0 without one), ``z0`` the hits' 3 x 3
         maximum; ``relief`` marks cells with ``z0 > 0`` or a non-zero ``ground`` at height 0. ``pooled`` and
         ``ground`` (C-contiguous, of one shape) are read in ``window`` (row0, col0, rows, cols), zero outside."""
+        _wide()
         hc, wc = z0.shape
         nr, nc = window[2], window[3]
         stride = pooled.shape[1]
@@ -155,43 +165,28 @@ def _march_kernel(perspective: bool):
         pool, reach = pooled.reshape(-1), ground.reshape(-1)
         body = (wc // _LANES) * _LANES
         steps = thresholds.size
-        # Skip test: a cell's probes lie on the segment between its first and last (m(z) is linear in z), so
-        # their pixels lie in that segment's box widened by a pixel (rounding); where the block maximum over the box
-        # is at most the lowest threshold no probe can hit (exact: the same decision as probing every height)
-        bnr, bnc = -(-nr // _BLOCK), -(-nc // _BLOCK)
-        blocks = np.zeros((bnr, bnc), np.float32)
-        for r in range(nr):
-            for c in range(nc):
-                blocks[r // _BLOCK, c // _BLOCK] = max(blocks[r // _BLOCK, c // _BLOCK], pool[base + r * stride + c])
-        low = thresholds[steps - 1]
-        hit = np.zeros((hc + 2, wc + 2), np.float32)   # zero-padded for the 3 x 3 maximum
+        hit_flat = np.zeros((hc + 2) * (wc + 2), np.float32)   # zero-padded for the 3 x 3 maximum
+        hit = hit_flat.reshape(hc + 2, wc + 2)
         tm = np.empty((steps + 1, 12), np.float32)     # each warp's terms on the row (_row_terms)
-        px, py = np.empty((steps + 1, wc), np.int32), np.empty((steps + 1, wc), np.int32)
+        q = np.empty((steps + 1, wc), np.int32)        # each probe's pixel on the row
+        val = np.empty((steps + 1, wc), np.float32)    # and the height read there
         for y in range(hc):
             _row_terms(tm, probes, y)
-            for i in range(steps + 1):      # every probe's pixel on the row (vectorized; x < body: the vector body)
-                _probe_row(px[i], py[i], tm[i, 0], tm[i, 1], tm[i, 2], tm[i, 3], tm[i, 4], tm[i, 5], tm[i, 6],
-                           tm[i, 7], tm[i, 8], tm[i, 9], tm[i, 10], tm[i, 11], body, perspective)
-            hit_row = hit[y + 1]
+            for i in range(steps + 1):
+                _probe_row(q[i], tm[i, 0], tm[i, 1], tm[i, 2], tm[i, 3], tm[i, 4], tm[i, 5], tm[i, 6], tm[i, 7],
+                           tm[i, 8], tm[i, 9], tm[i, 10], tm[i, 11], body, nr, nc, stride, perspective)
+            _read_row(reach, base, q[0], val[0])
+            for i in range(1, steps + 1):
+                _read_row(pool, base, q[i], val[i])
+            o = (y + 1) * (wc + 2) + 1
+            r_row, hit_row, q0, v0 = relief[y], hit_flat[o:o + wc], q[0], val[0]
             for x in range(wc):
-                q = _window_index(px[0, x], py[0, x], nr, nc, stride)
-                relief[y, x] = 1 if q >= 0 and reach[base + q] > 0.0 else 0
-                ax, ay, bx, by = px[1, x], py[1, x], px[steps, x], py[steps, x]
-                c0, c1 = max(min(ax, bx) - 1, 0), min(max(ax, bx) + 1, nc - 1)
-                r0, r1 = max(min(ay, by) - 1, 0), min(max(ay, by) + 1, nr - 1)
-                if c0 > c1 or r0 > r1:
-                    continue            # the whole segment outside the window: reads zeros
-                top = _F32(0.0)
-                for br in range(r0 // _BLOCK, r1 // _BLOCK + 1):
-                    for bc in range(c0 // _BLOCK, c1 // _BLOCK + 1):
-                        top = max(top, blocks[br, bc])
-                if top <= low:
-                    continue
-                for i in range(1, steps + 1):
-                    q = _window_index(px[i, x], py[i, x], nr, nc, stride)
-                    if q >= 0 and pool[base + q] > thresholds[i - 1]:
-                        hit_row[x + 1] = levels[i - 1]
-                        break
+                r_row[x] = np.uint8((q0[x] >= 0) & (v0[x] > _F32(0.0)))
+                hit_row[x] = _F32(0.0)
+            for i in range(1, steps + 1):  # the first hit from the top: the highest level hit (levels decrease)
+                level, threshold, qi, vi = levels[i - 1], thresholds[i - 1], q[i], val[i]
+                for x in range(wc):
+                    hit_row[x] = max(hit_row[x], level * _F32((qi[x] >= 0) & (vi[x] > threshold)))
         count = 0
         across = np.empty((3, wc), np.float32)     # the rows' maxima over x - 1..x + 1, cycled
         for y in range(-2, hc):
@@ -265,6 +260,7 @@ def _maps_kernel(tilted: bool, replicate: bool):
         the affine's linear part (ground point - nadir), ``consts`` float32 (nadir x, nadir y, origin-shifted nadir
         x, y, H, surface tolerance, height cap), fixed-point steps from the cell's ``z0`` on ``dsm`` (C-contiguous;
         read per ``window``: c0, r0, c1, r1)."""
+        _wide()
         h, w = out_x.shape
         hc, wc = z0.shape
         rows, cols = dsm.shape
