@@ -271,16 +271,27 @@ def remap_finish(box, map_x, map_y, shade_px, shade_gain, lut, out, alpha, senso
     no_occ = np.empty(1, np.float32)
     umax, vmax = np.float32(bw - 1), np.float32(bh - 1)
     stride = np.uint32(bw)
-    first = np.zeros(h_px + 1, np.int64)          # the shaded pixels by row (a counting sort): row y's are
-    for i in range(shade_px.shape[0]):            # shade_px[order[first[y]:first[y + 1]]]
-        first[shade_px[i] // w_px + 1] += 1
+    # the shaded pixels by row (a counting sort): row y's columns and gains are cols/gains[first[y]:first[y + 1]]
+    n_shade = shade_px.shape[0]
+    rows = np.empty(n_shade, np.int32)
+    first = np.zeros(h_px + 1, np.int64)
+    inv_w = 1.0 / w_px
+    for i in range(n_shade):
+        p = shade_px[i]
+        r = np.int64(np.float64(p) * inv_w)          # p // W without a division (exact after the correction)
+        r += np.int64((r + 1) * w_px <= p) - np.int64(r * w_px > p)
+        rows[i] = r
+    for i in range(n_shade):
+        first[rows[i] + 1] += 1
     for y in range(h_px):
         first[y + 1] += first[y]
-    order, fill = np.empty(shade_px.shape[0], np.int64), first[:h_px].copy()
-    for i in range(shade_px.shape[0]):
-        r = shade_px[i] // w_px
-        order[fill[r]] = i
-        fill[r] += 1
+    fill = first[:h_px].copy()
+    cols, gains = np.empty(n_shade, np.int64), np.empty(n_shade, shade_gain.dtype)
+    for i in range(n_shade):
+        t = fill[rows[i]]
+        cols[t] = shade_px[i] - np.int64(rows[i]) * w_px
+        gains[t] = shade_gain[i]
+        fill[rows[i]] = t + 1
     count = 0
     for y in range(h_px):
         fu, fv = map_x[y], map_y[y]
@@ -290,9 +301,7 @@ def remap_finish(box, map_x, map_y, shade_px, shade_gain, lut, out, alpha, senso
             _border_row(box, fu, fv, fa, fb, q00, q01, q10, q11)
         _blend_row(c00, c01, c10, c11, fa, fb, rgba)
         for t in range(first[y], first[y + 1]):
-            i = order[t]
-            p = 4 * (shade_px[i] - y * w_px)
-            g = shade_gain[i]
+            p, g = 4 * cols[t], gains[t]
             rgba[p] = gain_byte(rgba[p], g)
             rgba[p + 1] = gain_byte(rgba[p + 1], g)
             rgba[p + 2] = gain_byte(rgba[p + 2], g)
