@@ -297,3 +297,23 @@ def test_visible_point_is_the_first_hit_of_a_fine_ray_cast_away_from_edges(tilt_
     assert far.mean() > 0.8 and (first[far] > 0).mean() > 0.05          # roofs away from their edges count
     assert err[far].max() <= 1.0
     assert (err[~facade.reshape(first.shape)] > 1.0).mean() < 0.02       # a band a few pixels wide at edges
+
+
+def test_a_held_views_facades_are_never_overwritten():
+    """The facade lists are views of buffers reused from frame to frame only once no view of them is alive: a view
+    the caller keeps keeps its facades while later frames are made."""
+    r = renderer(box_map(40.0, 55.0, 50.0))
+    first = r._view.maps(r.camera_to_map(NADIR), H, CAM)
+    assert first.facade is not None and first.facade.size > 100
+    kept = first.facade.copy(), first.facing.copy()
+    moved = Pose(NADIR.x_m + 8.0, NADIR.y_m - 5.0, NADIR.yaw_rad + 0.2, H)
+    second = r._view.maps(r.camera_to_map(moved), H, CAM)
+    assert second.facade is not None and not np.shares_memory(first.facade, second.facade)
+    assert not np.shares_memory(first.facing, second.facing)
+    assert np.array_equal(first.facade, kept[0]) and np.array_equal(first.facing, kept[1])
+    assert not np.array_equal(second.facade[:kept[0].size], kept[0])     # the second frame's walls differ
+    facade = first.facade
+    del first
+    third = r._view.maps(r.camera_to_map(moved), H, CAM)
+    assert not np.shares_memory(facade, third.facade)     # a facade list still held on its own is not reused
+    assert np.array_equal(facade, kept[0]) and np.array_equal(third.facade, second.facade)

@@ -44,6 +44,7 @@ from __future__ import annotations
 
 import math
 import sys
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -230,7 +231,7 @@ class ReliefView:
                 _NO_DSM if self.dsm is None else self.dsm, np.array(window[:4], np.int64))
             if n == 0:
                 return ViewMaps(gx, gy, None, bbox, None, origin)
-            return ViewMaps(gx, gy, facade[:n].copy(), bbox, facing[:n].copy(), origin)
+            return ViewMaps(gx, gy, facade[:n], bbox, facing[:n], origin)
 
         def flat_view() -> ViewMaps | None:
             """Flat ground under the footprint: the affine warp (None), or the tilted camera's ground points."""
@@ -297,18 +298,24 @@ class ReliefView:
         """Two (h, w) float32 planes for a frame's maps: the last frame's when nothing else holds them any more
         (the renderer drops its view after sampling), else new ones. Fresh planes cost more than the copy: the
         kernel's first touch faults their pages in (zeroed) every frame."""
-        last = self._grids.get("maps")
-        # references: the dict's tuple, ``last`` and getrefcount's argument; a live ViewMaps adds its own
-        if last is not None and last[0].shape == (h, w) and all(sys.getrefcount(b) <= 3 for b in last):
-            return last
-        bufs = self._grids["maps"] = (np.empty((h, w), np.float32), np.empty((h, w), np.float32))
-        return bufs
+        return self._reused("maps", lambda: (np.empty((h, w), np.float32), np.empty((h, w), np.float32)),
+                            lambda bufs: bufs[0].shape == (h, w))
 
     def _facade_buffers(self, n: int) -> tuple[np.ndarray, np.ndarray]:
-        """Facade index and facing buffers for up to n pixels, reused from frame to frame."""
-        bufs = self._grids.get("facades")
-        if bufs is None or bufs[0].size < n:
-            bufs = self._grids["facades"] = (np.empty(n, np.int64), np.empty((n, 2), np.float32))
+        """Facade index and facing buffers for up to n pixels (a view returns their first rows: no copy), the last
+        frame's when nothing else holds them or a view of them any more, else new ones (as ``_map_buffers``)."""
+        return self._reused("facades", lambda: (np.empty(n, np.int64), np.empty((n, 2), np.float32)),
+                            lambda bufs: bufs[0].size >= n)
+
+    def _reused(self, key: str, new: Callable[[], tuple[np.ndarray, ...]],
+                fits: Callable[[tuple[np.ndarray, ...]], bool]) -> tuple[np.ndarray, ...]:
+        """The buffers under ``key`` if they ``fit`` and nothing else holds them (or a view of them), else ``new()``
+        ones (kept for the next frame)."""
+        last = self._grids.get(key)
+        # references: the dict's tuple, ``last`` and getrefcount's argument; a live ViewMaps (or view) adds its own
+        if last is not None and fits(last) and all(sys.getrefcount(b) <= 3 for b in last):
+            return last
+        bufs = self._grids[key] = new()
         return bufs
 
     def shade_facades(self, image: np.ndarray, view: ViewMaps, sun_deg: tuple[float, float] | None = None,
