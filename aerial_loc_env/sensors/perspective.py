@@ -63,6 +63,14 @@ _MARCH_FACTOR = 4      # the march runs on a 1/4-resolution camera grid over the
 _REMAP_MAX_PX = 32767  # cv2.remap's limit on the source's sides
 _SURFACE_TOL_M = 0.3    # h(m(z1)) within this of z1: the ray sees the surface (ridged roofs vary by less per px)
 _NO_DSM = np.zeros((1, 1), np.float32)   # the kernel's height model argument for flat views (never read)
+_NO_TILT = np.zeros((3, 3), np.float32)  # its tilt argument for untilted views (never read)
+_F = _MARCH_FACTOR
+# the march grid -> camera pixels (the block centres), identity, map px -> pooled px: the same every frame
+_GRID_TO_CAM = np.array([[_F, 0.0, (_F - 1) / 2.0], [0.0, _F, (_F - 1) / 2.0], [0.0, 0.0, 1.0]])
+_EYE = np.eye(3)
+_MAP_TO_POOL = np.array([[1.0 / _F, 0.0, 0.5 / _F - 0.5], [0.0, 1.0 / _F, 0.5 / _F - 0.5], [0, 0, 1]])
+for _const in (_GRID_TO_CAM, _EYE, _MAP_TO_POOL):    # (the kernels' arguments stay writable: one signature)
+    _const.flags.writeable = False
 
 
 @dataclass(frozen=True)
@@ -220,7 +228,7 @@ class ReliefView:
             gx, gy = self._map_buffers(h, w)
             facade, facing = self._facade_buffers(h * w)
             if tilt is None:
-                conj = np.zeros((3, 3), np.float32)
+                conj = _NO_TILT
             else:
                 shift = np.array([[1.0, 0.0, cu], [0.0, 1.0, cv], [0.0, 0.0, 1.0]])
                 conj = (np.linalg.inv(shift) @ tilt @ shift).astype(np.float32)
@@ -245,9 +253,8 @@ class ReliefView:
         # the march grid: one cell per F x F camera block, probed along the ray of the block's centre pixel
         # (q = F q_c + (F - 1) / 2, through the tilt to the nadir camera, then to the map), on the F x F block
         # maximum of the heights (map px u -> pooled px (u + 0.5) / F - 0.5)
-        grid_to_cam = np.array([[f, 0.0, (f - 1) / 2.0], [0.0, f, (f - 1) / 2.0], [0.0, 0.0, 1.0]])
-        to_map = np.vstack([a, [0.0, 0.0, 1.0]]) @ (np.eye(3) if tilt is None else tilt) @ grid_to_cam
-        map_to_pool = np.array([[1.0 / f, 0.0, 0.5 / f - 0.5], [0.0, 1.0 / f, 0.5 / f - 0.5], [0, 0, 1]])
+        to_map = np.vstack([a, [0.0, 0.0, 1.0]]) @ (_EYE if tilt is None else tilt) @ _GRID_TO_CAM
+        map_to_pool = _MAP_TO_POOL.copy()
 
         def probes(k: np.ndarray) -> np.ndarray:
             """The cells' points m(z) = nadir + k (g - nadir), k = 1 - z / H, in pooled px: (len(k), 3, 3)."""
