@@ -64,6 +64,7 @@ from .frame_kernel import gain_byte
 
 _LANES = 16    # OpenCV's nearest warps: vector body in blocks of 2 x 8 float32 lanes (AVX2), scalar tail after it
 _F32 = np.float32
+_U1, _U2, _U3 = np.uint64(1), np.uint64(2), np.uint64(3)   # unsigned offsets (no wraparound)
 _FAR = -(1 << 30)   # an int32 pixel far outside any window (below every rounded coordinate within +-1e9)
 
 
@@ -321,9 +322,10 @@ def _maps_kernel(tilted: bool, replicate: bool):
                     v = _F32(y) - cv
                     if xb - xa == 4:        # a whole cell of the march's 4 x 4 blocks: loads, then stores (SLP;
                         a, b = np.uint64(o + xa), np.uint64(m)     # unsigned: no negative-index wraparound)
+                        p1, p2, p3, q1, q2, q3 = a + _U1, a + _U2, a + _U3, b + _U1, b + _U2, b + _U3
                         if tilted:
-                            u0, u1, u2, u3 = band_du[a], band_du[a + 1], band_du[a + 2], band_du[a + 3]
-                            v0, v1, v2, v3 = band_dv[a], band_dv[a + 1], band_dv[a + 2], band_dv[a + 3]
+                            u0, u1, u2, u3 = band_du[a], band_du[p1], band_du[p2], band_du[p3]
+                            v0, v1, v2, v3 = band_dv[a], band_dv[p1], band_dv[p2], band_dv[p3]
                         else:
                             x0 = _F32(xa)
                             r0_, r1_ = x0 - cu, (x0 + _F32(1.0)) - cu
@@ -332,9 +334,9 @@ def _maps_kernel(tilted: bool, replicate: bool):
                             u2, u3 = l00 * r2_ + l01 * v, l00 * r3_ + l01 * v
                             v0, v1 = l10 * r0_ + l11 * v, l10 * r1_ + l11 * v
                             v2, v3 = l10 * r2_ + l11 * v, l10 * r3_ + l11 * v
-                        bdu[b], bdu[b + 1], bdu[b + 2], bdu[b + 3] = u0, u1, u2, u3
-                        bdv[b], bdv[b + 1], bdv[b + 2], bdv[b + 3] = v0, v1, v2, v3
-                        bk[b], bk[b + 1], bk[b + 2], bk[b + 3] = k0, k0, k0, k0
+                        bdu[b], bdu[q1], bdu[q2], bdu[q3] = u0, u1, u2, u3
+                        bdv[b], bdv[q1], bdv[q2], bdv[q3] = v0, v1, v2, v3
+                        bk[b], bk[q1], bk[q2], bk[q3] = k0, k0, k0, k0
                         m += 4
                     else:
                         for x in range(xa, xb):
@@ -387,10 +389,11 @@ def _maps_kernel(tilted: bool, replicate: bool):
                     row_x, row_y = out_x[y], out_y[y]
                     if xb - xa == 4:        # loads, then stores (SLP)
                         a, b = np.uint64(j), np.uint64(xa)
-                        u0, u1, u2, u3 = bz[a], bz[a + 1], bz[a + 2], bz[a + 3]
-                        v0, v1, v2, v3 = bz2[a], bz2[a + 1], bz2[a + 2], bz2[a + 3]
-                        row_x[b], row_x[b + 1], row_x[b + 2], row_x[b + 3] = u0, u1, u2, u3
-                        row_y[b], row_y[b + 1], row_y[b + 2], row_y[b + 3] = v0, v1, v2, v3
+                        p1, p2, p3, q1, q2, q3 = a + _U1, a + _U2, a + _U3, b + _U1, b + _U2, b + _U3
+                        u0, u1, u2, u3 = bz[a], bz[p1], bz[p2], bz[p3]
+                        v0, v1, v2, v3 = bz2[a], bz2[p1], bz2[p2], bz2[p3]
+                        row_x[b], row_x[q1], row_x[q2], row_x[q3] = u0, u1, u2, u3
+                        row_y[b], row_y[q1], row_y[q2], row_y[q3] = v0, v1, v2, v3
                         j += 4
                     else:
                         for x in range(xa, xb):
