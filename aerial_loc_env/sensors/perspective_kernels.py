@@ -426,12 +426,13 @@ def _maps_kernel(tilted: bool, replicate: bool):
                 wall_v[i] = dv * scale + oy
                 bdu[i] = -(du / dist)
                 bdv[i] = dv / dist
+            band_facade, band_facing = facade[n0:n], facing[n0:n]
             for i in range(n - n0):
-                p = facade[n0 + i]
+                p = np.uint64(band_facade[i])
                 map_x[p] = wall_u[i]
                 map_y[p] = wall_v[i]
-                facing[n0 + i, 0] = bdu[i]
-                facing[n0 + i, 1] = bdv[i]
+                band_facing[i, 0] = bdu[i]
+                band_facing[i, 1] = bdv[i]
         return n
 
     return view_maps
