@@ -19,20 +19,27 @@ root) computed over that list alone; untilted rays are the pixel offsets themsel
 kernels prefer 512-bit vectors (``world.kernels.wide_vectors``: 0.21 -> 0.19 ms (march), 0.55 -> 0.53 ms (maps) a
 frame in flight).
 
-Measured (2-core Xeon VM, one core): replaying the 121 frames of the perf flight (medians, interleaved in one
-process at load 0.6-2.2; "in flight": after two floor warps), before -> after: ``view_maps`` 1.15-1.25 -> 0.58-0.80
-ms in flight, 1.04-1.11 -> 0.48-0.54 ms back to back; ``march`` 0.62-0.74 -> 0.21-0.24 ms in flight, 0.55-0.66 ->
-0.15-0.18 ms back to back (nadir and tilted alike). In the render of the perf flight (load 1.5): march 0.47 -> 0.19
-ms, view_maps 1.16 -> 0.53 ms a frame. The benchmark's perspective rows (two alternating runs against the commit
-before, load 1.3-1.6): 4.40-4.49x -> 3.16-3.26x the floor (3.82-3.86 -> 2.74-2.75 ms), with gimbal tilt 4.81-4.87x
--> 3.34-3.41x (4.15-4.22 -> 2.83-2.90 ms). Where the cycles went before (rdtsc per section): view_maps: the relief
-list 23 %, the three steps' scalar index and lookup passes 32 %, the facade's float64 square root for every relief
-pixel 15 %, the scatter 13 %, the flat pass 13 %; march: the per-cell skip test and probe loop (branch-bound) 75 %,
-the block maxima 6 %, the 3 x 3 maximum 18 %. Measured and not kept: a relief cell whose lookups all fall in blocks
-of one height skipping them (no gain within the noise), a uint16 palette of the height model (4 % of the maps
-kernel), the lookups inside the index passes (LLVM then kept those loops scalar: slower than before), the third
-lookup only where the second step moved (the index set to 0 elsewhere: no gain), the march's skip test with
-precomputed block maxima of the whole map and one lookup of 2 x 2 blocks (no gain: its branches were the cost).
+Measured (2-core Xeon VM, one core; before = the kernels of commit 422d3a6, in which the march stopped at a cell's
+first hit after a per-cell skip test and the maps' steps looped over scalar lookups): replaying the 121 frames of
+the perf flight (medians, old and new interleaved in one process, load 0.6-2.2; "in flight": after two floor warps),
+``view_maps`` 1.15-1.25 -> 0.47-0.71 ms in flight, 1.04-1.11 -> 0.41-0.42 ms back to back; ``march`` 0.62-0.74 ->
+0.20-0.24 ms in flight, 0.55-0.66 -> 0.16-0.19 ms back to back (nadir and tilted alike). In the render of the perf
+flight (load 0.8-2.0): march 0.64 -> 0.19 ms, view_maps 1.16 -> 0.49-0.51 ms a frame. The benchmark's perspective
+rows, that commit against this one (two alternating runs, load 0.7-0.8; the render's own passes changed in between
+too): 4.52-4.58x -> 3.07-3.11x the floor (3.80-3.81 -> 2.58-2.64 ms), with gimbal tilt 4.87-4.90x -> 3.22-3.28x
+(4.06-4.12 -> 2.66-2.76 ms). Where the cycles went before (rdtsc per section): view_maps: the relief list 23 %, the
+three steps' scalar index and lookup passes 32 %, the facade's float64 square root for every relief pixel 15 %, the
+scatter 13 %, the flat pass 13 %; march: the per-cell skip test and probe loop (branch-bound) 75 %, the block maxima
+6 %, the 3 x 3 maximum 18 %. Now: view_maps' flat pass (stores of both planes) and the relief list about 16 % each,
+the three loads passes 24 %, the index passes 14 %; the march's probe pixels and loads about 40 % each. Measured and
+not kept: a relief cell whose lookups all fall in blocks of one height skipping them (no gain within the noise), a
+uint16 palette of the height model (4 % of the maps kernel), the lookups inside the index passes (LLVM then kept
+those loops scalar: slower than before), the third lookup only where the second step moved (the index set to 0
+elsewhere: no gain), the march's skip test with precomputed block maxima of the whole map and one lookup of 2 x 2
+blocks (no gain: its branches were the cost), the relief list in row-major runs with slice copies (slower: numba's
+slice assignment on short runs), the ground's tallest block (``cv2.warpAffine`` + ``minMaxLoc`` in
+``ReliefView.maps``) as a kernel (0.1 ms less in ``maps`` but the same frame time: the march then paid the cold
+reads).
 
 Exactness: the maps equal those of the OpenCV/NumPy implementation they replace (perspective v5) bit for bit. Every
 float32 operation is the one that implementation did, in the same order:
@@ -46,8 +53,9 @@ float32 operation is the one that implementation did, in the same order:
   without fastmath fuses nothing but the explicit ``_fma``), ``np.hypot`` as glibc's ``hypotf`` (double sqrt).
 These are OpenCV 5's kernels as dispatched on x86-64 with AVX2 (measured against it; OpenCV 4 rounded its warps in
 fixed point, so there the old path differed in rare probes). ``tests/test_perspective_kernels.py`` checks all of it
-against the OpenCV/NumPy reference. The kernels compile on first use (about 4 s per view kind: nadir or tilted) and
-are cached beside the module.
+against the OpenCV/NumPy reference. The kernels compile on first use (about 4 s per view kind: nadir or tilted; the
+perf row's setup with an empty numba cache 2.7 -> 3.5 s for the tilted kind with these loops) and are cached beside
+the module.
 """
 
 from __future__ import annotations
