@@ -8,8 +8,24 @@ sampled the baked shadows, 6.3-6.5x (7.3x) and 5.4-5.7x (6.4-6.7x) after (altern
 per frame). With the maps as numba kernels (``sensors.perspective_kernels``, bit-identical) and the compiled
 finishing pass, 4.95-4.97x (5.47-5.73x) at load 1.5-2; in one process, interleaved (load 2.2), the maps cost 2.28x
 the floor inside the render (2.56x tilted) where the OpenCV/NumPy maps cost 2.57x (3.17x): the frame 5.41x against
-6.15x (5.96x against 7.02x). The maps are memory-bound: the relief pixels' gathers from the height model (a fifth
-of this scene's pixels) and the march's probes, after the previous frame's warp and finishing pass evicted them.
+6.15x (5.96x against 7.02x).
+
+Then (issue 11's last row) the baked box's remap, the finishing pass, the facades and the second finishing pass
+became one compiled pass (``frame_kernel.remap_finish``: OpenCV 5's remap arithmetic bit for bit, the facades'
+gains applied to each row before its tone), the maps' kernels were rewritten so that LLVM vectorizes them (their
+module docstring has the figures), and the bake box here is padded by two grid cells as the env pads it (6 of the
+121 perspective frames had fallen back to the per-frame grid): 4.90-5.15x (5.42-5.77x tilted) at load 0-1.6 ->
+3.07-3.24x (3.22-3.38x) at load 0-0.9, the frames unchanged. Where a frame's 2.6 ms go now (in flight, load 0,
+floor 0.81-0.86 ms): ``remap_finish`` 1.48-1.52 ms (the bilinear sampling and tone about 0.9, the sensor stage
+0.25, the ~10.7k facade pixels 0.06-0.1, and 0.1-0.2 more than ``warp_finish`` with the frame's affine on the same
+box: the maps' reads and what the maps kernels evicted), ``view_maps`` 0.45, ``march`` 0.18, the Python around them
+0.45 (``ReliefView.maps`` 0.19; the rest of the render about a hundred small NumPy/OpenCV calls, 2-5 us each when
+cold). Measured and not kept: prefetching the box rows that the row 8 rows down reads (no faster), the flat cells'
+points computed in the pass instead of read from the maps (1.44 against 1.28 ms replayed: the arithmetic and the
+per-cell copies cost more than the reads), the rows sampled bottom-up so that the maps written last are read first
+(1.57 against 1.48 ms). What 3x needs: the maps and the sampling in one pass per band of rows (the maps would not go
+through memory; the facades' gains, computed by NumPy between the two kernels, would wait as a list of their
+pixels' pre-tone values for a last small pass), and fewer small NumPy calls a frame.
 
 Where a baked-shadow frame's time goes (2-core Xeon VM, load 1-2, floor 0.87-0.95 ms): the RGBA warp of the baked
 box 1.0-1.3 ms (more than the floor: a flight reads a new, rotated region each frame, and the finishing pass in
@@ -26,9 +42,10 @@ ms) in three alternating runs at load 0.8-1.0. Then 2.04-2.15x -> 1.75-1.84x (1.
 pass compiled for 512-bit vectors throughout (``world.kernels.wide_vectors``): with LLVM's default mix of 256- and
 512-bit loops the pass took 1.25 ms back to back but 1.45-1.75 ms after 4 ms of other work (the floor warps
 between frames here, the estimators in an episode; a bare Python loop did it too), 1.10 and 1.11-1.15 ms with it.
-The same hint on the perspective maps and the MCL kernels: no gain on the maps, SSD/NCC and the pair models slower
-(4.3x -> 5.1x), so it is not there. The first frame of a process compiles the kernels (about 3 s with an
-empty numba cache, 0.3-0.4 s to load them from it): setups render one frame before the timing starts.
+The same hint on the MCL kernels made SSD/NCC and the pair models slower (4.3x -> 5.1x), so it is not there; the
+perspective kernels as rewritten since take it (0.21 -> 0.19 ms, 0.55 -> 0.53 ms a frame). The first frame of a
+process compiles the kernels (about 3 s with an empty numba cache, 0.3-0.4 s to load them from it): setups render
+one frame before the timing starts.
 """
 
 from __future__ import annotations
