@@ -197,26 +197,15 @@ def warp_finish(box, m, lut, out, alpha, sensor, vig, bank, dy, dx3, sigma_mode,
     """
     _wide_vectors()
     h_px, w_px = alpha.shape
-    bh, bw = box.shape
     w3 = 3 * w_px
-    flat = box.reshape(bh * bw)
+    flat, bw, umax, vmax, stride = _box_layout(box)
     l0, l1, l2 = lut[0], lut[1], lut[2]
     m0, m1, m2 = np.float32(m[0, 0]), np.float32(m[0, 1]), np.float32(m[0, 2])
     m3, m4, m5 = np.float32(m[1, 0]), np.float32(m[1, 1]), np.float32(m[1, 2])
     fu = np.empty(w_px, np.float32)
     fv = np.empty(w_px, np.float32)
-    fa = np.empty(4 * w_px, np.float32)
-    fb = np.empty(4 * w_px, np.float32)
-    idx = np.empty(w_px, np.uint32)
-    q = np.empty((4, w_px), np.uint32)
-    q00, q01, q10, q11 = q[0], q[1], q[2], q[3]
-    c00, c01, c10, c11 = q00.view(np.uint8), q01.view(np.uint8), q10.view(np.uint8), q11.view(np.uint8)
-    rgba = np.empty(4 * w_px, np.uint8)
-    o = np.empty(w3, np.uint8)
-    no_occ = np.empty(1, np.float32)     # (the float occlusion and shading of ``_scene_row``: unused here)
+    fa, fb, idx, q00, q01, q10, q11, c00, c01, c10, c11, rgba, o, no_occ = _row_buffers(w_px)
     x_tail = w_px - w_px % WARP_STEP_PX
-    umax, vmax = np.float32(bw - 1), np.float32(bh - 1)
-    stride = np.uint32(bw)
     ahead = np.int64(np.rint(8.0 * m[1, 1])) * bw + np.int64(np.rint(8.0 * m[0, 1]))   # 8 frame rows down
     count = 0
     for y in range(h_px):
@@ -256,21 +245,10 @@ def remap_finish(box, map_x, map_y, shade_px, shade_gain, lut, out, alpha, senso
     """
     _wide_vectors()
     h_px, w_px = alpha.shape
-    bh, bw = box.shape
-    w3 = 3 * w_px
-    flat = box.reshape(bh * bw)
+    flat, _, umax, vmax, stride = _box_layout(box)
+    fa, fb, idx, q00, q01, q10, q11, c00, c01, c10, c11, rgba, o, no_occ = _row_buffers(w_px)
     l0, l1, l2 = lut[0], lut[1], lut[2]
-    fa = np.empty(4 * w_px, np.float32)
-    fb = np.empty(4 * w_px, np.float32)
-    idx = np.empty(w_px, np.uint32)
-    q = np.empty((4, w_px), np.uint32)
-    q00, q01, q10, q11 = q[0], q[1], q[2], q[3]
-    c00, c01, c10, c11 = q00.view(np.uint8), q01.view(np.uint8), q10.view(np.uint8), q11.view(np.uint8)
-    rgba = np.empty(4 * w_px, np.uint8)
-    o = np.empty(w3, np.uint8)
-    no_occ = np.empty(1, np.float32)
-    umax, vmax = np.float32(bw - 1), np.float32(bh - 1)
-    stride = np.uint32(bw)
+    w3 = 3 * w_px
     # the shaded pixels by row (a counting sort): row y's columns and gains are cols/gains[first[y]:first[y + 1]]
     n_shade = shade_px.shape[0]
     rows = np.empty(n_shade, np.int32)
@@ -315,6 +293,26 @@ def gain_byte(v, g):
     """``rint(v g)`` clipped to 0..255 for a byte ``v`` and a gain ``g`` (NumPy's ``uint8 * float32`` in float32,
     or in float64 for a float64 gain)."""
     return np.uint8(min(max(np.rint(np.float32(v) * g), np.float32(0.0)), np.float32(255.0)))
+
+
+@nb.njit(inline="always", **_JIT)
+def _box_layout(box):
+    """A box of uint32 pixels as the sampling passes read it: flat, its width, the largest source point whose four
+    neighbours are all inside (exclusive, float32, per axis) and the row stride."""
+    bh, bw = box.shape
+    return box.reshape(bh * bw), bw, np.float32(bw - 1), np.float32(bh - 1), np.uint32(bw)
+
+
+@nb.njit(inline="always", **_JIT)
+def _row_buffers(w_px):
+    """The row buffers of the box-sampling passes (``warp_finish``, ``remap_finish``): the bilinear weights spread to
+    the four channels, the top-left neighbours' indices, the four neighbours as uint32 pixels and as their bytes,
+    the sampled RGBA row, the toned RGB row, and ``_scene_row``'s float occlusion (unused with the baked alpha)."""
+    q = np.empty((4, w_px), np.uint32)
+    q00, q01, q10, q11 = q[0], q[1], q[2], q[3]
+    return (np.empty(4 * w_px, np.float32), np.empty(4 * w_px, np.float32), np.empty(w_px, np.uint32),
+            q00, q01, q10, q11, q00.view(np.uint8), q01.view(np.uint8), q10.view(np.uint8), q11.view(np.uint8),
+            np.empty(4 * w_px, np.uint8), np.empty(3 * w_px, np.uint8), np.empty(1, np.float32))
 
 
 @nb.njit(inline="always", **_JIT)
