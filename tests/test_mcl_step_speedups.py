@@ -108,7 +108,7 @@ def test_gsd_of_a_plain_number_equals_the_array_path_and_bad_altitudes_still_fai
 def test_pair_kernels_affine_is_camera_to_map_bit_for_bit(gsd_xy):
     """``pair_kernel.pose_affine`` (the pair kernel's per-particle affine, from NumPy's cos and sin of the yaw
     column) gives ``camera_to_map``'s floats: on- and off-map poses, any yaw, several altitudes and cameras."""
-    from aerial_loc_env.estimators.mcl.pair_kernel import affine_terms, pose_affines
+    from aerial_loc_env.estimators.mcl.pair_kernel import pose_affines
 
     grid = SimpleNamespace(gsd_x_m=gsd_xy[0], gsd_y_m=gsd_xy[1], height_px=1234)
     g = np.random.default_rng(8)
@@ -119,10 +119,10 @@ def test_pair_kernels_affine_is_camera_to_map_bit_for_bit(gsd_xy):
         for alt in (200.0, 173, np.float64(88.8), np.float32(123.4)):
             ref = cam.camera_to_map(grid, states[:, 0], states[:, 1], states[:, 2], alt)
             yaw = states[:, 2]
-            out = pose_affines(affine_terms(cam, grid, alt), states, np.cos(yaw), np.sin(yaw), np.empty((n, 2, 3)))
+            out = pose_affines(cam.affine_terms(grid, alt), states, np.cos(yaw), np.sin(yaw), np.empty((n, 2, 3)))
             np.testing.assert_array_equal(out, ref)
     with pytest.raises(ConfigError, match="altitude_m"):
-        affine_terms(CameraModel(), grid, float("nan"))
+        CameraModel().affine_terms(grid, float("nan"))
 
 # ---------------------------------------------------------------------- motion
 @pytest.mark.parametrize("state", ["xy", "xyyaw"])

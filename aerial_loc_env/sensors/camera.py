@@ -187,20 +187,36 @@ class CameraModel:
         a = self.camera_to_map(orthomap, x_m, y_m, yaw_rad, altitude_m).reshape(-1, 2, 3)
         return apply_affine(a, uv)
 
-    def project_pose(self, orthomap: MapGrid, pose: Pose) -> np.ndarray:
-        """``camera_to_map`` (2, 3) for a single ``Pose``, in scalar float64 arithmetic: the same operations in the
-        same order as ``camera_to_world`` then ``camera_to_map`` (the same floats; tests/test_render_geometry.py
-        checks them bit for bit) without a dozen numpy calls on 0-d arrays (the renderer calls it every frame)."""
-        x, y, yaw, alt = (float(v) for v in pose)
+    def affine_terms(self, orthomap: MapGrid, altitude_m: float) -> tuple[float, ...]:
+        """The scalars of ``camera_to_map`` at one altitude, as ``pose_affine`` takes them: the pixel's ground size
+        along u and v, the image centre (u, v), and the world -> map affine's x scale, x offset, y scale and y
+        offset (float64)."""
+        gu = self.gsd_m(float(altitude_m))
         (wx, _, ox), (_, wy, oy) = world_to_map_affine(orthomap).tolist()
-        cu, cv = self.center_px
-        gu = self.gsd_m(alt)
-        gv = gu * self.pixel_aspect
-        c, s = float(np.cos(yaw)), float(np.sin(yaw))   # numpy's cos/sin, as camera_to_world's
-        a00, a01, a10, a11 = gu * s, -gv * c, -gu * c, -gv * s
-        a02 = x - a00 * cu - a01 * cv
-        a12 = y - a10 * cu - a11 * cv
-        return np.array([[a00 * wx, a01 * wx, a02 * wx + ox], [a10 * wy, a11 * wy, a12 * wy + oy]])
+        return (gu, gu * self.pixel_aspect, *(float(c) for c in self.center_px), wx, ox, wy, oy)
+
+    def project_pose(self, orthomap: MapGrid, pose: Pose) -> np.ndarray:
+        """``camera_to_map`` (2, 3) for a single ``Pose``, in scalar float64 arithmetic (``pose_affine``: the same
+        floats; tests/test_render_geometry.py checks them bit for bit) without a dozen numpy calls on 0-d arrays
+        (the renderer calls it every frame)."""
+        x, y, yaw, alt = (float(v) for v in pose)
+        a = pose_affine(self.affine_terms(orthomap, alt), x, y, float(np.cos(yaw)), float(np.sin(yaw)))
+        return np.array(a).reshape(2, 3)
+
+
+def pose_affine(terms: tuple[float, ...], x: float, y: float, c: float, s: float) -> tuple[float, ...]:
+    """``CameraModel.camera_to_map`` of one pose (x, y, its yaw's cos ``c`` and sin ``s``, NumPy's) as six float64
+    (a00, a01, a02, a10, a11, a12), from ``CameraModel.affine_terms``: the same operations in the same order as the
+    vectorized form (``camera_to_world``'s rows, then each row scaled and its translation shifted), so the same
+    floats. Plain arithmetic on purpose: the MCL pair kernel compiles this same function (numba fuses no
+    multiply-add), so the renderer and the particles share one formula."""
+    gu, gv, cu, cv, wx, ox, wy, oy = terms[0], terms[1], terms[2], terms[3], terms[4], terms[5], terms[6], terms[7]
+    # right of the vehicle = (sin, -cos), forward = (cos, sin); v grows backwards (as camera_to_world)
+    a00, a01 = gu * s, -gv * c
+    a10, a11 = -gu * c, -gv * s
+    a02 = x - a00 * cu - a01 * cv
+    a12 = y - a10 * cu - a11 * cv
+    return a00 * wx, a01 * wx, a02 * wx + ox, a10 * wy, a11 * wy, a12 * wy + oy
 
 
 # ---------------------------------------------------------------------- affine helpers

@@ -101,7 +101,7 @@ from ..shadow_detection import (
     restoration_lut,
 )
 from .measurement import MeasurementModel, register_model
-from .pair_kernel import affine_terms, camera_pairs, pair_agreements, pose_affines
+from .pair_kernel import camera_pairs, pair_agreements, pose_affines
 
 if TYPE_CHECKING:
     from ...env.briefing import Briefing
@@ -276,7 +276,7 @@ class IntensityPairsModel(MeasurementModel):
         self.map_detector = MapRatioShadowDetector(build_config(
             MapRatioDetectorConfig, cfg.map_detector_params, where="intensity pairs: map_detector_params"))
         self._db: np.ndarray | None = None
-        self._terms: tuple[float, np.ndarray] | None = None
+        self._terms: tuple[float, tuple[float, ...]] | None = None
 
     # ---------------------------------------------------------------- per map
     def reset(self, briefing: Briefing, rng: np.random.Generator) -> None:
@@ -285,7 +285,7 @@ class IntensityPairsModel(MeasurementModel):
         copy, one 4-byte word a pixel, was 4-8 % slower a step: 16 MB more to keep in the cache.)"""
         m = briefing.orthomap
         self.orthomap, self.camera = m, briefing.camera
-        self._terms: tuple[float, np.ndarray] | None = None
+        self._terms: tuple[float, tuple[float, ...]] | None = None
         rgb = np.asarray(m.rgb)
         if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
             raise ConfigError(f"{m.name}: the database must be (H, W, 3) uint8 RGB, got {rgb.shape} {rgb.dtype}")
@@ -374,11 +374,11 @@ class IntensityPairsModel(MeasurementModel):
         return prepared
 
     # ---------------------------------------------------------------- per particle (vectorized)
-    def _affine_terms(self, altitude_m: float) -> np.ndarray:
-        """``pair_kernel.affine_terms`` at ``altitude_m``, kept for the last altitude (the same every step)."""
+    def _affine_terms(self, altitude_m: float) -> tuple[float, ...]:
+        """``CameraModel.affine_terms`` at ``altitude_m``, kept for the last altitude (the same every step)."""
         alt = float(altitude_m)
         if self._terms is None or self._terms[0] != alt:
-            self._terms = (alt, affine_terms(self.camera, self.orthomap, alt))
+            self._terms = (alt, self.camera.affine_terms(self.orthomap, alt))
         return self._terms[1]
 
     def _affine_rows(self, states: np.ndarray, altitude_m: float, offset_px: float) -> np.ndarray:

@@ -14,37 +14,17 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from ...sensors.camera import world_to_map_affine
+from ...sensors import camera as _camera
 from ...world.kernels import JIT, prefetch
 
-
-def affine_terms(camera, orthomap, altitude_m: float) -> np.ndarray:
-    """The scalars of ``CameraModel.camera_to_map`` at one altitude, as ``pose_affine`` takes them (float64):
-    the pixel's ground size along u and v, the image centre (u, v), and the world -> map affine's x scale, x
-    offset, y scale and y offset."""
-    gu = camera.gsd_m(float(altitude_m))
-    w = world_to_map_affine(orthomap)
-    return np.array([gu, gu * camera.pixel_aspect, *camera.center_px, w[0, 0], w[0, 2], w[1, 1], w[1, 2]])
-
-
-@njit(**JIT)
-def pose_affine(terms, x, y, c, s):
-    """``CameraModel.camera_to_map`` of one pose (x, y, its yaw's cos ``c`` and sin ``s``, NumPy's) as six
-    float64 (a00, a01, a02, a10, a11, a12): the same operations in the same order as its vectorized form
-    (``camera_to_world``'s rows, then each row scaled and its translation shifted), so the same floats (numba
-    fuses no multiply-add; tests/test_mcl_step_speedups.py checks it bit for bit)."""
-    gu, gv, cu, cv, wx, ox, wy, oy = terms[0], terms[1], terms[2], terms[3], terms[4], terms[5], terms[6], terms[7]
-    a00, a01 = gu * s, -gv * c
-    a10, a11 = -gu * c, -gv * s
-    a02 = x - a00 * cu - a01 * cv
-    a12 = y - a10 * cu - a11 * cv
-    return a00 * wx, a01 * wx, a02 * wx + ox, a10 * wy, a11 * wy, a12 * wy + oy
+#: ``sensors.camera.pose_affine`` compiled: eq. (3)'s affine of one particle, the renderer's floats
+pose_affine = njit(**JIT)(_camera.pose_affine)
 
 
 @njit(**JIT)
 def pose_affines(terms, poses, cos, sin, out):
     """``pose_affine`` of every pose: ``out`` (N, 2, 3) = ``camera_to_map`` of ``poses`` (N, >= 2) [x_m, y_m, ...]
-    with ``cos``/``sin`` (N,) of their yaws."""
+    with ``cos``/``sin`` (N,) of their yaws and ``terms`` = ``CameraModel.affine_terms``."""
     for m in range(poses.shape[0]):
         a = pose_affine(terms, poses[m, 0], poses[m, 1], cos[m], sin[m])
         out[m, 0, 0], out[m, 0, 1], out[m, 0, 2], out[m, 1, 0], out[m, 1, 1], out[m, 1, 2] = a
