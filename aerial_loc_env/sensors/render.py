@@ -621,28 +621,23 @@ class CameraRenderer:
                       pre_sensor: Callable[[np.ndarray], np.ndarray] | None, view: ViewMaps | None = None,
                       sun_deg: tuple[float, float] | None = None) -> Frame:
         """One warp of the pre-shaded box: RGB and the occlusion (alpha) together, inside the finishing pass
-        (``_BoxWarp``). ``view``: a perspective or tilted view samples the box through its maps instead (facades
-        then shaded)."""
+        (``_BoxWarp``). ``view``: a perspective or tilted view, made in the box's pixels, samples the box through its
+        maps instead, its facades shaded in the same pass (``_MapWarp``). The passes index the box with uint32: a
+        box is part of a map with an RGBA copy (``_RGBA_MAX_PX`` unless forced), far below 2**32 pixels."""
         camera = self.camera
         h, w = baked.rgba.shape[:2]
         box = baked.rgba.view(np.uint32).reshape(h, w)
-        mid: list[Callable[[np.ndarray], np.ndarray]] = []
+        out: _BoxWarp | _MapWarp
         if view is None:
             a = affine.copy()
             a[0, 2] -= baked.origin_px[0]
             a[1, 2] -= baked.origin_px[1]
-            out: np.ndarray | _BoxWarp | _MapWarp = _BoxWarp(box, a, camera.height_px, camera.width_px)
-        elif view.origin_px == baked.origin_px and h * w < 1 << 31:   # the maps in the box's pixels
-            gamma = float(baked.shading_params.get("gamma", 2.2))
-            gains = self._view.facade_gains(view, sun_deg, gamma)
-            pixels = _NO_PIXELS if view.facade is None else view.facade
-            out = _MapWarp(box, view.x, view.y, pixels, gains, camera.height_px, camera.width_px)
+            out = _BoxWarp(box, a, camera.height_px, camera.width_px)
         else:
-            out = view.sample(baked.rgba, origin_px=baked.origin_px)
-            gamma = float(baked.shading_params.get("gamma", 2.2))
-            mid.append(lambda image: self._view.shade_facades(image, view, sun_deg, gamma))
-        if pre_sensor is not None:
-            mid.append(pre_sensor)
+            gains = self._view.facade_gains(view, sun_deg, float(baked.shading_params.get("gamma", 2.2)))
+            out = _MapWarp(box, view.x, view.y, _NO_PIXELS if view.facade is None else view.facade, gains,
+                           camera.height_px, camera.width_px)
+        mid = [] if pre_sensor is None else [pre_sensor]
         image, alpha, count = self._finish(out, _BAKED_ALPHA, None, rng, speed_mps, pose, mid)
         return Frame(image=image, shadow_mask=None, shadow_fraction=count / alpha.size, valid=status == "valid",
                      status=status, pose=pose, pyramid_level=0, occlusion_q=alpha)
