@@ -36,10 +36,10 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
-from ..world.kernels import GATHER_LANES as _LANES
+from ..world.kernels import FAST_GATHER as _FAST_GATHER
 from ..world.kernels import JIT as _JIT
 from ..world.kernels import fma32 as _fma32
-from ..world.kernels import gather16 as _gather16
+from ..world.kernels import gather_row as _gather_offset
 from ..world.kernels import mul255 as _mul255
 from ..world.kernels import prefetch as _prefetch
 from ..world.kernels import quantize as _quantize
@@ -339,22 +339,21 @@ def _weights_row(fu, fv, fa, fb, idx, stride, umax, vmax):
 
 @nb.njit(inline="always", **_JIT)
 def _gather_row(flat, idx, stride, q00, q01, q10, q11):
-    """The four neighbours (uint32 RGBA pixels) of each point of a row inside the box: 16 points at a time by
-    ``world.kernels.gather16`` (the hardware gather where it pays), the row's last ``W mod 16`` one by one."""
-    one = np.uint32(1)
-    n = idx.shape[0]
-    body = n - n % _LANES
-    for x in range(0, body, _LANES):
-        _gather16(flat, idx, x, 0, q00)
-        _gather16(flat, idx, x, 1, q01)
-        _gather16(flat, idx, x, stride, q10)
-        _gather16(flat, idx, x, stride + one, q11)
-    for x in range(body, n):
-        k = idx[x]
-        q00[x] = flat[k]
-        q01[x] = flat[k + one]
-        q10[x] = flat[k + stride]
-        q11[x] = flat[k + stride + one]
+    """The four neighbours (uint32 RGBA pixels) of each point of a row inside the box (``world.kernels.gather_row``:
+    the hardware gather where it pays)."""
+    n, one = idx.shape[0], np.uint32(1)
+    if _FAST_GATHER:
+        _gather_offset(flat, idx, np.uint32(0), q00, n)
+        _gather_offset(flat, idx, one, q01, n)
+        _gather_offset(flat, idx, stride, q10, n)
+        _gather_offset(flat, idx, stride + one, q11, n)
+    else:   # one pass, four loads a point
+        for x in range(n):
+            k = idx[x]
+            q00[x] = flat[k]
+            q01[x] = flat[k + one]
+            q10[x] = flat[k + stride]
+            q11[x] = flat[k + stride + one]
 
 
 @nb.njit(inline="always", **_JIT)

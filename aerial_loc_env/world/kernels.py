@@ -171,6 +171,17 @@ gather16 = make_gather16(FAST_GATHER)
 
 
 @nb.njit(inline="always", **JIT)
+def gather_row(flat, idx, off, out, n):
+    """``out[x] = flat[idx[x] + off]`` for x < n (uint32 arrays; ``off`` uint32): ``gather16`` over the blocks of
+    16, the rest one by one."""
+    body = n - n % GATHER_LANES
+    for x in range(0, body, GATHER_LANES):
+        gather16(flat, idx, x, off, out)
+    for x in range(body, n):
+        out[x] = flat[idx[x] + off]
+
+
+@nb.njit(inline="always", **JIT)
 def mul255(a, b):
     """round(a b / 255) for a, b in [0, 255] (int32): ``cv2.multiply(a, b, scale=1/255)`` on uint8."""
     p = a * b + np.int32(128)
