@@ -27,7 +27,10 @@ keeps those passes as the reference and compares exactly); what each pass comput
 Loops run over 2-D row slices with explicit narrow casts so that LLVM vectorizes them, with 512-bit vectors
 preferred (``world.kernels.wide_vectors``: LLVM's default on AVX-512 Intel cores mixes 256- and 512-bit loops in
 these two functions, which cost a frame 0.2-0.5 ms whenever other work ran before it; same bytes); single-threaded on
-purpose (benchmarks are per core; users parallelize over environments). The first call of a process compiles
+purpose (benchmarks are per core; users parallelize over environments). Two steps use CPU instructions LLVM does
+not pick by itself, each only where the host has them and they pay, the same bytes either way
+(``world.kernels``): the box's neighbour loads as AVX-512 gathers (``FAST_GATHER``: Sapphire Rapids and later) and
+the tone lookups of RGBA rows as VBMI byte permutes (``FAST_LUT``). The first call of a process compiles
 (about 2 s) unless numba's cache (``cache=True``, next to this file or in numba's user cache) already holds it.
 """
 
@@ -37,9 +40,12 @@ import numba as nb
 import numpy as np
 
 from ..world.kernels import FAST_GATHER as _FAST_GATHER
+from ..world.kernels import FAST_LUT as _FAST_LUT
 from ..world.kernels import JIT as _JIT
+from ..world.kernels import LUT_PIXELS as _LUT_PIXELS
 from ..world.kernels import fma32 as _fma32
 from ..world.kernels import gather_row as _gather_offset
+from ..world.kernels import lut_rgba16 as _lut_rgba16
 from ..world.kernels import mul255 as _mul255
 from ..world.kernels import prefetch as _prefetch
 from ..world.kernels import quantize as _quantize
@@ -78,7 +84,7 @@ def sigma_levels(mode, a32, b32, a64, b64):
 
 
 @nb.njit(inline="always", **_JIT)
-def _scene_row(s, o, m, f, cn, w_px, occ_mode, l0, l1, l2, s0, s1, s2, lit_same):
+def _scene_row(s, o, m, f, cn, w_px, occ_mode, l0, l1, l2, s0, s1, s2, lit_same, tabs):
     """Stage 1 on one row into ``o`` (``cn`` a constant at each call site, so that the loops specialize); returns
     the shadowed pixels. ``lit_same``: the shading leaves occlusion level 0 unchanged (gain 255), so lit pixels
     skip it (the lookups are scalar code anyway: a branch there costs nothing and saves most of the work)."""
@@ -97,7 +103,12 @@ def _scene_row(s, o, m, f, cn, w_px, occ_mode, l0, l1, l2, s0, s1, s2, lit_same)
             o[3 * x + 1] = l1[a1]
             o[3 * x + 2] = l2[a2]
     elif occ_mode == OCC_ALPHA:   # the alpha kept (the frame's quantized occlusion) and counted
-        for x in range(w_px):
+        start = 0
+        if cn == 4 and _FAST_LUT:   # 16 pixels at a time by byte permutes (``tabs``: l0, l1, l2 end to end)
+            start = w_px - w_px % _LUT_PIXELS
+            for x in range(0, start, _LUT_PIXELS):
+                count += _lut_rgba16(s, x, tabs, o, m)
+        for x in range(start, w_px):
             a = s[cn * x + 3]
             m[x] = a
             count += np.int32(a > 127)
@@ -152,6 +163,7 @@ def finish(src, cn, occ_mode, occ, shade, lut, out, alpha, sensor, vig, bank, dy
     w_px = src.shape[1] // cn
     w3 = 3 * w_px
     l0, l1, l2 = lut[0], lut[1], lut[2]
+    tabs = np.ascontiguousarray(lut).reshape(lut.size)
     s0, s1, s2 = shade[0], shade[1], shade[2]
     lit_same = s0[0] == 255 and s1[0] == 255 and s2[0] == 255
     o = np.empty(w3, np.uint8)
@@ -160,9 +172,9 @@ def finish(src, cn, occ_mode, occ, shade, lut, out, alpha, sensor, vig, bank, dy
         m = alpha[y] if occ_mode == OCC_ALPHA else alpha[0]
         f = occ[y] if occ_mode == OCC_FLOAT else occ[0]
         if cn == 4:
-            count += _scene_row(src[y], o, m, f, 4, w_px, occ_mode, l0, l1, l2, s0, s1, s2, lit_same)
+            count += _scene_row(src[y], o, m, f, 4, w_px, occ_mode, l0, l1, l2, s0, s1, s2, lit_same, tabs)
         else:
-            count += _scene_row(src[y], o, m, f, 3, w_px, occ_mode, l0, l1, l2, s0, s1, s2, lit_same)
+            count += _scene_row(src[y], o, m, f, 3, w_px, occ_mode, l0, l1, l2, s0, s1, s2, lit_same, tabs)
         _sensor_row(o, out[w3 * y:w3 * (y + 1)], y, h_px, sensor, vig, bank, dy, dx3, sigma_mode, a32, b32, a64, b64)
     return count
 
@@ -202,6 +214,7 @@ def warp_finish(box, m, lut, out, alpha, sensor, vig, bank, dy, dx3, sigma_mode,
     w3 = 3 * w_px
     flat, bw, umax, vmax, stride = _box_layout(box)
     l0, l1, l2 = lut[0], lut[1], lut[2]
+    tabs = np.ascontiguousarray(lut).reshape(lut.size)
     m0, m1, m2 = np.float32(m[0, 0]), np.float32(m[0, 1]), np.float32(m[0, 2])
     m3, m4, m5 = np.float32(m[1, 0]), np.float32(m[1, 1]), np.float32(m[1, 2])
     fu = np.empty(w_px, np.float32)
@@ -229,7 +242,7 @@ def warp_finish(box, m, lut, out, alpha, sensor, vig, bank, dy, dx3, sigma_mode,
         else:
             _border_row(box, fu, fv, fa, fb, q00, q01, q10, q11)
         _blend_row(c00, c01, c10, c11, fa, fb, rgba)
-        count += _scene_row(rgba, o, alpha[y], no_occ, 4, w_px, OCC_ALPHA, l0, l1, l2, l0, l1, l2, False)
+        count += _scene_row(rgba, o, alpha[y], no_occ, 4, w_px, OCC_ALPHA, l0, l1, l2, l0, l1, l2, False, tabs)
         _sensor_row(o, out[w3 * y:w3 * (y + 1)], y, h_px, sensor, vig, bank, dy, dx3, sigma_mode, a32, b32, a64, b64)
     return count
 
@@ -250,6 +263,7 @@ def remap_finish(box, map_x, map_y, shade_px, shade_gain, lut, out, alpha, senso
     flat, _, umax, vmax, stride = _box_layout(box)
     fa, fb, idx, q00, q01, q10, q11, c00, c01, c10, c11, rgba, o, no_occ = _row_buffers(w_px)
     l0, l1, l2 = lut[0], lut[1], lut[2]
+    tabs = np.ascontiguousarray(lut).reshape(lut.size)
     w3 = 3 * w_px
     # the shaded pixels by row (a counting sort): row y's columns and gains are cols/gains[first[y]:first[y + 1]]
     n_shade = shade_px.shape[0]
@@ -285,7 +299,7 @@ def remap_finish(box, map_x, map_y, shade_px, shade_gain, lut, out, alpha, senso
             rgba[p] = gain_byte(rgba[p], g)
             rgba[p + 1] = gain_byte(rgba[p + 1], g)
             rgba[p + 2] = gain_byte(rgba[p + 2], g)
-        count += _scene_row(rgba, o, alpha[y], no_occ, 4, w_px, OCC_ALPHA, l0, l1, l2, l0, l1, l2, False)
+        count += _scene_row(rgba, o, alpha[y], no_occ, 4, w_px, OCC_ALPHA, l0, l1, l2, l0, l1, l2, False, tabs)
         _sensor_row(o, out[w3 * y:w3 * (y + 1)], y, h_px, sensor, vig, bank, dy, dx3, sigma_mode, a32, b32, a64, b64)
     return count
 
