@@ -512,31 +512,30 @@ def test_wide_vectors_marks_the_calling_kernel_only():
     assert "prefer-vector-width" not in plain_ir
 
 
-@pytest.mark.parametrize("hardware", [False, pytest.param(True, id="hardware")])
-def test_gather16_reads_the_indexed_pixels(hardware):
-    """``world.kernels.gather16`` (the box-sampling passes' neighbour loads) is plain indexing, 16 lanes at a time at
-    any offset into the index row, in both forms: the scalar loads (every host) and the AVX-512 gather (compiled
-    only on a host where ``FAST_GATHER`` says it pays; elsewhere LLVM could not select it)."""
+def test_gather_pairs16_reads_each_indexed_pixel_and_the_next():
+    """``world.kernels.gather_pairs16`` (the box-sampling passes' neighbour loads where AVX-512 gathers pay) is
+    plain indexing, 16 points at a time at any offset into the index row: the pixel at each index plus ``off`` and
+    the pixel after it. Elsewhere the passes take the scalar loads (compared with OpenCV above) and this intrinsic
+    cannot compile (LLVM has no gather instruction to select)."""
     from aerial_loc_env.world import kernels
 
-    if hardware and not kernels.FAST_GATHER:
-        pytest.skip(f"this host's CPU ({numba.config.CPU_NAME or 'host'}) takes the scalar loads: no fast "
-                    f"AVX-512 gather to compile")
-    gather16 = kernels.make_gather16(hardware)
+    if not kernels.FAST_GATHER:
+        pytest.skip(f"this host's CPU ({kernels._host_cpu()}) takes the scalar loads: no fast AVX-512 gather")
 
     @numba.njit
-    def rows(flat, idx, off, out):
+    def rows(flat, idx, off, first, second):
         for x in range(0, idx.shape[0] - 15, 16):
-            gather16(flat, idx, x, off, out)
-        gather16(flat, idx, 3, off, out)     # an unaligned block overwrites lanes 3..18 with the same values
+            kernels.gather_pairs16(flat, idx, x, off, first, second)
+        kernels.gather_pairs16(flat, idx, 3, off, first, second)   # unaligned: lanes 3..18 again, same values
 
     rng = np.random.default_rng(5)
     flat = rng.integers(0, 2 ** 32, 5000, dtype=np.uint32)
     for off in (0, 1, 61, 62):
-        idx = rng.integers(0, flat.size - off, 96).astype(np.uint32)
-        out = np.zeros(96, np.uint32)
-        rows(flat, idx, np.uint32(off), out)
-        np.testing.assert_array_equal(out, flat[idx.astype(np.int64) + off])
+        idx = rng.integers(0, flat.size - off - 1, 96).astype(np.uint32)
+        first, second = np.zeros(96, np.uint32), np.zeros(96, np.uint32)
+        rows(flat, idx, np.uint32(off), first, second)
+        np.testing.assert_array_equal(first, flat[idx.astype(np.int64) + off])
+        np.testing.assert_array_equal(second, flat[idx.astype(np.int64) + off + 1])
 
 
 def test_lut_rgba16_matches_the_scalar_lookups():

@@ -110,7 +110,7 @@ def _host_cpu() -> str:
     return llvm.get_host_cpu_name()
 
 
-#: lanes of ``gather16``: one 512-bit vector of uint32
+#: points per ``gather_pairs16``
 GATHER_LANES = 16
 #: LLVM's names of the CPUs whose AVX-512 gathers are fast: Intel's server cores from Sapphire Rapids on (not affected
 #: by Gather Data Sampling, so no microcode slows their gathers). Elsewhere (the Skylake to Rocket Lake families, whose
@@ -120,62 +120,53 @@ _FAST_GATHER_CPUS = frozenset({"sapphirerapids", "emeraldrapids", "graniterapids
                                "diamondrapids"})
 
 
-#: whether ``gather16`` uses the hardware gather on this host (see ``_FAST_GATHER_CPUS``)
+#: whether the box-sampling passes use ``gather_pairs16`` on this host (see ``_FAST_GATHER_CPUS``)
 FAST_GATHER = _host_has("+avx512f") and _host_cpu() in _FAST_GATHER_CPUS
 
 
-def make_gather16(hardware: bool):
-    """A ``gather16(flat, idx, x, off, out)`` intrinsic: ``out[x + i] = flat[idx[x + i] + off]`` for i < 16
-    (``flat``, ``idx``, ``out`` 1-D uint32, the caller keeping every index below 2**31 and inside ``flat``): one
-    AVX-512 ``vpgatherdd`` with ``hardware``, else 16 scalar loads and stores. The same values either way (tests
-    compare both); the hardware form only where ``FAST_GATHER`` says the CPU has it and it pays.
+@intrinsic
+def gather_pairs16(typingctx, flat, idx, x, off, first, second):
+    """For 16 points from ``x``: ``first[x + i] = flat[idx[x + i] + off]`` and ``second[x + i]`` the pixel after
+    it (``flat``, ``idx``, ``first``, ``second`` 1-D C-contiguous uint32; every index + 1 below 2**31 and inside
+    ``flat``), by two AVX-512 ``vpgatherdq``: each point's two pixels as one 64-bit load, split by two shuffles.
+    Compiled only where ``FAST_GATHER`` (elsewhere LLVM could not select it).
 
-    Why: LLVM does not vectorize the box-sampling passes' neighbour loads (four per pixel); on Emerald Rapids the
-    scalar loads of a frame's 4 x 240k neighbours cost 1.05 ms, the gathers 0.61 ms (a rotated 600 x 400 frame
-    read from a 1100 x 900 box, one core)."""
+    Why: LLVM does not vectorize the box-sampling passes' neighbour loads (four per pixel). On Emerald Rapids, a
+    frame's 4 x 240k neighbours (a rotated 600 x 400 frame read from a 2249 x 2249 box, one core): scalar loads
+    1.36 ms, one 32-bit gather per neighbour 0.78 ms, these 64-bit pairs 0.43 ms."""
+    if not (isinstance(x, types.Integer) and isinstance(off, types.Integer)
+            and all(isinstance(a, types.Array) and a.dtype == types.uint32 and a.ndim == 1 and a.layout == "C"
+                    for a in (flat, idx, first, second))):
+        return None
+    sig = types.void(flat, idx, x, off, first, second)
 
-    @intrinsic
-    def gather16(typingctx, flat, idx, x, off, out):
-        if not (isinstance(x, types.Integer) and isinstance(off, types.Integer)
-                and all(isinstance(a, types.Array) and a.dtype == types.uint32 and a.ndim == 1
-                        for a in (flat, idx, out))):
-            return None
-        sig = types.void(flat, idx, x, off, out)
+    def codegen(context, builder, signature, args):
+        flat_p, idx_p, first_p, second_p = (context.make_array(signature.args[i])(context, builder, args[i]).data
+                                            for i in (0, 1, 4, 5))
+        i1, i32, i64 = ir.IntType(1), ir.IntType(32), ir.IntType(64)
+        v16, v8, q8 = ir.VectorType(i32, 16), ir.VectorType(i32, 8), ir.VectorType(i64, 8)
+        i8p = ir.IntType(8).as_pointer()
+        xi = context.cast(builder, args[2], signature.args[2], types.intp)
+        k0 = builder.trunc(context.cast(builder, args[3], signature.args[3], types.int64), i32)
+        iv = builder.load(builder.bitcast(builder.gep(idx_p, [xi]), v16.as_pointer()), align=4)
+        off_v = builder.shuffle_vector(builder.insert_element(ir.Constant(v16, None), k0, ir.Constant(i32, 0)),
+                                       ir.Constant(v16, None), ir.Constant(v16, [0] * 16))
+        kv = builder.add(iv, off_v)
+        fn = cgutils.get_or_insert_function(builder.module, ir.FunctionType(q8, [q8, i8p, v8, ir.VectorType(i1, 8),
+                                                                             i32]),
+                                            "llvm.x86.avx512.mask.gather.dpq.512")
+        mask, base = ir.Constant(ir.VectorType(i1, 8), [1] * 8), builder.bitcast(flat_p, i8p)
+        halves = []
+        for h in range(2):
+            k8 = builder.shuffle_vector(kv, ir.Constant(v16, None), ir.Constant(v8, list(range(8 * h, 8 * h + 8))))
+            got = builder.call(fn, [ir.Constant(q8, None), base, k8, mask, ir.Constant(i32, 4)])
+            halves.append(builder.bitcast(got, v16))
+        for parity, dest in ((0, first_p), (1, second_p)):    # little-endian: the pixel at k is the low half
+            part = builder.shuffle_vector(halves[0], halves[1], ir.Constant(v16, list(range(parity, 32, 2))))
+            builder.store(part, builder.bitcast(builder.gep(dest, [xi]), v16.as_pointer()), align=4)
+        return context.get_dummy_value()
 
-        def codegen(context, builder, signature, args):
-            data = [context.make_array(signature.args[i])(context, builder, args[i]).data for i in (0, 1, 4)]
-            flat_p, idx_p, out_p = data
-            i32 = ir.IntType(32)
-            xi = context.cast(builder, args[2], signature.args[2], types.intp)
-            k0 = builder.trunc(context.cast(builder, args[3], signature.args[3], types.int64), i32)
-            if hardware:
-                vty = ir.VectorType(i32, GATHER_LANES)
-                i8p = ir.IntType(8).as_pointer()
-                iv = builder.load(builder.bitcast(builder.gep(idx_p, [xi]), vty.as_pointer()), align=4)
-                off_v = builder.shuffle_vector(builder.insert_element(ir.Constant(vty, None), k0, ir.Constant(i32, 0)),
-                                               ir.Constant(vty, None), ir.Constant(vty, [0] * GATHER_LANES))
-                mask = ir.Constant(ir.VectorType(ir.IntType(1), GATHER_LANES), [1] * GATHER_LANES)
-                fn = cgutils.get_or_insert_function(
-                    builder.module, ir.FunctionType(vty, [vty, i8p, vty, mask.type, i32]),
-                    "llvm.x86.avx512.mask.gather.dpi.512")
-                got = builder.call(fn, [ir.Constant(vty, None), builder.bitcast(flat_p, i8p), builder.add(iv, off_v),
-                                        mask, ir.Constant(i32, 4)])
-                builder.store(got, builder.bitcast(builder.gep(out_p, [xi]), vty.as_pointer()), align=4)
-            else:
-                i64 = ir.IntType(64)
-                for i in range(GATHER_LANES):
-                    xj = builder.add(xi, ir.Constant(xi.type, i))
-                    k = builder.zext(builder.add(builder.load(builder.gep(idx_p, [xj])), k0), i64)
-                    builder.store(builder.load(builder.gep(flat_p, [k])), builder.gep(out_p, [xj]))
-            return context.get_dummy_value()
-
-        return sig, codegen
-
-    return gather16
-
-
-#: ``make_gather16(FAST_GATHER)``: the neighbour loads of the box-sampling passes
-gather16 = make_gather16(FAST_GATHER)
+    return sig, codegen
 
 
 #: whether ``lut_rgba16`` uses AVX-512 VBMI's byte permutes on this host (Ice Lake and later Intel cores, AMD Zen 4
@@ -257,17 +248,6 @@ def _lut_rgba16_jit(src, x, tabs, out, alpha):
     if FAST_LUT and all(isinstance(a, types.Array) and a.layout == "C" for a in (src, tabs, out, alpha)):
         return lambda src, x, tabs, out, alpha: _lut_rgba16_vbmi(src, x, tabs, out, alpha)
     return lut_rgba16
-
-
-@nb.njit(inline="always", **JIT)
-def gather_row(flat, idx, off, out, n):
-    """``out[x] = flat[idx[x] + off]`` for x < n (uint32 arrays; ``off`` uint32): ``gather16`` over the blocks of
-    16, the rest one by one."""
-    body = n - n % GATHER_LANES
-    for x in range(0, body, GATHER_LANES):
-        gather16(flat, idx, x, off, out)
-    for x in range(body, n):
-        out[x] = flat[idx[x] + off]
 
 
 @nb.njit(inline="always", **JIT)
