@@ -204,15 +204,21 @@ def _lut_rgba16_vbmi(typingctx, src, x, tabs, out, alpha):
             low_half = builder.call(permute, [quarter[0], vec, quarter[1]])
             high_half = builder.call(permute, [quarter[2], vec, quarter[3]])
             looked.append(builder.select(high, high_half, low_half))
-        # byte 4 i + c from channel c's lookups (c < 3), then the 48 colour bytes in order
-        mix = builder.shuffle_vector(looked[0], looked[1], ir.Constant(
-            ir.VectorType(i32, 64), [j + 64 if j % 4 == 1 else j for j in range(64)]))
-        mix = builder.shuffle_vector(mix, looked[2], ir.Constant(
-            ir.VectorType(i32, 64), [j + 64 if j % 4 == 2 else j for j in range(64)]))
-        rgb = builder.shuffle_vector(mix, ir.Constant(v64, None), ir.Constant(
-            ir.VectorType(i32, 3 * n), [4 * i + c for i in range(n) for c in range(3)]))
-        builder.store(rgb, builder.bitcast(builder.gep(out_p, [x3]), ir.VectorType(i8, 3 * n).as_pointer()),
-                      align=1)
+        # byte 4 i + c from channel c's lookups (masked blends), then the 48 colour bytes in order by one vpermb
+        # (LLVM's own lowering of a 64 -> 48 byte shuffle inserted bytes one by one), stored as 32 + 16 bytes
+        mix = looked[0]
+        for c in (1, 2):
+            mix = builder.select(ir.Constant(ir.VectorType(ir.IntType(1), 64), [j % 4 == c for j in range(64)]),
+                                 looked[c], mix)
+        vpermb = cgutils.get_or_insert_function(builder.module, ir.FunctionType(v64, [v64, v64]),
+                                                "llvm.x86.avx512.permvar.qi.512")
+        order = [4 * (j // 3) + j % 3 for j in range(3 * n)] + [0] * (64 - 3 * n)
+        rgb = builder.call(vpermb, [mix, ir.Constant(v64, order)])
+        for start, size in ((0, 32), (32, 16)):
+            part = builder.shuffle_vector(rgb, ir.Constant(v64, None),
+                                          ir.Constant(ir.VectorType(i32, size), list(range(start, start + size))))
+            dest = builder.gep(out_p, [builder.add(x3, ir.Constant(xi.type, start))])
+            builder.store(part, builder.bitcast(dest, ir.VectorType(i8, size).as_pointer()), align=1)
         a16 = builder.shuffle_vector(vec, ir.Constant(v64, None), ir.Constant(
             ir.VectorType(i32, n), [4 * i + 3 for i in range(n)]))
         builder.store(a16, builder.bitcast(builder.gep(alpha_p, [xi]), ir.VectorType(i8, n).as_pointer()), align=1)
