@@ -57,7 +57,11 @@ OCC_NONE, OCC_ALPHA, OCC_FLOAT = 0, 1, 2
 #: ``sigma_mode`` of ``finish``: how the noise sigma is obtained from the level (``NOISE_OFF``: no noise)
 SIGMA_F32, SIGMA_F64, NOISE_OFF = 0, 1, 2
 
-_NOISE_SCALE = np.float32(2.0 ** -19)  # 2**-(sigma bits 8 + noise bank bits 11)
+_NOISE_SCALE = np.float32(2.0 ** -19)
+#: the sensor stage prefetches the noise bank's row this many rows ahead: the bank (2 MB at 600 x 400) is read at a
+#: new offset each frame, from L3, in row segments the hardware prefetchers pick up late (measured on Emerald Rapids,
+#: one core, replaying a perspective flight: remap_finish 2.34 -> 2.19-2.22 ms; 8 rows ahead 2.27)
+_BANK_AHEAD_ROWS = 16  # 2**-(sigma bits 8 + noise bank bits 11)
 
 
 @nb.njit(inline="always", **_JIT)
@@ -133,6 +137,11 @@ def _sensor_row(o, d, y, h_px, sensor, vig, bank, dy, dx3, sigma_mode, a32, b32,
             d[x] = o[x]
         return
     v = vig[y if y < vig.shape[0] else h_px - 1 - y]
+    ahead = y + dy + _BANK_AHEAD_ROWS
+    if sigma_mode != NOISE_OFF and ahead < bank.shape[0]:   # the bank row read 16 rows down, a line at a time
+        later = bank[ahead]
+        for x in range(dx3, dx3 + w3, 32):
+            _prefetch(later, x)
     if sigma_mode == NOISE_OFF:
         for x in range(w3):
             d[x] = _mul255(np.int32(o[x]), np.int32(v[x]))
