@@ -46,6 +46,7 @@ import math
 import sys
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import lru_cache
 from typing import Any
 
 import cv2
@@ -97,14 +98,33 @@ def tilt_homography(camera: CameraModel, roll_rad: float, pitch_rad: float) -> n
     """
     if roll_rad == 0.0 and pitch_rad == 0.0:
         return None
+    k, k_inv = _intrinsics(camera)
+    cr, sr, cp, sp = math.cos(roll_rad), math.sin(roll_rad), math.cos(pitch_rad), math.sin(pitch_rad)
+    r_roll = np.array([[cr, 0.0, sr], [0.0, 1.0, 0.0], [-sr, 0.0, cr]])
+    r_pitch = np.array([[1.0, 0.0, 0.0], [0.0, cp, -sp], [0.0, sp, cp]])
+    return k @ r_roll @ r_pitch @ k_inv
+
+
+@lru_cache(maxsize=16)
+def _intrinsics(camera: CameraModel) -> tuple[np.ndarray, np.ndarray]:
+    """The camera matrix K and its inverse (read-only; once per camera: ``np.linalg.inv`` costs more than the rest
+    of a frame's tilt, and gives the same floats each time)."""
     fu = (camera.width_px / 2.0) / math.tan(math.radians(camera.hfov_deg) / 2.0)
     fv = fu / camera.pixel_aspect
     cu, cv = camera.center_px
     k = np.array([[fu, 0.0, cu], [0.0, fv, cv], [0.0, 0.0, 1.0]])
-    cr, sr, cp, sp = math.cos(roll_rad), math.sin(roll_rad), math.cos(pitch_rad), math.sin(pitch_rad)
-    r_roll = np.array([[cr, 0.0, sr], [0.0, 1.0, 0.0], [-sr, 0.0, cr]])
-    r_pitch = np.array([[1.0, 0.0, 0.0], [0.0, cp, -sp], [0.0, sp, cp]])
-    return k @ r_roll @ r_pitch @ np.linalg.inv(k)
+    k_inv = np.linalg.inv(k)
+    k.flags.writeable = k_inv.flags.writeable = False
+    return k, k_inv
+
+
+@lru_cache(maxsize=16)
+def _centre_shift(cu: float, cv: float) -> tuple[np.ndarray, np.ndarray]:
+    """The translation by the principal point (cu, cv) and its inverse (read-only, as ``_intrinsics``)."""
+    shift = np.array([[1.0, 0.0, cu], [0.0, 1.0, cv], [0.0, 0.0, 1.0]])
+    inv = np.linalg.inv(shift)
+    shift.flags.writeable = inv.flags.writeable = False
+    return shift, inv
 
 
 def tilted_corners(camera: CameraModel, tilt: np.ndarray | None) -> np.ndarray:
@@ -230,8 +250,8 @@ class ReliefView:
             if tilt is None:
                 conj = _NO_TILT
             else:
-                shift = np.array([[1.0, 0.0, cu], [0.0, 1.0, cv], [0.0, 0.0, 1.0]])
-                conj = (np.linalg.inv(shift) @ tilt @ shift).astype(np.float32)
+                shift, unshift = _centre_shift(cu, cv)
+                conj = (unshift @ tilt @ shift).astype(np.float32)
             flat = np.array([[a[0, 0], a[0, 1], ox], [a[1, 0], a[1, 1], oy]], np.float32)
             n = kernels.view_maps[tilt is not None, bool(window[4])](
                 gx, gy, facade, facing, z0, relief, f, np.array([cu, cv], np.float32), conj, flat,

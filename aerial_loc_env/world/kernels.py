@@ -13,6 +13,11 @@ exhaustively (tests/test_render_kernel.py): the uint8 multiply is the exactly ro
 here ``(p + (p >> 8)) >> 8`` with ``p = a b + 128``; the quantization is ``rint(|occ * 255|)`` in float32, saturated
 (NaN, inf and levels beyond int32 to 0, as OpenCV).
 ``sensors.frame_kernel`` uses the same two helpers for the frames' shading and vignetting.
+
+Also here: the intrinsics the compiled passes share (``fma32``, ``prefetch``, ``wide_vectors``) and two that use
+CPU instructions LLVM does not choose by itself, each compiled only where the host has them and they pay (the same
+values either way): ``gather_pairs16`` (AVX-512 gathers: ``FAST_GATHER``) and ``lut_rgba16`` (VBMI byte permutes:
+``FAST_LUT``). Both follow numba's target: with ``NUMBA_CPU_NAME`` set (a portable cache) the portable code.
 """
 
 from __future__ import annotations
