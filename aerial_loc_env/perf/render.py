@@ -27,6 +27,21 @@ per-cell copies cost more than the reads), the rows sampled bottom-up so that th
 through memory; the facades' gains, computed by NumPy between the two kernels, would wait as a list of their
 pixels' pre-tone values for a last small pass), and fewer small NumPy calls a frame.
 
+The same code measured on another kind of 2-core Xeon VM (Emerald Rapids, 2.1 GHz, a host whose neighbours load
+its memory: the floor's own median ranged 1.18-2.13 ms within one run) gave 2.20-2.49x (render) and 3.54-3.95x
+(perspective; tilted 3.53-4.17x): the passes are compute- and cache-bound where the floor's warp of one pose stays
+in cache. What was done about it (frames unchanged, each step measured in alternating runs or replayed interleaved
+in one process): the box's neighbour loads as AVX-512 gathers of neighbour pairs where gathers are fast
+(``world.kernels.gather_pairs16``, Sapphire Rapids on: 1.36 ms of scalar loads a frame -> 0.43 ms, 32-bit gathers
+0.78), the tone lookups as VBMI byte permutes (``lut_rgba16``: 0.44 -> 0.30 ms of lookups), the noise bank's rows
+prefetched 16 rows ahead (the box-sampling pass 2.34 -> 2.19-2.22 ms) and the tilt's two matrix inverses made once
+per camera (0.05-0.09 ms a tilted frame): render 1.52-1.82x, perspective 2.95-3.39x and tilted 3.06-3.42x there,
+the spread being the host's load (the same code, minutes apart). Measured and not kept: the maps made a band of
+rows at a time inside the sampling pass (``view_maps`` and the sampling fused, so that no map goes through memory;
+the facades, whose gains NumPy computes from the pass's facing directions, finished after it): replayed, the fused
+pass 2.70 ms against 2.66 for the two kernels, plus 0.1 ms for the facades, and 3.9-4.0x against 3.2-3.4x in the
+benchmark; the box's rows prefetched ahead through the maps, and the maps' own rows (no gain).
+
 Where a baked-shadow frame's time goes (2-core Xeon VM, load 1-2, floor 0.87-0.95 ms): the RGBA warp of the baked
 box 1.0-1.3 ms (more than the floor: a flight reads a new, rotated region each frame, and the finishing pass in
 between evicts it from L2, which costs the next warp about 0.3 ms), then ONE compiled pass
