@@ -57,11 +57,11 @@ OCC_NONE, OCC_ALPHA, OCC_FLOAT = 0, 1, 2
 #: ``sigma_mode`` of ``finish``: how the noise sigma is obtained from the level (``NOISE_OFF``: no noise)
 SIGMA_F32, SIGMA_F64, NOISE_OFF = 0, 1, 2
 
-_NOISE_SCALE = np.float32(2.0 ** -19)
+_NOISE_SCALE = np.float32(2.0 ** -19)  # 2**-(sigma bits 8 + noise bank bits 11)
 #: the sensor stage prefetches the noise bank's row this many rows ahead: the bank (2 MB at 600 x 400) is read at a
 #: new offset each frame, from L3, in row segments the hardware prefetchers pick up late (measured on Emerald Rapids,
 #: one core, replaying a perspective flight: remap_finish 2.34 -> 2.19-2.22 ms; 8 rows ahead 2.27)
-_BANK_AHEAD_ROWS = 16  # 2**-(sigma bits 8 + noise bank bits 11)
+_BANK_AHEAD_ROWS = 16
 
 
 @nb.njit(inline="always", **_JIT)
@@ -129,6 +129,13 @@ def _scene_row(s, o, m, f, cn, w_px, occ_mode, l0, l1, l2, s0, s1, s2, lit_same,
 
 
 @nb.njit(inline="always", **_JIT)
+def _tone_tables(lut):
+    """The (3, 256) tone LUT as the scene stage reads it: one row per channel, and all three end to end (``tabs``,
+    for ``world.kernels.lut_rgba16``)."""
+    return lut[0], lut[1], lut[2], np.ascontiguousarray(lut).reshape(lut.size)
+
+
+@nb.njit(inline="always", **_JIT)
 def _sensor_row(o, d, y, h_px, sensor, vig, bank, dy, dx3, sigma_mode, a32, b32, a64, b64):
     """Stage 2 on row y's toned levels ``o`` into ``d`` (a copy without ``sensor``); see ``finish``."""
     w3 = o.shape[0]
@@ -172,8 +179,7 @@ def finish(src, cn, occ_mode, occ, shade, lut, out, alpha, sensor, vig, bank, dy
     h_px = src.shape[0]
     w_px = src.shape[1] // cn
     w3 = 3 * w_px
-    l0, l1, l2 = lut[0], lut[1], lut[2]
-    tabs = np.ascontiguousarray(lut).reshape(lut.size)
+    l0, l1, l2, tabs = _tone_tables(lut)
     s0, s1, s2 = shade[0], shade[1], shade[2]
     lit_same = s0[0] == 255 and s1[0] == 255 and s2[0] == 255
     o = np.empty(w3, np.uint8)
@@ -223,8 +229,7 @@ def warp_finish(box, m, lut, out, alpha, sensor, vig, bank, dy, dx3, sigma_mode,
     h_px, w_px = alpha.shape
     w3 = 3 * w_px
     flat, bw, umax, vmax, stride = _box_layout(box)
-    l0, l1, l2 = lut[0], lut[1], lut[2]
-    tabs = np.ascontiguousarray(lut).reshape(lut.size)
+    l0, l1, l2, tabs = _tone_tables(lut)
     m0, m1, m2 = np.float32(m[0, 0]), np.float32(m[0, 1]), np.float32(m[0, 2])
     m3, m4, m5 = np.float32(m[1, 0]), np.float32(m[1, 1]), np.float32(m[1, 2])
     fu = np.empty(w_px, np.float32)
@@ -272,8 +277,7 @@ def remap_finish(box, map_x, map_y, shade_px, shade_gain, lut, out, alpha, senso
     h_px, w_px = alpha.shape
     flat, _, umax, vmax, stride = _box_layout(box)
     fa, fb, idx, q00, q01, q10, q11, c00, c01, c10, c11, rgba, o, no_occ = _row_buffers(w_px)
-    l0, l1, l2 = lut[0], lut[1], lut[2]
-    tabs = np.ascontiguousarray(lut).reshape(lut.size)
+    l0, l1, l2, tabs = _tone_tables(lut)
     w3 = 3 * w_px
     # the shaded pixels by row (a counting sort): row y's columns and gains are cols/gains[first[y]:first[y + 1]]
     n_shade = shade_px.shape[0]
