@@ -286,7 +286,7 @@ def test_same_seed_same_frames_and_the_noise_moves():
 def _noise_terms(s, z):
     out = np.empty(s.size, np.int32)
     for i in range(s.size):
-        out[i] = fk._noise(np.float32(s[i]), z[i])
+        out[i] = np.int32(fk._noise(np.float32(s[i]), z[i]))
     return out
 
 

@@ -13,7 +13,8 @@ Every step is the arithmetic of the OpenCV passes it replaces, reproduced bit fo
 keeps those passes as the reference and compares exactly); what each pass computes, measured exhaustively:
 
 - the uint8 multiply with scale 1/255 (shading, vignetting) and the occlusion's quantization: see
-  ``world.kernels``, whose two helpers this pass uses;
+  ``world.kernels``, whose two helpers this pass uses (the vignetting by the same multiply in float32,
+  ``_vignetted``: the sensor stage then runs in 16 float32 lanes, not numba's 8 int64);
 - ``cv2.transform`` with a diagonal float32 matrix on uint8 is ``rint(v * g)`` in float32, saturated: a byte
   function per channel, so gamma and gains compose into one table per frame (``CameraRenderer`` builds it by
   running the two OpenCV operations over the 256 levels);
@@ -58,6 +59,7 @@ OCC_NONE, OCC_ALPHA, OCC_FLOAT = 0, 1, 2
 SIGMA_F32, SIGMA_F64, NOISE_OFF = 0, 1, 2
 
 _NOISE_SCALE = np.float32(2.0 ** -19)  # 2**-(sigma bits 8 + noise bank bits 11)
+_INV255 = np.float32(1.0 / 255.0)
 #: the sensor stage prefetches the noise bank's row this many rows ahead: the bank (2 MB at 600 x 400) is read at a
 #: new offset each frame, from L3, in row segments the hardware prefetchers pick up late (measured on Emerald Rapids,
 #: one core, replaying a perspective flight: remap_finish 2.34 -> 2.19-2.22 ms; 8 rows ahead 2.27)
@@ -74,9 +76,26 @@ def _sigma(h, mode, a32, b32, a64, b64):
 
 
 @nb.njit(inline="always", **_JIT)
+def _vignetted(h, v):
+    """A level ``h`` (float32, integral) times the vignetting gain ``v`` (uint8, over 255), rounded: ``mul255`` in
+    float32 (``h v`` is exact and its product with float32(1/255) lies within 3e-6 of ``h v / 255``, which is never
+    within 1/510 of a tie: the same integer for every pair, checked exhaustively in the tests). Why float: numba
+    widens the integer form to 64-bit lanes, which halved the sensor stage's vector width."""
+    return np.rint(h * np.float32(v) * _INV255)
+
+
+@nb.njit(inline="always", **_JIT)
 def _noise(sig, z):
-    """The noise in DN, ``rint(float32(S Z) 2**-19)`` for S = ``sig`` (float32, integral) and the int16 draw ``z``."""
-    return np.int32(np.rint(sig * np.float32(z) * _NOISE_SCALE))
+    """The noise in DN (float32, integral), ``rint(float32(S Z) 2**-19)`` for S = ``sig`` (float32, integral) and
+    the int16 draw ``z``."""
+    return np.rint(sig * np.float32(z) * _NOISE_SCALE)
+
+
+@nb.njit(inline="always", **_JIT)
+def _noisy(lit, sig, z):
+    """The output byte: the vignetted level ``lit`` plus ``_noise(sig, z)``, saturated to 0..255 (integral floats
+    far below 2**24: the sum is exact)."""
+    return np.uint8(np.int32(min(max(lit + _noise(sig, z), np.float32(0.0)), np.float32(255.0))))
 
 
 @nb.njit(**_JIT)
@@ -151,13 +170,17 @@ def _sensor_row(o, d, y, h_px, sensor, vig, bank, dy, dx3, sigma_mode, a32, b32,
             _prefetch(later, x)
     if sigma_mode == NOISE_OFF:
         for x in range(w3):
-            d[x] = _mul255(np.int32(o[x]), np.int32(v[x]))
+            d[x] = np.uint8(np.int32(_vignetted(np.float32(o[x]), v[x])))
+    elif sigma_mode == SIGMA_F32:   # one loop per mode: no branch inside
+        b = bank[y + dy, dx3:dx3 + w3]
+        for x in range(w3):
+            h = np.float32(o[x])
+            d[x] = _noisy(_vignetted(h, v[x]), _sigma(h, SIGMA_F32, a32, b32, a64, b64), b[x])
     else:
         b = bank[y + dy, dx3:dx3 + w3]
         for x in range(w3):
-            h = np.int32(o[x])
-            n = _noise(_sigma(h, sigma_mode, a32, b32, a64, b64), b[x])
-            d[x] = min(max(_mul255(h, np.int32(v[x])) + n, np.int32(0)), np.int32(255))
+            h = np.float32(o[x])
+            d[x] = _noisy(_vignetted(h, v[x]), _sigma(h, SIGMA_F64, a32, b32, a64, b64), b[x])
 
 
 @nb.njit(**_JIT)
