@@ -432,9 +432,9 @@ def test_map_warp_equals_opencv_remap_then_facades_over_random_maps(size):
     """``remap_finish`` against ``cv2.remap`` (8UC4, INTER_LINEAR, zero border) then the facades' gains: maps of
     random rotations and scales with per-pixel jitter (as relief displaces a view's points), inside the box, across
     its edges and beyond them, integral and half-integral points (rounding ties of the weights), NaN and infinite
-    points (zero, not a read outside the box); facade pixels in random order (the maps kernel lists them by cell)
-    with float32 and float64 gains (with and without a sun), some saturating. The RGB, alpha and count are equal
-    where OpenCV runs its AVX2 kernel, as for ``warp_finish``."""
+    points (zero, not a read outside the box); facade pixels in random order (counting-sorted) and in flat-index
+    order (as the maps kernel lists them: walked), with float32 and float64 gains (with and without a sun), some
+    saturating. The RGB, alpha and count are equal where OpenCV runs its AVX2 kernel, as for ``warp_finish``."""
     w, h = size
     rng = np.random.default_rng(h)
     box = rng.integers(0, 256, (300, 420, 4), dtype=np.uint8)
@@ -458,6 +458,8 @@ def test_map_warp_equals_opencv_remap_then_facades_over_random_maps(size):
             map_y.flat[rng.choice(h * w, 5)] = np.inf
             map_x.flat[rng.choice(h * w, 5)] = -np.inf
         pixels = rng.choice(h * w, size=(h * w) // 5, replace=False).astype(np.int64)
+        if t % 3 == 1:      # in flat-index order, as the views list their facades (walked, not sorted)
+            pixels.sort()
         gains = rng.uniform(0.2, 1.6, pixels.size)
         gains = gains.astype(np.float32) if t % 2 else gains
         out = np.empty(h * w * 3, np.uint8)

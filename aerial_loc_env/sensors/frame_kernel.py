@@ -302,27 +302,7 @@ def remap_finish(box, map_x, map_y, shade_px, shade_gain, lut, out, alpha, senso
     fa, fb, idx, q00, q01, q10, q11, c00, c01, c10, c11, rgba, o, no_occ = _row_buffers(w_px)
     l0, l1, l2, tabs = _tone_tables(lut)
     w3 = 3 * w_px
-    # the shaded pixels by row (a counting sort): row y's columns and gains are cols/gains[first[y]:first[y + 1]]
-    n_shade = shade_px.shape[0]
-    rows = np.empty(n_shade, np.int32)
-    first = np.zeros(h_px + 1, np.int64)
-    inv_w = 1.0 / w_px
-    for i in range(n_shade):
-        p = shade_px[i]
-        r = np.int64(np.float64(p) * inv_w)          # p // W without a division (exact after the correction)
-        r += np.int64((r + 1) * w_px <= p) - np.int64(r * w_px > p)
-        rows[i] = r
-    for i in range(n_shade):
-        first[rows[i] + 1] += 1
-    for y in range(h_px):
-        first[y + 1] += first[y]
-    fill = first[:h_px].copy()
-    cols, gains = np.empty(n_shade, np.int64), np.empty(n_shade, shade_gain.dtype)
-    for i in range(n_shade):
-        t = fill[rows[i]]
-        cols[t] = shade_px[i] - np.int64(rows[i]) * w_px
-        gains[t] = shade_gain[i]
-        fill[rows[i]] = t + 1
+    first, cols, gains = _shade_rows(shade_px, shade_gain, h_px, w_px)
     count = 0
     for y in range(h_px):
         fu, fv = map_x[y], map_y[y]
@@ -339,6 +319,48 @@ def remap_finish(box, map_x, map_y, shade_px, shade_gain, lut, out, alpha, senso
         count += _scene_row(rgba, o, alpha[y], no_occ, 4, w_px, OCC_ALPHA, l0, l1, l2, l0, l1, l2, False, tabs)
         _sensor_row(o, out[w3 * y:w3 * (y + 1)], y, h_px, sensor, vig, bank, dy, dx3, sigma_mode, a32, b32, a64, b64)
     return count
+
+
+@nb.njit(inline="always", **_JIT)
+def _shade_rows(shade_px, shade_gain, h_px, w_px):
+    """The shaded pixels by row: row y's columns and gains are ``cols``/``gains[first[y]:first[y + 1]]``. Pixels in
+    flat-index order (as ``ReliefView.maps`` lists facades) are walked once; others are put in order by a counting
+    sort (about 0.06 ms for a frame's ~12k facades)."""
+    n_shade = shade_px.shape[0]
+    first = np.zeros(h_px + 1, np.int64)
+    cols = np.empty(n_shade, np.int64)
+    ordered = True
+    for i in range(1, n_shade):
+        ordered &= shade_px[i - 1] < shade_px[i]
+    if ordered:
+        t = 0
+        for y in range(h_px):
+            first[y] = t
+            end = np.int64(y + 1) * w_px
+            while t < n_shade and shade_px[t] < end:
+                cols[t] = shade_px[t] - np.int64(y) * w_px
+                t += 1
+        first[h_px] = t
+        return first, cols, shade_gain.copy()
+    rows = np.empty(n_shade, np.int32)
+    inv_w = 1.0 / w_px
+    for i in range(n_shade):
+        p = shade_px[i]
+        r = np.int64(np.float64(p) * inv_w)          # p // W without a division (exact after the correction)
+        r += np.int64((r + 1) * w_px <= p) - np.int64(r * w_px > p)
+        rows[i] = r
+    for i in range(n_shade):
+        first[rows[i] + 1] += 1
+    for y in range(h_px):
+        first[y + 1] += first[y]
+    fill = first[:h_px].copy()
+    gains = np.empty(n_shade, shade_gain.dtype)
+    for i in range(n_shade):
+        t = fill[rows[i]]
+        cols[t] = shade_px[i] - np.int64(rows[i]) * w_px
+        gains[t] = shade_gain[i]
+        fill[rows[i]] = t + 1
+    return first, cols, gains
 
 
 @nb.njit(inline="always", **_JIT)

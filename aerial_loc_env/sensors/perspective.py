@@ -135,6 +135,11 @@ def tilted_corners(camera: CameraModel, tilt: np.ndarray | None) -> np.ndarray:
     return cv2.perspectiveTransform(corners.reshape(1, 4, 2), tilt).reshape(4, 2)
 
 
+def footprint_px(affine: np.ndarray, camera: CameraModel, tilt: np.ndarray | None = None) -> np.ndarray:
+    """The frame's corners (4, 2) in level-0 map pixels: the camera->map ``affine`` of the (tilted) image corners."""
+    return apply_affine(np.asarray(affine, dtype=np.float64), tilted_corners(camera, tilt))
+
+
 @dataclass(frozen=True, eq=False)
 class ViewMaps:
     """Where each pixel of one frame looks on the map.
@@ -217,25 +222,29 @@ class ReliefView:
             self._pooled = max_pool(self.dsm, _MARCH_FACTOR)
         return self._pooled
 
-    def reads_px(self, affine: np.ndarray, camera: CameraModel, tilt: np.ndarray | None = None) -> np.ndarray:
+    def reads_px(self, affine: np.ndarray, camera: CameraModel, tilt: np.ndarray | None = None,
+                 corners: np.ndarray | None = None) -> np.ndarray:
         """Level-0 map points (n, 2) whose bounding box holds every point a frame's maps can sample: the footprint
         (every ray's visible point lies between its ground point and nadir), one map pixel wider with a height
-        model (facades sample one pixel beyond their ground point)."""
-        corners = apply_affine(np.asarray(affine, dtype=np.float64), tilted_corners(camera, tilt))
+        model (facades sample one pixel beyond their ground point). ``corners``: the footprint's corners in map
+        pixels if the caller has them (``footprint_px``)."""
+        corners = footprint_px(affine, camera, tilt) if corners is None else corners
         if self.dsm is None:
             return corners
         return np.concatenate([corners - 1.0, corners + 1.0])
 
     def maps(self, affine: np.ndarray, altitude_m: float, camera: CameraModel,
-             tilt: np.ndarray | None = None, origin_px: tuple[int, int] = (0, 0)) -> ViewMaps | None:
+             tilt: np.ndarray | None = None, origin_px: tuple[int, int] = (0, 0),
+             corners: np.ndarray | None = None) -> ViewMaps | None:
         """The maps of the frame whose nadir camera->map affine (level 0) is ``affine`` at ``altitude_m``, with
         the tilt homography ``tilt`` (``tilt_homography``), in map pixels minus ``origin_px`` (``ViewMaps``);
-        None when the footprint is flat and the camera untilted (the affine warp is exact then)."""
+        None when the footprint is flat and the camera untilted (the affine warp is exact then). ``corners``: the
+        footprint's corners (``footprint_px``) if the caller has them."""
         w, h = camera.width_px, camera.height_px
         a = np.asarray(affine, dtype=np.float64)
         cu, cv = camera.center_px
         nadir_x, nadir_y = a[:, :2] @ np.array([cu, cv]) + a[:, 2]     # the map pixel below the camera
-        corners = apply_affine(a, tilted_corners(camera, tilt))
+        corners = footprint_px(a, camera, tilt) if corners is None else corners
         bbox = (*corners.min(axis=0), *corners.max(axis=0))
         origin = (int(origin_px[0]), int(origin_px[1]))
         ox, oy = float(nadir_x) - origin[0], float(nadir_y) - origin[1]    # nadir in the maps' frame
@@ -384,4 +393,5 @@ def sample_grid(view: ViewMaps, data: np.ndarray, factor: int) -> np.ndarray:
     return view.sample(data, border=cv2.BORDER_REPLICATE, scale=1.0 / factor, offset=0.5 / factor - 0.5)
 
 
-__all__ = ["PerspectiveConfig", "ReliefView", "ViewMaps", "sample_grid", "tilt_homography", "tilted_corners"]
+__all__ = ["PerspectiveConfig", "ReliefView", "ViewMaps", "footprint_px", "sample_grid", "tilt_homography",
+           "tilted_corners"]

@@ -260,8 +260,8 @@ def _maps_kernel(tilted: bool, replicate: bool):
                   relief: np.ndarray, factor: int, centre: np.ndarray, tilt: np.ndarray, flat: np.ndarray,
                   lin: np.ndarray, consts: np.ndarray, dsm: np.ndarray, window: np.ndarray) -> int:
         """The per-pixel maps of ``ReliefView.maps`` into ``out_x``/``out_y`` (h, w) float32; returns the number
-        of facade pixels, whose flat indices and facing directions are written to ``facade``/``facing`` (cell by
-        cell).
+        of facade pixels, whose flat indices and facing directions are written to ``facade``/``facing`` in
+        flat-index order (``frame_kernel.remap_finish`` then takes them row by row without sorting).
 
         Rays: pixel offsets from the principal point ``centre`` (cu, cv), through the centred tilt homography
         ``tilt`` (3, 3) float32 when tilted. Flat cells (``relief`` 0): ``flat`` (2, 3) float32 rows (alpha, beta,
@@ -288,7 +288,7 @@ def _maps_kernel(tilted: bool, replicate: bool):
         # whole list (independent lookups overlap; a pixel's chain of dependent lookups was latency-bound).
         size = factor * w
         band_du, band_dv = np.empty(size, np.float32), np.empty(size, np.float32)
-        cells = np.empty(wc, np.int64)
+        cells, wall_at = np.empty(wc, np.int64), np.empty(wc, np.int64)
         bdu, bdv = np.empty(size, np.float32), np.empty(size, np.float32)
         bk, bz, bz2 = np.empty(size, np.float32), np.empty(size, np.float32), np.empty(size, np.float32)
         bk1, wall = np.empty(size, np.float32), np.empty(size, np.int32)
@@ -409,16 +409,19 @@ def _maps_kernel(tilted: bool, replicate: bool):
                             row_y[x] = bz2[j]
                             j += 1
             j = 0
-            for c in range(n_cells):    # the walls listed (written at n, kept where a wall), in cells with one
-                xa, xb = cells[c] * factor, min(cells[c] * factor + factor, w)
-                size_c = (y1 - y0) * (xb - xa)
+            for c in range(n_cells):    # each cell's first listed pixel if the cell has a wall, else -1
+                size_c = (y1 - y0) * (min(cells[c] * factor + factor, w) - cells[c] * factor)
                 any_wall = np.int32(0)
                 for i in range(size_c):
                     any_wall |= wall[np.uint64(j + i)]
-                if any_wall == 0:
-                    j += size_c
-                    continue
-                for y in range(y0, y1):
+                wall_at[c] = j if any_wall != 0 else -1
+                j += size_c
+            for y in range(y0, y1):     # the walls listed (written at n, kept where a wall) row by row: the
+                for c in range(n_cells):    # frame's facades in flat-index order
+                    if wall_at[c] < 0:
+                        continue
+                    xa, xb = cells[c] * factor, min(cells[c] * factor + factor, w)
+                    j = wall_at[c] + (y - y0) * (xb - xa)
                     for x in range(xa, xb):
                         ju, iu = np.uint64(j), np.uint64(n - n0)
                         facade[np.uint64(n)] = y * w + x

@@ -48,7 +48,7 @@ import numpy as np
 from ..config import rng as range_meta
 from ..errors import ConfigError, FootprintError
 from .camera import CameraModel, Pose, apply_affine
-from .perspective import PerspectiveConfig, ReliefView, ViewMaps, sample_grid, tilt_homography, tilted_corners
+from .perspective import PerspectiveConfig, ReliefView, ViewMaps, footprint_px, sample_grid, tilt_homography
 
 FootprintStatus = Literal["valid", "outside", "nodata"]
 OcclusionSource = Any  # np.ndarray (map-sized float32) | world.shadows.ShadowGrid | world.shadows.CloudField
@@ -584,21 +584,23 @@ class CameraRenderer:
         affine = self.camera_to_map(pose, camera)
         level = self.pyramid_level(affine)
         tilt = tilt_homography(camera, *tilt_rad) if any(tilt_rad) else None
-        # the untilted corners: the same matrix product as ``apply_affine`` with the homogeneous corners kept
-        corners = apply_affine(affine, tilted_corners(camera, tilt)) if tilt is not None else \
+        # the footprint's corners, once a frame (the status, the box's cover and the view's window use them); the
+        # untilted ones: the same matrix product as ``apply_affine`` with the homogeneous corners kept
+        footprint = footprint_px(affine, camera, tilt) if tilt is not None else \
             (affine @ self._hom_corners(camera)).T
+        corners = footprint
         status = self._status(affine, level, camera, map_corners=corners)
         self._check(pose, status, strict, camera)
         baked = occlusion if isinstance(occlusion, BakedShadows) else None
         if baked is not None:
             occlusion, shading_params = baked.grid, baked.shading_params
             if self._view.dsm is not None:   # else the reads are the footprint's corners, computed above
-                corners = self._view.reads_px(affine, camera, tilt)
+                corners = self._view.reads_px(affine, camera, tilt, footprint)
             baked = baked if level == 0 and baked.covers(corners) else None
         # a flat, untilted view needs no per-pixel maps (the affine warp is exact): skip their two float passes;
         # a view's maps come in the baked box's pixels when it serves the frame (no shift of the maps to sample it)
         view = None if tilt is None and self._view.dsm is None else self._view.maps(
-            affine, pose.altitude_m, camera, tilt, (0, 0) if baked is None else baked.origin_px)
+            affine, pose.altitude_m, camera, tilt, (0, 0) if baked is None else baked.origin_px, footprint)
         if baked is not None:
             self._bake_tiles(baked, corners)
             return self._render_baked(baked, affine, pose, rng, speed_mps, status, pre_sensor, view, sun_deg)
