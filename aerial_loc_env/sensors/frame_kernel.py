@@ -239,14 +239,14 @@ def warp_finish(box, m, lut, out, alpha, sensor, vig, bank, dy, dx3, sigma_mode,
     in a row's last ``W mod WARP_STEP_PX`` pixels, where it is ``fma(m00, x, m01 y) + m02``; the value is the fma
     chain of ``estimators.patch_kernels`` on the four neighbours (the border's 0 outside), rounded half to even.
 
-    Loops (measured on a 600 x 400 flight, one core, two floor warps between frames): the coordinates with the
-    weights spread to the four channels (0.2 ms a frame), the prefetches and the four neighbours' gathers (one
-    uint32 load each; 0.75 ms cold without the prefetches), one loop over the row's 4 W channel values
-    (vectorized, 0.2 ms; a loop per channel over uint32 pixels cost 0.44), then ``finish``'s tone lookups and
-    sensor stage. In all 1.7 ms against 1.96 for ``cv2.warpAffine`` (1.34) and ``finish``; 1.8-2.0 without the
-    prefetches; two 64-bit loads for the four neighbours instead of four 32-bit ones: no faster. A row whose
-    neighbours are not all inside the box takes the general path (floor, border) in its coordinate and gather
-    loops only.
+    Loops (measured on a 600 x 400 flight, one core, two floor warps between frames): the coordinates and the weights
+    (0.2 ms a frame, then with the weights spread to the four channels, since kept per pixel), the prefetches and the
+    four neighbours' gathers (one uint32 load each; 0.75 ms cold without the prefetches), one loop over the row's 4 W
+    channel values (vectorized, 0.2 ms; now over its pixels, four channels each; a loop per channel over uint32 pixels
+    cost 0.44), then ``finish``'s tone lookups and sensor stage. In all 1.7 ms against 1.96 for ``cv2.warpAffine``
+    (1.34) and ``finish``; 1.8-2.0 without the prefetches; two 64-bit loads for the four neighbours instead of four
+    32-bit ones: no faster. A row whose neighbours are not all inside the box takes the general path (floor, border) in
+    its coordinate and gather loops only.
     """
     _wide_vectors()
     h_px, w_px = alpha.shape
@@ -380,30 +380,27 @@ def _box_layout(box):
 
 @nb.njit(inline="always", **_JIT)
 def _row_buffers(w_px):
-    """The row buffers of the box-sampling passes (``warp_finish``, ``remap_finish``): the bilinear weights spread to
-    the four channels, the top-left neighbours' indices, the four neighbours as uint32 pixels and as their bytes,
-    the sampled RGBA row, the toned RGB row, and ``_scene_row``'s float occlusion (unused with the baked alpha)."""
+    """The row buffers of the box-sampling passes (``warp_finish``, ``remap_finish``): the bilinear weights per pixel,
+    the top-left neighbours' indices, the four neighbours as uint32 pixels and as their bytes, the sampled RGBA
+    row, the toned RGB row, and ``_scene_row``'s float occlusion (unused with the baked alpha)."""
     q = np.empty((4, w_px), np.uint32)
     q00, q01, q10, q11 = q[0], q[1], q[2], q[3]
-    return (np.empty(4 * w_px, np.float32), np.empty(4 * w_px, np.float32), np.empty(w_px, np.uint32),
+    return (np.empty(w_px, np.float32), np.empty(w_px, np.float32), np.empty(w_px, np.uint32),
             q00, q01, q10, q11, q00.view(np.uint8), q01.view(np.uint8), q10.view(np.uint8), q11.view(np.uint8),
             np.empty(4 * w_px, np.uint8), np.empty(3 * w_px, np.uint8), np.empty(1, np.float32))
 
 
 @nb.njit(inline="always", **_JIT)
 def _weights_row(fu, fv, fa, fb, idx, stride, umax, vmax):
-    """A row's source points (``fu``, ``fv``) -> the bilinear weights spread to the four channels (``fa``, ``fb``)
-    and the top-left neighbours' flat indices (``idx``), the floor taken by truncation; returns non-zero where a
-    point is not inside ``[0, umax) x [0, vmax)`` (then the row takes ``_border_row``: the truncation is no floor
-    there)."""
+    """A row's source points (``fu``, ``fv``) -> the bilinear weights (``fa``, ``fb``) and the top-left neighbours' flat
+    indices (``idx``), the floor taken by truncation; returns non-zero where a point is not inside
+    ``[0, umax) x [0, vmax)`` (then the row takes ``_border_row``: the truncation is no floor there)."""
     outside = np.int32(0)
     for x in range(fu.shape[0]):
         u, v = fu[x], fv[x]
         iu, iv = np.int32(u), np.int32(v)        # the floor where the row is inside (checked on the floats)
-        a, b = u - np.float32(iu), v - np.float32(iv)
-        for c in range(4):
-            fa[4 * x + c] = a
-            fb[4 * x + c] = b
+        fa[x] = u - np.float32(iu)
+        fb[x] = v - np.float32(iv)
         idx[x] = np.uint32(iv) * stride + np.uint32(iu)
         inside = (u >= 0) & (v >= 0) & (u < umax) & (v < vmax)     # (false for NaN)
         outside |= np.int32(not inside)
@@ -431,15 +428,20 @@ def _gather_row(flat, idx, stride, q00, q01, q10, q11):
 
 @nb.njit(inline="always", **_JIT)
 def _blend_row(c00, c01, c10, c11, fa, fb, rgba):
-    """The bilinear value of each channel (the neighbours' bytes ``c..``, weights ``fa``/``fb``): the fma chain of
-    ``estimators.patch_kernels``, rounded half to even."""
-    for j in range(rgba.shape[0]):
-        p00, p01 = np.float32(c00[j]), np.float32(c01[j])
-        p10, p11 = np.float32(c10[j]), np.float32(c11[j])
-        a = fa[j]
-        v0 = _fma32(a, p01 - p00, p00)
-        v1 = _fma32(a, p11 - p10, p10)
-        rgba[j] = np.uint8(np.int32(np.rint(_fma32(fb[j], v1 - v0, v0))))
+    """The bilinear value of each channel (the neighbours' bytes ``c..``, each pixel's weights ``fa``/``fb``): the fma
+    chain of ``estimators.patch_kernels``, rounded half to even. A pixel's four channels in the inner loop: LLVM
+    broadcasts the weights in registers (they used to be stored spread to the four channels by ``_weights_row``
+    and loaded back: replayed on Emerald Rapids, ``remap_finish`` 0.12-0.27 ms and ``warp_finish`` 0.4 ms a frame
+    less)."""
+    for x in range(fa.shape[0]):
+        a, b = fa[x], fb[x]
+        for c in range(4):
+            j = 4 * x + c
+            p00, p01 = np.float32(c00[j]), np.float32(c01[j])
+            p10, p11 = np.float32(c10[j]), np.float32(c11[j])
+            v0 = _fma32(a, p01 - p00, p00)
+            v1 = _fma32(a, p11 - p10, p10)
+            rgba[j] = np.uint8(np.int32(np.rint(_fma32(b, v1 - v0, v0))))
 
 
 @nb.njit(**_JIT)
@@ -458,10 +460,8 @@ def _border_row(box, fu, fv, fa, fb, q00, q01, q10, q11):
         x0, y0 = np.int32(cu), np.int32(cv)
         x0 -= np.int32(np.float32(x0) > cu)
         y0 -= np.int32(np.float32(y0) > cv)
-        a, b = u - np.float32(x0), v - np.float32(y0)
-        for c in range(4):
-            fa[4 * x + c] = a
-            fb[4 * x + c] = b
+        fa[x] = u - np.float32(x0)
+        fb[x] = v - np.float32(y0)
         in_x0, in_x1, in_y0, in_y1 = 0 <= x0 < bw, 0 <= x0 + 1 < bw, 0 <= y0 < bh, 0 <= y0 + 1 < bh
         q00[x] = box[y0, x0] if in_x0 and in_y0 else zero
         q01[x] = box[y0, x0 + 1] if in_x1 and in_y0 else zero
