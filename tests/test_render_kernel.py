@@ -548,6 +548,32 @@ def test_gather_pairs16_reads_each_indexed_pixel_and_the_next():
         np.testing.assert_array_equal(second, flat[idx.astype(np.int64) + off + 1])
 
 
+def test_gather_f32x16_reads_each_indexed_value():
+    """``world.kernels.gather_f32x16`` (the perspective maps' height lookups where AVX-512 gathers pay) is plain
+    indexing, 16 points at a time at any offset into the index row, the first and last table entries included
+    (non-finite values copied as they are). Elsewhere the maps take the scalar loads (compared with the OpenCV
+    reference in tests/test_perspective_kernels.py, as here)."""
+    from aerial_loc_env.world import kernels
+
+    if not kernels.FAST_GATHER:
+        pytest.skip(f"this host's CPU ({kernels._host_cpu()}) takes the scalar loads: no fast AVX-512 gather")
+
+    @numba.njit
+    def lookups(table, idx, out):
+        for x in range(0, idx.shape[0] - 15, 16):
+            kernels.gather_f32x16(table, idx, x, out)
+        kernels.gather_f32x16(table, idx, 5, out)   # unaligned: lanes 5..20 again, same values
+
+    rng = np.random.default_rng(6)
+    table = rng.normal(0.0, 30.0, 70_001).astype(np.float32)
+    table[[3, 17]] = np.nan, np.inf
+    idx = rng.integers(0, table.size, 160).astype(np.int32)
+    idx[:4] = 0, table.size - 1, 3, 17
+    out = np.zeros(160, np.float32)
+    lookups(table, idx, out)
+    np.testing.assert_array_equal(out, table[idx])
+
+
 def test_lut_rgba16_matches_the_scalar_lookups():
     """``world.kernels.lut_rgba16`` (the box-sampling passes' tone lookups, 16 RGBA pixels at a time): compiled
     (by VBMI byte permutes where the CPU has them) it writes the same colour bytes, alphas and count as its plain
