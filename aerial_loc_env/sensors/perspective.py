@@ -69,8 +69,9 @@ _F = _MARCH_FACTOR
 # the march grid -> camera pixels (the block centres), identity, map px -> pooled px: the same every frame
 _GRID_TO_CAM = np.array([[_F, 0.0, (_F - 1) / 2.0], [0.0, _F, (_F - 1) / 2.0], [0.0, 0.0, 1.0]])
 _EYE = np.eye(3)
+_LAST_ROW = np.array([[0.0, 0.0, 1.0]])    # an affine's homogeneous row
 _MAP_TO_POOL = np.array([[1.0 / _F, 0.0, 0.5 / _F - 0.5], [0.0, 1.0 / _F, 0.5 / _F - 0.5], [0, 0, 1]])
-for _const in (_GRID_TO_CAM, _EYE, _MAP_TO_POOL):    # (the kernels' arguments stay writable: one signature)
+for _const in (_GRID_TO_CAM, _EYE, _LAST_ROW, _MAP_TO_POOL):    # (the kernels' arguments stay writable: one signature)
     _const.flags.writeable = False
 
 
@@ -245,7 +246,8 @@ class ReliefView:
         cu, cv = camera.center_px
         nadir_x, nadir_y = a[:, :2] @ np.array([cu, cv]) + a[:, 2]     # the map pixel below the camera
         corners = footprint_px(a, camera, tilt) if corners is None else corners
-        bbox = (*corners.min(axis=0), *corners.max(axis=0))
+        us, vs = corners.T.tolist()        # 4 points: plain Python beats NumPy's reductions (the same values)
+        bbox = (min(us), min(vs), max(us), max(vs))
         origin = (int(origin_px[0]), int(origin_px[1]))
         ox, oy = float(nadir_x) - origin[0], float(nadir_y) - origin[1]    # nadir in the maps' frame
         f = _MARCH_FACTOR
@@ -282,7 +284,7 @@ class ReliefView:
         # the march grid: one cell per F x F camera block, probed along the ray of the block's centre pixel
         # (q = F q_c + (F - 1) / 2, through the tilt to the nadir camera, then to the map), on the F x F block
         # maximum of the heights (map px u -> pooled px (u + 0.5) / F - 0.5)
-        to_map = np.vstack([a, [0.0, 0.0, 1.0]]) @ (_EYE if tilt is None else tilt) @ _GRID_TO_CAM
+        to_map = np.concatenate((a, _LAST_ROW)) @ (_EYE if tilt is None else tilt) @ _GRID_TO_CAM
         map_to_pool = _MAP_TO_POOL.copy()
 
         def probes(k: np.ndarray) -> np.ndarray:
