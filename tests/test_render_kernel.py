@@ -51,16 +51,7 @@ class _OpenCVRenderer(CameraRenderer):
         self.masks: list[np.ndarray] = []
         self.facades: list[int] = []      # the facade pixels of each view sampled from the baked box
 
-    def _frame_draws(self, rng):
-        """The same draws in the same order as the renderer's, kept as drawn (gamma, gains, noise offsets): the
-        renderer passes what this returns back to ``_finish`` when it draws ahead of the maps."""
-        gamma, gains = photometry_draws(self.photometry, rng)
-        dy = dx = 0
-        if self.photometry.has_noise:
-            dy, dx = rng.integers(0, render_mod._NOISE_MARGIN_PX + 1, size=2)
-        return gamma, gains, dy, dx
-
-    def _finish(self, src, occ, shading_params, rng, speed_mps, pose, mid, draws=None):
+    def _finish(self, src, occ, shading_params, rng, speed_mps, pose, mid):
         facades = None
         if isinstance(src, render_mod._BoxWarp):
             src = _warp_box(src.box, src.matrix, src.width_px, src.height_px)
@@ -88,13 +79,14 @@ class _OpenCVRenderer(CameraRenderer):
         blur_px = speed_mps * p.exposure_time_s / (camera.gsd_m(pose.altitude_m) * camera.pixel_aspect)
         if blur_px >= 1.0:
             image = cv2.filter2D(image, -1, _motion_kernel(blur_px), borderType=cv2.BORDER_REPLICATE)
-        gamma, gains, dy, dx = self._frame_draws(rng) if draws is None else draws
+        gamma, gains = photometry_draws(p, rng)
         if gamma is not None:
             cv2.LUT(image, gamma_lut(gamma), dst=image)
         if gains is not None:
             cv2.transform(image, np.diag(gains).astype(np.float32), dst=image)
         noise = None
         if p.has_noise:
+            dy, dx = rng.integers(0, render_mod._NOISE_MARGIN_PX + 1, size=2)
             sigma = cv2.LUT(image, self._sensor.sigma_lut)
             noise = cv2.multiply(sigma, self._noise_bank[dy:dy + h, dx:dx + w], scale=2.0 ** -19)
         vignette = self._vignetting_map(camera, p.vignetting)

@@ -597,18 +597,13 @@ class CameraRenderer:
             if self._view.dsm is not None:   # else the reads are the footprint's corners, computed above
                 corners = self._view.reads_px(affine, camera, tilt, footprint)
             baked = baked if level == 0 and baked.covers(corners) else None
-        draws = None
-        if baked is not None:   # the box's tiles and (without a pre_sensor, after which nothing else draws before
-            # the sensor stage) the frame's draws, the same in the same order, before the view's maps: after the maps
-            # kernels have streamed their ~2 MB these small NumPy calls took 3-5x longer (0.1 ms a frame)
-            self._bake_tiles(baked, corners)
-            draws = None if pre_sensor is not None else self._frame_draws(rng)
         # a flat, untilted view needs no per-pixel maps (the affine warp is exact): skip their two float passes;
         # a view's maps come in the baked box's pixels when it serves the frame (no shift of the maps to sample it)
         view = None if tilt is None and self._view.dsm is None else self._view.maps(
             affine, pose.altitude_m, camera, tilt, (0, 0) if baked is None else baked.origin_px, footprint)
         if baked is not None:
-            return self._render_baked(baked, affine, pose, rng, speed_mps, status, pre_sensor, view, sun_deg, draws)
+            self._bake_tiles(baked, corners)
+            return self._render_baked(baked, affine, pose, rng, speed_mps, status, pre_sensor, view, sun_deg)
         if view is None:
             image = self._warp_raw(affine, level, camera.width_px, camera.height_px)
         else:
@@ -626,8 +621,7 @@ class CameraRenderer:
     def _render_baked(self, baked: BakedShadows, affine: np.ndarray, pose: Pose, rng: np.random.Generator,
                       speed_mps: float, status: FootprintStatus,
                       pre_sensor: Callable[[np.ndarray], np.ndarray] | None, view: ViewMaps | None = None,
-                      sun_deg: tuple[float, float] | None = None,
-                      draws: tuple[np.ndarray, int, int] | None = None) -> Frame:
+                      sun_deg: tuple[float, float] | None = None) -> Frame:
         """One warp of the pre-shaded box: RGB and the occlusion (alpha) together, inside the finishing pass
         (``_BoxWarp``). ``view``: a perspective or tilted view, made in the box's pixels, samples the box through its
         maps instead, its facades shaded in the same pass (``_MapWarp``). The passes index the box with uint32: a
@@ -646,15 +640,14 @@ class CameraRenderer:
             out = _MapWarp(box, view.x, view.y, _NO_PIXELS if view.facade is None else view.facade, gains,
                            camera.height_px, camera.width_px)
         mid = [] if pre_sensor is None else [pre_sensor]
-        image, alpha, count = self._finish(out, _BAKED_ALPHA, None, rng, speed_mps, pose, mid, draws)
+        image, alpha, count = self._finish(out, _BAKED_ALPHA, None, rng, speed_mps, pose, mid)
         return Frame(image=image, shadow_mask=None, shadow_fraction=count / alpha.size, valid=status == "valid",
                      status=status, pose=pose, pyramid_level=0, occlusion_q=alpha)
 
     # ------------------------------------------------------------------ photometry
     def _finish(self, src: np.ndarray | _BoxWarp | _MapWarp, occ: np.ndarray | None,
                 shading_params: Mapping[str, Any] | None, rng: np.random.Generator, speed_mps: float, pose: Pose,
-                mid: list[Callable[[np.ndarray], np.ndarray]],
-                draws: tuple[np.ndarray, int, int] | None = None) -> tuple[np.ndarray, np.ndarray, int]:
+                mid: list[Callable[[np.ndarray], np.ndarray]]) -> tuple[np.ndarray, np.ndarray, int]:
         """The frame from the warped map ``src`` (a fresh (H, W, 3 or 4) uint8 array, which becomes the frame's
         memory), or the baked box's warp to do in the first pass (``_BoxWarp``, ``_MapWarp``, with ``_BAKED_ALPHA``):
         shadows, motion blur, gamma, gains, vignetting, noise (``frame_kernel.finish``, ``warp_finish``,
@@ -664,7 +657,7 @@ class CameraRenderer:
         ``occ``: the float occlusion to shade with ``shading_params``, or ``_BAKED_ALPHA`` (src's alpha, already
         shaded), or None. ``mid``: scene-side steps on the shaded RGB image before the sensor (facades, exposure):
         with them or with motion blur, the pass is split in two around them. The random draws and their order:
-        ``photometry_draws``, then the noise bank offsets (``_frame_draws``; ``draws``: already made)."""
+        ``photometry_draws``, then the noise bank offsets."""
         fk = _kernels()
         p = self.photometry
         warp = src if isinstance(src, (_BoxWarp, _MapWarp)) else None
@@ -701,10 +694,11 @@ class CameraRenderer:
             if blur_px >= 1.0:
                 src = cv2.filter2D(src, -1, _motion_kernel(blur_px), borderType=cv2.BORDER_REPLICATE)
             cn, occ_mode = 3, fk.OCC_NONE
-        lut, dy, dx = self._frame_draws(rng) if draws is None else draws
-        bank = _NO_BANK
+        lut = tone_lut(*photometry_draws(p, rng))
+        bank, dy, dx = _NO_BANK, 0, 0
         if p.has_noise:
             assert self._noise_bank is not None
+            dy, dx = rng.integers(0, _NOISE_MARGIN_PX + 1, size=2).tolist()
             bank = self._noise_bank.reshape(self._noise_bank.shape[0], -1)
         flat = src.reshape(-1)
         if warp is not None:
@@ -714,15 +708,6 @@ class CameraRenderer:
             count += fk.finish(src.reshape(h, w * cn), cn, occ_mode, occ_f, shade, lut, flat, alpha, sp.active,
                                sp.vig, bank, dy, 3 * dx, sp.sigma_mode, sp.a32, sp.b32, sp.a64, sp.b64)
         return flat[:h * w * 3].reshape(h, w, 3), alpha, count
-
-    def _frame_draws(self, rng: np.random.Generator) -> tuple[np.ndarray, int, int]:
-        """The frame's tone LUT and noise bank offsets (dy, dx; 0 without noise), drawn in this order from ``rng``:
-        ``photometry_draws``, then the offsets."""
-        lut = tone_lut(*photometry_draws(self.photometry, rng))
-        if not self.photometry.has_noise:
-            return lut, 0, 0
-        dy, dx = rng.integers(0, _NOISE_MARGIN_PX + 1, size=2).tolist()
-        return lut, dy, dx
 
     @staticmethod
     def _vignetting_map(camera: CameraModel, strength: float) -> np.ndarray | None:
