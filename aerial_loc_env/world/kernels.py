@@ -182,8 +182,8 @@ def gather_f32x16(typingctx, table, idx, x, out):
     ``FAST_GATHER``, as ``gather_pairs16``.
 
     Why: the perspective maps' fixed-point steps look up the height model at ~60k listed pixels three times a
-    frame, each a scalar load LLVM does not vectorize; on Emerald Rapids the gathers take ``view_maps`` 0.81-0.84 ->
-    0.77-0.78 ms a frame (replayed)."""
+    frame, each a scalar load LLVM does not vectorize; on Emerald Rapids the gathers take ``view_maps`` 0.78-0.90 ->
+    0.76-0.86 ms a frame (replayed, the variants' order rotated: 3-5 %)."""
     if not (isinstance(x, types.Integer)
             and all(isinstance(a, types.Array) and a.ndim == 1 and a.layout == "C" for a in (table, idx, out))
             and table.dtype == types.float32 and out.dtype == types.float32 and idx.dtype == types.int32):
