@@ -34,7 +34,8 @@ in cache. What was done about it (frames unchanged, each step measured in altern
 in one process): the box's neighbour loads as AVX-512 gathers of neighbour pairs where gathers are fast
 (``world.kernels.gather_pairs16``, Sapphire Rapids on: 1.36 ms of scalar loads a frame -> 0.43 ms, 32-bit gathers
 0.78), the tone lookups as VBMI byte permutes (``lut_rgba16``: 0.44 -> 0.30 ms of lookups), the noise bank's rows
-prefetched 16 rows ahead (the box-sampling pass 2.34 -> 2.19-2.22 ms) and the tilt's two matrix inverses made once
+prefetched 16 rows ahead (the box-sampling pass 1.75 -> 1.70-1.72 ms replayed with the variants' order rotated;
+the first figure given, 2.34 -> 2.19-2.22, was inflated by the order) and the tilt's two matrix inverses made once
 per camera (0.05-0.09 ms a tilted frame): render 1.52-1.82x, perspective 2.95-3.39x and tilted 3.06-3.42x there,
 the spread being the host's load (the same code, minutes apart). Measured and not kept: the maps made a band of
 rows at a time inside the sampling pass (``view_maps`` and the sampling fused, so that no map goes through memory;
