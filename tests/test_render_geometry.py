@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from aerial_loc_env.sensors.camera import CameraModel, Pose, apply_affine
-from aerial_loc_env.sensors.render import CameraRenderer, gamma_lut, tone_lut
+from aerial_loc_env.sensors.render import CameraRenderer, Photometry, gamma_lut, photometry_draws, tone_lut
 
 
 def _map(gsd_x: float, gsd_y: float) -> SimpleNamespace:
@@ -29,6 +29,9 @@ def test_pose_affine_and_corners_equal_camera_to_map_bit_for_bit(camera, gsd):
         expected = camera.camera_to_map(renderer.orthomap, *pose)
         got = camera.project_pose(renderer.orthomap, pose)
         assert got.dtype == expected.dtype and got.tobytes() == expected.tobytes()
+        # the renderer's, with the terms it keeps per altitude: a new altitude, then the same one again
+        for again in (pose, Pose(pose.y_m, pose.x_m, -pose.yaw_rad, pose.altitude_m)):
+            assert renderer.camera_to_map(again).tobytes() == camera.camera_to_map(renderer.orthomap, *again).tobytes()
         corners = (got @ renderer._hom_corners(camera)).T
         assert corners.tobytes() == np.ascontiguousarray(apply_affine(expected, camera.corners_px())).tobytes()
 
@@ -36,8 +39,13 @@ def test_pose_affine_and_corners_equal_camera_to_map_bit_for_bit(camera, gsd):
 def test_tone_lut_is_the_opencv_operations_over_all_levels():
     levels = np.repeat(np.arange(256, dtype=np.uint8)[None, :, None], 3, axis=2)
     rng = np.random.default_rng(2)
+    # (the gains by compiled arithmetic, not OpenCV: many draws, gains far below and above 1, saturating, and the
+    # renderer's own draws)
+    draws = [photometry_draws(Photometry(exposure_std=0.5, white_balance_std=0.2, gamma_std=0.3), rng)
+             for _ in range(300)]
     for gamma, gains in [(None, None), (0.83, None), (None, np.array([0.7, 1.0, 1.6])),
-                         *[(float(g), rng.uniform(0.5, 2.5, 3)) for g in rng.uniform(0.5, 2.0, 20)]]:
+                         *[(float(g), rng.uniform(0.5, 2.5, 3)) for g in rng.uniform(0.5, 2.0, 20)],
+                         *[(None, rng.uniform(0.0, 300.0, 3)) for _ in range(20)], *draws]:
         ref = levels.copy()
         if gamma is not None:
             cv2.LUT(ref, gamma_lut(gamma), dst=ref)

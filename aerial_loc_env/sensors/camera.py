@@ -195,12 +195,14 @@ class CameraModel:
         (wx, _, ox), (_, wy, oy) = world_to_map_affine(orthomap).tolist()
         return (gu, gu * self.pixel_aspect, *(float(c) for c in self.center_px), wx, ox, wy, oy)
 
-    def project_pose(self, orthomap: MapGrid, pose: Pose) -> np.ndarray:
+    def project_pose(self, orthomap: MapGrid, pose: Pose, terms: tuple[float, ...] | None = None) -> np.ndarray:
         """``camera_to_map`` (2, 3) for a single ``Pose``, in scalar float64 arithmetic (``pose_affine``: the same
         floats; tests/test_render_geometry.py checks them bit for bit) without a dozen numpy calls on 0-d arrays
-        (the renderer calls it every frame)."""
+        (the renderer calls it every frame). ``terms``: ``affine_terms`` at the pose's altitude if the caller keeps
+        them (the renderer does, per altitude)."""
         x, y, yaw, alt = (float(v) for v in pose)
-        a = pose_affine(self.affine_terms(orthomap, alt), x, y, float(np.cos(yaw)), float(np.sin(yaw)))
+        terms = self.affine_terms(orthomap, alt) if terms is None else terms
+        a = pose_affine(terms, x, y, float(np.cos(yaw)), float(np.sin(yaw)))
         return np.array(a).reshape(2, 3)
 
 

@@ -148,6 +148,17 @@ def _scene_row(s, o, m, f, cn, w_px, occ_mode, l0, l1, l2, s0, s1, s2, lit_same,
     return count
 
 
+@nb.njit(**_JIT)
+def tone_table(levels, gains, out):
+    """``out[c, v]`` = the tone ``levels[v]`` (uint8 (256,)) times channel c's gain ``gains[c]`` (float64, cast to
+    float32), rounded half to even and saturated (``gain_byte``): ``cv2.transform`` of uint8 levels by a diagonal
+    float32 matrix (the zero terms add nothing), as ``render.tone_lut`` uses it."""
+    for c in range(out.shape[0]):
+        g = np.float32(gains[c])
+        for v in range(levels.shape[0]):
+            out[c, v] = gain_byte(levels[v], g)
+
+
 @nb.njit(inline="always", **_JIT)
 def _tone_tables(lut):
     """The (3, 256) tone LUT as the scene stage reads it: one row per channel, and all three end to end (``tabs``,

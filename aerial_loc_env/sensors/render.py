@@ -318,6 +318,7 @@ class CameraRenderer:
             self._nodata_blocks = cv2.integral((blocks > 0).astype(np.uint8))
         self._noise_bank: np.ndarray | None = None
         self._hom_corners_of: tuple[Any, Any] = (None, None)
+        self._affine_terms_of: tuple[Any, Any, float, tuple[float, ...]] = (None, None, math.nan, ())
         self._sensor = _SensorParams.build(self.camera, self.photometry)
         self.reset(noise_seed if isinstance(noise_seed, np.random.Generator) else np.random.default_rng(noise_seed))
 
@@ -385,8 +386,15 @@ class CameraRenderer:
 
     # ------------------------------------------------------------------ geometry
     def camera_to_map(self, pose: Pose, camera: CameraModel | None = None) -> np.ndarray:
-        """The (2, 3) affine camera pixel -> map pixel (level 0) for ``pose``."""
-        return (camera or self.camera).project_pose(self.orthomap, _pose_tuple(pose))
+        """The (2, 3) affine camera pixel -> map pixel (level 0) for ``pose`` (the camera's ``affine_terms`` kept
+        for the last altitude: a flight's altitude rarely changes, and they cost a frame a few NumPy calls)."""
+        camera = camera or self.camera
+        pose = _pose_tuple(pose)
+        held_camera, held_map, held_alt, terms = self._affine_terms_of
+        if held_camera is not camera or held_map is not self.orthomap or held_alt != pose[3]:
+            terms = camera.affine_terms(self.orthomap, pose[3])
+            self._affine_terms_of = (camera, self.orthomap, pose[3], terms)
+        return camera.project_pose(self.orthomap, pose, terms)
 
     def _hom_corners(self, camera: CameraModel) -> np.ndarray:
         """The image corners (3, 4) in homogeneous coordinates (``apply_affine``'s ``hom``), kept per camera."""
@@ -791,14 +799,18 @@ def gamma_lut(gamma: float) -> np.ndarray:
 
 def tone_lut(gamma: float | None, gains: np.ndarray | None) -> np.ndarray:
     """The frame's tone curve then per-channel gains as one (3, 256) uint8 table (row c: channel c's output at
-    each input level): the OpenCV operations themselves (``cv2.LUT`` of ``gamma_lut``, a diagonal
-    ``cv2.transform``, saturating) run over the 256 levels, so the table is their arithmetic by construction."""
+    each input level): what ``cv2.LUT`` of ``gamma_lut`` then a diagonal float32 ``cv2.transform`` (saturating) do
+    to the 256 levels, the gains applied by ``frame_kernel.tone_table`` (that arithmetic, one compiled call: the
+    four OpenCV/NumPy calls it replaces cost a frame ~0.05 ms with cold caches; tests/test_render_geometry.py
+    compares it with the OpenCV operations)."""
     if gamma is None and gains is None:
         return _IDENTITY
-    levels = _LEVELS if gamma is None else cv2.LUT(_LEVELS, gamma_lut(gamma))
-    if gains is not None:
-        levels = cv2.transform(levels, np.diag(gains).astype(np.float32))
-    return levels[0].T.copy()
+    levels = _IDENTITY[0] if gamma is None else gamma_lut(gamma)
+    if gains is None:
+        return np.repeat(levels[None, :], 3, axis=0)
+    out = np.empty((3, 256), np.uint8)
+    _kernels().tone_table(levels, np.asarray(gains, dtype=np.float64), out)
+    return out
 
 
 def noise_bank(rng: np.random.Generator, camera: CameraModel) -> np.ndarray:
