@@ -43,6 +43,26 @@ the facades, whose gains NumPy computes from the pass's facing directions, finis
 pass 2.70 ms against 2.66 for the two kernels, plus 0.1 ms for the facades, and 3.9-4.0x against 3.2-3.4x in the
 benchmark; the box's rows prefetched ahead through the maps, and the maps' own rows (no gain).
 
+Next session, same VM (frames unchanged; kernels replayed with the variants' order rotated, whole frames of two
+renderers interleaved in one process with their order rotated, or alternating runs: a variant replayed second had
+found the box and the bank warm in L3, which had flattered some earlier replayed figures): the sensor stage in
+float32 lanes (``frame_kernel._vignetted``: the exact /255 multiply as ``h v (1/255)`` in float32, checked over all
+pairs; numba had widened the integer form to 8 int64 lanes; 0.43-0.47 -> 0.33-0.36 ms back to back), the bilinear
+weights kept per pixel with the blend looping over a pixel's channels (``remap_finish`` 1.70-1.76 -> 1.44-1.54 ms,
+``warp_finish`` 1.67 -> 1.45 ms replayed), facades listed by the maps kernel in pixel order and walked by row
+(no counting sort or copies), the height lookups as ``world.kernels.gather_f32x16`` (``view_maps`` 3-5 %), the box
+lines 16 rows ahead prefetched from the maps (0.02-0.09 ms), the tone table's gains by one compiled call and the
+footprint's corners once a frame. This benchmark's box is now made from the footprints as the tilted camera sees
+them (6 of the tilted flight's 125 frames had left the untilted box by under a pixel and timed the per-frame
+fallback). In 24 shorter runs the rows measured 2.57-3.17x and 2.68-3.28x (each at or under 3x in 22), two whole
+``make bench`` runs 2.95x / 3.07x and 2.86x / 3.15x; 54f7072 alternating with six of them 3.08-3.32x / 3.20-3.31x.
+A quiet frame: ``remap_finish`` 1.35-1.45 ms, ``view_maps`` 0.6-0.68, ``march`` 0.24 and 0.38 ms of Python (cold:
+a NumPy call costs 3-5x its warm time after the kernels and the floor's warps; the tone table, the noise offsets'
+``rng.integers`` and the maps' preamble are the largest). Measured and not kept: drawing the frame's photometry
+before the maps (no faster: every Python step of a frame runs cold), the maps written only in relief cells with
+the flat cells' points computed in the sampling pass (0.13 ms slower, tilted 0.39), the sigma from a gathered table
+instead of the square root, the facades' four bytes scaled together, the noise bank prefetched 32-128 rows ahead.
+
 Where a baked-shadow frame's time goes (2-core Xeon VM, load 1-2, floor 0.87-0.95 ms): the RGBA warp of the baked
 box 1.0-1.3 ms (more than the floor: a flight reads a new, rotated region each frame, and the finishing pass in
 between evicts it from L2, which costs the next warp about 0.3 ms), then ONE compiled pass
