@@ -16,8 +16,8 @@ keeps those passes as the reference and compares exactly); what each pass comput
   ``world.kernels``, whose two helpers this pass uses (the vignetting by the same multiply in float32,
   ``_vignetted``: the sensor stage then runs in 16 float32 lanes, not numba's 8 int64);
 - ``cv2.transform`` with a diagonal float32 matrix on uint8 is ``rint(v * g)`` in float32, saturated: a byte
-  function per channel, so gamma and gains compose into one table per frame (``CameraRenderer`` builds it by
-  running the two OpenCV operations over the 256 levels);
+  function per channel, so gamma and gains compose into one table per frame (``render.tone_lut``: ``cv2.LUT``'s
+  gamma table, then ``tone_table``'s gains, that arithmetic over the 256 levels);
 - ``cv2.multiply(S, Z, scale=2**-19)`` on int16 is ``rint(float32(S Z) * 2**-19)`` (the product rounded to
   float32 first, then the exact power-of-two scale);
 - the int16 sigma LUT ``rint(256 sqrt(r**2 + g v))`` (float64) is computed here instead of read (a gather per

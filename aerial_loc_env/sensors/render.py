@@ -594,9 +594,8 @@ class CameraRenderer:
         tilt = tilt_homography(camera, *tilt_rad) if any(tilt_rad) else None
         # the footprint's corners, once a frame (the status, the box's cover and the view's window use them); the
         # untilted ones: the same matrix product as ``apply_affine`` with the homogeneous corners kept
-        footprint = footprint_px(affine, camera, tilt) if tilt is not None else \
+        corners = footprint = footprint_px(affine, camera, tilt) if tilt is not None else \
             (affine @ self._hom_corners(camera)).T
-        corners = footprint
         status = self._status(affine, level, camera, map_corners=corners)
         self._check(pose, status, strict, camera)
         baked = occlusion if isinstance(occlusion, BakedShadows) else None
