@@ -63,6 +63,16 @@ before the maps (no faster: every Python step of a frame runs cold), the maps wr
 the flat cells' points computed in the sampling pass (0.13 ms slower, tilted 0.39), the sigma from a gathered table
 instead of the square root, the facades' four bytes scaled together, the noise bank prefetched 32-128 rows ahead.
 
+What is left does not move with arithmetic or the interpreter (the session after, same VM; variants as scratch copies
+in alternating runs, none kept): the noise off altogether 2.40-2.61x against 2.65-2.82x (the whole noise step is
+worth about 0.25x), but with the noise on: an int8 bank (half its bytes) 2.51-2.59x against 2.53-2.58x, a
+counter-based hash instead of the bank (three 32-bit multiplies a value) 2.77-2.83x against 2.56-2.67x, the sigma's
+square root replaced by a linear form 2.58-2.66x against 2.57-2.62x, the tilt's divisions replaced by products
+(tilted row) 2.71-2.89x against 2.69-2.97x, the maps' whole Python preamble memoized per pose (an upper bound for
+moving it into a compiled call) 2.55-2.86x against 2.64-2.76x. Each within the run-to-run spread: what is left points
+at a frame's memory traffic (the maps written and read back, the box's new lines) and the caches the floor's warps
+leave cold, which would also be why it grows more than the floor's when the host's neighbours load the memory.
+
 Where a baked-shadow frame's time goes (2-core Xeon VM, load 1-2, floor 0.87-0.95 ms): the RGBA warp of the baked
 box 1.0-1.3 ms (more than the floor: a flight reads a new, rotated region each frame, and the finishing pass in
 between evicts it from L2, which costs the next warp about 0.3 ms), then ONE compiled pass
