@@ -22,6 +22,10 @@ An experiment spec::
 
 Parameter keys may be dotted (``measurement_params.n_pairs``): they address nested tables of the spec and are
 stored nested, so the dotted and the nested spelling name the same trial.
+
+A relative ``map.path`` in scenario overrides is read from the spec file's folder, except in the experiments
+shipped in the package (``experiments/``, installed wherever the package is): those name data beside the project
+(``../shared/data``) and are read from the working directory, i.e. run from the repository root.
 """
 
 from __future__ import annotations
@@ -309,4 +313,7 @@ def load_grid(name_or_path: str | Path) -> Grid:
     if not path.is_file():
         raise ConfigError(f"experiment '{name_or_path}' not found (looked for {path}); "
                           f"available: {', '.join(available_experiments())}")
-    return grid_from_dict(read_toml(path, "experiment"), where=str(path), base_dir=path.resolve().parent)
+    folder = path.resolve().parent
+    # a shipped experiment's relative map paths from the working directory: its own folder is inside the package
+    base = Path.cwd() if folder == EXPERIMENT_DIR else folder
+    return grid_from_dict(read_toml(path, "experiment"), where=str(path), base_dir=base)
