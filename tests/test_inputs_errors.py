@@ -18,7 +18,7 @@ import pytest
 from conftest import SHARED_DATA
 
 import aerial_loc_env  # noqa: F401  (registers the scenarios)
-from aerial_loc_env.benchmark.grid import grid_from_dict, load_grid
+from aerial_loc_env.benchmark.grid import available_experiments, check_scenarios, grid_from_dict, load_grid
 from aerial_loc_env.config import build_config
 from aerial_loc_env.env import scenarios
 from aerial_loc_env.errors import ConfigError, MapError
@@ -226,14 +226,15 @@ def test_shipped_experiments_read_relative_map_paths_from_the_working_directory(
     assert [p for p in paths if p] == [str(tmp_path / "../shared/data/manila_pasig_river.tif")]
 
 
-def test_the_generalization_experiment_builds_its_real_tile_from_the_repository_root(monkeypatch):
-    if not (SHARED_DATA / "manila_pasig_river.tif").is_file():
-        pytest.skip(f"the real tile is not available ({SHARED_DATA} is absent: it lives beside the project, see "
-                    "../shared/data/README.md)")
+@pytest.mark.parametrize("name", available_experiments())
+def test_every_shipped_experiment_builds_its_scenarios_from_the_repository_root(name, monkeypatch):
+    """What `aerial-loc bench NAME` checks before any trial: each scenario's env builds (spec, overrides, map)."""
     monkeypatch.chdir(REPO)
-    real = [s for s in load_grid("generalization").scenarios if s.id == "AerialLoc/RealMap-v1"]
-    assert len(real) == 1
-    gym.make(real[0].id, **real[0].overrides).close()
+    grid = load_grid(name)
+    if not SHARED_DATA.is_dir() and any("map" in scenarios.split_overrides(s.overrides) for s in grid.scenarios):
+        pytest.skip(f"experiment '{name}' reads a real tile from {SHARED_DATA}, which is absent (it lives beside "
+                    "the project, see ../shared/data/README.md)")
+    check_scenarios(grid)
 
 
 rl = pytest.importorskip  # keep the SB3 cases below skippable without the rl extra
