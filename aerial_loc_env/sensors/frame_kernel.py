@@ -255,14 +255,15 @@ def warp_finish(box, m, lut, out, alpha, sensor, vig, bank, dy, dx3, sigma_mode,
     in a row's last ``W mod WARP_STEP_PX`` pixels, where it is ``fma(m00, x, m01 y) + m02``; the value is the fma
     chain of ``estimators.patch_kernels`` on the four neighbours (the border's 0 outside), rounded half to even.
 
-    Loops (measured on a 600 x 400 flight, one core, two floor warps between frames): the coordinates and the weights
-    (0.2 ms a frame, then with the weights spread to the four channels, since kept per pixel), the prefetches and the
-    four neighbours' gathers (one uint32 load each; 0.75 ms cold without the prefetches), one loop over the row's 4 W
-    channel values (vectorized, 0.2 ms; now over its pixels, four channels each; a loop per channel over uint32 pixels
-    cost 0.44), then ``finish``'s tone lookups and sensor stage. In all 1.7 ms against 1.96 for ``cv2.warpAffine``
-    (1.34) and ``finish``; 1.8-2.0 without the prefetches; two 64-bit loads for the four neighbours instead of four
-    32-bit ones: no faster. A row whose neighbours are not all inside the box takes the general path (floor, border) in
-    its coordinate and gather loops only.
+    Loops (a row at a time): the source points, the weights per pixel and the neighbours' indices; the prefetches
+    and the four neighbours' gathers (one uint32 load each, or ``_gather_row``'s AVX-512 gathers); the blend over the
+    row's pixels, four channels each (``_blend_row``); then ``finish``'s tone lookups and sensor stage. A row whose
+    neighbours are not all inside the box takes the general path (floor, border) in its coordinate and gather loops
+    only. Measured when written (600 x 400 flight, one core, two floor warps between frames; the weights then spread
+    to the four channels): 1.7 ms a frame against 1.96 for ``cv2.warpAffine`` (1.34) and ``finish``, 1.8-2.0 without
+    the prefetches (0.75 ms of cold gathers); a loop per channel over uint32 pixels instead of the channel values:
+    0.44 ms against 0.2; two 64-bit loads for the four neighbours instead of four 32-bit ones: no faster. Since, with
+    the weights per pixel: 1.45 ms replayed on Emerald Rapids (``_blend_row``).
     """
     _wide_vectors()
     h_px, w_px = alpha.shape
