@@ -7,6 +7,6 @@ Importing the package registers the scenarios of ``envs/`` with Gymnasium (``Aer
 
 __version__ = "0.1.0"
 
-from .env.scenarios import register_all as _register_all  # noqa: E402
+from aerial_loc_env.env.scenarios import register_all as _register_all  # noqa: E402
 
 _register_all()

@@ -15,7 +15,7 @@ import typing
 from collections.abc import Mapping
 from typing import Any, TypeVar
 
-from .errors import ConfigError
+from aerial_loc_env.errors import ConfigError
 
 if sys.version_info >= (3, 11):
     import tomllib

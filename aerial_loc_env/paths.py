@@ -6,7 +6,7 @@ import os
 import tempfile
 from pathlib import Path
 
-from .errors import ConfigError
+from aerial_loc_env.errors import ConfigError
 
 _PKG = Path(__file__).resolve().parent
 

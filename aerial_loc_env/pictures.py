@@ -24,9 +24,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .errors import AerialLocError, ConfigError
-from .sensors.camera import CameraModel, Pose
-from .sensors.render import CameraRenderer, Frame, Photometry
+from aerial_loc_env.errors import AerialLocError, ConfigError
+from aerial_loc_env.sensors.camera import CameraModel, Pose
+from aerial_loc_env.sensors.render import CameraRenderer, Frame, Photometry
 
 _OVERVIEW_MAX_PX = 1600
 _TRACK_RGB = (255, 40, 40)
@@ -72,8 +72,8 @@ def write_pictures(out: Path, *, map_path: str | None = None, seed: int = 0, alt
                    n_frames: int = 4, orthomap=None, map_crs: str | None = None,
                    map_gsd_m: float | None = None) -> list[Path]:
     """Render the pictures (see the module doc) and return the written paths."""
-    from .sensors.flight import FlightConfig, FlyableRegion, footprint_radius_m, sample_track
-    from .world.shadows import ShadowConfig, apply_shading, sun_occlusion, upsample
+    from aerial_loc_env.sensors.flight import FlightConfig, FlyableRegion, footprint_radius_m, sample_track
+    from aerial_loc_env.world.shadows import ShadowConfig, apply_shading, sun_occlusion, upsample
 
     if not 1 <= n_frames <= 12:
         raise ConfigError(f"pictures: --frames = {n_frames} must be in [1, 12]")
@@ -149,10 +149,10 @@ def write_pictures(out: Path, *, map_path: str | None = None, seed: int = 0, alt
 
 def _load_map(map_path: str | None, crs: str | None = None, gsd_m: float | None = None):
     if map_path is None:
-        from .world.city import default_city
+        from aerial_loc_env.world.city import default_city
 
         return default_city()
-    from .world.io import load_orthomap
+    from aerial_loc_env.world.maps.io import load_orthomap
 
     if not Path(map_path).exists():
         raise ConfigError(f"pictures: --map {map_path} does not exist")
@@ -237,9 +237,9 @@ _QUIET = {"shadows.strength_range": [0.0, 0.0]}
 
 def realism_levels() -> list[tuple[str, str, str, dict, str]]:
     """The realism levels shown by ``write_realism_pictures``, built from the realistic presets' specs."""
-    from .config import config_to_dict
-    from .env import load_scenario
-    from .env.scenarios import SECTIONS
+    from aerial_loc_env.config import config_to_dict
+    from aerial_loc_env.env import load_scenario
+    from aerial_loc_env.env.scenarios import SECTIONS
 
     real = load_scenario("AerialLoc/RealisticPaper-v1").to_dict()
     season = load_scenario("AerialLoc/SeasonChange-v1").to_dict()
@@ -267,7 +267,7 @@ def realism_levels() -> list[tuple[str, str, str, dict, str]]:
 
 def write_realism_pictures(out: Path, *, seed: int = 0, levels: list | None = None) -> list[Path]:
     """``gap_<level>.png``: map patch at the true pose | camera frame, one per realism level, labelled."""
-    from .env import AerialLocEnv, load_scenario
+    from aerial_loc_env.env import AerialLocEnv, load_scenario
 
     written = []
     for stem, title, sid, overrides, choice in (realism_levels() if levels is None else levels):

@@ -1,4 +1,5 @@
-"""The map-acquisition model (world/acquisition.py): identity when off, lean geometry, georeference bias, sensor."""
+"""The map-acquisition model (world/maps/acquisition.py): identity when off, lean geometry, georeference bias,
+sensor."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ import pytest
 
 from aerial_loc_env.config import build_config
 from aerial_loc_env.errors import ConfigError, MapError
-from aerial_loc_env.world.acquisition import AcquisitionConfig, acquire, acquire_layer, lean_buildings
+from aerial_loc_env.world.maps.acquisition import AcquisitionConfig, acquire, acquire_layer, lean_buildings
 
 GSD = 0.25
 
@@ -168,14 +169,14 @@ def cache_home(tmp_path, monkeypatch):
 @pytest.fixture(scope="module")
 def small_database():
     """The small city's database built without the cache (the reference for bit-for-bit comparisons)."""
-    from aerial_loc_env.world.acquisition import acquire_map
     from aerial_loc_env.world.city import generate_city, small_city_config
+    from aerial_loc_env.world.maps.acquisition import acquire_map
 
     return acquire_map(generate_city(small_city_config(0)), _shadows(), _acq(**_DB))
 
 
 def _forbid_building(monkeypatch):
-    from aerial_loc_env.world import acquisition
+    from aerial_loc_env.world.maps import acquisition
 
     def fail(*_a, **_k):
         raise AssertionError("the database was rebuilt: the cache missed")
@@ -184,8 +185,8 @@ def _forbid_building(monkeypatch):
 
 
 def test_database_cache_second_construction_is_a_hit_and_bit_identical(cache_home, small_database, monkeypatch):
-    from aerial_loc_env.world.acquisition import database_cache_path, database_city
     from aerial_loc_env.world.city import small_city_config
+    from aerial_loc_env.world.maps.acquisition import database_cache_path, database_city
 
     city, shadows, acq = small_city_config(0), _shadows(), _acq(**_DB)
     path = database_cache_path(city, shadows, acq)
@@ -207,8 +208,8 @@ def test_database_cache_second_construction_is_a_hit_and_bit_identical(cache_hom
 @pytest.mark.parametrize("field_name,value", [("jpeg_quality", 71), ("lean_deg", 6.5), ("georef_bias_m", [1.2, -1.0]),
                                               ("haze", 0.0), ("gain_rgb", [1.0, 1.0, 0.92])])
 def test_database_cache_misses_on_a_changed_database_field(cache_home, field_name, value):
-    from aerial_loc_env.world.acquisition import database_cache_path
     from aerial_loc_env.world.city import small_city_config
+    from aerial_loc_env.world.maps.acquisition import database_cache_path
 
     city, shadows = small_city_config(0), _shadows()
     assert database_cache_path(city, shadows, _acq(**{**_DB, field_name: value})) != \
@@ -216,10 +217,10 @@ def test_database_cache_misses_on_a_changed_database_field(cache_home, field_nam
 
 
 def test_database_cache_key_holds_city_sun_and_generator_versions(cache_home, monkeypatch):
-    from aerial_loc_env.world import acquisition
     from aerial_loc_env.world import city as city_mod
     from aerial_loc_env.world import shadows as shadow_mod
     from aerial_loc_env.world.city import small_city_config
+    from aerial_loc_env.world.maps import acquisition
 
     city, shadows, acq = small_city_config(0), _shadows(), _acq(**_DB)
     p = acquisition.database_cache_path(city, shadows, acq)
@@ -238,8 +239,8 @@ def test_database_cache_key_holds_city_sun_and_generator_versions(cache_home, mo
 
 
 def test_database_cache_changed_field_builds_a_second_entry(cache_home, small_database):
-    from aerial_loc_env.world.acquisition import acquire_map, database_city
     from aerial_loc_env.world.city import default_city, small_city_config
+    from aerial_loc_env.world.maps.acquisition import acquire_map, database_city
 
     city, shadows = small_city_config(0), _shadows()
     a = database_city(city, shadows, _acq(**_DB))
@@ -253,9 +254,9 @@ def test_database_cache_changed_field_builds_a_second_entry(cache_home, small_da
 
 @pytest.mark.parametrize("damage", ["truncate_rgb", "garbage_meta", "foreign"])
 def test_database_cache_corrupt_or_foreign_entry_is_rebuilt_with_a_warning(cache_home, small_database, damage):
-    from aerial_loc_env.world.acquisition import acquire_map, database_cache_path, database_city
     from aerial_loc_env.world.city import default_city, small_city_config
-    from aerial_loc_env.world.map_cache import CacheRebuiltWarning
+    from aerial_loc_env.world.maps.acquisition import acquire_map, database_cache_path, database_city
+    from aerial_loc_env.world.maps.cache import CacheRebuiltWarning
 
     city, shadows, acq = small_city_config(0), _shadows(), _acq(**_DB)
     path = database_cache_path(city, shadows, acq)

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 DIGESTS = Path(__file__).parent / "data" / "behaviour_digests.json"
-#: every registered id that needs no user file, flown for two seconds (three frames hashed); the rest of its settings as shipped
+#: every registered id that needs no user file, flown for two seconds (three frames hashed), otherwise as shipped
 SCENARIOS = ("AerialLoc/PaperShadows-v1", "AerialLoc/PaperNoShadows-v1", "AerialLoc/GlobalLocalization-v1",
              "AerialLoc/CloudShadows-v1", "AerialLoc/MavicPro-v1", "AerialLoc/Small-v1",
              "AerialLoc/RealisticPaper-v1", "AerialLoc/SeasonChange-v1", "AerialLoc/Downtown-v1")

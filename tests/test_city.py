@@ -20,8 +20,8 @@ from aerial_loc_env.world.city import (
     height_ranges_m,
     small_city_config,
 )
-from aerial_loc_env.world.landcover import LandCover
-from aerial_loc_env.world.map_cache import CacheRebuiltWarning
+from aerial_loc_env.world.maps.cache import CacheRebuiltWarning
+from aerial_loc_env.world.maps.landcover import LandCover
 
 # the camera footprint of the paper: 600 x 400 px at 0.25 m/px, i.e. 150 m x 100 m
 FOOT_W_PX, FOOT_H_PX = 600, 400

@@ -69,7 +69,7 @@ EPOCH = {"seed": 2, "car_turnover": 0.5, "car_arrivals": 0.5, "leaf_off": 0.6, "
 
 
 def test_epoch_section_changes_the_camera_world_not_the_database():
-    from aerial_loc_env.world.epochs import epoch_cache_path
+    from aerial_loc_env.world.city.epochs import epoch_cache_path
 
     plain = gym.make(SMALL, **SHORT).unwrapped
     env = gym.make(SMALL, **SHORT, epoch=EPOCH).unwrapped
@@ -104,7 +104,7 @@ def test_city_database_comes_from_the_disk_cache_whatever_the_epoch():
     """The acquired database of a city map is built once and memory-mapped by every process after
     (world/acquisition.database_city); it is epoch A's, so the flown epoch shares it, and it is the map that
     acquire_map builds in memory, bit for bit."""
-    from aerial_loc_env.world.acquisition import acquire_map, database_cache_path
+    from aerial_loc_env.world.maps.acquisition import acquire_map, database_cache_path
 
     db = {"gsd_m": 1.0, "haze": 0.2, "lean_deg": 8.0}
     env = gym.make(SMALL, **SHORT, database=db, shadows={"database_sun_deg": [150.0, 50.0]}).unwrapped

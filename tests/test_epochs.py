@@ -1,4 +1,4 @@
-"""Two epochs of the world (world/epochs.py): identity at rate 0, determinism, each change kind where it belongs.
+"""Two epochs of the world (world/city/epochs.py): identity at rate 0, determinism, each change kind where it belongs.
 
 Rates are checked on a synthetic map with known objects (400 separated box buildings, 200 cars on a road,
 300 trees, 200 marking dashes): the fraction of objects a kind changes is binomial(n, rate), so it must lie
@@ -15,10 +15,10 @@ import pytest
 
 from aerial_loc_env.config import build_config
 from aerial_loc_env.errors import MapError
-from aerial_loc_env.world.epochs import EpochConfig, change_epoch, epoch_cache_path
-from aerial_loc_env.world.geo import LocalTangentGeoref
-from aerial_loc_env.world.landcover import LandCover as LC
-from aerial_loc_env.world.orthomap import Orthomap
+from aerial_loc_env.world.city.epochs import EpochConfig, change_epoch, epoch_cache_path
+from aerial_loc_env.world.maps.geo import LocalTangentGeoref
+from aerial_loc_env.world.maps.landcover import LandCover as LC
+from aerial_loc_env.world.maps.orthomap import Orthomap
 from aerial_loc_env.world.shadows import Sun, cast_shadow_mask
 
 GSD = 0.25
@@ -225,8 +225,7 @@ def test_maps_without_layers_are_refused(synthetic):
 
 
 def test_cache_key_holds_generator_and_epoch_config(monkeypatch):
-    from aerial_loc_env.world import epochs
-    from aerial_loc_env.world.city import small_city_config
+    from aerial_loc_env.world.city import epochs, small_city_config
 
     city = small_city_config(0)
     p1 = epoch_cache_path(city, _cfg(leaf_off=0.5))

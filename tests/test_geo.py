@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 from aerial_loc_env.errors import MapError, MissingExtraError
-from aerial_loc_env.world import geo
-from aerial_loc_env.world.geo import (
+from aerial_loc_env.world.maps import geo
+from aerial_loc_env.world.maps.geo import (
     WGS84_A_M,
     WGS84_B_M,
     WGS84_E2,

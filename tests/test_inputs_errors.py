@@ -24,8 +24,8 @@ from aerial_loc_env.env import scenarios
 from aerial_loc_env.errors import ConfigError, MapError
 from aerial_loc_env.estimators.registry import load_spec, make_agent
 from aerial_loc_env.sensors.flight import FlightConfig
-from aerial_loc_env.world.io import load_orthomap
-from aerial_loc_env.world.orthomap import Orthomap
+from aerial_loc_env.world.maps.io import load_orthomap
+from aerial_loc_env.world.maps.orthomap import Orthomap
 
 REPO = Path(__file__).resolve().parents[1]
 LATIN1 = "description = \"caf\xe9\"\n".encode("latin-1")   # a file saved in Latin-1, not UTF-8
@@ -132,7 +132,7 @@ def test_env_reset_refuses_a_boolean_seed():
 def test_image_over_opencvs_pixel_limit_is_a_map_error(tmp_path):
     png = tmp_path / "big.png"
     cv2.imwrite(str(png), np.full((40, 50, 3), 128, np.uint8))
-    code = ("import sys\nfrom aerial_loc_env.world.io import load_orthomap\nfrom aerial_loc_env.errors import "
+    code = ("import sys\nfrom aerial_loc_env.world.maps.io import load_orthomap\nfrom aerial_loc_env.errors import "
             "MapError\ntry:\n    load_orthomap(sys.argv[1], gsd_m=1.0)\nexcept MapError as e:\n"
             "    print('MAPERROR', e)\n")
     env = {**os.environ, "OPENCV_IO_MAX_IMAGE_PIXELS": "1000", "PYTHONPATH": str(REPO)}
@@ -145,7 +145,7 @@ def test_image_over_opencvs_pixel_limit_is_a_map_error(tmp_path):
 @pytest.mark.parametrize("layers", [[1, 2], {"rgb": "x.npy"}, {"rgb": {"file": "rgb.npy"}}, "rgb"])
 def test_bundle_with_malformed_layers_is_a_map_error(tmp_path, layers):
     om = Orthomap(np.zeros((20, 30, 3), np.uint8), 1.0, 1.0,
-                  __import__("aerial_loc_env.world.geo", fromlist=["x"]).LocalTangentGeoref.centered(
+                  __import__("aerial_loc_env.world.maps.geo", fromlist=["x"]).LocalTangentGeoref.centered(
                       0.0, 0.0, 30, 20, 1.0, 1.0), name="m")
     path = om.save_bundle(tmp_path / "m.alm")
     meta = json.loads((Path(path) / "meta.json").read_text())

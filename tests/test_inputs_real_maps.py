@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from aerial_loc_env.errors import MapError
-from aerial_loc_env.world.io import load_orthomap
+from aerial_loc_env.world.maps.io import load_orthomap
 
 US_FT_M = 1200.0 / 3937.0          # one US survey foot in metres
 

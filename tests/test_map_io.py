@@ -11,8 +11,8 @@ import pytest
 import tifffile
 
 from aerial_loc_env.errors import MapError
-from aerial_loc_env.world.geo import LocalTangentGeoref, WorldMercatorGeoref, mercator_scale_factor
-from aerial_loc_env.world.io import border_connected, load_orthomap
+from aerial_loc_env.world.maps.geo import LocalTangentGeoref, WorldMercatorGeoref, mercator_scale_factor
+from aerial_loc_env.world.maps.io import border_connected, load_orthomap
 
 H, W = 40, 50
 # ModelPixelScale / ModelTiepoint of a valencia-like EPSG:3395 tile

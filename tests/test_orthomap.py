@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from aerial_loc_env.errors import MapError
-from aerial_loc_env.world.geo import LocalTangentGeoref, WorldMercatorGeoref
-from aerial_loc_env.world.landcover import LandCover, colorize_classes
-from aerial_loc_env.world.orthomap import Orthomap
+from aerial_loc_env.world.maps.geo import LocalTangentGeoref, WorldMercatorGeoref
+from aerial_loc_env.world.maps.landcover import LandCover, colorize_classes
+from aerial_loc_env.world.maps.orthomap import Orthomap
 
 H, W = 60, 80
 
@@ -231,7 +231,7 @@ def test_landcover_palette():
 
 def test_concurrent_writer_race_is_a_clear_error(tmp_path, monkeypatch):
     """Two processes caching the same bundle: the loser gets a MapError, the winner's bundle stays whole."""
-    import aerial_loc_env.world.orthomap as om_mod
+    import aerial_loc_env.world.maps.orthomap as om_mod
 
     real_replace = om_mod.os.replace
     state = {"raced": False}

@@ -16,8 +16,8 @@ from aerial_loc_env.errors import ConfigError
 from aerial_loc_env.sensors.camera import CameraModel, Pose
 from aerial_loc_env.sensors.perspective import PerspectiveConfig, ReliefView, tilt_homography
 from aerial_loc_env.sensors.render import CameraRenderer, Photometry
-from aerial_loc_env.world.geo import LocalTangentGeoref
-from aerial_loc_env.world.orthomap import Orthomap
+from aerial_loc_env.world.maps.geo import LocalTangentGeoref
+from aerial_loc_env.world.maps.orthomap import Orthomap
 
 GSD = 0.25
 # the kernels reproduce OpenCV 5's nearest-neighbour warp arithmetic (float32 coefficients, FMA); OpenCV 4 rounds

@@ -11,8 +11,8 @@ import pytest
 from aerial_loc_env.errors import ConfigError, FootprintError
 from aerial_loc_env.sensors.camera import CameraModel, Pose
 from aerial_loc_env.sensors.render import CameraRenderer, Photometry, _motion_kernel
-from aerial_loc_env.world.geo import LocalTangentGeoref
-from aerial_loc_env.world.orthomap import Orthomap
+from aerial_loc_env.world.maps.geo import LocalTangentGeoref
+from aerial_loc_env.world.maps.orthomap import Orthomap
 from aerial_loc_env.world.shadows import ShadowGrid
 
 GSD = 0.25

@@ -1,4 +1,5 @@
-"""The compiled finishing pass (``sensors.frame_kernel.finish``, and ``warp_finish`` with the baked box's warp) against
+"""The compiled finishing pass (``sensors.render_kernels.finish``, and ``warp_finish`` with the baked box's warp)
+against
 the OpenCV passes it replaced, bit for bit.
 
 The reference is the renderer as it was: a subclass whose ``_finish`` runs the old OpenCV/NumPy passes (the baked
@@ -19,8 +20,8 @@ import numba
 import numpy as np
 import pytest
 
-from aerial_loc_env.sensors import frame_kernel as fk
 from aerial_loc_env.sensors import render as render_mod
+from aerial_loc_env.sensors import render_kernels as fk
 from aerial_loc_env.sensors.camera import CameraModel, Pose
 from aerial_loc_env.sensors.perspective import PerspectiveConfig
 from aerial_loc_env.sensors.render import CameraRenderer, Photometry, _motion_kernel, gamma_lut, photometry_draws
@@ -483,10 +484,10 @@ def test_map_warp_equals_opencv_remap_then_facades_over_random_maps(size):
 
 
 def test_wide_vectors_marks_the_calling_kernel_only():
-    """The frame pass's codegen hint (``world.kernels.wide_vectors``) reaches LLVM as an attribute of the function
+    """The frame pass's codegen hint (``jit.wide_vectors``) reaches LLVM as an attribute of the function
     that calls it, which stays a function of its own (noinline: inlined into numba's wrappers it would take theirs),
     and changes nothing computed: the hinted and plain versions of one loop agree bit for bit."""
-    from aerial_loc_env.world.kernels import fma32, wide_vectors
+    from aerial_loc_env.jit import fma32, wide_vectors
 
     def body(a, out):
         for i in range(a.shape[0]):
@@ -515,11 +516,11 @@ def test_wide_vectors_marks_the_calling_kernel_only():
 
 
 def test_gather_pairs16_reads_each_indexed_pixel_and_the_next():
-    """``world.kernels.gather_pairs16`` (the box-sampling passes' neighbour loads where AVX-512 gathers pay) is
+    """``jit.gather_pairs16`` (the box-sampling passes' neighbour loads where AVX-512 gathers pay) is
     plain indexing, 16 points at a time at any offset into the index row: the pixel at each index plus ``off`` and
     the pixel after it. Elsewhere the passes take the scalar loads (compared with OpenCV above) and this intrinsic
     cannot compile (LLVM has no gather instruction to select)."""
-    from aerial_loc_env.world import kernels
+    from aerial_loc_env import jit as kernels
 
     if not kernels.FAST_GATHER:
         pytest.skip(f"this host's CPU ({kernels._host_cpu()}) takes the scalar loads: no fast AVX-512 gather")
@@ -541,11 +542,11 @@ def test_gather_pairs16_reads_each_indexed_pixel_and_the_next():
 
 
 def test_gather_f32x16_reads_each_indexed_value():
-    """``world.kernels.gather_f32x16`` (the perspective maps' height lookups where AVX-512 gathers pay) is plain
+    """``jit.gather_f32x16`` (the perspective maps' height lookups where AVX-512 gathers pay) is plain
     indexing, 16 points at a time at any offset into the index row, the first and last table entries included
     (non-finite values copied as they are). Elsewhere the maps take the scalar loads (compared with the OpenCV
     reference in tests/test_perspective_kernels.py, as here)."""
-    from aerial_loc_env.world import kernels
+    from aerial_loc_env import jit as kernels
 
     if not kernels.FAST_GATHER:
         pytest.skip(f"this host's CPU ({kernels._host_cpu()}) takes the scalar loads: no fast AVX-512 gather")
@@ -567,11 +568,11 @@ def test_gather_f32x16_reads_each_indexed_value():
 
 
 def test_lut_rgba16_matches_the_scalar_lookups():
-    """``world.kernels.lut_rgba16`` (the box-sampling passes' tone lookups, 16 RGBA pixels at a time): compiled
+    """``jit.lut_rgba16`` (the box-sampling passes' tone lookups, 16 RGBA pixels at a time): compiled
     (by VBMI byte permutes where the CPU has them) it writes the same colour bytes, alphas and count as its plain
     Python definition, at aligned and unaligned pixel offsets, every table entry reached (indices above and below
     128 select the table's two halves)."""
-    from aerial_loc_env.world import kernels
+    from aerial_loc_env import jit as kernels
 
     @numba.njit
     def blocks(src, tabs, out, alpha, starts):

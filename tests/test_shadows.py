@@ -450,7 +450,7 @@ def test_disc_fraction_computes_the_penumbra_alone_with_the_same_floats():
 # ------------------------------------------------------------------------------------------ the compiled sweep
 
 def _numpy_sweep(a, geo, soft):
-    """The sweep as it was before the compiled loop (world.kernels.sweep): NumPy vector operations per slice."""
+    """The sweep as it was before the compiled loop (world.shadows_kernels.sweep): NumPy vector operations per slice."""
     from aerial_loc_env.world.shadows import _round_half_up
 
     n0, n1 = a.shape

@@ -10,8 +10,16 @@ From Python::
     rows = run_experiment(grid, "results/mine", workers=2)     # or run_experiment("table5", ...)
 """
 
-from .grid import AgentEntry, Grid, ScenarioEntry, available_experiments, grid_from_dict, load_grid, make_grid
-from .runner import rerun_row, run_grid
+from aerial_loc_env.benchmark.grid import (
+    AgentEntry,
+    Grid,
+    ScenarioEntry,
+    available_experiments,
+    grid_from_dict,
+    load_grid,
+    make_grid,
+)
+from aerial_loc_env.benchmark.runner import rerun_row, run_grid
 
 __all__ = ["AgentEntry", "Grid", "ScenarioEntry", "available_experiments", "grid_from_dict", "load_grid",
            "make_grid", "rerun_row", "run_experiment", "run_grid"]
@@ -24,7 +32,7 @@ def run_experiment(experiment: "str | Grid", out_dir: str, *, workers: int = 1, 
     into a folder that holds another experiment's results."""
     from pathlib import Path
 
-    from .cli import write_report
+    from aerial_loc_env.benchmark.cli import write_report
 
     grid = experiment if isinstance(experiment, Grid) else load_grid(experiment)
     rows = run_grid(grid, out_dir, workers=workers, executor=executor, progress=progress, add=add)

@@ -19,11 +19,11 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
-from ..errors import ConfigError
-from ..sysinfo import machine
-from .grid import Grid, ScenarioEntry, available_experiments, check_scenarios, load_grid
-from .report import markdown_report, paper_sections, summarize, summary_table
-from .runner import run_grid
+from aerial_loc_env.benchmark.grid import Grid, ScenarioEntry, available_experiments, check_scenarios, load_grid
+from aerial_loc_env.benchmark.report import markdown_report, paper_sections, summarize, summary_table
+from aerial_loc_env.benchmark.runner import run_grid
+from aerial_loc_env.errors import ConfigError
+from aerial_loc_env.sysinfo import machine
 
 
 def _default_workers() -> int:
@@ -95,7 +95,7 @@ def main(argv: list[str] | None = None) -> int:
 
 def write_report(grid: Grid, rows: Sequence[dict], out: Path, *, plots: bool = True, note: str = "") -> Path:
     """Write ``out/report.md`` (the summary, the paper's tables, the plots) and the PNGs it links."""
-    from ..paths import atomic_write_bytes
+    from aerial_loc_env.paths import atomic_write_bytes
 
     sections = paper_sections(grid.paper, rows)
     if plots and rows:
@@ -119,7 +119,7 @@ def _with_and_without_shadows(grid: Grid) -> list[ScenarioEntry]:
 
 
 def _plots(grid: Grid, rows: Sequence[dict], out: Path) -> list[str]:
-    from . import plots as pl
+    from aerial_loc_env.benchmark import plots as pl
 
     made: list[tuple[str, Path | None]] = []
     for plot in grid.plots:

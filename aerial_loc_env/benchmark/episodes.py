@@ -19,9 +19,9 @@ from typing import Any
 
 import numpy as np
 
-from .. import __version__
-from .grid import AgentEntry, ScenarioEntry
-from .metrics import MetricConfig, fix_rate, trial_metrics
+from aerial_loc_env import __version__
+from aerial_loc_env.benchmark.grid import AgentEntry, ScenarioEntry
+from aerial_loc_env.benchmark.metrics import MetricConfig, fix_rate, trial_metrics
 
 
 @dataclass(frozen=True)
@@ -44,8 +44,7 @@ def make_benchmark_env(scenario: ScenarioEntry, *, shadow_mask: bool = False) ->
     """The env of ``scenario`` for benchmark episodes: failure termination off (every trial runs to the end);
     ``shadow_mask`` adds the ground-truth mask to ``info`` (oracles, plots). Cached per process."""
     import aerial_loc_env  # noqa: F401
-
-    from ..env import AerialLocEnv, load_scenario
+    from aerial_loc_env.env import AerialLocEnv, load_scenario
 
     overrides = dict(scenario.overrides)
     sc = load_scenario(scenario.id, overrides)
@@ -68,8 +67,8 @@ def run_episode(task: EpisodeTask) -> tuple[list[dict], list[dict]]:
     Returns (rows, failures): one row per agent that finished, one failure record per agent that raised
     (the others go on; a failure is not a finished trial, so a re-run tries it again).
     """
-    from ..estimators.episode import EpisodeDriver, needs_ground_truth
-    from ..estimators.registry import make_agent
+    from aerial_loc_env.estimators.episode import EpisodeDriver, needs_ground_truth
+    from aerial_loc_env.estimators.registry import make_agent
 
     agents = [make_agent(a.name, **a.params) for a in task.agents]
     n = len(agents)
@@ -143,8 +142,8 @@ def run_episode(task: EpisodeTask) -> tuple[list[dict], list[dict]]:
 def record_episode(scenario: ScenarioEntry, seed: int, agent: AgentEntry) -> dict[str, Any]:
     """One agent on one episode, keeping what the track figure needs: the true and estimated tracks, the
     final particles and weights, the last frame's ground-truth shadow mask, pose and the env (for the map)."""
-    from ..estimators.episode import EpisodeDriver
-    from ..estimators.registry import make_agent
+    from aerial_loc_env.estimators.episode import EpisodeDriver
+    from aerial_loc_env.estimators.registry import make_agent
 
     env = make_benchmark_env(scenario, shadow_mask=True)
     with EpisodeDriver(env, [make_agent(agent.name, **agent.params)]) as driver:

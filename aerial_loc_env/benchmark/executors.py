@@ -15,8 +15,8 @@ import time
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 
-from ..errors import ConfigError, require_extra
-from .episodes import EpisodeTask, run_episode
+from aerial_loc_env.benchmark.episodes import EpisodeTask, run_episode
+from aerial_loc_env.errors import ConfigError, require_extra
 
 OnResult = Callable[[tuple[list[dict], list[dict]]], None]
 

@@ -64,10 +64,10 @@ from typing import Any
 import cv2
 import numpy as np
 
-from ..config import build_config, rng
-from ..errors import ConfigError, MapError
-from ..estimators.feature_matching import make_detector
-from ..estimators.patches import to_gray
+from aerial_loc_env.config import build_config, rng
+from aerial_loc_env.errors import ConfigError, MapError
+from aerial_loc_env.estimators.feature_matching import make_detector
+from aerial_loc_env.estimators.patches import to_gray
 
 #: the statistics of one window, in table order
 STATS = ("ncc", "bit_agreement", "psr", "peak_margin", "orb_inlier_ratio", "template_within")
@@ -300,7 +300,7 @@ def pair_gap(earlier: str | Path, later: str | Path, cfg: GapConfig | None = Non
              gsd_m: float | None = None) -> list[dict[str, float]]:
     """The statistics of every window of a co-registered real pair given by path (``gsd_m`` for images
     without a georeference). Windows touching no-data in either image are left out."""
-    from ..world.io import load_orthomap
+    from aerial_loc_env.world.maps.io import load_orthomap
 
     cfg = cfg or GapConfig()
     kw = {} if gsd_m is None else {"gsd_m": gsd_m}
@@ -335,9 +335,9 @@ def scenario_gap(scenario: str, overrides: Mapping[str, Any] | None = None, *, s
     """The statistics of every ``stride``-th frame of ``seeds`` episodes of ``scenario``: the camera frame
     against the estimators' database rendered at the frame's true pose. With ``frames_per_seed`` an episode
     stops after that many measured frames (1: the first frame of each seed, i.i.d. over seeds)."""
-    from ..env import AerialLocEnv, load_scenario
-    from ..sensors.camera import Pose
-    from ..sensors.render import CameraRenderer, Photometry
+    from aerial_loc_env.env import AerialLocEnv, load_scenario
+    from aerial_loc_env.sensors.camera import Pose
+    from aerial_loc_env.sensors.render import CameraRenderer, Photometry
 
     cfg = cfg or GapConfig()
     if stride < 1:
@@ -493,7 +493,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.json == "-":
             print(text)
         else:
-            from ..paths import atomic_write_bytes
+            from aerial_loc_env.paths import atomic_write_bytes
 
             if Path(args.json).exists():
                 raise ConfigError(f"gap: --json {args.json} exists; give a new path (results are never "

@@ -37,8 +37,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from ..config import is_number, read_toml
-from ..errors import ConfigError
+from aerial_loc_env.config import is_number, read_toml
+from aerial_loc_env.errors import ConfigError
 
 EXPERIMENT_DIR = Path(__file__).resolve().parent / "experiments"
 PLOTS = ("error_vs_time", "track", "likelihood", "shadow_pairs")  # plus "rmse_vs_<param>"
@@ -283,8 +283,8 @@ def check_scenarios(grid: Grid) -> None:
     error before any trial starts, not one failure per trial and an empty table."""
     import gymnasium as gym
 
-    from ..env import register_all
-    from ..errors import AerialLocError
+    from aerial_loc_env.env import register_all
+    from aerial_loc_env.errors import AerialLocError
 
     register_all()
     for entry in grid.scenarios:

@@ -11,9 +11,9 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import require_extra
-from .grid import AgentEntry, ScenarioEntry
-from .report import agent_param
+from aerial_loc_env.benchmark.grid import AgentEntry, ScenarioEntry
+from aerial_loc_env.benchmark.report import agent_param
+from aerial_loc_env.errors import require_extra
 
 
 def _plt() -> Any:
@@ -126,7 +126,7 @@ def track_plot(scenario: ScenarioEntry, seed: int, agent: AgentEntry, path: Path
     frame's ground-truth shadow (its outline projected onto the map)."""
     import cv2
 
-    from .episodes import record_episode
+    from aerial_loc_env.benchmark.episodes import record_episode
 
     plt = _plt()
     rec = record_episode(scenario, seed, agent)
@@ -179,9 +179,9 @@ def likelihood_surface(agent: AgentEntry, scenario: ScenarioEntry, seed: int, *,
                        step_m: float = 1.0, frame: int | None = None) -> dict[str, Any] | None:
     """The agent's measurement model's log-likelihood on a grid of positions around the true pose (true yaw
     and altitude) for one frame (default: the middle of the episode); None for agents without one."""
-    from ..estimators.episode import oracle_info, uses_ground_truth
-    from ..estimators.registry import make_agent
-    from .episodes import make_benchmark_env
+    from aerial_loc_env.benchmark.episodes import make_benchmark_env
+    from aerial_loc_env.estimators.episode import oracle_info, uses_ground_truth
+    from aerial_loc_env.estimators.registry import make_agent
 
     ag = make_agent(agent.name, **agent.params)
     model = getattr(ag, "measurement", None)
@@ -213,7 +213,7 @@ def likelihood_surface(agent: AgentEntry, scenario: ScenarioEntry, seed: int, *,
 
 def most_shadowed_frame(scenario: ScenarioEntry, seed: int) -> int:
     """The index of the episode's frame with the largest ground-truth shadow fraction."""
-    from .episodes import make_benchmark_env
+    from aerial_loc_env.benchmark.episodes import make_benchmark_env
 
     env = make_benchmark_env(scenario)
     _obs, info = env.reset(seed=seed)

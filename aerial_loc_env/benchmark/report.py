@@ -12,7 +12,7 @@ from collections.abc import Callable, Iterable, Sequence
 
 import numpy as np
 
-from .grid import PAPER_SECTION_NAMES, param_value
+from aerial_loc_env.benchmark.grid import PAPER_SECTION_NAMES, param_value
 
 # Choi & Park (2020), Table 5 (RMSE [m], simulation with shadows, N = 700, 100 trials).
 PAPER_TABLE5 = {

@@ -13,12 +13,12 @@ from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from ..errors import ConfigError
-from .episodes import EpisodeTask, run_episode
-from .executors import get_executor
-from .grid import AgentEntry, Grid, ScenarioEntry
-from .metrics import MetricConfig
-from .store import TrialStore, trial_key, write_summaries
+from aerial_loc_env.benchmark.episodes import EpisodeTask, run_episode
+from aerial_loc_env.benchmark.executors import get_executor
+from aerial_loc_env.benchmark.grid import AgentEntry, Grid, ScenarioEntry
+from aerial_loc_env.benchmark.metrics import MetricConfig
+from aerial_loc_env.benchmark.store import TrialStore, trial_key, write_summaries
+from aerial_loc_env.errors import ConfigError
 
 
 # ----------------------------------------------------------------------------------------- spec resolution
@@ -27,7 +27,7 @@ def resolve_agent(entry: AgentEntry) -> dict[str, Any]:
 
     Building the agent validates the parameters, so a typo fails here, before any episode is rendered.
     """
-    from ..estimators.registry import SHORT_NAMES, AgentSpec, build_agent, load_spec, merge_params
+    from aerial_loc_env.estimators.registry import SHORT_NAMES, AgentSpec, build_agent, load_spec, merge_params
 
     dotted = ":" in entry.name and not entry.name.endswith(".toml")
     spec = AgentSpec(entry.name, entry.name) if dotted or entry.name in SHORT_NAMES else load_spec(entry.name)
@@ -39,9 +39,8 @@ def resolve_scenario(entry: ScenarioEntry) -> dict[str, Any]:
     """The full validated scenario spec of ``entry`` (every section with every default), as a plain dict,
     with the simulator's ``generators`` versions and the ``fingerprint`` of both (``env.fingerprint``)."""
     import aerial_loc_env  # noqa: F401  (registers the scenarios)
-
-    from ..env import load_scenario
-    from ..env.fingerprint import fingerprint, generator_versions
+    from aerial_loc_env.env import load_scenario
+    from aerial_loc_env.env.fingerprint import fingerprint, generator_versions
 
     out = load_scenario(entry.id, entry.overrides).to_dict()
     out.pop("description", None)

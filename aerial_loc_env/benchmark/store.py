@@ -20,7 +20,7 @@ from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
-from ..errors import ConfigError
+from aerial_loc_env.errors import ConfigError
 
 TRIALS_FILE = "trials.jsonl"
 FAILURES_FILE = "failures.jsonl"
@@ -104,7 +104,7 @@ class TrialStore:
                 f"results folder '{self.out_dir}' holds the results of experiment "
                 f"{', '.join(repr(n) for n in names)}, not {experiment!r}; choose another --out, or pass "
                 f"--add (run_experiment(..., add=True)) to add {experiment!r}'s trials to it")
-        from ..paths import atomic_write_bytes
+        from aerial_loc_env.paths import atomic_write_bytes
 
         names = names if experiment in names else [*names, experiment]
         atomic_write_bytes(manifest, json.dumps({"experiments": names}, indent=1).encode())
@@ -239,7 +239,7 @@ FLAT_COLUMNS = ["agent", "scenario", "seed", "rmse_m", "rmse_converged_m", "fina
 
 def write_summaries(rows: Iterable[Mapping[str, Any]], out_dir: Path) -> tuple[Path, Path]:
     """Regenerate the derived trials.csv and trials.json from the rows (atomic replace)."""
-    from ..paths import atomic_write_bytes
+    from aerial_loc_env.paths import atomic_write_bytes
 
     rows = list(rows)
     out_dir = Path(out_dir)

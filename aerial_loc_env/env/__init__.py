@@ -5,10 +5,10 @@
 metres <-> the normalized action; ``env.unwrapped.briefing`` is what an estimator may know.
 """
 
-from .aerial_loc_env import AerialLocEnv, InvalidActionError, action_to_world, world_to_action
-from .briefing import Briefing, OdometryNoise, Prior
-from .scenarios import Scenario, load_scenario, register_all, scenario_spec_dict
-from .wrappers import EpisodeErrorStats, MetresAction
+from aerial_loc_env.env.aerial_loc_env import AerialLocEnv, InvalidActionError, action_to_world, world_to_action
+from aerial_loc_env.env.briefing import Briefing, OdometryNoise, Prior
+from aerial_loc_env.env.scenarios import Scenario, load_scenario, register_all, scenario_spec_dict
+from aerial_loc_env.env.wrappers import EpisodeErrorStats, MetresAction
 
 __all__ = ["AerialLocEnv", "Briefing", "EpisodeErrorStats", "InvalidActionError", "MetresAction", "OdometryNoise",
            "Prior", "Scenario", "action_to_world", "load_scenario", "register_all", "scenario_spec_dict",

@@ -15,11 +15,19 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from ..errors import AerialLocError, ConfigError, MapError
-from ..sensors.camera import CameraModel, Pose, SceneExposure, apply_affine, world_to_map_affine
-from ..sensors.flight import FlyableRegion, Measurements, Track, footprint_radius_m, measure, sample_track, wrap_angle
-from .briefing import Briefing, Prior
-from .scenarios import Scenario, build_scenario, load_scenario
+from aerial_loc_env.env.briefing import Briefing, Prior
+from aerial_loc_env.env.scenarios import Scenario, build_scenario, load_scenario
+from aerial_loc_env.errors import AerialLocError, ConfigError, MapError
+from aerial_loc_env.sensors.camera import CameraModel, Pose, SceneExposure, apply_affine, world_to_map_affine
+from aerial_loc_env.sensors.flight import (
+    FlyableRegion,
+    Measurements,
+    Track,
+    footprint_radius_m,
+    measure,
+    sample_track,
+    wrap_angle,
+)
 
 ODOMETRY_SPEED_MAX_MPS = 500.0
 ODOMETRY_YAW_RATE_MAX_RADPS = 20.0
@@ -57,8 +65,8 @@ def load_map(scenario: Scenario) -> Any:
     """The scenario's orthomap, loaded once per process (city bundles are memory-mapped and shared)."""
     cfg = scenario.map
     if cfg.kind == "city":
-        from ..config import config_to_dict
-        from ..world.city import default_city
+        from aerial_loc_env.config import config_to_dict
+        from aerial_loc_env.world.city import default_city
 
         key = ("city", repr(sorted(config_to_dict(scenario.city).items())))
         if key not in _MAPS:
@@ -66,7 +74,7 @@ def load_map(scenario: Scenario) -> Any:
         return _MAPS[key]
     from pathlib import Path
 
-    from ..world.io import load_orthomap
+    from aerial_loc_env.world.maps.io import load_orthomap
 
     path = Path(cfg.path).expanduser()
     if not path.exists():
@@ -85,15 +93,15 @@ def load_map(scenario: Scenario) -> Any:
 
 def world_map(scenario: Scenario, base: Any) -> Any:
     """The ground the camera flies over: ``base`` (epoch A, the map's epoch) itself, or with an ``[epoch]``
-    section that changes something, epoch B of it (``world/epochs.py``; the city's is cached on disk)."""
+    section that changes something, epoch B of it (``world/city/epochs.py``; the city's is cached on disk)."""
     cfg = scenario.epoch
     if cfg.is_identity:
         return base
-    from ..config import config_to_dict
+    from aerial_loc_env.config import config_to_dict
 
     key = ("epoch", id(base), repr(sorted(config_to_dict(cfg).items())))
     if key not in _MAPS:
-        from ..world import epochs
+        from aerial_loc_env.world.city import epochs
 
         if scenario.map.kind == "city":
             _MAPS[key] = epochs.epoch_city(scenario.city, cfg)
@@ -106,10 +114,10 @@ def database_map(orthomap: Any, shadows: Any, acquisition: Any = None, city: Any
     """What the estimators get as the map: the scene itself (shadow-free), or, with
     ``shadows.database_sun_deg``, a copy with the shadows of that other sun baked in (time-of-day mismatch),
     then, with a ``[database]`` acquisition model that is not the identity, as that sensor acquired it (colour,
-    sampling, blur, JPEG, haze, building lean, georeference bias; ``world/acquisition.py``). ``orthomap`` is
+    sampling, blur, JPEG, haze, building lean, georeference bias; ``world/maps/acquisition.py``). ``orthomap`` is
     the procedural city ``city`` when given: its database is then cached on disk (``database_city``), else
     built once per process, map, shadow and acquisition config."""
-    from ..world import acquisition as acq
+    from aerial_loc_env.world.maps import acquisition as acq
 
     if acq.database_is_identity(shadows, acquisition):
         return orthomap
@@ -137,7 +145,7 @@ def _coarse_dsm(orthomap: Any, factor: int) -> np.ndarray:
     the per-episode shadow sweep then starts from it instead of re-pooling the full-resolution heights."""
     key = ("coarse_dsm", id(orthomap), factor)
     if key not in _MAPS:
-        from ..world import shadows
+        from aerial_loc_env.world import shadows
 
         dsm = np.ascontiguousarray(orthomap.dsm_m, dtype=np.float32)
         _MAPS[key] = shadows.max_pool(dsm, factor) if factor > 1 else dsm
@@ -307,7 +315,7 @@ class AerialLocEnv(gym.Env):
 
     # ------------------------------------------------------------------ construction helpers
     def _build_renderer(self) -> None:
-        from ..sensors.render import CameraRenderer
+        from aerial_loc_env.sensors.render import CameraRenderer
 
         sc = self.scenario
         self._renderer = CameraRenderer(self.orthomap, self.camera, sc.photometry, strict=True,
@@ -422,7 +430,7 @@ class AerialLocEnv(gym.Env):
         self._baked_from = occ
 
     def _cast_shadows(self) -> Any:
-        from ..world.shadows import ShadowGrid, sun_occlusion
+        from aerial_loc_env.world.shadows import ShadowGrid, sun_occlusion
 
         om, cfg, sun = self.orthomap, self.scenario.shadows, self._sun
         f = int(cfg.downsample)

@@ -11,12 +11,12 @@ import math
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
-from ..config import rng
-from ..errors import ConfigError
+from aerial_loc_env.config import rng
+from aerial_loc_env.errors import ConfigError
 
 if TYPE_CHECKING:  # annotations only: agents import this module without pulling the world layer
-    from ..sensors.camera import CameraModel
-    from ..world.orthomap import Orthomap
+    from aerial_loc_env.sensors.camera import CameraModel
+    from aerial_loc_env.world.maps.orthomap import Orthomap
 
 PRIOR_KINDS = ("gaussian", "uniform")
 

@@ -28,9 +28,9 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import AerialLocError, MapError
-from ..sensors.flight import Measurements, Track, wrap_angle
-from .briefing import Prior
+from aerial_loc_env.env.briefing import Prior
+from aerial_loc_env.errors import AerialLocError, MapError
+from aerial_loc_env.sensors.flight import Measurements, Track, wrap_angle
 
 _SHADOWS: OrderedDict[tuple, Any] = OrderedDict()   # whole-map shadow grids, a few suns per process
 _SHADOWS_KEEP = 4
@@ -54,8 +54,8 @@ class ExternalPose:
 
 def whole_map_shadows(env: Any) -> Any:
     """The episode sun's cast shadows over the whole map (a ``ShadowGrid``), swept once per map and sun."""
-    from ..world.shadows import ShadowGrid, sun_occlusion
-    from .aerial_loc_env import _coarse_dsm
+    from aerial_loc_env.env.aerial_loc_env import _coarse_dsm
+    from aerial_loc_env.world.shadows import ShadowGrid, sun_occlusion
 
     om, cfg, sun = env.orthomap, env.scenario.shadows, env._sun
     f = int(cfg.downsample)
@@ -97,7 +97,7 @@ class ExternalFlight:
         u.reset(seed=seed)                    # sun, strength, clouds, noise seed, sensor errors: from the seed
         sc, rng = u.scenario, u.np_random
         if u._occlusion is not None:          # the track's box of shadows -> the whole map's
-            from ..world.shadows import ShadowGrid
+            from aerial_loc_env.world.shadows import ShadowGrid
 
             u._occlusion = [whole_map_shadows(u) if isinstance(s, ShadowGrid) else s for s in u._occlusion]
         if sc.episode.start == "tracking":

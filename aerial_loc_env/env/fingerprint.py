@@ -23,20 +23,28 @@ GENERATOR_PACKAGES = ("aerial_loc_env.world", "aerial_loc_env.sensors")
 
 
 def generator_versions() -> dict[str, int]:
-    """``{"world.city": 4, "world.orthomap.BUNDLE_VERSION": 1, ...}``: every integer ``*_VERSION`` defined by a
+    """``{"world.city": 4, "world.maps.orthomap.BUNDLE_VERSION": 1, ...}``: every integer ``*_VERSION`` defined by a
     world/sensors module (``GENERATOR_VERSION`` is keyed by the module alone; names imported from elsewhere
     are left to the module that defines them)."""
     out: dict[str, int] = {}
     for package in GENERATOR_PACKAGES:
         pkg = importlib.import_module(package)
-        for info in pkgutil.iter_modules(pkg.__path__):
-            module = importlib.import_module(f"{package}.{info.name}")
-            where = f"{package.rsplit('.', 1)[1]}.{info.name}"
+        for info in pkgutil.walk_packages(pkg.__path__, prefix=f"{package}."):
+            module = importlib.import_module(info.name)
+            where = f"{package.rsplit('.', 1)[1]}.{_version_name(info.name)}"
             own = _defined_here(module)
             for name, value in vars(module).items():
                 if name.endswith("_VERSION") and isinstance(value, int) and name in own:
                     out[where if name == "GENERATOR_VERSION" else f"{where}.{name}"] = int(value)
     return dict(sorted(out.items()))
+
+
+def _version_name(module: str) -> str:
+    """A module's key among the versions: its own name (``world.maps.orthomap`` -> ``orthomap``), and for the
+    ``generator`` module of a subpackage the subpackage's (``world.city.generator`` -> ``city``). Keys do not
+    follow the folders, so moving a module between subpackages never invalidates users' results."""
+    parent, _, leaf = module.rpartition(".")
+    return parent.rpartition(".")[2] if leaf == "generator" else leaf
 
 
 def _defined_here(module: Any) -> set[str]:

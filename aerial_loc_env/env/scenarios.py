@@ -12,8 +12,8 @@ that map to frozen dataclasses through ``aerial_loc_env.config.build_config``:
 ``[camera]``            ``aerial_loc_env.sensors.camera.CameraModel`` (the sensor)
 ``[odometry]``          ``aerial_loc_env.env.briefing.OdometryNoise``
 ``[shadows]``           ``aerial_loc_env.world.shadows.ShadowConfig``
-``[database]``          ``aerial_loc_env.world.acquisition.AcquisitionConfig`` (how the map was acquired)
-``[epoch]``             ``aerial_loc_env.world.epochs.EpochConfig`` (what changed between map and flight)
+``[database]``          ``aerial_loc_env.world.maps.acquisition.AcquisitionConfig`` (how the map was acquired)
+``[epoch]``             ``aerial_loc_env.world.city.epochs.EpochConfig`` (what changed between map and flight)
 ``[photometry]``        ``aerial_loc_env.sensors.render.Photometry`` (exposure, noise, vignetting, blur)
 ``[perspective]``       ``aerial_loc_env.sensors.perspective.PerspectiveConfig``: the height model in perspective
 ``[gimbal]``            ``aerial_loc_env.sensors.camera.GimbalConfig``: roll/pitch jitter, heading offset
@@ -48,9 +48,9 @@ from functools import cache
 from pathlib import Path
 from typing import Any
 
-from ..config import build_config, check_value, config_to_dict, read_toml, rng
-from ..errors import ConfigError
-from ..paths import spec_dir
+from aerial_loc_env.config import build_config, check_value, config_to_dict, read_toml, rng
+from aerial_loc_env.errors import ConfigError
+from aerial_loc_env.paths import spec_dir
 
 ENTRY_POINT = "aerial_loc_env.env.aerial_loc_env:AerialLocEnv"
 NAMESPACE = "AerialLoc"
@@ -116,25 +116,25 @@ class RewardConfig:
 
 
 def _lazy(module: str, name: str):
-    return lambda: getattr(importlib.import_module(module, __package__), name)
+    return lambda: getattr(importlib.import_module(module), name)
 
 
 # section -> a callable returning its config class (lazy: the world/sensors layers load on first use)
 SECTIONS: dict[str, Any] = {
     "map": lambda: MapConfig,
-    "city": _lazy("..world.city", "CityConfig"),
-    "flight": _lazy("..sensors.flight", "FlightConfig"),
-    "camera": _lazy("..sensors.camera", "CameraModel"),
-    "odometry": _lazy(".briefing", "OdometryNoise"),
-    "shadows": _lazy("..world.shadows", "ShadowConfig"),
-    "database": _lazy("..world.acquisition", "AcquisitionConfig"),
-    "epoch": _lazy("..world.epochs", "EpochConfig"),
-    "photometry": _lazy("..sensors.render", "Photometry"),
-    "perspective": _lazy("..sensors.perspective", "PerspectiveConfig"),
-    "gimbal": _lazy("..sensors.camera", "GimbalConfig"),
-    "altimeter": _lazy("..sensors.flight", "AltimeterConfig"),
-    "exposure": _lazy("..sensors.camera", "ExposureConfig"),
-    "haze": _lazy("..sensors.camera", "HazeConfig"),
+    "city": _lazy("aerial_loc_env.world.city", "CityConfig"),
+    "flight": _lazy("aerial_loc_env.sensors.flight", "FlightConfig"),
+    "camera": _lazy("aerial_loc_env.sensors.camera", "CameraModel"),
+    "odometry": _lazy("aerial_loc_env.env.briefing", "OdometryNoise"),
+    "shadows": _lazy("aerial_loc_env.world.shadows", "ShadowConfig"),
+    "database": _lazy("aerial_loc_env.world.maps.acquisition", "AcquisitionConfig"),
+    "epoch": _lazy("aerial_loc_env.world.city.epochs", "EpochConfig"),
+    "photometry": _lazy("aerial_loc_env.sensors.render", "Photometry"),
+    "perspective": _lazy("aerial_loc_env.sensors.perspective", "PerspectiveConfig"),
+    "gimbal": _lazy("aerial_loc_env.sensors.camera", "GimbalConfig"),
+    "altimeter": _lazy("aerial_loc_env.sensors.flight", "AltimeterConfig"),
+    "exposure": _lazy("aerial_loc_env.sensors.camera", "ExposureConfig"),
+    "haze": _lazy("aerial_loc_env.sensors.camera", "HazeConfig"),
     "observation": lambda: ObservationConfig,
     "episode": lambda: EpisodeConfig,
     "reward": lambda: RewardConfig,

@@ -14,7 +14,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from .aerial_loc_env import world_to_action
+from aerial_loc_env.env.aerial_loc_env import world_to_action
 
 
 class MetresAction(gym.ActionWrapper):

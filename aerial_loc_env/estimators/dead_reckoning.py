@@ -12,12 +12,12 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from ..errors import ConfigError
-from .mcl.motion import mid_heading
-from .protocol import Agent, Estimate, parse_observation, prior_estimate
+from aerial_loc_env.errors import ConfigError
+from aerial_loc_env.estimators.mcl.motion import mid_heading
+from aerial_loc_env.estimators.protocol import Agent, Estimate, parse_observation, prior_estimate
 
 if TYPE_CHECKING:
-    from ..env.briefing import Briefing
+    from aerial_loc_env.env.briefing import Briefing
 
 
 class DeadReckoningAgent(Agent):

@@ -30,10 +30,10 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from .protocol import Agent, Estimate
+from aerial_loc_env.estimators.protocol import Agent, Estimate
 
 if TYPE_CHECKING:  # layer 3; for type hints only
-    from ..env.briefing import Briefing
+    from aerial_loc_env.env.briefing import Briefing
 
 
 # ----------------------------------------------------------------------------------------- the oracle gate
@@ -143,7 +143,7 @@ class EpisodeDriver:
         ``max_steps`` ends the episode after that many env steps (the frame reached is the last one).
         Agents that failed in an earlier episode stay out.
         """
-        from ..env import world_to_action
+        from aerial_loc_env.env import world_to_action
 
         env = self.env
         c0 = time.thread_time()

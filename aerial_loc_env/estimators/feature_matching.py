@@ -20,11 +20,11 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from ..config import rng
-from ..errors import ConfigError
-from .patches import to_gray
-from .protocol import Estimate, Observation
-from .template_matching import Fix, Window, WindowMatchingAgent, WindowMatchingParams
+from aerial_loc_env.config import rng
+from aerial_loc_env.errors import ConfigError
+from aerial_loc_env.estimators.patches import to_gray
+from aerial_loc_env.estimators.protocol import Estimate, Observation
+from aerial_loc_env.estimators.template_matching import Fix, Window, WindowMatchingAgent, WindowMatchingParams
 
 DETECTORS = ("orb", "akaze", "sift")
 

@@ -3,7 +3,7 @@
 The dense measurement models (SSD, NCC, MI), abBRIEF and the edge model compare the camera image with the
 database patch each particle would see (Choi & Park, II.B "reconstructed camera image"). Doing that with one
 OpenCV warp per particle is a Python loop of N calls; here every particle's patch is sampled straight from the
-stored level by its affine in ``patch_kernels.scan`` (cv2.remap's bilinear values, no coordinate maps) and, for
+stored level by its affine in ``patches_kernels.scan`` (cv2.remap's bilinear values, no coordinate maps) and, for
 the models, scored in the same pass (``PatchSampler.score``): nothing of size N h w is materialized.
 
 Geometry is not re-derived: the per-particle affine camera pixel -> map pixel is ``CameraModel.camera_to_map``
@@ -26,9 +26,9 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from ..errors import ConfigError
-from . import patch_kernels as kernels
-from .patch_kernels import BRIEF, HISTOGRAM, MOMENTS, SAMPLE
+from aerial_loc_env.errors import ConfigError
+from aerial_loc_env.estimators import patches_kernels as kernels
+from aerial_loc_env.estimators.patches_kernels import BRIEF, HISTOGRAM, MOMENTS, SAMPLE
 
 __all__ = ["BRIEF", "HISTOGRAM", "MOMENTS", "SAMPLE", "PatchGeometry", "PatchSampler", "reduce_image", "to_gray"]
 
@@ -181,7 +181,7 @@ class PatchSampler:
 
     def score(self, states: np.ndarray, altitude_m: float, mode: int, *, points=None, channels: int = 1,
               **inputs) -> tuple[np.ndarray, np.ndarray]:
-        """Every particle's view scored in the kernel without materializing it (``patch_kernels.scan``'s
+        """Every particle's view scored in the kernel without materializing it (``patches_kernels.scan``'s
         ``mode`` and its inputs: ``ref``, ``shift``, ``ref_bins``, ``bins``, ``scale``, ``nlogn``, ``tests``,
         ``cam_bits``), at the grid or at ``points`` (``node_points``). Returns the statistics (N, 4) float64
         (rows of particles whose footprint leaves the level untouched) and that footprint validity (N,) bool."""
@@ -227,7 +227,7 @@ class PatchSampler:
 
     def _scan(self, e, cols, rows, active, channels, mode, *, ref=None, shift=0.0, ref_bins=None, bins=0,
               scale=0.0, nlogn=None, tests=None, cam_bits=None, samples=None, stats=None) -> None:
-        """``patch_kernels.scan`` with every unused input an empty array of the used one's type (one compiled
+        """``patches_kernels.scan`` with every unused input an empty array of the used one's type (one compiled
         specialization serves every mode)."""
         kernels.scan(self.planes, e, cols, rows, active, int(channels), int(mode),
                      _EMPTY_F32_2D if ref is None else ref, float(shift),

@@ -21,11 +21,11 @@ from typing import TYPE_CHECKING, Any, ClassVar, NamedTuple
 
 import numpy as np
 
-from ..config import build_config
-from ..errors import ConfigError
+from aerial_loc_env.config import build_config
+from aerial_loc_env.errors import ConfigError
 
 if TYPE_CHECKING:  # layer 3; imported for type hints only
-    from ..env.briefing import Briefing
+    from aerial_loc_env.env.briefing import Briefing
 
 STATUSES: tuple[str, ...] = ("ok", "degraded", "lost", "dead_reckoning")
 

@@ -26,10 +26,10 @@ from importlib.metadata import entry_points
 from pathlib import Path
 from typing import Any
 
-from ..config import read_toml
-from ..errors import ConfigError
-from ..paths import spec_dir
-from .protocol import Agent
+from aerial_loc_env.config import read_toml
+from aerial_loc_env.errors import ConfigError
+from aerial_loc_env.estimators.protocol import Agent
+from aerial_loc_env.paths import spec_dir
 
 ENTRY_POINT_GROUP = "aerial_loc_env.agents"
 
@@ -197,7 +197,7 @@ def main(argv: list[str] | None = None) -> int:
         spec = load_spec(args.name)
         agent = build_agent(spec)  # validates the parameters
         params = getattr(agent, "params", None)
-        from ..config import config_to_dict
+        from aerial_loc_env.config import config_to_dict
 
         full = config_to_dict(params) if params is not None and hasattr(params, "__dataclass_fields__") \
             else dict(spec.params)

@@ -26,15 +26,15 @@ from typing import TYPE_CHECKING, Any, NamedTuple
 import cv2
 import numpy as np
 
-from ..config import rng
-from ..errors import ConfigError
-from ..sensors.camera import apply_affine, invert_affine, world_to_map_affine
-from .dead_reckoning import DeadReckoningAgent
-from .patches import to_gray
-from .protocol import Agent, Estimate, Observation, default_altitude_range_m, parse_observation
+from aerial_loc_env.config import rng
+from aerial_loc_env.errors import ConfigError
+from aerial_loc_env.estimators.dead_reckoning import DeadReckoningAgent
+from aerial_loc_env.estimators.patches import to_gray
+from aerial_loc_env.estimators.protocol import Agent, Estimate, Observation, default_altitude_range_m, parse_observation
+from aerial_loc_env.sensors.camera import apply_affine, invert_affine, world_to_map_affine
 
 if TYPE_CHECKING:
-    from ..env.briefing import Briefing
+    from aerial_loc_env.env.briefing import Briefing
 
 
 @dataclass(frozen=True)

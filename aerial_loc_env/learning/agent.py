@@ -18,13 +18,13 @@ from typing import Any
 
 import numpy as np
 
-from ..config import rng
-from ..env import action_to_world
-from ..errors import ConfigError, require_extra
-from ..estimators.protocol import Agent, Estimate, prior_estimate
-from .observations import LocalRegistration, square_image
-from .recipes import algo_class
-from .train import check_model_zip, load_training_meta
+from aerial_loc_env.config import rng
+from aerial_loc_env.env import action_to_world
+from aerial_loc_env.errors import ConfigError, require_extra
+from aerial_loc_env.estimators.protocol import Agent, Estimate, prior_estimate
+from aerial_loc_env.learning.observations import LocalRegistration, square_image
+from aerial_loc_env.learning.recipes import algo_class
+from aerial_loc_env.learning.train import check_model_zip, load_training_meta
 
 PACKAGE_DIR = Path(__file__).resolve().parent.parent
 _MODELS: dict[tuple[str, float], Any] = {}

@@ -31,13 +31,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("-v", "--verbose", action="count", default=0)
     args = ap.parse_args(argv)
     if args.curve:
-        from .plots import learning_curve
+        from aerial_loc_env.learning.plots import learning_curve
 
         print(learning_curve(args.curve, args.png or Path(args.curve) / "learning_curve.png"))
         return 0
     if not args.recipe:
         ap.error("a recipe is required (or --curve RUN_DIR)")
-    from .train import train
+    from aerial_loc_env.learning.train import train
 
     res = train(args.recipe, args.out, overwrite=args.overwrite, resume=args.resume,
                 total_timesteps=args.timesteps, progress_bar=not args.no_progress, verbose=args.verbose)

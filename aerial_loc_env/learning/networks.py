@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import gymnasium as gym
 
-from ..errors import ConfigError, require_extra
+from aerial_loc_env.errors import ConfigError, require_extra
 
 th = require_extra("torch", "rl", "Learned policies")
 sb3_torch_layers = require_extra("stable_baselines3.common.torch_layers", "rl", "Learned policies")

@@ -28,13 +28,13 @@ import cv2
 import gymnasium as gym
 import numpy as np
 
-from ..env import world_to_action
-from ..errors import ConfigError
-from ..estimators.dead_reckoning import DeadReckoningAgent
-from ..estimators.protocol import parse_observation
-from ..sensors.camera import Pose
-from ..sensors.render import CameraRenderer
-from .recipes import ObservationParams, RewardParams
+from aerial_loc_env.env import world_to_action
+from aerial_loc_env.errors import ConfigError
+from aerial_loc_env.estimators.dead_reckoning import DeadReckoningAgent
+from aerial_loc_env.estimators.protocol import parse_observation
+from aerial_loc_env.learning.recipes import ObservationParams, RewardParams
+from aerial_loc_env.sensors.camera import Pose
+from aerial_loc_env.sensors.render import CameraRenderer
 
 
 def square_image(image: np.ndarray, side: int, grayscale: bool) -> np.ndarray:

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import ConfigError, require_extra
+from aerial_loc_env.errors import ConfigError, require_extra
 
 EVAL_COLUMNS = ("timesteps", "rmse_m")
 

@@ -31,9 +31,9 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
-from ..config import build_config, config_to_dict, rng
-from ..env.scenarios import load_scenario
-from ..errors import ConfigError, require_extra
+from aerial_loc_env.config import build_config, config_to_dict, rng
+from aerial_loc_env.env.scenarios import load_scenario
+from aerial_loc_env.errors import ConfigError, require_extra
 
 ALGOS = ("PPO", "SAC")
 OBSERVATIONS = ("local_registration", "map_memorization")

@@ -32,9 +32,9 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from ..errors import ConfigError, require_extra
-from ..estimators.registry import AgentSpec, load_spec
-from .recipes import Recipe, algo_class, recipe_from_table, recipe_to_dict
+from aerial_loc_env.errors import ConfigError, require_extra
+from aerial_loc_env.estimators.registry import AgentSpec, load_spec
+from aerial_loc_env.learning.recipes import Recipe, algo_class, recipe_from_table, recipe_to_dict
 
 MODEL_FILE = "model.zip"
 #: per-episode figures the wrappers put in ``info`` at an episode's end, kept in the Monitor files
@@ -52,8 +52,7 @@ def make_env(recipe: Recipe, *, training: bool = True, monitor_file: str | None 
     """The env of a recipe: the scenario, the observation design (with the curriculum only when
     ``training``), SB3's Monitor."""
     import aerial_loc_env  # noqa: F401  (registers the scenarios in subprocess workers)
-
-    from .observations import wrap
+    from aerial_loc_env.learning.observations import wrap
 
     env = gym.make(recipe.scenario, **recipe.scenario_overrides)
     env = wrap(env, recipe.observation, recipe.observation_params, recipe.reward,
@@ -88,7 +87,7 @@ def policy_kwargs(recipe: Recipe) -> dict:
     """SB3 ``policy_kwargs`` of the recipe's network."""
     kwargs: dict = {"net_arch": list(recipe.policy.net_arch), "log_std_init": recipe.policy.log_std_init}
     if recipe.policy.cnn in ("paired", "correlation"):
-        from .networks import EXTRACTORS
+        from aerial_loc_env.learning.networks import EXTRACTORS
 
         kwargs["features_extractor_class"] = EXTRACTORS[recipe.policy.cnn]
         kwargs["features_extractor_kwargs"] = {"features_dim": recipe.policy.features_dim}
@@ -324,13 +323,13 @@ def check_model_zip(path: str | os.PathLike, what: str) -> None:
 
 def scenario_spec(recipe: Recipe) -> dict:
     """The resolved scenario spec the model was trained on (saved beside the model)."""
-    from ..env.scenarios import scenario_spec_dict
+    from aerial_loc_env.env.scenarios import scenario_spec_dict
 
     return scenario_spec_dict(recipe.scenario, **recipe.scenario_overrides)
 
 
 def _machine() -> str:
-    from ..sysinfo import machine
+    from aerial_loc_env.sysinfo import machine
 
     return f"{machine()}, torch threads {require_extra('torch', 'rl', 'Training').get_num_threads()}"
 
@@ -339,7 +338,7 @@ def _versions() -> dict[str, str]:
     import stable_baselines3
     import torch
 
-    from .. import __version__
+    from aerial_loc_env import __version__
 
     return {"aerial_loc_env": __version__, "stable_baselines3": stable_baselines3.__version__,
             "torch": torch.__version__, "gymnasium": gym.__version__, "python": platform.python_version()}

@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from .fix import STATUSES, GeoOrigin, PoseFix
+from aerial_loc_env.mavlink.fix import STATUSES, GeoOrigin, PoseFix
 
 WorldToLatLon = Callable[[float, float], tuple[float, float]]
 

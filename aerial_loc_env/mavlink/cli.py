@@ -20,12 +20,12 @@ from typing import Any
 
 import numpy as np
 
-from ..config import build_config
-from ..errors import AerialLocError, ConfigError
-from .bridge import EstimateBridge
-from .fix import FixPolicy
-from .messages import MESSAGE_KINDS, ODOMETRY_FRAMES
-from .sender import MavlinkSender, SenderConfig, SenderStats, VehicleState
+from aerial_loc_env.config import build_config
+from aerial_loc_env.errors import AerialLocError, ConfigError
+from aerial_loc_env.mavlink.bridge import EstimateBridge
+from aerial_loc_env.mavlink.fix import FixPolicy
+from aerial_loc_env.mavlink.messages import MESSAGE_KINDS, ODOMETRY_FRAMES
+from aerial_loc_env.mavlink.sender import MavlinkSender, SenderConfig, SenderStats, VehicleState
 
 ALIASES = {"gps": "gps_input", "gps_input": "gps_input", "vision": "vision_position_estimate",
            "vision_position_estimate": "vision_position_estimate", "odom": "odometry", "odometry": "odometry"}

@@ -13,8 +13,8 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
-from ..config import rng
-from ..errors import ConfigError
+from aerial_loc_env.config import rng
+from aerial_loc_env.errors import ConfigError
 
 STATUSES = ("ok", "degraded", "dead_reckoning", "lost")
 

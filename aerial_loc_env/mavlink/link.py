@@ -15,7 +15,7 @@ import threading
 import time
 from dataclasses import dataclass
 
-from ..errors import AerialLocError, ConfigError, MissingExtraError
+from aerial_loc_env.errors import AerialLocError, ConfigError, MissingExtraError
 
 NET_KINDS = ("udpout", "udpin", "udp", "tcp", "tcpin")
 EXAMPLES = ("udpout:127.0.0.1:14550, udpin:0.0.0.0:14550, tcp:127.0.0.1:5760, tcpin:0.0.0.0:5760, "

@@ -12,8 +12,8 @@ from collections.abc import Sequence
 import numpy as np
 from pymavlink.dialects.v20 import common as mavlink2
 
-from .fix import FixQuality, GeoOrigin, PoseFix
-from .timebase import gps_week_ms
+from aerial_loc_env.mavlink.fix import FixQuality, GeoOrigin, PoseFix
+from aerial_loc_env.mavlink.timebase import gps_week_ms
 
 MESSAGE_KINDS = ("gps_input", "vision_position_estimate", "odometry")
 ODOMETRY_FRAMES = {  # name -> (frame_id, child_frame_id)

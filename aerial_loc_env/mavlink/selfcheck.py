@@ -21,7 +21,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
-from ..errors import MissingExtraError
+from aerial_loc_env.errors import MissingExtraError
 
 C_SOURCE = r"""
 /* Receives MAVLink 2 frames on a loopback UDP port for a while and prints one JSON line per frame. */
@@ -272,8 +272,8 @@ def main(argv: list[str] | None = None) -> int:
     import argparse
     import tempfile
 
-    from .fix import GeoOrigin, PoseFix
-    from .sender import MavlinkSender, SenderConfig, signing_secret
+    from aerial_loc_env.mavlink.fix import GeoOrigin, PoseFix
+    from aerial_loc_env.mavlink.sender import MavlinkSender, SenderConfig, signing_secret
 
     ap = argparse.ArgumentParser(prog="python -m aerial_loc_env.mavlink.selfcheck")
     ap.add_argument("--signing-key", default="")

@@ -18,12 +18,12 @@ from dataclasses import dataclass, field
 
 from pymavlink.dialects.v20 import common as mavlink2
 
-from ..config import build_config, rng
-from ..errors import ConfigError
-from . import messages as msgs
-from .fix import FixPolicy, FixQuality, FixSlot, GeoOrigin, PoseFix, SlotItem, assess
-from .link import Endpoint, Link, parse_connection
-from .timebase import MonotonicClock, Schedule, SimClock, signing_timestamp
+from aerial_loc_env.config import build_config, rng
+from aerial_loc_env.errors import ConfigError
+from aerial_loc_env.mavlink import messages as msgs
+from aerial_loc_env.mavlink.fix import FixPolicy, FixQuality, FixSlot, GeoOrigin, PoseFix, SlotItem, assess
+from aerial_loc_env.mavlink.link import Endpoint, Link, parse_connection
+from aerial_loc_env.mavlink.timebase import MonotonicClock, Schedule, SimClock, signing_timestamp
 
 ARDUPILOT_GPS_TIMEOUT_S = 0.245   # AP_GPS marks a MAVLink GPS unhealthy after gaps longer than this
 MIN_GPS_INPUT_RATE_HZ = 5.0

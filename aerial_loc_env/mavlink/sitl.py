@@ -24,9 +24,9 @@ from typing import Any
 import numpy as np
 from pymavlink import mavutil
 
-from ..errors import AerialLocError, ConfigError
-from .cli import EARTH_RADIUS_M
-from .selfcheck import free_udp_port
+from aerial_loc_env.errors import AerialLocError, ConfigError
+from aerial_loc_env.mavlink.cli import EARTH_RADIUS_M
+from aerial_loc_env.mavlink.selfcheck import free_udp_port
 
 VEHICLES = {"copter": ("arducopter", "+", "copter.parm"), "plane": ("arduplane", "plane", "plane.parm")}
 DEFAULT_SITL_DIR = Path(__file__).resolve().parents[2].parent / "shared" / "sitl"
@@ -467,8 +467,7 @@ def fly_mission(scenario: str, agent: str, *, ground_amsl_m: float, vehicle: str
 
     import aerial_loc_env.env  # noqa: F401  (registers the scenarios)
     from aerial_loc_env.estimators.registry import make_agent
-
-    from . import cli as mav_cli
+    from aerial_loc_env.mavlink import cli as mav_cli
 
     missions = MISSIONS if vehicle == "copter" else PLANE_MISSIONS
     if mission not in missions:

@@ -12,7 +12,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
-from ..errors import ConfigError
+from aerial_loc_env.errors import ConfigError
 
 GPS_EPOCH_UNIX_S = 315_964_800  # 1980-01-06T00:00:00Z as a Unix time
 GPS_LEAP_SECONDS = 18            # GPS - UTC since 2017-01-01 (no leap second announced since)

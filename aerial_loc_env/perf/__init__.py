@@ -26,7 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..sysinfo import machine
+from aerial_loc_env.sysinfo import machine
 
 __all__ = ["FLOOR_NAME", "Benchmark", "load", "machine", "measure", "single_core"]
 

@@ -9,7 +9,7 @@ import json
 import pkgutil
 import sys
 
-from . import FLOOR_NAME, Benchmark, load, machine, measure, single_core
+from aerial_loc_env.perf import FLOOR_NAME, Benchmark, load, machine, measure, single_core
 
 
 def collect() -> list[Benchmark]:

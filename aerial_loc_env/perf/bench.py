@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
-from . import Benchmark
+from aerial_loc_env.perf import Benchmark
 
 
 def _episode_setup(experiment: str) -> Callable[[], Callable[[], object]]:

@@ -4,18 +4,18 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
-from . import Benchmark
+from aerial_loc_env.perf import Benchmark
 
 
 def _generate() -> Callable[[], object]:
-    from ..world.city import CityConfig, generate_city
+    from aerial_loc_env.world.city import CityConfig, generate_city
 
     cfg = CityConfig()
     return lambda: generate_city(cfg)
 
 
 def _cached() -> Callable[[], object]:
-    from ..world.city import default_city
+    from aerial_loc_env.world.city import default_city
 
     default_city()          # make sure the bundle exists (generated once, outside the timing)
     return default_city

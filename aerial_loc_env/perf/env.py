@@ -20,7 +20,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from . import Benchmark
+from aerial_loc_env.perf import Benchmark
 
 
 def _episode_setup(scenario: str, **overrides) -> Callable[[], Callable[[], object]]:

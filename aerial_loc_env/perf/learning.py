@@ -15,7 +15,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from . import Benchmark
+from aerial_loc_env.perf import Benchmark
 
 BATCH = 256
 

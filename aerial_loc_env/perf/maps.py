@@ -12,7 +12,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from . import Benchmark
+from aerial_loc_env.perf import Benchmark
 
 _N = 2048
 
@@ -34,7 +34,7 @@ def _tile(tmp: Path) -> Path:
 
 
 def _load_geotiff() -> Callable[[], object]:
-    from ..world.io import load_orthomap
+    from aerial_loc_env.world.maps.io import load_orthomap
 
     tmp = tempfile.TemporaryDirectory()
     path = _tile(Path(tmp.name))
@@ -47,8 +47,8 @@ def _load_geotiff() -> Callable[[], object]:
 
 
 def _bundle_open_and_pickle() -> Callable[[], object]:
-    from ..world.io import load_orthomap
-    from ..world.orthomap import Orthomap
+    from aerial_loc_env.world.maps.io import load_orthomap
+    from aerial_loc_env.world.maps.orthomap import Orthomap
 
     tmp = tempfile.TemporaryDirectory()
     bundle = load_orthomap(_tile(Path(tmp.name))).save_bundle(Path(tmp.name) / "tile.alm")
@@ -63,8 +63,8 @@ def _bundle_open_and_pickle() -> Callable[[], object]:
 
 def _world_to_latlon(kind: str) -> Callable[[], Callable[[], object]]:
     def setup() -> Callable[[], object]:
-        from ..world.geo import LocalTangentGeoref, WorldMercatorGeoref
-        from ..world.orthomap import Orthomap
+        from aerial_loc_env.world.maps.geo import LocalTangentGeoref, WorldMercatorGeoref
+        from aerial_loc_env.world.maps.orthomap import Orthomap
 
         if kind == "EPSG:3395":
             g = WorldMercatorGeoref.north_up("EPSG:3395", -46189.5, 4719172.2, 0.1, 0.1)
@@ -83,7 +83,7 @@ def _world_to_latlon(kind: str) -> Callable[[], Callable[[], object]]:
 
 
 def _border_nodata() -> Callable[[], object]:
-    from ..world.io import border_connected
+    from aerial_loc_env.world.maps.io import border_connected
 
     rng = np.random.default_rng(2)
     black = rng.random((_N, _N)) < 0.02

@@ -19,7 +19,7 @@ particles' projections ~0.1 (the float32 einsum 0.06), index + gather + XNOR ~0.
 3.5k normal draws), resampling 0.045, estimate 0.05; no single call is above 0.06 ms.
 
 Then compiled passes (numba; bit-identical, a 3-seed Table 5 run on the paper and realistic settings equal trial
-for trial): the particles' side of the pairs (``mcl/pair_kernel.pair_agreements``: projection, rounding,
+for trial): the particles' side of the pairs (``mcl/intensity_pairs_kernels.pair_agreements``: projection, rounding,
 lookup in the map's own RGB bytes and the XNOR count, pair-major so that one pair's lookups at all particles share
 cache lines; ~0.1 ms), the frame's side (``camera_pairs``: pixels, reduced mask, coordinates), and the detector's
 index, quantization and class statistics (``shadow_detection._index8`` / ``_split_stats``, c3 from a table of
@@ -32,7 +32,7 @@ motion ~0.13, the two observation parses ~0.12, estimate ~0.09.
 
 Then fewer fixed costs and a prefetch (same bytes: the tests above, tests/test_mcl_step_speedups.py, and an 8-agent,
 2-episode, 41-step PaperShadows run equal estimate for estimate, particle for particle): each particle's
-``camera_to_map`` affine inside the pair kernel (``pair_kernel.pose_affine``, NumPy's cos/sin), the motion's
+``camera_to_map`` affine inside the pair kernel (``intensity_pairs_kernels.pose_affine``, NumPy's cos/sin), the motion's
 per-particle arithmetic one pass, the detector's opening and closing one call (``_OpenClose``), its 1/4 reduction
 (``_quarter``, cv2.resize's bytes) and exact luminance sums compiled, the likelihoods' log-mean without the
 normalized weights, the pair lookups unrolled for RGB, and each pair's map lines prefetched while the previous
@@ -71,18 +71,18 @@ from collections.abc import Callable
 import cv2
 import numpy as np
 
-from . import Benchmark
+from aerial_loc_env.perf import Benchmark
 
 _ALT_M = 200.0
 
 
 def _scene(seed: int = 0) -> tuple[object, dict]:
     """A real Briefing over a textured colour map and one shadowed observation at its centre."""
-    from ..env.briefing import Briefing, OdometryNoise, Prior
-    from ..sensors.camera import CameraModel
-    from ..world.geo import LocalTangentGeoref
-    from ..world.orthomap import Orthomap
-    from ..world.shadows import apply_shading
+    from aerial_loc_env.env.briefing import Briefing, OdometryNoise, Prior
+    from aerial_loc_env.sensors.camera import CameraModel
+    from aerial_loc_env.world.maps.geo import LocalTangentGeoref
+    from aerial_loc_env.world.maps.orthomap import Orthomap
+    from aerial_loc_env.world.shadows import apply_shading
 
     g = np.random.default_rng(seed)
     size, gsd = 2000, 0.25
@@ -110,7 +110,7 @@ def _scene(seed: int = 0) -> tuple[object, dict]:
 
 def _mcl_step(spec: str, **overrides) -> Callable[[], Callable[[], object]]:
     def setup() -> Callable[[], object]:
-        from ..estimators.registry import make_agent
+        from aerial_loc_env.estimators.registry import make_agent
 
         briefing, obs = _scene()
         agent = make_agent(spec, particles_in_extras=False, **overrides)

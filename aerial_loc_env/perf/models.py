@@ -5,7 +5,7 @@ Targets (issue 12, ratios to the floor, one bare map warp): SSD and NCC at 60 x 
 abBRIEF <= 8x.
 
 Where the time goes: every model samples each particle's view straight from the stored map level by its affine
-and scores it in the same compiled pass (``estimators/patch_kernels.py``, numba): no coordinate maps, no
+and scores it in the same compiled pass (``estimators/patches_kernels.py``, numba): no coordinate maps, no
 (N, h, w) stack. Before it, SSD and NCC were one ``cv2.remap`` of N h w = 1.68 M samples (~2.9 ms) plus its two
 float32 coordinate maps (~1.4 ms) plus the NumPy similarity (~0.5 ms), MI a bincount of joint bins on top, and
 abBRIEF a remap of its pattern's ~940 distinct nodes through a 4-channel padded level: 6.3-6.4x / 6.8x /
@@ -24,7 +24,7 @@ from types import SimpleNamespace
 import cv2
 import numpy as np
 
-from . import Benchmark
+from aerial_loc_env.perf import Benchmark
 
 _N = 700
 _ALT_M = 200.0
@@ -32,7 +32,7 @@ _ALT_M = 200.0
 
 def _scene(seed: int = 0) -> tuple[SimpleNamespace, dict, np.ndarray]:
     """A textured map (briefing-like namespace), one observation and N particle states around the truth."""
-    from ..sensors.camera import CameraModel
+    from aerial_loc_env.sensors.camera import CameraModel
 
     g = np.random.default_rng(seed)
     size = 2000
@@ -61,7 +61,7 @@ def _scene(seed: int = 0) -> tuple[SimpleNamespace, dict, np.ndarray]:
 
 def _model_step(name: str, **params) -> Callable[[], Callable[[], object]]:
     def setup() -> Callable[[], object]:
-        from ..estimators.mcl.measurement import MODELS
+        from aerial_loc_env.estimators.mcl.measurement import MODELS
 
         briefing, obs, states = _scene()
         model = MODELS[name](params, f"perf {name}")
@@ -78,7 +78,7 @@ def _model_step(name: str, **params) -> Callable[[], Callable[[], object]]:
 
 def _ssd_loop_reference() -> Callable[[], object]:
     """What the vectorized models replace: one ``cv2.warpAffine`` per particle (same level, same patches)."""
-    from ..estimators.mcl.dense import SSDModel
+    from aerial_loc_env.estimators.mcl.dense import SSDModel
 
     briefing, obs, states = _scene()
     model = SSDModel()
@@ -98,7 +98,7 @@ def _ssd_loop_reference() -> Callable[[], object]:
 
 def _agent_step(spec: str) -> Callable[[], Callable[[], object]]:
     def setup() -> Callable[[], object]:
-        from ..estimators.registry import make_agent
+        from aerial_loc_env.estimators.registry import make_agent
 
         briefing, obs, _ = _scene()
         agent = make_agent(spec)

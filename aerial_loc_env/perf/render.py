@@ -11,7 +11,7 @@ the floor inside the render (2.56x tilted) where the OpenCV/NumPy maps cost 2.57
 6.15x (5.96x against 7.02x).
 
 Then (issue 11's last row) the baked box's remap, the finishing pass, the facades and the second finishing pass
-became one compiled pass (``frame_kernel.remap_finish``: OpenCV 5's remap arithmetic bit for bit, the facades'
+became one compiled pass (``render_kernels.remap_finish``: OpenCV 5's remap arithmetic bit for bit, the facades'
 gains applied to each row before its tone), the maps' kernels were rewritten so that LLVM vectorizes them (their
 module docstring has the figures), and the bake box here is padded by two grid cells as the env pads it (6 of the
 121 perspective frames had fallen back to the per-frame grid): 4.90-5.15x (5.42-5.77x tilted) at load 0-1.6 ->
@@ -32,7 +32,7 @@ its memory: the floor's own median ranged 1.18-2.13 ms within one run) gave 2.20
 (perspective; tilted 3.53-4.17x): the passes are compute- and cache-bound where the floor's warp of one pose stays
 in cache. What was done about it (frames unchanged, each step measured in alternating runs or replayed interleaved
 in one process): the box's neighbour loads as AVX-512 gathers of neighbour pairs where gathers are fast
-(``world.kernels.gather_pairs16``, Sapphire Rapids on: 1.36 ms of scalar loads a frame -> 0.43 ms, 32-bit gathers
+(``jit.gather_pairs16``, Sapphire Rapids on: 1.36 ms of scalar loads a frame -> 0.43 ms, 32-bit gathers
 0.78), the tone lookups as VBMI byte permutes (``lut_rgba16``: 0.44 -> 0.30 ms of lookups), the noise bank's rows
 prefetched 16 rows ahead (the box-sampling pass 1.75 -> 1.70-1.72 ms replayed with the variants' order rotated;
 the first figure given, 2.34 -> 2.19-2.22, was inflated by the order) and the tilt's two matrix inverses made once
@@ -46,11 +46,11 @@ benchmark; the box's rows prefetched ahead through the maps, and the maps' own r
 Next session, same VM (frames unchanged; kernels replayed with the variants' order rotated, whole frames of two
 renderers interleaved in one process with their order rotated, or alternating runs: a variant replayed second had
 found the box and the bank warm in L3, which had flattered some earlier replayed figures): the sensor stage in
-float32 lanes (``frame_kernel._vignetted``: the exact /255 multiply as ``h v (1/255)`` in float32, checked over all
+float32 lanes (``render_kernels._vignetted``: the exact /255 multiply as ``h v (1/255)`` in float32, checked over all
 pairs; numba had widened the integer form to 8 int64 lanes; 0.43-0.47 -> 0.33-0.36 ms back to back), the bilinear
 weights kept per pixel with the blend looping over a pixel's channels (``remap_finish`` 1.70-1.76 -> 1.44-1.54 ms,
 ``warp_finish`` 1.67 -> 1.45 ms replayed), facades listed by the maps kernel in pixel order and walked by row
-(no counting sort or copies), the height lookups as ``world.kernels.gather_f32x16`` (``view_maps`` 3-5 %), the box
+(no counting sort or copies), the height lookups as ``jit.gather_f32x16`` (``view_maps`` 3-5 %), the box
 lines 16 rows ahead prefetched from the maps (0.02-0.09 ms), the tone table's gains by one compiled call and the
 footprint's corners once a frame. This benchmark's box is now made from the footprints as the tilted camera sees
 them (6 of the tilted flight's 125 frames had left the untilted box by under a pixel and timed the per-frame
@@ -76,16 +76,16 @@ leave cold, which would also be why it grows more than the floor's when the host
 Where a baked-shadow frame's time goes (2-core Xeon VM, load 1-2, floor 0.87-0.95 ms): the RGBA warp of the baked
 box 1.0-1.3 ms (more than the floor: a flight reads a new, rotated region each frame, and the finishing pass in
 between evicts it from L2, which costs the next warp about 0.3 ms), then ONE compiled pass
-(``sensors.frame_kernel.finish``, numba) of 0.55-0.6 ms for everything the six OpenCV passes and the RGB drop, alpha
+(``sensors.render_kernels.finish``, numba) of 0.55-0.6 ms for everything the six OpenCV passes and the RGB drop, alpha
 and mask did in 1.15 ms (tone lookups 0.2, vignetting and noise with the sigma computed 0.33), the pose geometry
 and the frame's draws 0.05-0.1 ms. Measured and not taken: the sigma read from a table (a gather per element, 0.6-1.0
 ms against 0.33 for the float32 square root: gathers are slow on this CPU), the kernel in bands interleaved with
 warps of those bands (no faster, and not bit-identical: a shifted warp matrix rounds differently), the pass run
-bottom-up, huge pages for the baked box. Since then the warp is done inside the pass (``frame_kernel.warp_finish``:
+bottom-up, huge pages for the baked box. Since then the warp is done inside the pass (``render_kernels.warp_finish``:
 OpenCV 5's warpAffine arithmetic reproduced bit for bit, each row warped and finished in L1, the box's rows 8 frame
 rows ahead prefetched): 2.42-2.51x -> 2.08-2.16x (2.15-2.29 -> 1.85-1.90 ms; the env step 2.40-2.47 -> 2.14-2.19
 ms) in three alternating runs at load 0.8-1.0. Then 2.04-2.15x -> 1.75-1.84x (1.78-1.90 -> 1.54-1.57 ms) with the
-pass compiled for 512-bit vectors throughout (``world.kernels.wide_vectors``): with LLVM's default mix of 256- and
+pass compiled for 512-bit vectors throughout (``jit.wide_vectors``): with LLVM's default mix of 256- and
 512-bit loops the pass took 1.25 ms back to back but 1.45-1.75 ms after 4 ms of other work (the floor warps
 between frames here, the estimators in an episode; a bare Python loop did it too), 1.10 and 1.11-1.15 ms with it.
 The same hint on the MCL kernels made SSD/NCC and the pair models slower (4.3x -> 5.1x), so it is not there; the
@@ -102,7 +102,7 @@ from functools import lru_cache
 import cv2
 import numpy as np
 
-from . import FLOOR_NAME, Benchmark
+from aerial_loc_env.perf import FLOOR_NAME, Benchmark
 
 _MAP_PX = 3072
 _GSD_M = 0.25
@@ -114,7 +114,7 @@ def _scene(seed: int = 0):
     """A 768 m synthetic scene: textured ground, box buildings 5-30 m tall, soft cast shadows (sun 40 deg)."""
     from types import SimpleNamespace
 
-    from ..world.shadows import Sun, sun_occlusion
+    from aerial_loc_env.world.shadows import Sun, sun_occlusion
 
     rng = np.random.default_rng(seed)
     rgb = cv2.resize(rng.integers(40, 220, (384, 384, 3), dtype=np.uint8), (_MAP_PX, _MAP_PX),
@@ -144,9 +144,9 @@ def _flight() -> list[tuple[float, float, float]]:
 def _render_setup(altitude_m: float, shadows: bool, perspective: bool = False,
                   tilt_rad: tuple[float, float] = (0.0, 0.0)) -> Callable[[], Callable[[], object]]:
     def setup() -> Callable[[], object]:
-        from ..sensors.camera import Pose
-        from ..sensors.perspective import PerspectiveConfig
-        from ..sensors.render import CameraRenderer
+        from aerial_loc_env.sensors.camera import Pose
+        from aerial_loc_env.sensors.perspective import PerspectiveConfig
+        from aerial_loc_env.sensors.render import CameraRenderer
 
         orthomap, grid = _scene()
         renderer = CameraRenderer(orthomap, perspective=PerspectiveConfig(enabled=True) if perspective else None)
@@ -156,7 +156,7 @@ def _render_setup(altitude_m: float, shadows: bool, perspective: bool = False,
         shading = {"strength": 0.9}
         occlusion = grid if shadows else None
         if shadows:  # as the env does at reset: shaded into the map over the flight's box (views sample it too)
-            from ..sensors.perspective import footprint_px, tilt_homography
+            from aerial_loc_env.sensors.perspective import footprint_px, tilt_homography
 
             # the footprints as the camera sees them (tilted: 6 of the 125 frames had left a box made from the
             # untilted ones by up to 0.8 px and taken the per-frame path, about 3x slower)
@@ -183,8 +183,8 @@ def _render_setup(altitude_m: float, shadows: bool, perspective: bool = False,
 def _patch_setup() -> Callable[[], object]:
     """The floor: one renderer (its private RGBA map copy) shared by the floor row and the interleaved floor calls,
     so that the row times the same warm warp as the ratios' denominator."""
-    from ..sensors.camera import Pose
-    from ..sensors.render import CameraRenderer
+    from aerial_loc_env.sensors.camera import Pose
+    from aerial_loc_env.sensors.render import CameraRenderer
 
     renderer = CameraRenderer(_scene()[0])
     pose = Pose(384.0, 384.0, 0.7, 200.0)
@@ -192,7 +192,7 @@ def _patch_setup() -> Callable[[], object]:
 
 
 def _project_setup() -> Callable[[], object]:
-    from ..sensors.camera import CameraModel
+    from aerial_loc_env.sensors.camera import CameraModel
 
     orthomap, _ = _scene()
     rng = np.random.default_rng(2)

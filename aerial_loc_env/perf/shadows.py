@@ -6,7 +6,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from . import Benchmark
+from aerial_loc_env.perf import Benchmark
 
 MAP_SHAPE = (4800, 5600)          # the paper's 1.2 x 1.4 km database at 0.25 m/px
 GSD_M = 0.25

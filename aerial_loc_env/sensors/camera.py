@@ -19,8 +19,8 @@ from typing import NamedTuple, Protocol
 
 import numpy as np
 
-from ..config import rng
-from ..errors import ConfigError
+from aerial_loc_env.config import rng
+from aerial_loc_env.errors import ConfigError
 
 ArrayLike = float | np.ndarray
 

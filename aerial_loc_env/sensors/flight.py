@@ -20,8 +20,8 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from ..config import rng
-from ..errors import ConfigError, MapError
+from aerial_loc_env.config import rng
+from aerial_loc_env.errors import ConfigError, MapError
 
 
 @dataclass(frozen=True)

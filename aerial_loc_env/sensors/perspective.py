@@ -31,7 +31,7 @@ is the ray's first intersection from above, the largest ``z`` with ``h(m(z)) >= 
 The result is a pair of per-pixel map coordinate planes (x, y) for one ``cv2.remap`` of the map (and of the cast-shadow
 field, which lives in map coordinates on the ground and roofs, so shadows stay on the surfaces they fall on). With
 the shadows baked into a box of the map (``render.CameraRenderer.bake``) the frame is one remap of that box, RGB and
-occlusion together, done inside the frame's finishing pass (``frame_kernel.remap_finish``, the facades shaded
+occlusion together, done inside the frame's finishing pass (``render_kernels.remap_finish``, the facades shaded
 there): the maps are then made in the box's pixels (``origin_px``) so that no pass shifts them.
 Heights are clipped below ``0.95 H`` (a camera below the roofs has no downward view). Features thinner than one
 march step (about ``H_max / N`` of height, ``r H_max / (N H)`` on the ground) may be missed at the frame edge.
@@ -52,10 +52,10 @@ from typing import Any
 import cv2
 import numpy as np
 
-from ..config import rng
-from ..errors import ConfigError
-from . import perspective_kernels as kernels
-from .camera import CameraModel, apply_affine
+from aerial_loc_env.config import rng
+from aerial_loc_env.errors import ConfigError
+from aerial_loc_env.sensors import perspective_kernels as kernels
+from aerial_loc_env.sensors.camera import CameraModel, apply_affine
 
 _NEAREST = cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP
 _MAX_HEIGHT_FRACTION = 0.95
@@ -218,7 +218,7 @@ class ReliefView:
     def _march_heights(self) -> np.ndarray:
         """The height model's block maximum over ``_MARCH_FACTOR`` px (once): the coarse march misses nothing."""
         if self._pooled is None:
-            from ..world.shadows import max_pool  # layer 1
+            from aerial_loc_env.world.shadows import max_pool  # layer 1
 
             self._pooled = max_pool(self.dsm, _MARCH_FACTOR)
         return self._pooled

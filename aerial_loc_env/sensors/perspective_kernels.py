@@ -16,7 +16,7 @@ cost more than the loads they saved. In the maps: the third lookup is done for e
 branch); the maps are scattered cell by cell, four pixels at a time (loads first, then stores, at unsigned indices:
 SLP-vectorized); the facades are listed branch-free only in cells with a wall, and their facing (a float64 square
 root) computed over that list alone; untilted rays are the pixel offsets themselves, computed where listed. Both
-kernels prefer 512-bit vectors (``world.kernels.wide_vectors``: 0.21 -> 0.19 ms (march), 0.55 -> 0.53 ms (maps) a
+kernels prefer 512-bit vectors (``jit.wide_vectors``: 0.21 -> 0.19 ms (march), 0.55 -> 0.53 ms (maps) a
 frame in flight).
 
 Measured (2-core Xeon VM, one core; before = the kernels of commit 422d3a6, in which the march stopped at a cell's
@@ -65,13 +65,13 @@ import numpy as np
 from numba import types
 from numba.extending import intrinsic
 
-from ..world.kernels import FAST_GATHER as _FAST_GATHER
-from ..world.kernels import GATHER_LANES as _GATHER_LANES
-from ..world.kernels import JIT as _JIT
-from ..world.kernels import fma32 as _fma
-from ..world.kernels import gather_f32x16 as _gather_f32x16
-from ..world.kernels import wide_vectors as _wide
-from .frame_kernel import gain_byte
+from aerial_loc_env.jit import FAST_GATHER as _FAST_GATHER
+from aerial_loc_env.jit import GATHER_LANES as _GATHER_LANES
+from aerial_loc_env.jit import JIT as _JIT
+from aerial_loc_env.jit import fma32 as _fma
+from aerial_loc_env.jit import gather_f32x16 as _gather_f32x16
+from aerial_loc_env.jit import wide_vectors as _wide
+from aerial_loc_env.sensors.render_kernels import gain_byte
 
 _LANES = 16    # OpenCV's nearest warps: vector body in blocks of 2 x 8 float32 lanes (AVX2), scalar tail after it
 _F32 = np.float32
@@ -247,9 +247,9 @@ def _gather(heights: np.ndarray, cols: int, ix: np.ndarray, iy: np.ndarray, out:
             flat: bool) -> None:
     """``out[:m]``: the heights (flat, rows ``cols`` apart) at the flat indices ``ix`` or (not ``flat``) the pixels
     (``ix``, ``iy``) (int32, inside): the loads alone (the loops computing the indices vectorize), by AVX-512
-    gathers 16 at a time where they pay (``world.kernels.gather_f32x16``), else scalar."""
+    gathers 16 at a time where they pay (``jit.gather_f32x16``), else scalar."""
     start = 0
-    if _FAST_GATHER and flat:   # 16 lookups a hardware gather where it pays (``world.kernels.FAST_GATHER``)
+    if _FAST_GATHER and flat:   # 16 lookups a hardware gather where it pays (``jit.FAST_GATHER``)
         start = m - m % _GATHER_LANES
         for j in range(0, start, _GATHER_LANES):
             _gather_f32x16(heights, ix, j, out)
@@ -270,7 +270,7 @@ def _maps_kernel(tilted: bool, replicate: bool):
                   lin: np.ndarray, consts: np.ndarray, dsm: np.ndarray, window: np.ndarray) -> int:
         """The per-pixel maps of ``ReliefView.maps`` into ``out_x``/``out_y`` (h, w) float32; returns the number
         of facade pixels, whose flat indices and facing directions are written to ``facade``/``facing`` in
-        flat-index order (``frame_kernel.remap_finish`` then takes them row by row without sorting).
+        flat-index order (``render_kernels.remap_finish`` then takes them row by row without sorting).
 
         Rays: pixel offsets from the principal point ``centre`` (cu, cv), through the centred tilt homography
         ``tilt`` (3, 3) float32 when tilted. Flat cells (``relief`` 0): ``flat`` (2, 3) float32 rows (alpha, beta,

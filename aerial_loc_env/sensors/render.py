@@ -18,11 +18,11 @@ Why it is built this way:
   the bake cannot serve (pyramid level > 0, a footprint leaving the box). After the warp a baked frame is one
   compiled pass (below) that also copies the alpha out (the quantized occlusion) and counts the shadowed pixels;
   the shadow mask and the float occlusion are made only if a caller reads them (the env and the estimators do
-  not). The baked box's warp itself is done inside that pass (``frame_kernel.warp_finish``, row by row: no warped
+  not). The baked box's warp itself is done inside that pass (``render_kernels.warp_finish``, row by row: no warped
   RGBA frame in memory, and the box stays in cache between frames), bit for bit OpenCV's ``warpAffine``.
-- Everything after the warp is ONE pass of a numba kernel (``sensors.frame_kernel.finish``), uint8 in and uint8
+- Everything after the warp is ONE pass of a numba kernel (``sensors.render_kernels.finish``), uint8 in and uint8
   out, row by row while the row is in cache, the frame written into the warp's own memory: the shading of a
-  per-frame float occlusion (``world.kernels``: per-channel gains of the quantized occlusion, one
+  per-frame float occlusion (``jit``: per-channel gains of the quantized occlusion, one
   multiply), gamma and the white-balance/exposure gains as one per-channel byte table composed per
   frame by the OpenCV operations themselves over the 256 levels, vignetting by a precomputed uint8 gain, and
   sensor noise from a per-episode int16 bank of standard normals (fixed point, 2**-11) read at a random offset per
@@ -30,7 +30,7 @@ Why it is built this way:
   levels of the float arithmetic (tests/test_render_photometry.py derives the bound) and bit-identical to the
   OpenCV passes it replaced (tests/test_render_kernel.py keeps them as the reference). A perspective or tilted
   view samples the baked box through its per-pixel maps inside the same pass, its facades shaded there too
-  (``frame_kernel.remap_finish``, bit for bit ``cv2.remap`` and the facade gains). Motion blur and ``pre_sensor``
+  (``render_kernels.remap_finish``, bit for bit ``cv2.remap`` and the facade gains). Motion blur and ``pre_sensor``
   steps split the pass in two around them.
 """
 
@@ -45,10 +45,17 @@ from typing import Any, Literal
 import cv2
 import numpy as np
 
-from ..config import rng as range_meta
-from ..errors import ConfigError, FootprintError
-from .camera import CameraModel, Pose, apply_affine
-from .perspective import PerspectiveConfig, ReliefView, ViewMaps, footprint_px, sample_grid, tilt_homography
+from aerial_loc_env.config import rng as range_meta
+from aerial_loc_env.errors import ConfigError, FootprintError
+from aerial_loc_env.sensors.camera import CameraModel, Pose, apply_affine
+from aerial_loc_env.sensors.perspective import (
+    PerspectiveConfig,
+    ReliefView,
+    ViewMaps,
+    footprint_px,
+    sample_grid,
+    tilt_homography,
+)
 
 FootprintStatus = Literal["valid", "outside", "nodata"]
 OcclusionSource = Any  # np.ndarray (map-sized float32) | world.shadows.ShadowGrid | world.shadows.CloudField
@@ -76,14 +83,14 @@ _NO_VIG = np.zeros((1, 1), np.uint8)
 _NO_BANK = np.zeros((1, 1), np.int16)
 _BAKED_ALPHA = np.zeros((1, 1), np.float32)   # ``_finish``'s marker: the occlusion is src's (baked) alpha
 _NO_PIXELS = np.zeros(0, np.int64)   # no facade pixels
-_FRAME_KERNEL = __name__.rpartition(".")[0] + ".frame_kernel"
+_FRAME_KERNEL = __name__.rpartition(".")[0] + ".render_kernels"
 
 
 def _kernels():
-    """``sensors.frame_kernel``, imported on first use (numba's import costs ~0.2 s: only processes that render)."""
+    """``sensors.render_kernels``, imported on first use (numba's import costs ~0.2 s: only processes that render)."""
     fk = sys.modules.get(_FRAME_KERNEL)
     if fk is None:   # the import statement's lookups cost more than the frame's other Python steps, cold
-        from . import frame_kernel as fk
+        from aerial_loc_env.sensors import render_kernels as fk
     return fk
 
 
@@ -199,7 +206,7 @@ class BakedShadows:
 
 @dataclass(frozen=True, eq=False)
 class _BoxWarp:
-    """The baked box's warp for a frame, done row by row inside the finishing pass (``frame_kernel.warp_finish``:
+    """The baked box's warp for a frame, done row by row inside the finishing pass (``render_kernels.warp_finish``:
     bit for bit ``cv2.warpAffine`` INTER_LINEAR | WARP_INVERSE_MAP with a zero border, about 0.3 ms a frame less
     than the warp and a separate pass at 600 x 400). ``box``: the box's RGBA pixels as uint32 (h, w); ``matrix``:
     frame pixel -> box pixel, (2, 3) float64."""
@@ -216,7 +223,7 @@ class _BoxWarp:
 
 @dataclass(frozen=True, eq=False)
 class _MapWarp:
-    """The baked box sampled through a view's per-pixel maps inside the finishing pass (``frame_kernel.remap_finish``:
+    """The baked box sampled through a view's per-pixel maps inside the finishing pass (``render_kernels.remap_finish``:
     bit for bit ``cv2.remap`` INTER_LINEAR with a zero border, then the facades' gains), instead of a remap, two
     finishing passes and the facade shading between them. ``shade_px``: the facade pixels' flat indices,
     ``shade_gain`` their gains (``ReliefView.facade_gains``)."""
@@ -236,7 +243,7 @@ class _MapWarp:
 
 @dataclass(frozen=True, eq=False)
 class _SensorParams:
-    """The renderer's fixed sensor arguments of ``frame_kernel.finish``: the vignetting gains (uint8 over 255,
+    """The renderer's fixed sensor arguments of ``render_kernels.finish``: the vignetting gains (uint8 over 255,
     (H, 3 W); all 255 when only noise is on) and how the noise sigma is computed. ``sigma_lut`` is the int16 sigma
     LUT ``rint(256 sqrt(r**2 + g v))`` (float64): the kernel computes it in float32 where that gives all 256
     values (checked here with the kernel's own arithmetic), else in float64, the LUT's own arithmetic."""
@@ -262,7 +269,7 @@ class _SensorParams:
                 if np.array_equal(fk.sigma_levels(mode, a32, b32, r2, g), sigma_lut):
                     break
             else:  # pragma: no cover - float64 is the LUT's own arithmetic
-                raise AssertionError(f"frame_kernel: no sigma arithmetic reproduces the sigma LUT of {p}")
+                raise AssertionError(f"render_kernels: no sigma arithmetic reproduces the sigma LUT of {p}")
         vignette = CameraRenderer._vignetting_map(camera, p.vignetting)
         if vignette is not None:
             vig = np.rint(vignette * 255.0).astype(np.uint8).reshape(camera.height_px, -1)
@@ -338,7 +345,7 @@ class CameraRenderer:
         Perspective and tilted views sample the box through their per-pixel maps (the shadows lie in map
         coordinates, on the surfaces the view sees). Memory: at most one RGBA copy of the box (the tiles flown
         over), held by the returned object only."""
-        from ..world.shadows import ShadowGrid
+        from aerial_loc_env.world.shadows import ShadowGrid
 
         if not self._rgba or not isinstance(grid, ShadowGrid):
             return None
@@ -368,7 +375,7 @@ class CameraRenderer:
         if done.all():
             baked.done_range[:] = (ty0, ty1, tx0, tx1)
             return
-        from ..world.shadows import shade
+        from aerial_loc_env.world.shadows import shade
 
         data, f = self._grid(baked.grid)
         lut = _shading_lut(baked.shading_params)
@@ -530,7 +537,7 @@ class CameraRenderer:
 
     def _occlusion(self, occlusion: Any, affine: np.ndarray, pose: Pose, t_s: float,
                    camera: CameraModel, view: ViewMaps | None = None) -> np.ndarray:
-        from ..world import shadows  # layer 1, imported late: the geometry works without it
+        from aerial_loc_env.world import shadows  # layer 1, imported late: the geometry works without it
 
         size = (camera.width_px, camera.height_px)
         if isinstance(occlusion, (list, tuple)) and not isinstance(occlusion, shadows.ShadowGrid):
@@ -551,7 +558,7 @@ class CameraRenderer:
 
     def _grid(self, occlusion: Any) -> tuple[np.ndarray, int]:
         """The (data, map px per cell) of a ShadowGrid or map-sized array, checked against the map."""
-        from ..world import shadows
+        from aerial_loc_env.world import shadows
 
         if isinstance(occlusion, shadows.ShadowGrid):
             data, factor = occlusion.data, int(occlusion.factor)
@@ -657,7 +664,7 @@ class CameraRenderer:
                 mid: list[Callable[[np.ndarray], np.ndarray]]) -> tuple[np.ndarray, np.ndarray, int]:
         """The frame from the warped map ``src`` (a fresh (H, W, 3 or 4) uint8 array, which becomes the frame's
         memory), or the baked box's warp to do in the first pass (``_BoxWarp``, ``_MapWarp``, with ``_BAKED_ALPHA``):
-        shadows, motion blur, gamma, gains, vignetting, noise (``frame_kernel.finish``, ``warp_finish``,
+        shadows, motion blur, gamma, gains, vignetting, noise (``render_kernels.finish``, ``warp_finish``,
         ``remap_finish``); returns (image,
         the alpha (H, W) with ``_BAKED_ALPHA`` else a dummy, the shadowed pixel count).
 
@@ -732,7 +739,7 @@ class CameraRenderer:
 
 def _shading_lut(shading_params: Mapping[str, Any] | None) -> np.ndarray:
     """``world.shadows.shading_lut`` of render's ``shading_params`` (``strength`` defaults to 1)."""
-    from ..world.shadows import shading_lut
+    from aerial_loc_env.world.shadows import shading_lut
 
     kwargs = dict(shading_params or {})
     strength = float(kwargs.pop("strength", 1.0))
@@ -799,7 +806,7 @@ def gamma_lut(gamma: float) -> np.ndarray:
 def tone_lut(gamma: float | None, gains: np.ndarray | None) -> np.ndarray:
     """The frame's tone curve then per-channel gains as one (3, 256) uint8 table (row c: channel c's output at
     each input level): what ``cv2.LUT`` of ``gamma_lut`` then a diagonal float32 ``cv2.transform`` (saturating) do
-    to the 256 levels, the gains applied by ``frame_kernel.tone_table`` (that arithmetic, one compiled call: the
+    to the 256 levels, the gains applied by ``render_kernels.tone_table`` (that arithmetic, one compiled call: the
     four OpenCV/NumPy calls it replaces cost a frame ~0.05 ms with cold caches; tests/test_render_geometry.py
     compares it with the OpenCV operations)."""
     if gamma is None and gains is None:

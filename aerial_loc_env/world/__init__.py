@@ -1,7 +1,6 @@
-"""The world layer: map databases, georeferences, the procedural city, shadows."""
+"""The world layer: map data and georeferences (``maps/``), the procedural city and its epochs (``city/``), cast
+and cloud shadows (``shadows.py``), and the world a scenario flies over, assembled in one place (``scene.py``)."""
 
-from .io import load_orthomap
-from .landcover import LandCover
-from .orthomap import Orthomap
+from aerial_loc_env.world.maps import LandCover, Orthomap, load_orthomap
 
 __all__ = ["LandCover", "Orthomap", "load_orthomap"]

@@ -27,9 +27,9 @@ from typing import NamedTuple
 import cv2
 import numpy as np
 
-from ..config import check_value
-from ..config import rng as rng_meta
-from ..errors import ConfigError, MapError
+from aerial_loc_env.config import check_value
+from aerial_loc_env.config import rng as rng_meta
+from aerial_loc_env.errors import ConfigError, MapError
 
 #: bumped when the output changes for the same inputs (env.fingerprint); 2: an episode's cloud field spans the
 #: window it flies plus the drift, not the whole map
@@ -172,10 +172,10 @@ def _sweep(a: np.ndarray, geo: _RayGeometry, soft: bool):
     tan(el): the highest shadow line cast onto pixel (i, j). Pixel (i, j) is in cast shadow iff a[i, j] < hor[j].
     Moving one slice away from the sun updates it as hor <- shift(max(hor, a[prev]) - step * tan(el)), where the
     shift (-1, 0 or +1 pixel) follows the digital line; so the whole map costs a handful of operations per pixel
-    (one compiled loop, ``world.kernels.sweep``). With ``soft`` the sweep also returns the height margin hor - a
+    (one compiled loop, ``world.shadows_kernels.sweep``). With ``soft`` the sweep also returns the height margin hor - a
     and the distance to the occluder that set the horizon (for penumbrae).
     """
-    from .kernels import sweep
+    from aerial_loc_env.world.shadows_kernels import sweep
 
     n0, n1 = a.shape
     dtype = a.dtype
@@ -474,11 +474,11 @@ def shade(rgb: np.ndarray, occ: np.ndarray, lut: np.ndarray, out: np.ndarray | N
     """``rgb * lut[c, q] / 255`` per channel, rounded (uint8 (H, W, 3) in, uint8 out; ``out`` may be ``rgb``).
 
     ``occ`` (H, W): the occlusion quantized to uint8 (q, 255 = no direct sun), or float32 in [0, 1], quantized as
-    ``cv2.convertScaleAbs(occ, alpha=255)`` does. One compiled pass (``world.kernels``), bit-identical to
+    ``cv2.convertScaleAbs(occ, alpha=255)`` does. One compiled pass (``jit``), bit-identical to
     the OpenCV passes it replaced (three 1-channel LUTs of q, merged, one multiply with scale 1/255). An (H, W, 4)
     ``rgb`` with alpha 255 (the renderer's RGBA map) comes back with q as its alpha (``255 q / 255``): the shaded
     colour and the occlusion in one pass, as ``CameraRenderer.bake`` stores them. Views (map tiles) are fine."""
-    from .kernels import shade_rows
+    from aerial_loc_env.world.shadows_kernels import shade_rows
 
     _check_shade_args(rgb, occ, lut, out)
     h, w, cn = rgb.shape

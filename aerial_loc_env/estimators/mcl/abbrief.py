@@ -36,11 +36,11 @@ from typing import Any, NamedTuple
 import cv2
 import numpy as np
 
-from ...config import rng
-from ...errors import ConfigError
-from ..patches import BRIEF, PatchGeometry, PatchSampler, reduce_image
-from ..protocol import parse_observation
-from .measurement import MeasurementModel, register_model
+from aerial_loc_env.config import rng
+from aerial_loc_env.errors import ConfigError
+from aerial_loc_env.estimators.mcl.measurement import MeasurementModel, register_model
+from aerial_loc_env.estimators.patches import BRIEF, PatchGeometry, PatchSampler, reduce_image
+from aerial_loc_env.estimators.protocol import parse_observation
 
 _CHANNELS = {"ab": (1, 2), "Lab": (0, 1, 2), "L": (0,)}
 

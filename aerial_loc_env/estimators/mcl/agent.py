@@ -15,16 +15,16 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from ...config import rng
-from ...errors import ConfigError
-from ..protocol import Agent, Estimate, prior_estimate
-from .core import FilterConfig, ParticleFilter
-from .estimate import circular_mean, max_std_m, mean_shift, weighted_cov, weighted_mean
-from .measurement import make_model
-from .motion import OdometryMotionModel
+from aerial_loc_env.config import rng
+from aerial_loc_env.errors import ConfigError
+from aerial_loc_env.estimators.mcl.core import FilterConfig, ParticleFilter
+from aerial_loc_env.estimators.mcl.estimate import circular_mean, max_std_m, mean_shift, weighted_cov, weighted_mean
+from aerial_loc_env.estimators.mcl.measurement import make_model
+from aerial_loc_env.estimators.mcl.motion import OdometryMotionModel
+from aerial_loc_env.estimators.protocol import Agent, Estimate, prior_estimate
 
 if TYPE_CHECKING:
-    from ...env.briefing import Briefing
+    from aerial_loc_env.env.briefing import Briefing
 
 
 @dataclass(frozen=True)

@@ -23,17 +23,17 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from ...config import rng
-from ...errors import ConfigError
-from .. import protocol
-from . import resampling
-from .measurement import MeasurementModel
-from .motion import OdometryMotionModel
+from aerial_loc_env.config import rng
+from aerial_loc_env.errors import ConfigError
+from aerial_loc_env.estimators import protocol
+from aerial_loc_env.estimators.mcl import resampling
+from aerial_loc_env.estimators.mcl.measurement import MeasurementModel
+from aerial_loc_env.estimators.mcl.motion import OdometryMotionModel
 
 if TYPE_CHECKING:
     from collections.abc import Mapping
 
-    from ...env.briefing import Briefing
+    from aerial_loc_env.env.briefing import Briefing
 
 
 @dataclass(frozen=True)
@@ -61,7 +61,7 @@ class ValidRegion:
     """Uniform sampling over the points where the camera footprint fits on valid map."""
 
     def __init__(self, briefing: Briefing) -> None:
-        from ...sensors.flight import FlyableRegion, footprint_radius_m
+        from aerial_loc_env.sensors.flight import FlyableRegion, footprint_radius_m
 
         m = briefing.orthomap
         radius = footprint_radius_m(*briefing.camera.footprint_m(briefing.altitude_m))

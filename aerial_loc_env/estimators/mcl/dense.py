@@ -26,11 +26,11 @@ from typing import Any, ClassVar, NamedTuple
 
 import numpy as np
 
-from ...config import rng
-from ...errors import ConfigError
-from ..patches import HISTOGRAM, MOMENTS, PatchGeometry, PatchSampler, reduce_image, to_gray
-from ..protocol import parse_observation
-from .measurement import MeasurementModel, register_model
+from aerial_loc_env.config import rng
+from aerial_loc_env.errors import ConfigError
+from aerial_loc_env.estimators.mcl.measurement import MeasurementModel, register_model
+from aerial_loc_env.estimators.patches import HISTOGRAM, MOMENTS, PatchGeometry, PatchSampler, reduce_image, to_gray
+from aerial_loc_env.estimators.protocol import parse_observation
 
 
 # ---------------------------------------------------------------------- per-frame pieces

@@ -41,11 +41,11 @@ from typing import Any, NamedTuple
 import cv2
 import numpy as np
 
-from ...config import build_config, rng
-from ...errors import ConfigError
-from ..patches import PatchGeometry, PatchSampler, to_gray
-from ..protocol import parse_observation
-from .measurement import MeasurementModel, register_model
+from aerial_loc_env.config import build_config, rng
+from aerial_loc_env.errors import ConfigError
+from aerial_loc_env.estimators.mcl.measurement import MeasurementModel, register_model
+from aerial_loc_env.estimators.patches import PatchGeometry, PatchSampler, to_gray
+from aerial_loc_env.estimators.protocol import parse_observation
 
 
 @dataclass(frozen=True)

@@ -32,10 +32,9 @@ def run_episodes(scenario: str, agents: Sequence[str], seeds: Sequence[int], *, 
     import gymnasium as gym
 
     import aerial_loc_env  # noqa: F401  (registers the scenarios)
-
-    from ..episode import EpisodeDriver
-    from ..registry import make_agent
-    from ..shadow_detection import ShadowDetector, mask_quality
+    from aerial_loc_env.estimators.episode import EpisodeDriver
+    from aerial_loc_env.estimators.registry import make_agent
+    from aerial_loc_env.estimators.shadow_detection import ShadowDetector, mask_quality
 
     overrides = dict(overrides or {})
     if detector_quality:

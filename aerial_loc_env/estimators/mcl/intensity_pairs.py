@@ -88,10 +88,12 @@ from typing import TYPE_CHECKING, Any
 import cv2
 import numpy as np
 
-from ...config import build_config, rng
-from ...errors import ConfigError
-from ..protocol import parse_observation
-from ..shadow_detection import (
+from aerial_loc_env.config import build_config, rng
+from aerial_loc_env.errors import ConfigError
+from aerial_loc_env.estimators.mcl.intensity_pairs_kernels import camera_pairs, pair_agreements, pose_affines
+from aerial_loc_env.estimators.mcl.measurement import MeasurementModel, register_model
+from aerial_loc_env.estimators.protocol import parse_observation
+from aerial_loc_env.estimators.shadow_detection import (
     MapRatioDetectorConfig,
     MapRatioShadowDetector,
     ShadowDetector,
@@ -100,11 +102,9 @@ from ..shadow_detection import (
     oracle_mask,
     restoration_lut,
 )
-from .measurement import MeasurementModel, register_model
-from .pair_kernel import camera_pairs, pair_agreements, pose_affines
 
 if TYPE_CHECKING:
-    from ...env.briefing import Briefing
+    from aerial_loc_env.env.briefing import Briefing
 
 #: the kernel's no-data layer when the map has none
 _NO_NODATA = np.zeros(0, np.bool_)

@@ -18,11 +18,11 @@ from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 
-from ...config import build_config
-from ...errors import ConfigError
+from aerial_loc_env.config import build_config
+from aerial_loc_env.errors import ConfigError
 
 if TYPE_CHECKING:
-    from ...env.briefing import Briefing
+    from aerial_loc_env.env.briefing import Briefing
 
 
 class MeasurementModel(ABC):
@@ -91,7 +91,7 @@ def make_model(name: str, mapping: Mapping[str, Any] | None = None, *,
     for module in BUILTIN_MODULES:
         importlib.import_module(module)
     if name not in MODELS and ":" in name:
-        from ..registry import resolve_dotted
+        from aerial_loc_env.estimators.registry import resolve_dotted
 
         cls = resolve_dotted(name, where=where)
         if not (isinstance(cls, type) and issubclass(cls, MeasurementModel)):

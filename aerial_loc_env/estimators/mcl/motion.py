@@ -24,11 +24,10 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
 
-from ...env.briefing import OdometryNoise
-from ...world.kernels import JIT
-from ..protocol import Observation
+from aerial_loc_env.env.briefing import OdometryNoise
+from aerial_loc_env.estimators.mcl.motion_kernels import _move
+from aerial_loc_env.estimators.protocol import Observation
 
 
 def wrap(a: np.ndarray | float) -> np.ndarray | float:
@@ -98,24 +97,3 @@ class OdometryMotionModel:
         return -0.5 * (d / s) ** 2
 
 
-@njit(**JIT)
-def _move(states, z, cos, sin, xy, speed, speed_std, dt, yaw, yaw_std, rate, rate_std, jitter):
-    """``propagate``'s arithmetic per particle i, given its heading's ``cos``/``sin`` (N,): speed ``v = speed +
-    speed_std z[i]``, ``x += v dt cos``, ``y += v dt sin``; the yaw ``wrap(yaw + yaw_std z[2N + i])`` (``xy``) or
-    ``wrap(yaw_i + omega dt)``, ``omega = rate + rate_std z[N + i]``; then the jitter ``jitter z`` from the draws
-    after the first 3N (2N), two a particle. ``%`` is Python's float remainder, as NumPy's (fmod, then the
-    divisor added when the signs differ)."""
-    n = states.shape[0]
-    pi, two_pi = math.pi, 2.0 * math.pi
-    after = (3 if xy else 2) * n
-    for i in range(n):
-        v = speed + speed_std * z[i]
-        states[i, 0] += v * dt * cos[i]
-        states[i, 1] += v * dt * sin[i]
-        if xy:
-            states[i, 2] = (yaw + yaw_std * z[2 * n + i] + pi) % two_pi - pi
-        else:
-            states[i, 2] = (states[i, 2] + (rate + rate_std * z[n + i]) * dt + pi) % two_pi - pi
-        if jitter > 0:
-            states[i, 0] += jitter * z[after + 2 * i]
-            states[i, 1] += jitter * z[after + 2 * i + 1]

@@ -14,7 +14,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from ...errors import ConfigError
+from aerial_loc_env.errors import ConfigError
 
 Resampler = Callable[[np.ndarray, int, np.random.Generator], np.ndarray]
 

@@ -164,7 +164,7 @@ def test_abbrief_kernel_matches_the_remap_reference(channels, with_nodata):
 
 def test_kernel_compiles_once_for_every_mode():
     """The unused inputs of a mode are empty arrays of the used ones' types: one compiled specialization."""
-    from aerial_loc_env.estimators import patch_kernels
+    from aerial_loc_env.estimators import patches_kernels
 
     for model in (SSDModel(), MIModel(), ABBriefModel()):
         m = _map(2, False)
@@ -173,7 +173,7 @@ def test_kernel_compiles_once_for_every_mode():
         with np.errstate(invalid="ignore"):                    # the states' NaN and inf rows
             model.log_likelihood(prep, _states(m, 20), ALT_M)
             model.sampler.sample(_states(m, 5), ALT_M)
-    assert len(patch_kernels.scan.signatures) == 1
+    assert len(patches_kernels.scan.signatures) == 1
 
 
 def test_score_refuses_inputs_the_kernel_would_index_out_of_bounds():
@@ -222,7 +222,7 @@ def test_pair_kernel_is_bit_identical_to_the_numpy_path(params, with_nodata):
 @pytest.mark.parametrize("with_mask", [False, True])
 def test_camera_pairs_kernel_reads_the_pixels_and_the_mask_as_numpy_does(with_mask):
     """The frame's side of the pairs: the pixels by fancy indexing, the reduced mask by ``ShadowMask.at``."""
-    from aerial_loc_env.estimators.mcl.pair_kernel import camera_pairs
+    from aerial_loc_env.estimators.mcl.intensity_pairs_kernels import camera_pairs
     from aerial_loc_env.estimators.shadow_detection import ShadowMask
 
     g = np.random.default_rng(3)

@@ -1,24 +1,17 @@
-"""The world layer's compiled passes (numba): the shadow sweep and the shading.
+"""The project's numba toolkit (layer 0): the compile options every kernel uses and the intrinsics they share.
 
-``sweep``: the running horizon of ``shadows._sweep`` (one slice at a time towards the sun), the NumPy per-slice
-vector operations as one loop: the same float operations in the same order (maximum, subtract, compare; no fused
-multiply-add), so the mask, margins and distances are bit-identical (tests/test_shadows.py keeps the NumPy sweep
-as the reference).
+- ``JIT``: cached, GIL-free, NumPy's error model, no bounds checks, single-threaded (benchmarks are per core;
+  users parallelize over environments and workers).
+- ``fma32``, ``prefetch``, ``wide_vectors``: a fused float32 multiply-add, a cache-line prefetch hint and a
+  code-generation hint (512-bit vectors where the CPU has them); hints never change results.
+- ``mul255``, ``quantize``: OpenCV's rounded uint8 multiply by a/255 and its float-to-level quantization,
+  reproduced bit for bit (the shading and the frame pass both use them).
+- ``gather_pairs16``, ``gather_f32x16`` (AVX-512 gathers, ``FAST_GATHER``) and ``lut_rgba16`` (VBMI byte
+  permutes, ``FAST_LUT``): CPU instructions LLVM does not choose by itself, compiled only where the host has them
+  and they pay, with a portable scalar form elsewhere that gives the same values. All follow numba's target:
+  with ``NUMBA_CPU_NAME`` set (a portable cache) the portable code.
 
-``shade_rows``: shadow shading, ``rgb * lut[c, q] / 255`` per channel, q the quantized occlusion.
-
-The OpenCV passes this replaces (quantize the float occlusion with ``cv2.convertScaleAbs``, three 1-channel
-``cv2.LUT`` of it, ``cv2.merge``, ``cv2.multiply`` with scale 1/255) are reproduced bit for bit, measured
-exhaustively (tests/test_render_kernel.py): the uint8 multiply is the exactly rounded ``a b / 255`` (never a tie),
-here ``(p + (p >> 8)) >> 8`` with ``p = a b + 128``; the quantization is ``rint(|occ * 255|)`` in float32, saturated
-(NaN, inf and levels beyond int32 to 0, as OpenCV).
-``sensors.frame_kernel`` uses the same two helpers for the frames' shading and vignetting.
-
-Also here: the intrinsics the compiled passes share (``fma32``, ``prefetch``, ``wide_vectors``) and two that use
-CPU instructions LLVM does not choose by itself, each compiled only where the host has them and they pay (the same
-values either way): ``gather_pairs16`` and ``gather_f32x16`` (AVX-512 gathers: ``FAST_GATHER``) and ``lut_rgba16``
-(VBMI byte permutes: ``FAST_LUT``). All follow numba's target: with ``NUMBA_CPU_NAME`` set (a portable cache) the
-portable code.
+Every compiled module is named ``<module>_kernels.py`` and sits beside the module it serves.
 """
 
 from __future__ import annotations
@@ -59,7 +52,7 @@ def wide_vectors(typingctx):
 
     Why: on AVX-512 Intel cores LLVM's default (256-bit preferred; wider operations still legal) mixes 256-bit
     loops with 512-bit ones in one function. Measured on the 2-core Xeon VM (Rocket Lake family) with the frame
-    pass ``frame_kernel.warp_finish``: 1.25 ms back to back, 1.45-1.75 ms after 4 ms of other work (the
+    pass ``render_kernels.warp_finish``: 1.25 ms back to back, 1.45-1.75 ms after 4 ms of other work (the
     benchmark's floor warps, or a Python loop); with 512-bit vectors throughout, 1.10 ms and 1.11-1.15 ms. The
     same ordering with LLVM tuned for a Skylake client, which also prefers 512 bits there."""
     sig = types.void()
@@ -310,89 +303,3 @@ def quantize(v):
     if x <= np.float32(255.0):
         return np.int32(np.rint(x))
     return np.int32(255) if x < np.float32(2147483648.0) else np.int32(0)   # NaN: both comparisons False
-
-
-@nb.njit(inline="always", **JIT)
-def _gain_row(f, g, cn, w_px, quantized, l0, l1, l2):
-    """The row's per-channel gains ``g`` (cn W uint8) at the occlusion row ``f``: the level itself for alpha."""
-    for x in range(w_px):
-        q = np.int32(f[x]) if quantized else quantize(f[x])
-        g[cn * x] = l0[q]
-        g[cn * x + 1] = l1[q]
-        g[cn * x + 2] = l2[q]
-        if cn == 4:
-            g[cn * x + 3] = q
-
-
-@nb.njit(**JIT)
-def shade_rows(src, occ, quantized, lut, out):
-    """``out`` (H, cn W) uint8 = ``src`` (H, cn W) uint8 shaded by the (3, 256) uint8 gains ``lut`` at the
-    occlusion ``occ`` (H, W): uint8 levels (``quantized``) or float in [0, 1]; a 4th channel (alpha) is scaled by
-    the level itself. ``out`` may be ``src``; views with strided rows are fine. Per row: the gains by table
-    lookups (scalar), then the multiply over the contiguous row (vectorized)."""
-    h_px, w_px = occ.shape
-    n = src.shape[1]
-    cn = n // w_px
-    l0, l1, l2 = lut[0], lut[1], lut[2]
-    g = np.empty(n, np.uint8)
-    for y in range(h_px):
-        if cn == 4:
-            _gain_row(occ[y], g, 4, w_px, quantized, l0, l1, l2)
-        else:
-            _gain_row(occ[y], g, 3, w_px, quantized, l0, l1, l2)
-        s = src[y]
-        o = out[y]
-        for i in range(n):
-            o[i] = mul255(np.int32(s[i]), np.int32(g[i]))
-
-
-@nb.njit(**JIT)
-def sweep(a, s, from_last, drop, step, soft, mask, margin, dist_out):
-    """The sweep over the slices (rows) of ``a`` (float32 or float64) from the sun's side (``from_last``: the sun
-    lies beyond the last row, which comes first); ``s`` the digital line's row offsets (integral floats); ``drop``,
-    ``step`` in a's dtype. Writes ``mask`` (bool, ``a < horizon``) or, with ``soft``, ``margin`` (horizon - a) and
-    ``dist_out`` (the distance to the occluder that set the horizon)."""
-    n0, n1 = a.shape
-    hor = np.full(n1, -np.inf, a.dtype)
-    tmp = np.empty(n1, a.dtype)
-    dist = np.full(n1, step, a.dtype)
-    dtmp = np.empty(n1, a.dtype)
-    prev = -1
-    for k in range(n0):
-        i = n0 - 1 - k if from_last else k
-        if prev >= 0:
-            row = a[prev]
-            d = np.int64(s[prev] - s[i])   # the line through (i, j) passes (prev, j + d)
-            if soft:
-                for j in range(n1):   # a new maximum restarts the distance (0 + step is step exactly)
-                    dtmp[j] = step if row[j] >= hor[j] else dist[j] + step
-            for j in range(n1):
-                tmp[j] = np.maximum(hor[j], row[j]) - drop
-            if d == 0:
-                hor, tmp = tmp, hor
-                if soft:
-                    dist, dtmp = dtmp, dist
-            elif d == 1:
-                hor[:n1 - 1] = tmp[1:]
-                hor[n1 - 1] = -np.inf
-                if soft:
-                    dist[:n1 - 1] = dtmp[1:]
-                    dist[n1 - 1] = step
-            else:
-                hor[1:] = tmp[:n1 - 1]
-                hor[0] = -np.inf
-                if soft:
-                    dist[1:] = dtmp[:n1 - 1]
-                    dist[0] = step
-        ai = a[i]
-        if soft:
-            mi = margin[i]
-            di = dist_out[i]
-            for j in range(n1):
-                mi[j] = hor[j] - ai[j]
-                di[j] = dist[j]
-        else:
-            mk = mask[i]
-            for j in range(n1):
-                mk[j] = ai[j] < hor[j]
-        prev = i

@@ -22,18 +22,18 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ..config import build_config, config_to_dict
-from ..config import rng as crange
-from ..errors import ConfigError
-from ..paths import cache_dir
-from .city_content import Filler, choose_use, paint_scene
-from .city_layout import build_layout
-from .city_paint import Canvas
-from .city_roads import paint_roads
-from .geo import LocalTangentGeoref
-from .landcover import LandCover
-from .map_cache import cached_bundle, spec_key
-from .orthomap import Orthomap
+from aerial_loc_env.config import build_config, config_to_dict
+from aerial_loc_env.config import rng as crange
+from aerial_loc_env.errors import ConfigError
+from aerial_loc_env.paths import cache_dir
+from aerial_loc_env.world.city.content import Filler, choose_use, paint_scene
+from aerial_loc_env.world.city.layout import build_layout
+from aerial_loc_env.world.city.paint import Canvas
+from aerial_loc_env.world.city.roads import paint_roads
+from aerial_loc_env.world.maps.cache import cached_bundle, spec_key
+from aerial_loc_env.world.maps.geo import LocalTangentGeoref
+from aerial_loc_env.world.maps.landcover import LandCover
+from aerial_loc_env.world.maps.orthomap import Orthomap
 
 #: Largest map generated (pixels): 150 Mpx is ~1.2 GB of layers while drawing.
 MAX_PIXELS = 150_000_000
@@ -168,7 +168,7 @@ def default_city(config: CityConfig | None = None) -> Orthomap:
     """The procedural city for ``config`` (default: the paper-sized default city), memory-mapped from the cache.
 
     The first call generates and saves the bundle atomically; later calls (any process) only map it
-    (``map_cache.cached_bundle``: a corrupt or foreign entry is rebuilt with a warning).
+    (``maps.cache.cached_bundle``: a corrupt or foreign entry is rebuilt with a warning).
     """
     cfg = config if config is not None else CityConfig()
     return cached_bundle(city_cache_path(cfg), lambda: generate_city(cfg),

@@ -25,11 +25,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ..config import config_to_dict, rng
-from ..errors import ConfigError, MapError
-from .landcover import LandCover as LC
-from .map_cache import cached_bundle, spec_key
-from .orthomap import Orthomap
+from aerial_loc_env.config import config_to_dict, rng
+from aerial_loc_env.errors import ConfigError, MapError
+from aerial_loc_env.world.maps.cache import cached_bundle, spec_key
+from aerial_loc_env.world.maps.landcover import LandCover as LC
+from aerial_loc_env.world.maps.orthomap import Orthomap
 
 #: Bump whenever change_epoch's output changes for a given input and config: it is part of the cache key and of
 #: the benchmark's scenario fingerprint (env/fingerprint.py).
@@ -429,7 +429,7 @@ def _cars_gone(L: _Layers, rng: np.random.Generator, rate: float) -> None:
 
 
 def _cars_new(L: _Layers, rng: np.random.Generator, rate: float) -> None:
-    from .city_content import CAR_COLOURS, CAR_WEIGHTS
+    from aerial_loc_env.world.city.content import CAR_COLOURS, CAR_WEIGHTS
 
     n, labels, stats, _ = _components(L.a_cls == LC.CAR)
     if n == 0:
@@ -515,15 +515,15 @@ def change_epoch(orthomap: Orthomap, config: EpochConfig, seed: int = 0) -> Orth
 
 
 def epoch_cache_path(city_config, config: EpochConfig) -> Path:
-    from ..paths import cache_dir
+    from aerial_loc_env.paths import cache_dir
 
     return cache_dir("maps") / f"{city_config.name}-{city_config.cache_key()}-epoch-{config.cache_key()}.alm"
 
 
 def epoch_city(city_config, config: EpochConfig) -> Orthomap:
     """Epoch B of the procedural city ``city_config``, memory-mapped from the cache (built on first use)."""
-    from .city import GENERATOR_VERSION as CITY_VERSION
-    from .city import default_city
+    from aerial_loc_env.world.city import GENERATOR_VERSION as CITY_VERSION
+    from aerial_loc_env.world.city import default_city
 
     if not isinstance(config, EpochConfig):
         raise ConfigError(f"epoch_city: expected an EpochConfig, got {type(config).__name__}")
@@ -532,7 +532,7 @@ def epoch_city(city_config, config: EpochConfig) -> Orthomap:
         return base
     return cached_bundle(epoch_cache_path(city_config, config),
                          lambda: change_epoch(base, config, seed=city_config.seed),
-                         {"generator": "aerial_loc_env.world.epochs", "generator_version": GENERATOR_VERSION,
+                         {"generator": "aerial_loc_env.world.city.epochs", "generator_version": GENERATOR_VERSION,
                           "city_generator_version": CITY_VERSION, "city": config_to_dict(city_config),
                           "epoch": config_to_dict(config)},
                          size_px=(base.width_px, base.height_px))

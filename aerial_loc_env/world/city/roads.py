@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from .city_content import Filler, paint_cars, paint_trees
-from .city_layout import Layout, Road
-from .city_paint import Canvas, Material
+from aerial_loc_env.world.city.content import Filler, paint_cars, paint_trees
+from aerial_loc_env.world.city.layout import Layout, Road
+from aerial_loc_env.world.city.paint import Canvas, Material
 
 WHITE = (232, 232, 228)
 _RING = np.stack([np.cos(np.arange(8) * np.pi / 4), np.sin(np.arange(8) * np.pi / 4)], axis=1)

@@ -13,7 +13,7 @@ Every step is the arithmetic of the OpenCV passes it replaces, reproduced bit fo
 keeps those passes as the reference and compares exactly); what each pass computes, measured exhaustively:
 
 - the uint8 multiply with scale 1/255 (shading, vignetting) and the occlusion's quantization: see
-  ``world.kernels``, whose two helpers this pass uses (the vignetting by the same multiply in float32,
+  ``jit``, whose two helpers this pass uses (the vignetting by the same multiply in float32,
   ``_vignetted``: the sensor stage then runs in 16 float32 lanes, not numba's 8 int64);
 - ``cv2.transform`` with a diagonal float32 matrix on uint8 is ``rint(v * g)`` in float32, saturated: a byte
   function per channel, so gamma and gains compose into one table per frame (``render.tone_lut``: ``cv2.LUT``'s
@@ -26,11 +26,11 @@ keeps those passes as the reference and compares exactly); what each pass comput
   LUT's own arithmetic.
 
 Loops run over 2-D row slices with explicit narrow casts so that LLVM vectorizes them, with 512-bit vectors
-preferred (``world.kernels.wide_vectors``: LLVM's default on AVX-512 Intel cores mixes 256- and 512-bit loops in
+preferred (``jit.wide_vectors``: LLVM's default on AVX-512 Intel cores mixes 256- and 512-bit loops in
 these two functions, which cost a frame 0.2-0.5 ms whenever other work ran before it; same bytes); single-threaded on
 purpose (benchmarks are per core; users parallelize over environments). Two steps use CPU instructions LLVM does
 not pick by itself, each only where the host has them and they pay, the same bytes either way
-(``world.kernels``): the box's neighbour loads as AVX-512 gathers (``FAST_GATHER``: Sapphire Rapids and later) and
+(``jit``): the box's neighbour loads as AVX-512 gathers (``FAST_GATHER``: Sapphire Rapids and later) and
 the tone lookups of RGBA rows as VBMI byte permutes (``FAST_LUT``). The first call of a process compiles
 (about 2 s) unless numba's cache (``cache=True``, next to this file or in numba's user cache) already holds it.
 """
@@ -40,18 +40,18 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
-from ..world.kernels import FAST_GATHER as _FAST_GATHER
-from ..world.kernels import FAST_LUT as _FAST_LUT
-from ..world.kernels import GATHER_LANES as _GATHER_LANES
-from ..world.kernels import JIT as _JIT
-from ..world.kernels import LUT_PIXELS as _LUT_PIXELS
-from ..world.kernels import fma32 as _fma32
-from ..world.kernels import gather_pairs16 as _gather_pairs16
-from ..world.kernels import lut_rgba16 as _lut_rgba16
-from ..world.kernels import mul255 as _mul255
-from ..world.kernels import prefetch as _prefetch
-from ..world.kernels import quantize as _quantize
-from ..world.kernels import wide_vectors as _wide_vectors
+from aerial_loc_env.jit import FAST_GATHER as _FAST_GATHER
+from aerial_loc_env.jit import FAST_LUT as _FAST_LUT
+from aerial_loc_env.jit import GATHER_LANES as _GATHER_LANES
+from aerial_loc_env.jit import JIT as _JIT
+from aerial_loc_env.jit import LUT_PIXELS as _LUT_PIXELS
+from aerial_loc_env.jit import fma32 as _fma32
+from aerial_loc_env.jit import gather_pairs16 as _gather_pairs16
+from aerial_loc_env.jit import lut_rgba16 as _lut_rgba16
+from aerial_loc_env.jit import mul255 as _mul255
+from aerial_loc_env.jit import prefetch as _prefetch
+from aerial_loc_env.jit import quantize as _quantize
+from aerial_loc_env.jit import wide_vectors as _wide_vectors
 
 #: ``occ_mode`` of ``finish``: where the shadows come from
 OCC_NONE, OCC_ALPHA, OCC_FLOAT = 0, 1, 2
@@ -166,7 +166,7 @@ def tone_table(levels, gains, out):
 @nb.njit(inline="always", **_JIT)
 def _tone_tables(lut):
     """The (3, 256) tone LUT as the scene stage reads it: one row per channel, and all three end to end (``tabs``,
-    for ``world.kernels.lut_rgba16``)."""
+    for ``jit.lut_rgba16``)."""
     return lut[0], lut[1], lut[2], np.ascontiguousarray(lut).reshape(lut.size)
 
 
@@ -253,7 +253,7 @@ def warp_finish(box, m, lut, out, alpha, sensor, vig, bank, dy, dx3, sigma_mode,
     compares over random affines, borders included): the float32 source point of pixel (x, y) is
     ``fma(m00, x, m01 y + m02)`` with float32 coefficients (the row's base rounded, then one fused step), except
     in a row's last ``W mod WARP_STEP_PX`` pixels, where it is ``fma(m00, x, m01 y) + m02``; the value is the fma
-    chain of ``estimators.patch_kernels`` on the four neighbours (the border's 0 outside), rounded half to even.
+    chain of ``estimators.patches_kernels`` on the four neighbours (the border's 0 outside), rounded half to even.
 
     Loops (a row at a time): the source points, the weights per pixel and the neighbours' indices; the prefetches
     and the four neighbours' gathers (one uint32 load each, or ``_gather_row``'s AVX-512 gathers); the blend over the
@@ -433,7 +433,7 @@ def _weights_row(fu, fv, fa, fb, idx, stride, umax, vmax):
 
 @nb.njit(inline="always", **_JIT)
 def _gather_row(flat, idx, stride, q00, q01, q10, q11):
-    """The four neighbours (uint32 RGBA pixels) of each point of a row inside the box (``world.kernels.gather_pairs16``
+    """The four neighbours (uint32 RGBA pixels) of each point of a row inside the box (``jit.gather_pairs16``
     where the hardware gather pays)."""
     n, one = idx.shape[0], np.uint32(1)
     body = 0
@@ -453,7 +453,7 @@ def _gather_row(flat, idx, stride, q00, q01, q10, q11):
 @nb.njit(inline="always", **_JIT)
 def _blend_row(c00, c01, c10, c11, fa, fb, rgba):
     """The bilinear value of each channel (the neighbours' bytes ``c..``, each pixel's weights ``fa``/``fb``): the fma
-    chain of ``estimators.patch_kernels``, rounded half to even. A pixel's four channels in the inner loop: LLVM
+    chain of ``estimators.patches_kernels``, rounded half to even. A pixel's four channels in the inner loop: LLVM
     broadcasts the weights in registers (they used to be stored spread to the four channels by ``_weights_row``
     and loaded back: replayed on Emerald Rapids, the variants' order rotated, ``remap_finish`` 1.70-1.76 ->
     1.44-1.54 ms and ``warp_finish`` 1.67 -> 1.45 ms a frame)."""

@@ -14,8 +14,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from ...sensors import camera as _camera
-from ...world.kernels import JIT, prefetch
+from aerial_loc_env.jit import JIT, prefetch
+from aerial_loc_env.sensors import camera as _camera
 
 #: ``sensors.camera.pose_affine`` compiled: eq. (3)'s affine of one particle, the renderer's floats
 pose_affine = njit(**JIT)(_camera.pose_affine)

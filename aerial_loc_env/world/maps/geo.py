@@ -23,7 +23,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from ..errors import MapError, require_extra
+from aerial_loc_env.errors import MapError, require_extra
 
 # --- WGS84 ----------
 

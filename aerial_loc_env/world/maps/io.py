@@ -26,9 +26,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ..errors import MapError
-from .geo import AffineGeoref, Georeference, LocalTangentGeoref, georef_for_crs, normalize_crs
-from .orthomap import Orthomap
+from aerial_loc_env.errors import MapError
+from aerial_loc_env.world.maps.geo import AffineGeoref, Georeference, LocalTangentGeoref, georef_for_crs, normalize_crs
+from aerial_loc_env.world.maps.orthomap import Orthomap
 
 SUPPORTED = "unsigned 8-bit or 16-bit rasters with 1 (grey), 3 (RGB) or 4 (RGBA) channels"
 _TIFF_SUFFIXES = (".tif", ".tiff")
@@ -337,7 +337,7 @@ def crs_beside(path: Path) -> tuple[str, Path] | None:
 
 def _wkt_to_crs(text: str, source: Path) -> str:
     """A WKT without an EPSG authority: its EPSG code through pyproj when it identifies one, else the WKT."""
-    from ..errors import require_extra
+    from aerial_loc_env.errors import require_extra
 
     pyproj = require_extra("pyproj", "geo", f"Reading the CRS in {source.name}")
     try:

@@ -21,8 +21,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from ..errors import MapError
-from .orthomap import Orthomap, read_bundle_meta
+from aerial_loc_env.errors import MapError
+from aerial_loc_env.world.maps.orthomap import Orthomap, read_bundle_meta
 
 
 class CacheRebuiltWarning(UserWarning):

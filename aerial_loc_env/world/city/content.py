@@ -11,8 +11,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .city_layout import Block, Layout
-from .city_paint import NEUTRAL_SHADE, Canvas, Material
+from aerial_loc_env.world.city.layout import Block, Layout
+from aerial_loc_env.world.city.paint import NEUTRAL_SHADE, Canvas, Material
 
 # ---------------------------------------------------------------------------------------------------------
 # palettes (RGB)

@@ -23,9 +23,9 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import MapError
-from ..paths import umask_mode
-from .geo import Georeference, georeference_from_dict
+from aerial_loc_env.errors import MapError
+from aerial_loc_env.paths import umask_mode
+from aerial_loc_env.world.maps.geo import Georeference, georeference_from_dict
 
 BUNDLE_FORMAT = "aerial_loc_env.orthomap"
 BUNDLE_VERSION = 1

@@ -17,7 +17,7 @@ from enum import IntEnum
 import cv2
 import numpy as np
 
-from .landcover import LandCover
+from aerial_loc_env.world.maps.landcover import LandCover
 
 _SHIFT = 2                 # fixed-point bits for sub-pixel vertices in cv2 drawing calls
 _SCALE = 1 << _SHIFT

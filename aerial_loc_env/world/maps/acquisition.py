@@ -12,7 +12,7 @@ The database's sun (shadows baked in at another time of day) is ``ShadowConfig.d
 before this model runs (shadows lie on the scene; the sensor then sees them). Every field defaults to "off",
 and a config with every field off returns its input unchanged (the same array). ``acquire_map`` makes the whole
 database (other sun, then sensor) from a map; ``database_city`` does it for the procedural city once, cached on
-disk beside the city's bundle (``map_cache``), since the building lean alone costs seconds per process.
+disk beside the city's bundle (``world/maps/cache.py``), since the building lean alone costs seconds per process.
 
 Order of the pipeline (the physical order of a real acquisition): building lean (the viewpoint), optics blur,
 sampling at the sensor's ground sampling distance, colour response (white balance, tone, saturation, contrast,
@@ -30,10 +30,10 @@ from typing import Any
 import cv2
 import numpy as np
 
-from ..config import config_to_dict, rng
-from ..errors import ConfigError, MapError
-from .map_cache import cached_bundle, spec_key
-from .orthomap import Orthomap
+from aerial_loc_env.config import config_to_dict, rng
+from aerial_loc_env.errors import ConfigError, MapError
+from aerial_loc_env.world.maps.cache import cached_bundle, spec_key
+from aerial_loc_env.world.maps.orthomap import Orthomap
 
 #: Bump whenever ``acquire``'s output changes for the same inputs (the benchmark's fingerprint, env/fingerprint.py).
 GENERATOR_VERSION = 1
@@ -280,11 +280,11 @@ def acquire_map(orthomap: Orthomap, shadows: Any, config: AcquisitionConfig | No
 def _database_spec(city_config: Any, shadows: Any, config: AcquisitionConfig | None) -> dict[str, Any]:
     """Everything the database of a procedural city depends on (its cache key and provenance). The other sun's
     shadows depend on the whole ``[shadows]`` section and the shadow generator only when that sun is set."""
-    from . import shadows as shadow_module
-    from .city import GENERATOR_VERSION as CITY_VERSION
+    from aerial_loc_env.world import shadows as shadow_module
+    from aerial_loc_env.world.city import GENERATOR_VERSION as CITY_VERSION
 
     sun = shadows.database_sun_deg is not None
-    return {"generator": "aerial_loc_env.world.acquisition", "generator_version": GENERATOR_VERSION,
+    return {"generator": "aerial_loc_env.world.maps.acquisition", "generator_version": GENERATOR_VERSION,
             "city_generator_version": CITY_VERSION, "city": config_to_dict(city_config),
             "shadow_generator_version": shadow_module.GENERATOR_VERSION if sun else None,
             "shadows": config_to_dict(shadows) if sun else None,
@@ -293,7 +293,7 @@ def _database_spec(city_config: Any, shadows: Any, config: AcquisitionConfig | N
 
 def database_cache_path(city_config: Any, shadows: Any, config: AcquisitionConfig | None) -> Path:
     """Where ``database_city`` keeps the database of the city ``city_config`` (beside the city's bundle)."""
-    from ..paths import cache_dir
+    from aerial_loc_env.paths import cache_dir
 
     key = spec_key(_database_spec(city_config, shadows, config))
     return cache_dir("maps") / f"{city_config.name}-{city_config.cache_key()}-database-{key}.alm"
@@ -305,7 +305,7 @@ def database_city(city_config: Any, shadows: Any, config: AcquisitionConfig | No
     The key holds the city spec, the ``[database]`` section, the ``[shadows]`` section when the database has its
     own sun, and the generator versions of the city, the shadows and this module; the epoch flown (``[epoch]``)
     does not enter: the database is the surveyed epoch A whatever the camera sees."""
-    from .city import default_city
+    from aerial_loc_env.world.city import default_city
 
     base = default_city(city_config)
     if database_is_identity(shadows, config):
