@@ -107,8 +107,7 @@ def test_gsd_of_a_plain_number_equals_the_array_path_and_bad_altitudes_still_fai
 @pytest.mark.parametrize("gsd_xy", [(0.25, 0.25), (0.3, 0.21), (1.0, 0.5)])
 def test_pair_kernels_affine_is_camera_to_map_bit_for_bit(gsd_xy):
     """``intensity_pairs_kernels.pose_affine`` (the pair kernel's per-particle affine, from NumPy's cos and sin of the
-    yaw
-    column) gives ``camera_to_map``'s floats: on- and off-map poses, any yaw, several altitudes and cameras."""
+    yaw column) gives ``camera_to_map``'s floats: on- and off-map poses, any yaw, several altitudes and cameras."""
     from aerial_loc_env.estimators.mcl.intensity_pairs_kernels import pose_affines
 
     grid = SimpleNamespace(gsd_x_m=gsd_xy[0], gsd_y_m=gsd_xy[1], height_px=1234)

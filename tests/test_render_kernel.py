@@ -1,6 +1,5 @@
 """The compiled finishing pass (``sensors.render_kernels.finish``, and ``warp_finish`` with the baked box's warp)
-against
-the OpenCV passes it replaced, bit for bit.
+against the OpenCV passes it replaced, bit for bit.
 
 The reference is the renderer as it was: a subclass whose ``_finish`` runs the old OpenCV/NumPy passes (the baked
 box's ``cv2.warpAffine``, RGB drop,
