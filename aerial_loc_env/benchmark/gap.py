@@ -46,8 +46,8 @@ Summaries (``summarize``) give the median, the quartiles and the mean of each st
 **spread of the real pairs** is the range (min..max) over pairs of each pair's median (of its mean, for
 ``template_within``); ``aerial-loc gap`` marks a scenario's statistic that lies inside it. How far a headline
 figure can move from sampling alone: ``headline_interval`` (distribution-free, for i.i.d. windows: order
-statistics for a median, Clopper-Pearson for the template fraction); tests/test_gap_calibration.py checks with it
-that every realistic preset stays inside the real spread.
+statistics for a median, Clopper-Pearson for the template fraction); tests/benchmark/test_gap_calibration.py checks
+with it that every realistic preset stays inside the real spread.
 """
 
 from __future__ import annotations

@@ -9,7 +9,7 @@ the coordinates computed as ``PatchSampler`` always computed them (float32 ``e00
 samples equal ``cv2.remap``'s bit for bit wherever OpenCV takes its fused-multiply-add vector path (OpenCV >= 4.11
 on FMA hardware: every x86-64 since 2013 and ARMv8; measured equal on 1.7 M samples here). Elsewhere the
 difference is the rounding of an unfused product: at most 3 float32 ulps of 256 (2^-13 = 1.2e-4 gray levels) a
-sample, the tolerance tests/test_patches_kernels.py derives the models' tolerances from.
+sample, the tolerance tests/estimators/test_patches_kernels.py derives the models' tolerances from.
 
 Conventions (the lead's measurements): ``@njit(cache=True, nogil=True, error_model="numpy", boundscheck=False)``,
 one thread, explicit float32 arithmetic; the first call of a process compiles (~seconds, cached on disk after).

@@ -10,7 +10,7 @@ the pair points ~0.2x; the gather of 2K database words per particle and the XNOR
 resampling, estimate and the filter's bookkeeping ~0.4-0.5x together: many small NumPy calls on N = 700, whose
 fixed costs also dominate Table 5's steps at small K (a K = 10 step costs 0.7-0.8 of a K = 70 one).
 
-Since then (bit-identical outputs, tests/test_mcl_step_speedups.py): ``camera_to_map`` scales the rows of the
+Since then (bit-identical outputs, tests/estimators/test_mcl_step_speedups.py): ``camera_to_map`` scales the rows of the
 world affine instead of N tiny 3x3 products (~100 -> ~40 us at N = 700), the motion model draws all its normals
 in one call, the estimate's spread is a closed-form 2x2 eigenvalue, the detector's luminance means are exact
 integer sums and the pair indices int32: ~1.23 -> ~1.12 ms a step (-9 %) on the 2-core machine, quiet. What is
@@ -30,8 +30,8 @@ after a floor warp: detection 0.21 ms (0.07 of it OpenCV's reduction, then cvtCo
 passes), the pair kernel ~0.25 (cold: its lookups miss), ``camera_to_map`` ~0.14, the two ``rng.integers`` ~0.08,
 motion ~0.13, the two observation parses ~0.12, estimate ~0.09.
 
-Then fewer fixed costs and a prefetch (same bytes: the tests above, tests/test_mcl_step_speedups.py, and an 8-agent,
-2-episode, 41-step PaperShadows run equal estimate for estimate, particle for particle): each particle's
+Then fewer fixed costs and a prefetch (same bytes: the tests above, tests/estimators/test_mcl_step_speedups.py, and an
+8-agent, 2-episode, 41-step PaperShadows run equal estimate for estimate, particle for particle): each particle's
 ``camera_to_map`` affine inside the pair kernel (``intensity_pairs_kernels.pose_affine``, NumPy's cos/sin), the motion's
 per-particle arithmetic one pass, the detector's opening and closing one call (``_OpenClose``), its 1/4 reduction
 (``_quarter``, cv2.resize's bytes) and exact luminance sums compiled, the likelihoods' log-mean without the

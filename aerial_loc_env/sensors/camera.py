@@ -165,7 +165,7 @@ class CameraModel:
         a = self.camera_to_world(x_m, y_m, yaw_rad, altitude_m)
         # world_to_map_affine(orthomap) @ a, written out: that affine is diagonal, so each row of ``a`` is
         # scaled and its translation shifted (the same floats as the 3x3 product, whose other terms are exact
-        # zeros; tests/test_camera.py checks it bit for bit), without N tiny matrix products
+        # zeros; tests/sensors/test_camera.py checks it bit for bit), without N tiny matrix products
         w = world_to_map_affine(orthomap)
         a[..., 0, :] *= w[0, 0]
         a[..., 0, 2] += w[0, 2]
@@ -197,7 +197,7 @@ class CameraModel:
 
     def project_pose(self, orthomap: MapGrid, pose: Pose, terms: tuple[float, ...] | None = None) -> np.ndarray:
         """``camera_to_map`` (2, 3) for a single ``Pose``, in scalar float64 arithmetic (``pose_affine``: the same
-        floats; tests/test_render_geometry.py checks them bit for bit) without a dozen numpy calls on 0-d arrays
+        floats; tests/sensors/test_render_geometry.py checks them bit for bit) without a dozen numpy calls on 0-d arrays
         (the renderer calls it every frame). ``terms``: ``affine_terms`` at the pose's altitude if the caller keeps
         them (the renderer does, per altitude)."""
         x, y, yaw, alt = (float(v) for v in pose)

@@ -52,9 +52,9 @@ float32 operation is the one that implementation did, in the same order:
 - the refinement's NumPy float32 arithmetic is done operation by operation (products and sums rounded apart: numba
   without fastmath fuses nothing but the explicit ``_fma``), ``np.hypot`` as glibc's ``hypotf`` (double sqrt).
 These are OpenCV 5's kernels as dispatched on x86-64 with AVX2 (measured against it; OpenCV 4 rounded its warps in
-fixed point, so there the old path differed in rare probes). ``tests/test_perspective_kernels.py`` checks all of it
-against the OpenCV/NumPy reference. The kernels compile on first use (about 4 s per view kind: nadir or tilted; the
-perf row's setup with an empty numba cache 2.7 -> 3.5 s for the tilted kind with these loops) and are cached beside
+fixed point, so there the old path differed in rare probes). ``tests/sensors/test_perspective_kernels.py`` checks all
+of it against the OpenCV/NumPy reference. The kernels compile on first use (about 4 s per view kind: nadir or tilted;
+the perf row's setup with an empty numba cache 2.7 -> 3.5 s for the tilted kind with these loops) and are cached beside
 the module.
 """
 

@@ -14,8 +14,8 @@ Why it is built this way:
   episode's footprints stay in, the occlusion quantized into the alpha channel the RGBA warp carries anyway): a
   frame is then ONE warp of the pre-shaded map plus the photometry, instead of the map warp, a float occlusion
   warp and three shading passes. Shading before interpolation differs from shading after it only at shadow edges
-  (tests/test_render_bake.py derives the bound); cloud shadows drift and keep the per-frame path, and so do frames
-  the bake cannot serve (pyramid level > 0, a footprint leaving the box). After the warp a baked frame is one
+  (tests/sensors/test_render_bake.py derives the bound); cloud shadows drift and keep the per-frame path, and so do
+  frames the bake cannot serve (pyramid level > 0, a footprint leaving the box). After the warp a baked frame is one
   compiled pass (below) that also copies the alpha out (the quantized occlusion) and counts the shadowed pixels;
   the shadow mask and the float occlusion are made only if a caller reads them (the env and the estimators do
   not). The baked box's warp itself is done inside that pass (``render_kernels.warp_finish``, row by row: no warped
@@ -27,8 +27,8 @@ Why it is built this way:
   frame by the OpenCV operations themselves over the 256 levels, vignetting by a precomputed uint8 gain, and
   sensor noise from a per-episode int16 bank of standard normals (fixed point, 2**-11) read at a random offset per
   frame, scaled by the read + shot noise sigma (int16 fixed point, 2**-8), added with saturation: within 2 grey
-  levels of the float arithmetic (tests/test_render_photometry.py derives the bound) and bit-identical to the
-  OpenCV passes it replaced (tests/test_render_kernel.py keeps them as the reference). A perspective or tilted
+  levels of the float arithmetic (tests/sensors/test_render_photometry.py derives the bound) and bit-identical to the
+  OpenCV passes it replaced (tests/sensors/test_render_kernel.py keeps them as the reference). A perspective or tilted
   view samples the baked box through its per-pixel maps inside the same pass, its facades shaded there too
   (``render_kernels.remap_finish``, bit for bit ``cv2.remap`` and the facade gains). Motion blur and ``pre_sensor``
   steps split the pass in two around them.
@@ -185,7 +185,7 @@ class BakedShadows:
     tilted views sample it through their maps. Frames that cannot use it (pyramid level > 0, a footprint or a
     view's reads leaving the box) render from ``grid`` and
     ``shading_params`` as before. The shading is applied before the interpolation instead of after it: the same
-    bytes away from shadow edges up to rounding, and within the bound tests/test_render_bake.py derives at the
+    bytes away from shadow edges up to rounding, and within the bound tests/sensors/test_render_bake.py derives at the
     edges; the shadow mask is the warped alpha >= 128.
     """
 
@@ -754,7 +754,7 @@ def _upsample_tile(data: np.ndarray, f: int, u0: int, v0: int, w: int, h: int) -
 
     For f a power of two up to 32 the warp's 1/32 px coordinate quantization is exact and so is resize's
     (u + 0.5) / f - 0.5: a ``cv2.resize`` of the grid block under the tile gives the same floats 4x faster
-    (tests/test_render_bake.py checks them bit for bit); other factors take the warp."""
+    (tests/sensors/test_render_bake.py checks them bit for bit); other factors take the warp."""
     if f & (f - 1) or f > 32:
         a = np.array([[1.0 / f, 0.0, (u0 + 0.5) / f - 0.5], [0.0, 1.0 / f, (v0 + 0.5) / f - 0.5]])
         return cv2.warpAffine(data, a, (w, h), flags=_WARP_FLAGS, borderMode=cv2.BORDER_REPLICATE)
@@ -807,7 +807,7 @@ def tone_lut(gamma: float | None, gains: np.ndarray | None) -> np.ndarray:
     """The frame's tone curve then per-channel gains as one (3, 256) uint8 table (row c: channel c's output at
     each input level): what ``cv2.LUT`` of ``gamma_lut`` then a diagonal float32 ``cv2.transform`` (saturating) do
     to the 256 levels, the gains applied by ``render_kernels.tone_table`` (that arithmetic, one compiled call: the
-    four OpenCV/NumPy calls it replaces cost a frame ~0.05 ms with cold caches; tests/test_render_geometry.py
+    four OpenCV/NumPy calls it replaces cost a frame ~0.05 ms with cold caches; tests/sensors/test_render_geometry.py
     compares it with the OpenCV operations)."""
     if gamma is None and gains is None:
         return _IDENTITY

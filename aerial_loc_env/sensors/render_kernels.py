@@ -9,7 +9,8 @@ done first, bit for bit OpenCV's):
 2. sensor: vignetting and signal-dependent noise read from the episode's int16 bank at the frame's offset, added
    with saturation.
 
-Every step is the arithmetic of the OpenCV passes it replaces, reproduced bit for bit (tests/test_render_kernel.py
+Every step is the arithmetic of the OpenCV passes it replaces, reproduced bit for bit
+(tests/sensors/test_render_kernel.py
 keeps those passes as the reference and compares exactly); what each pass computes, measured exhaustively:
 
 - the uint8 multiply with scale 1/255 (shading, vignetting) and the occlusion's quantization: see
@@ -249,11 +250,12 @@ def warp_finish(box, m, lut, out, alpha, sensor, vig, bank, dy, dx3, sigma_mode,
     channel order is memory order on any endianness); ``m`` (2, 3) float64: the inverse affine (frame pixel ->
     box pixel); ``alpha`` (H, W) uint8 receives the warped alpha; the rest as ``finish``; returns the number of
     shadowed pixels. The warp is ``cv2.warpAffine(rgba, m, (W, H), INTER_LINEAR | WARP_INVERSE_MAP,
-    BORDER_CONSTANT 0)`` of OpenCV 5 bit for bit, its arithmetic found by measurement (tests/test_render_kernel.py
-    compares over random affines, borders included): the float32 source point of pixel (x, y) is
-    ``fma(m00, x, m01 y + m02)`` with float32 coefficients (the row's base rounded, then one fused step), except
-    in a row's last ``W mod WARP_STEP_PX`` pixels, where it is ``fma(m00, x, m01 y) + m02``; the value is the fma
-    chain of ``estimators.patches_kernels`` on the four neighbours (the border's 0 outside), rounded half to even.
+    BORDER_CONSTANT 0)`` of OpenCV 5 bit for bit, its arithmetic found by measurement
+    (tests/sensors/test_render_kernel.py compares over random affines, borders included): the float32 source point of
+    pixel (x, y) is ``fma(m00, x, m01 y + m02)`` with float32 coefficients (the row's base rounded, then one fused
+    step), except in a row's last ``W mod WARP_STEP_PX`` pixels, where it is ``fma(m00, x, m01 y) + m02``; the value is
+    the fma chain of ``estimators.patches_kernels`` on the four neighbours (the border's 0 outside), rounded half to
+    even.
 
     Loops (a row at a time): the source points, the weights per pixel and the neighbours' indices; the prefetches
     and the four neighbours' gathers (one uint32 load each, or ``_gather_row``'s AVX-512 gathers); the blend over the
@@ -307,11 +309,11 @@ def remap_finish(box, map_x, map_y, shade_px, shade_gain, lut, out, alpha, senso
                  a32, b32, a64, b64):
     """``warp_finish`` through per-pixel maps (a perspective or tilted view of the baked box): each row sampled
     at ``map_x``/``map_y`` (H, W) float32 box pixels, bit for bit OpenCV 5's ``cv2.remap(rgba, map_x, map_y,
-    INTER_LINEAR, BORDER_CONSTANT 0)`` (the floor, weights and fma chain of its warps; tests/test_render_kernel.py
-    compares), then the pixels ``shade_px`` (flat indices, each once, in any order) scaled by ``shade_gain``
-    (``gain_byte``: a view's facades, after the alpha is taken and before the tone), then ``finish``'s stages.
-    One pass instead of a remap, a finishing pass, the facades and a second finishing pass: no RGBA frame and no
-    intermediate RGB frame in memory.
+    INTER_LINEAR, BORDER_CONSTANT 0)`` (the floor, weights and fma chain of its warps;
+    tests/sensors/test_render_kernel.py compares), then the pixels ``shade_px`` (flat indices, each once, in any order)
+    scaled by ``shade_gain`` (``gain_byte``: a view's facades, after the alpha is taken and before the tone), then
+    ``finish``'s stages. One pass instead of a remap, a finishing pass, the facades and a second finishing pass: no
+    RGBA frame and no intermediate RGB frame in memory.
     """
     _wide_vectors()
     h_px, w_px = alpha.shape

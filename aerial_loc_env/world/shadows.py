@@ -294,7 +294,7 @@ def _disc_fraction(x: np.ndarray) -> np.ndarray:
 
     Only the penumbra (-1 < x < 1, well under 1 % of an episode's grid) needs the arcsine: the rest is 0 (x <= -1,
     lit or no occluder) or 1 (x >= 1, umbra), one threshold; the formula runs on the penumbra's pixels alone,
-    the same floats as over the whole grid (tests/test_shadows.py), 5x faster at reset."""
+    the same floats as over the whole grid (tests/world/test_shadows.py), 5x faster at reset."""
     ends = _disc_formula(np.array([-1.0, 1.0], dtype=x.dtype))
     out = cv2.threshold(x, 0.0, 1.0, cv2.THRESH_BINARY)[1]        # 1 where x > 0, else 0
     if ends[0] != 0.0 or ends[1] != 1.0:                          # (they are 0 and 1 in IEEE arithmetic)

@@ -25,7 +25,7 @@ from aerial_loc_env.mavlink.link import LinkError
 from aerial_loc_env.mavlink.selfcheck import free_udp_port
 from aerial_loc_env.mavlink.sender import MavlinkSender, SenderConfig
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 FIX = PoseFix(time_s=0.0, lat_deg=47.0, lon_deg=8.0, alt_amsl_m=600.0, east_m=0.0, north_m=0.0, up_m=200.0,
               vel_enu_mps=(5.0, 0.0, 0.0), yaw_rad=0.0, cov_en_m2=(2.0, 0.0, 2.0), v_std_m=0.5)
 

@@ -64,7 +64,7 @@ def test_pyserial_is_in_the_mavlink_extra():
 
     import tomllib
 
-    meta = tomllib.loads((Path(__file__).resolve().parents[1] / "pyproject.toml").read_text())
+    meta = tomllib.loads((Path(__file__).resolve().parents[2] / "pyproject.toml").read_text())
     extra = meta["project"]["optional-dependencies"]["mavlink"]
     assert any(req.lower().startswith("pyserial") for req in extra), extra
 

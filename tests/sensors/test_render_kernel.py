@@ -544,7 +544,7 @@ def test_gather_f32x16_reads_each_indexed_value():
     """``jit.gather_f32x16`` (the perspective maps' height lookups where AVX-512 gathers pay) is plain
     indexing, 16 points at a time at any offset into the index row, the first and last table entries included
     (non-finite values copied as they are). Elsewhere the maps take the scalar loads (compared with the OpenCV
-    reference in tests/test_perspective_kernels.py, as here)."""
+    reference in tests/sensors/test_perspective_kernels.py, as here)."""
     from aerial_loc_env import jit as kernels
 
     if not kernels.FAST_GATHER:

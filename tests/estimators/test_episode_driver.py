@@ -4,7 +4,7 @@ Agent.close, streaming; and the benchmark rows it gives are those of the loop it
 ``tests/data/driver_benchmark_rows.json`` holds the rows the benchmark's own loop gave before the driver
 (3 seeds x 3 agents on a 13-frame episode, timing columns left out) and a digest of the episodes' frames.
 After a deliberate change of the world, the renderer or the agents, write it again with
-``python tests/test_episode_driver.py``.
+``python tests/estimators/test_episode_driver.py``.
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ from aerial_loc_env.benchmark.runner import plan
 from aerial_loc_env.estimators.episode import EpisodeDriver, oracle_info, read_only
 from aerial_loc_env.estimators.protocol import Agent, Estimate, prior_estimate
 
-FIXTURE = Path(__file__).with_name("data") / "driver_benchmark_rows.json"
+FIXTURE = Path(__file__).resolve().parents[1] / "data" / "driver_benchmark_rows.json"
 AGENTS = [{"name": "mcl-shadow-aware", "params": {"n_particles": 150}, "label": "sa"},
           {"name": "dead-reckoning", "label": "dr"},
           {"name": "mcl-shadow-aware-oracle", "params": {"n_particles": 150}, "label": "oracle"}]

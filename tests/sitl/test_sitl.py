@@ -27,7 +27,7 @@ from aerial_loc_env.mavlink.sitl import (
     vision_fix_s,
 )
 
-REPO_ROOT = Path(__file__).resolve().parents[1]
+REPO_ROOT = Path(__file__).resolve().parents[2]
 SITL_DIR = REPO_ROOT.parent / "shared" / "sitl"
 # SITL's --speedup in the default run (CI): the highest that held every figure below, run after run, on a loaded
 # 2-core machine (docs/mavlink.md, Verification). A stall of the bridge lasts `speedup` times longer on SITL's

@@ -25,9 +25,9 @@ from aerial_loc_env.estimators.shadow_detection import (
     _disc,
     _masked_channel_means,
     _OpenClose,
-    _pairwise_sum,
     shadow_index,
 )
+from aerial_loc_env.estimators.shadow_detection_kernels import _pairwise_sum
 from aerial_loc_env.sensors.camera import CameraModel, world_to_map_affine
 
 
@@ -302,7 +302,7 @@ def test_quarter_reduction_is_cv2_resize():
     """The default scale's reduction (1/4 of a frame whose sides are multiples of 4) against ``cv2.resize``'s
     bilinear result: random bytes over every value, frames from 4 x 4 up, and the detector's ``reduce`` still
     OpenCV's at other scales and sizes."""
-    from aerial_loc_env.estimators.shadow_detection import _quarter
+    from aerial_loc_env.estimators.shadow_detection_kernels import _quarter
 
     g = np.random.default_rng(12)
     for h, w in [(400, 600), (4, 4), (8, 12), (404, 604), (1200, 1600), (36, 4), (4, 88)]:
