@@ -51,10 +51,9 @@ def wide_vectors(typingctx):
     architectures, LLVM ignores it.
 
     Why: on AVX-512 Intel cores LLVM's default (256-bit preferred; wider operations still legal) mixes 256-bit
-    loops with 512-bit ones in one function. Measured on the 2-core Xeon VM (Rocket Lake family) with the frame
-    pass ``render_kernels.warp_finish``: 1.25 ms back to back, 1.45-1.75 ms after 4 ms of other work (the
-    benchmark's floor warps, or a Python loop); with 512-bit vectors throughout, 1.10 ms and 1.11-1.15 ms. The
-    same ordering with LLVM tuned for a Skylake client, which also prefers 512 bits there."""
+    loops with 512-bit ones in one function, and such a frame pass (``render_kernels.warp_finish``) runs slower
+    whenever other work ran just before it (the 512-bit units' warm-up); with 512-bit vectors throughout it runs
+    at the same speed either way (docs/perf-log.md has the figures)."""
     sig = types.void()
 
     def codegen(context, builder, signature, args):
@@ -130,9 +129,8 @@ def gather_pairs16(typingctx, flat, idx, x, off, first, second):
     ``flat``), by two AVX-512 ``vpgatherdq``: each point's two pixels as one 64-bit load, split by two shuffles.
     Compiled only where ``FAST_GATHER`` (elsewhere LLVM could not select it).
 
-    Why: LLVM does not vectorize the box-sampling passes' neighbour loads (four per pixel). On Emerald Rapids, a
-    frame's 4 x 240k neighbours (a rotated 600 x 400 frame read from a 2249 x 2249 box, one core): scalar loads
-    1.36 ms, one 32-bit gather per neighbour 0.78 ms, these 64-bit pairs 0.43 ms."""
+    Why: LLVM does not vectorize the box-sampling passes' neighbour loads (four per pixel); a pair per 64-bit lane
+    gathers half the elements that one 32-bit gather per neighbour would (docs/perf-log.md has the figures)."""
     if not (isinstance(x, types.Integer) and isinstance(off, types.Integer)
             and all(isinstance(a, types.Array) and a.dtype == types.uint32 and a.ndim == 1 and a.layout == "C"
                     for a in (flat, idx, first, second))):
@@ -175,8 +173,7 @@ def gather_f32x16(typingctx, table, idx, x, out):
     ``FAST_GATHER``, as ``gather_pairs16``.
 
     Why: the perspective maps' fixed-point steps look up the height model at ~60k listed pixels three times a
-    frame, each a scalar load LLVM does not vectorize; on Emerald Rapids the gathers take ``view_maps`` 0.78-0.90 ->
-    0.76-0.86 ms a frame (replayed, the variants' order rotated: 3-5 %)."""
+    frame, each a scalar load LLVM does not vectorize."""
     if not (isinstance(x, types.Integer)
             and all(isinstance(a, types.Array) and a.ndim == 1 and a.layout == "C" for a in (table, idx, out))
             and table.dtype == types.float32 and out.dtype == types.float32 and idx.dtype == types.int32):
@@ -269,8 +266,8 @@ def lut_rgba16(src, x, tabs, out, alpha):
     (where ``FAST_LUT``, on C-contiguous arrays: ``_lut_rgba16_vbmi``), else the scalar lookups (this function). The
     same bytes either way (tests compare both).
 
-    Why: a frame's tone lookups (3 x 240k bytes, each a scalar load and store) took 0.43 ms of the box-sampling
-    pass on Emerald Rapids; the permutes do 16 pixels in about a dozen instructions."""
+    Why: a frame's tone lookups are 3 x 240k bytes, each a scalar load and store LLVM does not vectorize; the
+    permutes do 16 pixels in about a dozen instructions."""
     count = 0
     for i in range(LUT_PIXELS):
         p = 4 * (x + i)

@@ -294,7 +294,7 @@ def _disc_fraction(x: np.ndarray) -> np.ndarray:
 
     Only the penumbra (-1 < x < 1, well under 1 % of an episode's grid) needs the arcsine: the rest is 0 (x <= -1,
     lit or no occluder) or 1 (x >= 1, umbra), one threshold; the formula runs on the penumbra's pixels alone,
-    the same floats as over the whole grid (tests/world/test_shadows.py), 5x faster at reset."""
+    the same floats as over the whole grid (tests/world/test_shadows.py), and a reset pays the arcsine only there."""
     ends = _disc_formula(np.array([-1.0, 1.0], dtype=x.dtype))
     out = cv2.threshold(x, 0.0, 1.0, cv2.THRESH_BINARY)[1]        # 1 where x > 0, else 0
     if ends[0] != 0.0 or ends[1] != 1.0:                          # (they are 0 and 1 in IEEE arithmetic)
@@ -436,8 +436,9 @@ def apply_shading(rgb: np.ndarray, occlusion: np.ndarray, strength: float, *, sh
     sun is removed, channel c is multiplied by 1 - occ * strength * (1 - g_c), where g_c is the sky-only
     fraction: luminance ``shadow_ratio`` with colour ``sky_tint_rgb`` (sky light is bluer). With a power-law
     encoding v = lin ** (1 / gamma), a gain in linear light is the gain ** (1 / gamma) on encoded values, so
-    the image is never decoded: the per-channel gain is looked up from the occlusion quantized to 256 levels
-    (cv2.LUT) and multiplied in (cv2.multiply). ``occlusion`` is (H, W) float in [0, 1] or uint8 (255 = full).
+    the image is never decoded: the per-channel gains at the occlusion's 256 quantized levels are one table
+    (``shading_lut``, cached per strength), and ``shade`` looks each pixel's gain up and multiplies it in, rounded,
+    in one compiled pass. ``occlusion`` is (H, W) float in [0, 1] or uint8 (255 = full).
     The sRGB linear toe below 1 % is ignored (error below one grey level).
     """
     _check_shading(strength, shadow_ratio, sky_tint_rgb, gamma, "apply_shading")

@@ -9,7 +9,7 @@ lots with painted bays, cars and trees. Heights: buildings 3-60 m (taller downto
 1.5 m. Texture comes at several scales (per-object colour, 6 m and 1 m noise, pixel grain, a 60 m light
 field), so no camera footprint is featureless and nothing repeats.
 
-``generate_city(config)`` draws it (about 1.5 s for the default 1200 m x 1400 m at 0.25 m/px on one core);
+``generate_city(config)`` draws it (seconds for the default 1200 m x 1400 m at 0.25 m/px);
 ``default_city(config)`` returns it from the cache (``paths.cache_dir("maps")``), memory-mapped, generating
 and writing it atomically on the first call.
 """
