@@ -3,43 +3,21 @@
 Why: the per-pixel view maps were a dozen OpenCV warps of the march grid plus NumPy passes over 1-D gathers of the
 relief pixels, each pass writing a temporary array. Here: one pass over the march grid, and per band of cells one
 row-major pass for the flat pixels then the relief pixels' fixed-point steps over the band's list (independent
-lookups overlap; one pixel's chain of dependent lookups was latency-bound).
+lookups overlap, where one pixel's chain of dependent lookups is latency-bound).
 
 How the loops are laid out (LLVM vectorizes a loop only when it can bound every address it touches: one load from a
 computed index, one store through a computed index, or one signed index that numba wraps when negative keeps the
 whole loop scalar): index passes, vectorized and branch-free (rounding and window tests on the floats:
 ``_round_px``, ``_window_index``, ``_dsm_index``; int32 flat indices), then a scalar pass of the loads alone
 (``_read_row``, ``_gather``), then the next vectorized pass. The march reads every probe of every cell (a row of
-cells at a time) and takes the highest level hit (the first from the top: levels decrease); it used to stop at a
-cell's first hit and to skip cells whose probe segment crossed no block above the lowest height, whose branches
-cost more than the loads they saved. In the maps: the third lookup is done for every listed pixel (cheaper than a
+cells at a time) and takes the highest level hit (the first from the top: levels decrease); it neither stops at a
+cell's first hit nor skips cells whose probe segment crosses no block above the lowest height: those branches cost
+more than the loads they would save. In the maps: the third lookup is done for every listed pixel (cheaper than a
 branch); the maps are scattered cell by cell, four pixels at a time (loads first, then stores, at unsigned indices:
 SLP-vectorized); the facades are listed branch-free only in cells with a wall, and their facing (a float64 square
 root) computed over that list alone; untilted rays are the pixel offsets themselves, computed where listed. Both
-kernels prefer 512-bit vectors (``jit.wide_vectors``: 0.21 -> 0.19 ms (march), 0.55 -> 0.53 ms (maps) a
-frame in flight).
-
-Measured (2-core Xeon VM, one core; before = the kernels of commit 422d3a6, in which the march stopped at a cell's
-first hit after a per-cell skip test and the maps' steps looped over scalar lookups): replaying the 121 frames of
-the perf flight (medians, old and new interleaved in one process, load 0.6-2.2; "in flight": after two floor warps),
-``view_maps`` 1.15-1.25 -> 0.47-0.71 ms in flight, 1.04-1.11 -> 0.41-0.42 ms back to back; ``march`` 0.62-0.74 ->
-0.20-0.24 ms in flight, 0.55-0.66 -> 0.16-0.19 ms back to back (nadir and tilted alike). In the render of the perf
-flight (load 0.8-2.0): march 0.64 -> 0.19 ms, view_maps 1.16 -> 0.49-0.51 ms a frame. The benchmark's perspective
-rows, that commit against this one (two alternating runs, load 0.7-0.8; the render's own passes changed in between
-too): 4.52-4.58x -> 3.07-3.11x the floor (3.80-3.81 -> 2.58-2.64 ms), with gimbal tilt 4.87-4.90x -> 3.22-3.28x
-(4.06-4.12 -> 2.66-2.76 ms). Where the cycles went before (rdtsc per section): view_maps: the relief list 23 %, the
-three steps' scalar index and lookup passes 32 %, the facade's float64 square root for every relief pixel 15 %, the
-scatter 13 %, the flat pass 13 %; march: the per-cell skip test and probe loop (branch-bound) 75 %, the block maxima
-6 %, the 3 x 3 maximum 18 %. Now: view_maps' flat pass (stores of both planes) and the relief list about 16 % each,
-the three loads passes 24 %, the index passes 14 %; the march's probe pixels and loads about 40 % each. Measured and
-not kept: a relief cell whose lookups all fall in blocks of one height skipping them (no gain within the noise), a
-uint16 palette of the height model (4 % of the maps kernel), the lookups inside the index passes (LLVM then kept
-those loops scalar: slower than before), the third lookup only where the second step moved (the index set to 0
-elsewhere: no gain), the march's skip test with precomputed block maxima of the whole map and one lookup of 2 x 2
-blocks (no gain: its branches were the cost), the relief list in row-major runs with slice copies (slower: numba's
-slice assignment on short runs), the ground's tallest block (``cv2.warpAffine`` + ``minMaxLoc`` in
-``ReliefView.maps``) as a kernel (0.1 ms less in ``maps`` but the same frame time: the march then paid the cold
-reads).
+kernels prefer 512-bit vectors (``jit.wide_vectors``). The timings of these layouts, and the variants that did not
+pay, are in docs/perf-log.md.
 
 Exactness: the maps equal those of the OpenCV/NumPy implementation they replace (perspective v5) bit for bit. Every
 float32 operation is the one that implementation did, in the same order:
@@ -53,9 +31,8 @@ float32 operation is the one that implementation did, in the same order:
   without fastmath fuses nothing but the explicit ``_fma``), ``np.hypot`` as glibc's ``hypotf`` (double sqrt).
 These are OpenCV 5's kernels as dispatched on x86-64 with AVX2 (measured against it; OpenCV 4 rounded its warps in
 fixed point, so there the old path differed in rare probes). ``tests/sensors/test_perspective_kernels.py`` checks all
-of it against the OpenCV/NumPy reference. The kernels compile on first use (about 4 s per view kind: nadir or tilted;
-the perf row's setup with an empty numba cache 2.7 -> 3.5 s for the tilted kind with these loops) and are cached beside
-the module.
+of it against the OpenCV/NumPy reference. The kernels compile on first use (seconds, once per view kind: nadir or
+tilted) and are cached beside the module.
 """
 
 from __future__ import annotations
@@ -294,7 +271,7 @@ def _maps_kernel(tilted: bool, replicate: bool):
         map_x, map_y = out_x.reshape(h * w), out_y.reshape(h * w)
         # One band of cells (factor rows of pixels) at a time: every pixel's ray and ground point row by row (flat
         # cells keep it), then the relief cells' pixels listed cell by cell, then each fixed-point step over the
-        # whole list (independent lookups overlap; a pixel's chain of dependent lookups was latency-bound).
+        # whole list (independent lookups overlap; a pixel's chain of dependent lookups is latency-bound).
         size = factor * w
         band_du, band_dv = np.empty(size, np.float32), np.empty(size, np.float32)
         cells, wall_at = np.empty(wc, np.int64), np.empty(wc, np.int64)

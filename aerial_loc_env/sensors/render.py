@@ -23,8 +23,8 @@ Why it is built this way:
 - Everything after the warp is ONE pass of a numba kernel (``sensors.render_kernels.finish``), uint8 in and uint8
   out, row by row while the row is in cache, the frame written into the warp's own memory: the shading of a
   per-frame float occlusion (``jit``: per-channel gains of the quantized occlusion, one
-  multiply), gamma and the white-balance/exposure gains as one per-channel byte table composed per
-  frame by the OpenCV operations themselves over the 256 levels, vignetting by a precomputed uint8 gain, and
+  multiply), gamma and the white-balance/exposure gains as one per-channel byte table composed per frame over
+  the 256 levels (``tone_lut``: the OpenCV operations' arithmetic), vignetting by a precomputed uint8 gain, and
   sensor noise from a per-episode int16 bank of standard normals (fixed point, 2**-11) read at a random offset per
   frame, scaled by the read + shot noise sigma (int16 fixed point, 2**-8), added with saturation: within 2 grey
   levels of the float arithmetic (tests/sensors/test_render_photometry.py derives the bound) and bit-identical to the
@@ -87,7 +87,7 @@ _FRAME_KERNEL = __name__.rpartition(".")[0] + ".render_kernels"
 
 
 def _kernels():
-    """``sensors.render_kernels``, imported on first use (numba's import costs ~0.2 s: only processes that render)."""
+    """``sensors.render_kernels``, imported on first use (importing numba is slow: only processes that render pay)."""
     fk = sys.modules.get(_FRAME_KERNEL)
     if fk is None:   # the import statement's lookups cost more than the frame's other Python steps, cold
         from aerial_loc_env.sensors import render_kernels as fk
@@ -207,8 +207,8 @@ class BakedShadows:
 @dataclass(frozen=True, eq=False)
 class _BoxWarp:
     """The baked box's warp for a frame, done row by row inside the finishing pass (``render_kernels.warp_finish``:
-    bit for bit ``cv2.warpAffine`` INTER_LINEAR | WARP_INVERSE_MAP with a zero border, about 0.3 ms a frame less
-    than the warp and a separate pass at 600 x 400). ``box``: the box's RGBA pixels as uint32 (h, w); ``matrix``:
+    bit for bit ``cv2.warpAffine`` INTER_LINEAR | WARP_INVERSE_MAP with a zero border, without a warped frame going
+    through memory between the warp and a separate pass). ``box``: the box's RGBA pixels as uint32 (h, w); ``matrix``:
     frame pixel -> box pixel, (2, 3) float64."""
 
     box: np.ndarray
@@ -287,7 +287,7 @@ class CameraRenderer:
     ``orthomap`` needs ``rgb`` (H, W, 3) uint8, ``gsd_x_m``, ``gsd_y_m``, ``height_px``, ``width_px`` and
     optionally ``nodata`` (H, W) bool (the ``Orthomap`` contract). The map pyramid is built lazily, once per
     level. ``noise_seed`` seeds the first noise bank; call ``reset(rng)`` at each episode to redraw it.
-    ``rgba``: keep a private RGBA copy of the map for twice faster warps (default: maps up to 32 Mpx).
+    ``rgba``: keep a private RGBA copy of the map for faster warps (default: maps up to 32 Mpx).
     Not thread-safe (reused scratch buffers, lazily built pyramid): one renderer per thread or process.
     """
 
@@ -753,8 +753,8 @@ def _upsample_tile(data: np.ndarray, f: int, u0: int, v0: int, w: int, h: int) -
     (map pixel u -> grid pixel (u + 0.5) / f - 0.5, as in the per-frame warp; the grid's edges replicated).
 
     For f a power of two up to 32 the warp's 1/32 px coordinate quantization is exact and so is resize's
-    (u + 0.5) / f - 0.5: a ``cv2.resize`` of the grid block under the tile gives the same floats 4x faster
-    (tests/sensors/test_render_bake.py checks them bit for bit); other factors take the warp."""
+    (u + 0.5) / f - 0.5: a ``cv2.resize`` of the grid block under the tile gives the same floats as the warp, and
+    is faster (tests/sensors/test_render_bake.py checks them bit for bit); other factors take the warp."""
     if f & (f - 1) or f > 32:
         a = np.array([[1.0 / f, 0.0, (u0 + 0.5) / f - 0.5], [0.0, 1.0 / f, (v0 + 0.5) / f - 0.5]])
         return cv2.warpAffine(data, a, (w, h), flags=_WARP_FLAGS, borderMode=cv2.BORDER_REPLICATE)
@@ -806,9 +806,9 @@ def gamma_lut(gamma: float) -> np.ndarray:
 def tone_lut(gamma: float | None, gains: np.ndarray | None) -> np.ndarray:
     """The frame's tone curve then per-channel gains as one (3, 256) uint8 table (row c: channel c's output at
     each input level): what ``cv2.LUT`` of ``gamma_lut`` then a diagonal float32 ``cv2.transform`` (saturating) do
-    to the 256 levels, the gains applied by ``render_kernels.tone_table`` (that arithmetic, one compiled call: the
-    four OpenCV/NumPy calls it replaces cost a frame ~0.05 ms with cold caches; tests/sensors/test_render_geometry.py
-    compares it with the OpenCV operations)."""
+    to the 256 levels, the gains applied by ``render_kernels.tone_table`` (that arithmetic in one compiled call
+    instead of four OpenCV/NumPy calls; tests/sensors/test_render_geometry.py compares it with the OpenCV
+    operations)."""
     if gamma is None and gains is None:
         return _IDENTITY
     levels = _IDENTITY[0] if gamma is None else gamma_lut(gamma)

@@ -28,12 +28,12 @@ keeps those passes as the reference and compares exactly); what each pass comput
 
 Loops run over 2-D row slices with explicit narrow casts so that LLVM vectorizes them, with 512-bit vectors
 preferred (``jit.wide_vectors``: LLVM's default on AVX-512 Intel cores mixes 256- and 512-bit loops in
-these two functions, which cost a frame 0.2-0.5 ms whenever other work ran before it; same bytes); single-threaded on
+these two functions, which then slow down whenever other work ran before them; same bytes); single-threaded on
 purpose (benchmarks are per core; users parallelize over environments). Two steps use CPU instructions LLVM does
 not pick by itself, each only where the host has them and they pay, the same bytes either way
 (``jit``): the box's neighbour loads as AVX-512 gathers (``FAST_GATHER``: Sapphire Rapids and later) and
 the tone lookups of RGBA rows as VBMI byte permutes (``FAST_LUT``). The first call of a process compiles
-(about 2 s) unless numba's cache (``cache=True``, next to this file or in numba's user cache) already holds it.
+(seconds) unless numba's cache (``cache=True``, next to this file or in numba's user cache) already holds it.
 """
 
 from __future__ import annotations
@@ -62,13 +62,11 @@ SIGMA_F32, SIGMA_F64, NOISE_OFF = 0, 1, 2
 _NOISE_SCALE = np.float32(2.0 ** -19)  # 2**-(sigma bits 8 + noise bank bits 11)
 _INV255 = np.float32(1.0 / 255.0)
 #: the sensor stage prefetches the noise bank's row this many rows ahead: the bank (2 MB at 600 x 400) is read at a
-#: new offset each frame, from L3, in row segments the hardware prefetchers pick up late (measured on Emerald Rapids,
-#: one core, replaying a perspective flight with the variants' order rotated: remap_finish 1.75 -> 1.70-1.72 ms,
-#: warp_finish 1.44 -> 1.40 ms; 32 to 128 rows ahead the same as 16)
+#: new offset each frame, from L3, in row segments the hardware prefetchers pick up late (further ahead gains
+#: nothing more; docs/perf-log.md)
 _BANK_AHEAD_ROWS = 16
 #: ``remap_finish`` prefetches the box lines that the row this many rows down will read (every 4th pixel's two
-#: neighbour rows, from its maps): measured in flight with two renderers interleaved in one process, their order
-#: rotated, 0.02-0.09 ms a frame less (8 rows ahead), the same or a little less at 16
+#: neighbour rows, from its maps): the box is out of cache after the step's other work (docs/perf-log.md)
 _BOX_AHEAD_ROWS = 16
 
 
@@ -261,11 +259,7 @@ def warp_finish(box, m, lut, out, alpha, sensor, vig, bank, dy, dx3, sigma_mode,
     and the four neighbours' gathers (one uint32 load each, or ``_gather_row``'s AVX-512 gathers); the blend over the
     row's pixels, four channels each (``_blend_row``); then ``finish``'s tone lookups and sensor stage. A row whose
     neighbours are not all inside the box takes the general path (floor, border) in its coordinate and gather loops
-    only. Measured when written (600 x 400 flight, one core, two floor warps between frames; the weights then spread
-    to the four channels): 1.7 ms a frame against 1.96 for ``cv2.warpAffine`` (1.34) and ``finish``, 1.8-2.0 without
-    the prefetches (0.75 ms of cold gathers); a loop per channel over uint32 pixels instead of the channel values:
-    0.44 ms against 0.2; two 64-bit loads for the four neighbours instead of four 32-bit ones: no faster. Since, with
-    the weights per pixel: 1.45 ms replayed on Emerald Rapids (``_blend_row``).
+    only. One pass is faster than ``cv2.warpAffine`` then ``finish`` (docs/perf-log.md).
     """
     _wide_vectors()
     h_px, w_px = alpha.shape
@@ -353,7 +347,7 @@ def remap_finish(box, map_x, map_y, shade_px, shade_gain, lut, out, alpha, senso
 def _shade_rows(shade_px, shade_gain, h_px, w_px):
     """The shaded pixels by row: row y's flat indices and gains are ``px``/``gains[first[y]:first[y + 1]]``. Pixels
     in flat-index order (as ``ReliefView.maps`` lists facades) are taken as they are, the rows found in one walk;
-    others are put in order by a counting sort (about 0.06 ms for a frame's ~12k facades)."""
+    others are put in order by a counting sort (O(n + H) for n facades)."""
     n_shade = shade_px.shape[0]
     first = np.zeros(h_px + 1, np.int64)
     disorder = 0
@@ -456,9 +450,7 @@ def _gather_row(flat, idx, stride, q00, q01, q10, q11):
 def _blend_row(c00, c01, c10, c11, fa, fb, rgba):
     """The bilinear value of each channel (the neighbours' bytes ``c..``, each pixel's weights ``fa``/``fb``): the fma
     chain of ``estimators.patches_kernels``, rounded half to even. A pixel's four channels in the inner loop: LLVM
-    broadcasts the weights in registers (they used to be stored spread to the four channels by ``_weights_row``
-    and loaded back: replayed on Emerald Rapids, the variants' order rotated, ``remap_finish`` 1.70-1.76 ->
-    1.44-1.54 ms and ``warp_finish`` 1.67 -> 1.45 ms a frame)."""
+    broadcasts the weights in registers instead of storing them spread to the four channels and loading them back."""
     for x in range(fa.shape[0]):
         a, b = fa[x], fb[x]
         for c in range(4):
