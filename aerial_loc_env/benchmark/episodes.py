@@ -19,9 +19,9 @@ from typing import Any
 
 import numpy as np
 
-from aerial_loc_env import __version__
 from aerial_loc_env.benchmark.grid import AgentEntry, ScenarioEntry
 from aerial_loc_env.benchmark.metrics import MetricConfig, fix_rate, trial_metrics
+from aerial_loc_env.version import __version__
 
 
 @dataclass(frozen=True)
@@ -43,7 +43,7 @@ _ENV_CACHE: dict[str, Any] = {}
 def make_benchmark_env(scenario: ScenarioEntry, *, shadow_mask: bool = False) -> Any:
     """The env of ``scenario`` for benchmark episodes: failure termination off (every trial runs to the end);
     ``shadow_mask`` adds the ground-truth mask to ``info`` (oracles, plots). Cached per process."""
-    import aerial_loc_env  # noqa: F401
+    import aerial_loc_env.env  # noqa: F401  (registers the scenarios)
     from aerial_loc_env.env import AerialLocEnv, load_scenario
 
     overrides = dict(scenario.overrides)

@@ -38,7 +38,7 @@ def resolve_agent(entry: AgentEntry) -> dict[str, Any]:
 def resolve_scenario(entry: ScenarioEntry) -> dict[str, Any]:
     """The full validated scenario spec of ``entry`` (every section with every default), as a plain dict,
     with the simulator's ``generators`` versions and the ``fingerprint`` of both (``env.fingerprint``)."""
-    import aerial_loc_env  # noqa: F401  (registers the scenarios)
+    import aerial_loc_env.env  # noqa: F401  (registers the scenarios)
     from aerial_loc_env.env import load_scenario
     from aerial_loc_env.env.fingerprint import fingerprint, generator_versions
 

@@ -51,7 +51,7 @@ def recipe_of(spec: AgentSpec) -> Recipe:
 def make_env(recipe: Recipe, *, training: bool = True, monitor_file: str | None = None) -> gym.Env:
     """The env of a recipe: the scenario, the observation design (with the curriculum only when
     ``training``), SB3's Monitor."""
-    import aerial_loc_env  # noqa: F401  (registers the scenarios in subprocess workers)
+    import aerial_loc_env.env  # noqa: F401  (registers the scenarios in subprocess workers)
     from aerial_loc_env.learning.observations import wrap
 
     env = gym.make(recipe.scenario, **recipe.scenario_overrides)
@@ -338,7 +338,7 @@ def _versions() -> dict[str, str]:
     import stable_baselines3
     import torch
 
-    from aerial_loc_env import __version__
+    from aerial_loc_env.version import __version__
 
     return {"aerial_loc_env": __version__, "stable_baselines3": stable_baselines3.__version__,
             "torch": torch.__version__, "gymnasium": gym.__version__, "python": platform.python_version()}

@@ -25,7 +25,7 @@ from aerial_loc_env.perf import Benchmark
 
 def _episode_setup(scenario: str, **overrides) -> Callable[[], Callable[[], object]]:
     def setup() -> Callable[[], object]:
-        import aerial_loc_env  # noqa: F401  (registers the scenarios)
+        import aerial_loc_env.env  # noqa: F401  (registers the scenarios)
         from aerial_loc_env.env import AerialLocEnv
 
         env = AerialLocEnv(scenario, **overrides)
@@ -48,7 +48,7 @@ def _episode_setup(scenario: str, **overrides) -> Callable[[], Callable[[], obje
 
 def _reset_setup(scenario: str) -> Callable[[], Callable[[], object]]:
     def setup() -> Callable[[], object]:
-        import aerial_loc_env  # noqa: F401
+        import aerial_loc_env.env  # noqa: F401  (registers the scenarios)
         from aerial_loc_env.env import AerialLocEnv
 
         env = AerialLocEnv(scenario)

@@ -29,7 +29,7 @@ def _episode_steps() -> int:
 def _wrapped_env():
     import gymnasium as gym
 
-    import aerial_loc_env  # noqa: F401  (registers the scenarios)
+    import aerial_loc_env.env  # noqa: F401  (registers the scenarios)
     from aerial_loc_env.learning.observations import LocalRegistrationWrapper
     from aerial_loc_env.learning.recipes import ObservationParams
 

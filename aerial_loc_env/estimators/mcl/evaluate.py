@@ -31,7 +31,7 @@ def run_episodes(scenario: str, agents: Sequence[str], seeds: Sequence[int], *, 
     ``max_steps`` ends each episode after that many env steps."""
     import gymnasium as gym
 
-    import aerial_loc_env  # noqa: F401  (registers the scenarios)
+    import aerial_loc_env.env  # noqa: F401  (registers the scenarios)
     from aerial_loc_env.estimators.episode import EpisodeDriver
     from aerial_loc_env.estimators.registry import make_agent
     from aerial_loc_env.estimators.shadow_detection import ShadowDetector, mask_quality
