@@ -72,7 +72,8 @@ def write_pictures(out: Path, *, map_path: str | None = None, seed: int = 0, alt
                    n_frames: int = 4, orthomap=None, map_crs: str | None = None,
                    map_gsd_m: float | None = None) -> list[Path]:
     """Render the pictures (see the module doc) and return the written paths."""
-    from aerial_loc_env.sensors.flight import FlightConfig, FlyableRegion, footprint_radius_m, sample_track
+    from aerial_loc_env.sensors.flight import FlightConfig, footprint_radius_m, sample_track
+    from aerial_loc_env.world.maps.region import FlyableRegion
     from aerial_loc_env.world.shadows import ShadowConfig, apply_shading, sun_occlusion, upsample
 
     if not 1 <= n_frames <= 12:

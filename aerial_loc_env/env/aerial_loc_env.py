@@ -17,10 +17,9 @@ from gymnasium import spaces
 
 from aerial_loc_env.env.briefing import Briefing, Prior
 from aerial_loc_env.env.scenarios import Scenario, build_scenario, load_scenario
-from aerial_loc_env.errors import AerialLocError, ConfigError, MapError
+from aerial_loc_env.errors import AerialLocError, ConfigError
 from aerial_loc_env.sensors.camera import CameraModel, Pose, SceneExposure, apply_affine, world_to_map_affine
 from aerial_loc_env.sensors.flight import (
-    FlyableRegion,
     Measurements,
     Track,
     footprint_radius_m,
@@ -28,6 +27,7 @@ from aerial_loc_env.sensors.flight import (
     sample_track,
     wrap_angle,
 )
+from aerial_loc_env.world.scene import WorldSpec, build_world
 
 ODOMETRY_SPEED_MAX_MPS = 500.0
 ODOMETRY_YAW_RATE_MAX_RADPS = 20.0
@@ -54,102 +54,6 @@ def action_to_world(orthomap: Any, action: Any) -> tuple[Any, Any]:
     x = (a[..., 0] + 1.0) * 0.5 * orthomap.width_m
     y = (a[..., 1] + 1.0) * 0.5 * orthomap.height_m
     return (float(x), float(y)) if a.ndim == 1 else (x, y)
-
-
-# ------------------------------------------------------------------------------------ per-process caches
-_MAPS: dict[tuple, Any] = {}
-_REGIONS: dict[tuple, FlyableRegion] = {}
-
-
-def load_map(scenario: Scenario) -> Any:
-    """The scenario's orthomap, loaded once per process (city bundles are memory-mapped and shared)."""
-    cfg = scenario.map
-    if cfg.kind == "city":
-        from aerial_loc_env.config import config_to_dict
-        from aerial_loc_env.world.city import default_city
-
-        key = ("city", repr(sorted(config_to_dict(scenario.city).items())))
-        if key not in _MAPS:
-            _MAPS[key] = default_city(scenario.city)
-        return _MAPS[key]
-    from pathlib import Path
-
-    from aerial_loc_env.world.maps.io import load_orthomap
-
-    path = Path(cfg.path).expanduser()
-    if not path.exists():
-        raise MapError(f"{scenario.id}: map.path '{cfg.path}' does not exist (resolved to {path.resolve()}); "
-                       "give an existing PNG/TIFF/GeoTIFF file or bundle folder")
-    key = ("file", str(path.resolve()), cfg.gsd_m, cfg.crs)
-    if key not in _MAPS:
-        kwargs: dict[str, Any] = {}
-        if cfg.gsd_m is not None:
-            kwargs["gsd_m"] = cfg.gsd_m
-        if cfg.crs is not None:
-            kwargs["crs"] = cfg.crs
-        _MAPS[key] = load_orthomap(path, **kwargs)
-    return _MAPS[key]
-
-
-def world_map(scenario: Scenario, base: Any) -> Any:
-    """The ground the camera flies over: ``base`` (epoch A, the map's epoch) itself, or with an ``[epoch]``
-    section that changes something, epoch B of it (``world/city/epochs.py``; the city's is cached on disk)."""
-    cfg = scenario.epoch
-    if cfg.is_identity:
-        return base
-    from aerial_loc_env.config import config_to_dict
-
-    key = ("epoch", id(base), repr(sorted(config_to_dict(cfg).items())))
-    if key not in _MAPS:
-        from aerial_loc_env.world.city import epochs
-
-        if scenario.map.kind == "city":
-            _MAPS[key] = epochs.epoch_city(scenario.city, cfg)
-        else:
-            _MAPS[key] = epochs.change_epoch(base, cfg)
-    return _MAPS[key]
-
-
-def database_map(orthomap: Any, shadows: Any, acquisition: Any = None, city: Any = None) -> Any:
-    """What the estimators get as the map: the scene itself (shadow-free), or, with
-    ``shadows.database_sun_deg``, a copy with the shadows of that other sun baked in (time-of-day mismatch),
-    then, with a ``[database]`` acquisition model that is not the identity, as that sensor acquired it (colour,
-    sampling, blur, JPEG, haze, building lean, georeference bias; ``world/maps/acquisition.py``). ``orthomap`` is
-    the procedural city ``city`` when given: its database is then cached on disk (``database_city``), else
-    built once per process, map, shadow and acquisition config."""
-    from aerial_loc_env.world.maps import acquisition as acq
-
-    if acq.database_is_identity(shadows, acquisition):
-        return orthomap
-    if city is not None:
-        key = ("database", str(acq.database_cache_path(city, shadows, acquisition)))
-        if key not in _MAPS:
-            _MAPS[key] = acq.database_city(city, shadows, acquisition)
-        return _MAPS[key]
-    key = ("database", id(orthomap), repr(shadows), repr(acquisition))
-    if key not in _MAPS:
-        _MAPS[key] = acq.acquire_map(orthomap, shadows, acquisition)
-    return _MAPS[key]
-
-
-def _dsm_max(orthomap: Any) -> float:
-    """The tallest height of a map's DSM (once per map: it bounds how far shadows reach)."""
-    key = ("dsm_max", id(orthomap))
-    if key not in _MAPS:
-        _MAPS[key] = float(np.max(orthomap.dsm_m))
-    return _MAPS[key]
-
-
-def _coarse_dsm(orthomap: Any, factor: int) -> np.ndarray:
-    """The DSM's block maximum on the shadow grid (``factor`` map pixels per cell), once per map and factor:
-    the per-episode shadow sweep then starts from it instead of re-pooling the full-resolution heights."""
-    key = ("coarse_dsm", id(orthomap), factor)
-    if key not in _MAPS:
-        from aerial_loc_env.world import shadows
-
-        dsm = np.ascontiguousarray(orthomap.dsm_m, dtype=np.float32)
-        _MAPS[key] = shadows.max_pool(dsm, factor) if factor > 1 else dsm
-    return _MAPS[key]
 
 
 class AerialLocEnv(gym.Env):
@@ -280,10 +184,9 @@ class AerialLocEnv(gym.Env):
         sc = self.scenario
         self.render_mode = render_mode
         self.metadata = {**self.metadata, "render_fps": sc.flight.rate_hz}
-        surveyed = load_map(sc)                      # epoch A: the ground when the map was made
-        self.orthomap = world_map(sc, surveyed)      # the ground the camera sees (epoch B, or A itself)
-        self.database = database_map(surveyed, sc.shadows, sc.database,
-                                     city=sc.city if sc.map.kind == "city" else None)
+        self.world = build_world(WorldSpec(sc.map, sc.city, sc.epoch, sc.shadows, sc.database, where=sc.id))
+        self.orthomap = self.world.ground            # the ground the camera sees (epoch B, or the map's own)
+        self.database = self.world.database          # what the estimators get as the map
         sensor: CameraModel = sc.camera
         obs = sc.observation
         w = obs.width_px or sensor.width_px
@@ -293,11 +196,7 @@ class AerialLocEnv(gym.Env):
         self._scene_exposure = SceneExposure(sc.haze, sc.exposure, sc.flight.dt_s)   # pickled with its state
         fw, fh = self.camera.footprint_m(sc.flight.altitude_m + 3.0 * sc.flight.altitude_noise_m)
         clearance = footprint_radius_m(fw, fh) + sc.flight.margin_m
-        key = (id(self.orthomap), round(clearance, 3))
-        if key not in _REGIONS:
-            _REGIONS[key] = FlyableRegion(self.orthomap.width_m, self.orthomap.height_m, clearance,
-                                          nodata=self.orthomap.nodata, name=f"{sc.id} map '{self.orthomap.name}'")
-        self.region = _REGIONS[key]
+        self.region = self.world.flyable_region(clearance, name=f"{sc.id} map '{self.orthomap.name}'")
         if self.region.area_m2 <= 0.0:
             raise self.region.too_small_error()
         self.observation_space = spaces.Dict({
@@ -434,7 +333,7 @@ class AerialLocEnv(gym.Env):
 
         om, cfg, sun = self.orthomap, self.scenario.shadows, self._sun
         f = int(cfg.downsample)
-        coarse = _coarse_dsm(om, f)
+        coarse = self.world.coarse_dsm(f)
         hc, wc = coarse.shape
         gx, gy = om.gsd_x_m * f, om.gsd_y_m * f
         x0, y0, x1, y1 = self._track.bounds_m()
@@ -445,7 +344,7 @@ class AerialLocEnv(gym.Env):
         i0 = max(0, int((om.height_m - y1 - pad) / gy))
         i1 = min(hc, int(math.ceil((om.height_m - y0 + pad) / gy)))
         # casters up to one shadow length towards the sun may shade the box
-        reach_m = sun.shadow_length_m(_dsm_max(om))
+        reach_m = sun.shadow_length_m(self.world.dsm_max_m)
         tx, ty = sun.towards_sun_en
         dj, di = tx * reach_m / gx, -ty * reach_m / gy
         cj0, cj1 = max(0, int(j0 + min(0.0, dj))), min(wc, int(math.ceil(j1 + max(0.0, dj))))

@@ -54,15 +54,14 @@ class ExternalPose:
 
 def whole_map_shadows(env: Any) -> Any:
     """The episode sun's cast shadows over the whole map (a ``ShadowGrid``), swept once per map and sun."""
-    from aerial_loc_env.env.aerial_loc_env import _coarse_dsm
     from aerial_loc_env.world.shadows import ShadowGrid, sun_occlusion
 
     om, cfg, sun = env.orthomap, env.scenario.shadows, env._sun
     f = int(cfg.downsample)
-    key = (id(om), f, repr(cfg), float(sun.azimuth_deg), float(sun.elevation_deg))
+    key = (env.world.key, f, repr(cfg), float(sun.azimuth_deg), float(sun.elevation_deg))
     if key not in _SHADOWS:
         gx, gy = om.gsd_x_m * f, om.gsd_y_m * f
-        grid = sun_occlusion(_coarse_dsm(om, f), gx, gy, sun, downsample=1, penumbra_scale=cfg.penumbra_scale,
+        grid = sun_occlusion(env.world.coarse_dsm(f), gx, gy, sun, downsample=1, penumbra_scale=cfg.penumbra_scale,
                              antialias_px=cfg.antialias_px, azimuth_samples=cfg.penumbra_azimuth_samples)
         _SHADOWS[key] = ShadowGrid(grid.data, gx, gy, f)
         while len(_SHADOWS) > _SHADOWS_KEEP:

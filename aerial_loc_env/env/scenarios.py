@@ -51,29 +51,10 @@ from typing import Any
 from aerial_loc_env.config import build_config, check_value, config_to_dict, read_toml, rng
 from aerial_loc_env.errors import ConfigError
 from aerial_loc_env.paths import spec_dir
+from aerial_loc_env.world.scene import MapConfig
 
 ENTRY_POINT = "aerial_loc_env.env.aerial_loc_env:AerialLocEnv"
 NAMESPACE = "AerialLoc"
-
-
-@dataclass(frozen=True)
-class MapConfig:
-    """Which map the vehicle flies over: the procedural city or a file (``path`` required)."""
-
-    kind: str = field(default="city", metadata=rng(choices=("city", "file")))
-    path: str | None = None
-    gsd_m: float | None = None          # metres per pixel, for files without a georeference; (0, 1000]
-    crs: str | None = None
-    use_dsm: bool = True   # cast shadows from the map's height model (when it has one)
-
-    def validate(self, where: str) -> None:
-        if self.kind == "file" and not self.path:
-            raise ConfigError(f"{where}: map.kind = 'file' needs map.path, the map file to fly over "
-                              "(PNG/TIFF/GeoTIFF or a bundle); e.g. gym.make(id, path='tile.tif')")
-        if self.gsd_m is not None:
-            check_value("gsd_m", self.gsd_m, rng(0.0, 1000.0, lo_open=True), where)
-        if self.kind == "city" and self.path:
-            raise ConfigError(f"{where}: map.path is only used with map.kind = 'file'")
 
 
 @dataclass(frozen=True)

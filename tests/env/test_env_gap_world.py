@@ -11,7 +11,6 @@ import numpy as np
 import pytest
 
 import aerial_loc_env  # noqa: F401  (registers the scenarios)
-from aerial_loc_env.env.aerial_loc_env import load_map
 
 SMALL = "AerialLoc/Small-v1"
 SHORT = {"duration_s": 3.0}
@@ -29,7 +28,7 @@ def _episode(env, seed: int) -> list[np.ndarray]:
 
 def test_defaults_keep_the_scene_as_database_and_world():
     env = gym.make(SMALL, **SHORT).unwrapped
-    city = load_map(env.scenario)
+    city = env.world.surveyed
     assert env.database is city and env.orthomap is city
     explicit = gym.make(SMALL, **SHORT, database={"lean_deg": 0.0, "haze": 0.0, "georef_bias_m": [0.0, 0.0]}).unwrapped
     assert explicit.database is city
@@ -73,7 +72,7 @@ def test_epoch_section_changes_the_camera_world_not_the_database():
 
     plain = gym.make(SMALL, **SHORT).unwrapped
     env = gym.make(SMALL, **SHORT, epoch=EPOCH).unwrapped
-    city = load_map(env.scenario)
+    city = env.world.surveyed
     assert env.database is city and env.orthomap is not city
     assert epoch_cache_path(env.scenario.city, env.scenario.epoch).is_dir()      # cached beside the city
     assert env._renderer.orthomap is env.orthomap
@@ -93,7 +92,7 @@ def test_epoch_section_changes_the_camera_world_not_the_database():
 
 def test_epoch_and_acquisition_together():
     env = gym.make(SMALL, **SHORT, epoch={"leaf_off": 0.5}, database={"haze": 0.2, "gsd_m": 1.0}).unwrapped
-    city = load_map(env.scenario)
+    city = env.world.surveyed
     assert env.database is not city and env.orthomap is not city
     assert np.array_equal(env.database.classes, city.classes)       # epoch A's layers (no georeference bias)
     obs, _ = env.reset(seed=0)
@@ -102,7 +101,7 @@ def test_epoch_and_acquisition_together():
 
 def test_city_database_comes_from_the_disk_cache_whatever_the_epoch():
     """The acquired database of a city map is built once and memory-mapped by every process after
-    (world/acquisition.database_city); it is epoch A's, so the flown epoch shares it, and it is the map that
+    (world/maps/acquisition.database_city); it is epoch A's, so the flown epoch shares it, and it is the map that
     acquire_map builds in memory, bit for bit."""
     from aerial_loc_env.world.maps.acquisition import acquire_map, database_cache_path
 
@@ -113,6 +112,6 @@ def test_city_database_comes_from_the_disk_cache_whatever_the_epoch():
     flown = gym.make(SMALL, **SHORT, database=db, shadows={"database_sun_deg": [150.0, 50.0]},
                      epoch={"leaf_off": 0.5}).unwrapped
     assert flown.database.bundle_path == env.database.bundle_path and flown.orthomap is not env.orthomap
-    fresh = acquire_map(load_map(sc), sc.shadows, sc.database)
+    fresh = acquire_map(env.world.surveyed, sc.shadows, sc.database)
     for name in ("rgb", "dsm_m", "classes"):
         assert np.array_equal(np.asarray(getattr(env.database, name)), getattr(fresh, name)), name

@@ -9,7 +9,8 @@ import pytest
 
 from aerial_loc_env.config import build_config
 from aerial_loc_env.errors import ConfigError, MapError
-from aerial_loc_env.sensors.flight import FlightConfig, FlyableRegion, measure, sample_track, wrap_angle
+from aerial_loc_env.sensors.flight import FlightConfig, measure, sample_track, wrap_angle
+from aerial_loc_env.world.maps.region import FlyableRegion
 
 
 def _paper_region(clearance_m: float = 135.0, nodata=None) -> FlyableRegion:

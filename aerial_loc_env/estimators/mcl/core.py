@@ -61,7 +61,8 @@ class ValidRegion:
     """Uniform sampling over the points where the camera footprint fits on valid map."""
 
     def __init__(self, briefing: Briefing) -> None:
-        from aerial_loc_env.sensors.flight import FlyableRegion, footprint_radius_m
+        from aerial_loc_env.sensors.flight import footprint_radius_m
+        from aerial_loc_env.world.maps.region import FlyableRegion
 
         m = briefing.orthomap
         radius = footprint_radius_m(*briefing.camera.footprint_m(briefing.altitude_m))
