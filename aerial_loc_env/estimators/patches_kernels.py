@@ -11,8 +11,8 @@ on FMA hardware: every x86-64 since 2013 and ARMv8; measured equal on 1.7 M samp
 difference is the rounding of an unfused product: at most 3 float32 ulps of 256 (2^-13 = 1.2e-4 gray levels) a
 sample, the tolerance tests/estimators/test_patches_kernels.py derives the models' tolerances from.
 
-Conventions (the lead's measurements): ``@njit(cache=True, nogil=True, error_model="numpy", boundscheck=False)``,
-one thread, explicit float32 arithmetic; the first call of a process compiles (~seconds, cached on disk after).
+Conventions (``jit.JIT``): ``@njit(cache=True, nogil=True, error_model="numpy", boundscheck=False)``, one thread,
+explicit float32 arithmetic; the first call of a process compiles (seconds, cached on disk after).
 """
 
 from __future__ import annotations
@@ -37,8 +37,8 @@ def scan(planes, e, cols, rows, active, nch, mode, ref, shift, ref_bins, bins, s
     ``e00 col + (e01 row + e02)`` in float32 as ``PatchSampler`` always made them, the value ``cv2.remap``'s
     (see the module's docstring). A block (one row of B points) whose neighbours are all inside the level takes
     the fast path: one vectorized loop for the coordinates (truncation is the floor there; the bounds are checked
-    on the floats), then one for the loads and the fma chain (measured: 1.2x faster than loads and fma in two
-    loops, 2.5x faster than one loop doing all with a branch per point). Other blocks, and particles not
+    on the floats), then one for the loads and the fma chain (faster than the loads and the fma chain in two
+    loops, and than one loop doing all with a branch per point). Other blocks, and particles not
     ``active`` in SAMPLE mode (footprints far off the level or not finite, never truncated unclamped), go point
     by point with the border.
 
@@ -54,9 +54,9 @@ def scan(planes, e, cols, rows, active, nch, mode, ref, shift, ref_bins, bins, s
     - BRIEF: ``stats[n, 0]`` = how many of the tests (T, 3) = (first point, second point, channel) (points as
       flat indices r B + b) disagree with ``cam_bits`` (T,) (a test's bit: first > second); -1 on a NaN sample.
 
-    Measured on this kind of machine (numba 0.68): a helper that takes arrays costs ~20 ns a call and a view
-    made per row (``a[r]``) ~0.5 ns a sample in reference counting, so the sampling is written out here once for
-    every mode with plain 2-D/3-D indexing, and the general path runs after the fast loop, not inside it.
+    In numba a helper that takes arrays costs a call's argument handling, and a view made per row (``a[r]``)
+    reference counting per sample, so the sampling is written out here once for every mode with plain 2-D/3-D
+    indexing, and the general path runs after the fast loop, not inside it.
     """
     lh, lw = planes.shape[1], planes.shape[2]
     nr, nb = cols.shape

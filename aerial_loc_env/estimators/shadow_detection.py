@@ -110,7 +110,7 @@ class _OpenClose:
     """An opening by the disc of ``open_px`` then a closing by that of ``close_px`` (reduced pixels; 0 skips
     one) of a 0/1 mask, as a bool mask: ``cv2.morphologyEx``'s results (the borders never count: its default
     border value) from one compiled call (``_open_close``) instead of two OpenCV calls and a conversion, each of
-    whose fixed costs (10-20 us after other work) exceeded the work on a 150 x 100 mask (tests compare both)."""
+    whose fixed costs exceeded the work on a 150 x 100 mask (tests compare both)."""
 
     def __init__(self, open_px: int, close_px: int) -> None:
         self.open_runs, self.close_runs = _runs(open_px), _runs(close_px)
@@ -155,7 +155,7 @@ class ShadowDetector:
         if s == 0.25 and H % 4 == 0 and W % 4 == 0 and image.shape[2:] == (3,) and image.dtype == np.uint8 \
                 and image.flags.c_contiguous:
             return _quarter(image)                   # the default scale: cv2.resize's bytes, without its set-up
-        # bilinear, not area: 7x faster, and shadows are large compared with the 1/scale pixels it skips
+        # bilinear, not area: much faster, and shadows are large compared with the 1/scale pixels it skips
         return cv2.resize(image, (max(1, round(W * s)), max(1, round(H * s))), interpolation=cv2.INTER_LINEAR)
 
     def detect(self, image: np.ndarray, small: np.ndarray | None = None) -> ShadowMask:
@@ -347,10 +347,10 @@ class MapRatioShadowDetector:
     per-pixel colour index separates dark asphalt from shadowed grass. The database is downsampled once (area
     filter) to the reduced camera resolution at the nominal altitude; each frame costs one small warp.
 
-    Measured on PaperShadows-v1 (60 frames, pose 1 m off): IoU 0.62, precision 0.72, recall 0.81 (the image
-    detector: 0.33, 0.38, 0.77); on shadow-free frames 9 % of the frame is taken for shadow (the image
-    detector: 46 %). The darkening guard (``min_darkening``) trades the two: weak shadows (strength 0.7, a
-    darkening ~0.76) can be turned down on a frame.
+    With a pose about a metre off it is about twice as precise as the image detector at a similar recall, and
+    takes far less of a shadow-free frame for shadow (docs/perf-log.md has the figures). The darkening guard
+    (``min_darkening``) trades the two: weak shadows (strength 0.7, a darkening ~0.76) can be turned down on a
+    frame.
     """
 
     def __init__(self, config: MapRatioDetectorConfig | None = None) -> None:

@@ -35,7 +35,7 @@ class LearnedParams:
     model: str = "models/ppo-local-registration/model.zip"   # a model saved by `aerial-loc train`
     deterministic: bool = True
     #: torch intra-op threads for predict (0 = leave torch's setting): one sample per step gains nothing from
-    #: more, and on busy cores 2 threads made a step 300x slower (776 ms vs 2 ms) by spin-waiting
+    #: more, and on busy cores two threads make a step orders of magnitude slower by spin-waiting
     torch_threads: int = field(default=1, metadata=rng(0, 256))
 
 

@@ -41,8 +41,8 @@ class PairedCNN(sb3_torch_layers.BaseFeaturesExtractor):
     def __init__(self, observation_space: gym.spaces.Dict, features_dim: int = 256):
         super().__init__(observation_space, features_dim)
         c, h, w = _pair_shape(observation_space, "PairedCNN")
-        # A Nature-DQN-like stem (8x8 stride 4) keeps a 64 px pair at ~2 ms per sample (forward + backward) on
-        # one CPU core, 3x cheaper than a stride-2 stem; the flattened grid keeps where things matched.
+        # A Nature-DQN-like stem (8x8 stride 4) keeps a 64 px pair cheap to train on one CPU core (a stride-2 stem
+        # costs several times more); the flattened grid keeps where things matched.
         self.cnn = nn.Sequential(
             nn.Conv2d(2 * c, 32, 8, stride=4, padding=2), nn.ReLU(),
             nn.Conv2d(32, 64, 4, stride=2, padding=1), nn.ReLU(),

@@ -150,7 +150,7 @@ def recipe_from_table(table: Mapping[str, Any], where: str, *, check_scenario: b
     check_hyperparameters(recipe, where)
     if not check_scenario:
         return recipe
-    try:   # here, not 16 s later inside a subprocess worker
+    try:   # here, not after the workers' start inside a subprocess
         load_scenario(recipe.scenario, recipe.scenario_overrides)
     except ConfigError as exc:
         raise ConfigError(f"{where} [train]: scenario = {recipe.scenario!r} with scenario_overrides "

@@ -39,36 +39,18 @@ Activation (``activation``, used with ``shadow = "drop"``):
 - ``"none"``: no activation.
 
 Soft allocation (``shadow_pair_weight`` w > 0, an addition): instead of dropping the lc pairs, keep them with
-weight w in the similarity and in the binomial n. Measured on the paper scenario at the true pose, bits of
-pairs with one point in shadow still agree 75 % of the time (93 % for unshadowed pairs, 91 % for pairs with
-both points in shadow, 50 % at an unrelated pose), so they carry information: the binomial model's per-bit
-weight logit(p) gives w = logit(0.75) / logit(0.93) ~ 0.4.
+weight w in the similarity and in the binomial n. At the true pose the bits of pairs with one point in shadow
+still agree more often than at an unrelated pose (1/2), though less often than unshadowed pairs' bits: a cast
+shadow scales intensities by a constant factor and flips only the comparisons of pairs within that factor. So
+they carry information, and the binomial model's per-bit weight logit(p) gives w = logit(p_one) / logit(p_none),
+p_one and p_none the agreement rates of one-shadowed and unshadowed pairs (``agents/mcl-shadow-weighted.toml``
+uses 0.4, measured on the paper scenario).
 
-What the benchmark says (``python -m aerial_loc_env.estimators.mcl.evaluate``, PaperShadows-v1, 20 seeds,
-N = 700, multinomial resampling every step, binomial kappa = 0.5; RMSE over all steps, metres; dead reckoning
-19.9):
-
-=============================================  ================  ================
-model                                          K = 70, c = 3     K = 30, c = 1
-=============================================  ================  ================
-conventional                                   0.46              1.36
-restoration, histogram equalization (paper)    0.79              7.12
-restoration, gain matching                     0.79              3.69
-shadow-aware, literal (eq. 6-9, image mask)    0.92              2.49
-shadow-aware, tempered activation              0.98              2.95
-shadow-aware, map-ratio mask                   0.88              2.47
-soft allocation w = 0.4, map-ratio mask        0.52              1.71
-shadow-aware, ground-truth mask (oracle)       0.43              1.65
-=============================================  ================  ================
-
-The paper's ordering (shadow-aware < restoration < conventional) does not reproduce here: the conventional
-model is the most accurate but for the oracle at K = 70. Why: (1) the image-only detector's precision is ~0.4
-(dark asphalt and vegetation look like shadow; on shadow-free frames it flags ~45 % of the frame), so eq. (6)
-drops many good pairs; (2) even with the true mask, the dropped pairs are informative: at the true pose their
-bits agree 75 % of the time against 50 % at a wrong pose (93 % for unshadowed pairs), because a cast shadow
-scales intensities by ~0.6 and only flips the comparisons of pairs within that factor; (3) the literal
-activation cancels in the normalization, and tempering by it only slows the filter down. Weighting those pairs
-(soft allocation) instead of dropping them recovers most of the loss.
+Why the paper's ordering (shadow-aware < restoration < conventional) need not hold here (the benchmark's tables
+say how the models compare now: ``aerial-loc bench table5``, README): (1) the image-only detector takes dark
+asphalt and vegetation for shadow, so eq. (6) drops good pairs; (2) even with the true mask the dropped pairs are
+informative (above); (3) the literal activation cancels in the normalization, and tempering by it only slows the
+filter down. Weighting those pairs (soft allocation) instead of dropping them keeps their information.
 
 Shadow detector (``detector``): ``"image"``, the camera frame alone (III.B); ``"map"`` (an addition), the
 ratio of the frame to the shadow-free database at the particles' mean pose once the cloud is tight (the image
@@ -281,8 +263,8 @@ class IntensityPairsModel(MeasurementModel):
     # ---------------------------------------------------------------- per map
     def reset(self, briefing: Briefing, rng: np.random.Generator) -> None:
         """Keep the database as the bytes the kernel compares: the map's own RGB bytes (a view: no copy, and the
-        lines a frame of the same place brought into the cache), or the luma byte per pixel for c = 1. (An RGBA
-        copy, one 4-byte word a pixel, was 4-8 % slower a step: 16 MB more to keep in the cache.)"""
+        lines a frame of the same place brought into the cache), or the luma byte per pixel for c = 1. (Not an RGBA
+        copy, one 4-byte word a pixel: a third more bytes to keep in the cache, and a slower step.)"""
         m = briefing.orthomap
         self.orthomap, self.camera = m, briefing.camera
         self._terms: tuple[float, tuple[float, ...]] | None = None

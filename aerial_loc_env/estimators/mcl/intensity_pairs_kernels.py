@@ -45,9 +45,8 @@ def pair_agreements(poses, cos, sin, terms, uv, pairs, width, height, db, pixel_
     Pair-major: one pair's points at all particles lie close together on the map (the particles cluster), so
     their lookups hit the cache; particle-major lookups (NumPy's gather) roam over the whole footprint. Each
     pair's lines are prefetched while the previous pair's lookups run: a frame's pairs fall on map lines no step
-    touched before (each step draws new pairs), and the benchmark's floor warps evict the rest; measured after
-    floor warps with new pairs each time, 4.5 -> 3.6 us a pair on the benchmark's cloud (0.2 m), 6.6 -> 4.4 us on
-    a 5 m one (prefetching every 4th or 16th particle, or two pairs ahead, did no better)."""
+    touched before (each step draws new pairs), and other work between steps evicts the rest (docs/perf-log.md
+    has the figures, and the prefetch distances that did no better)."""
     n, k = poses.shape[0], cam_bits.shape[0]
     sums = np.zeros(n, np.int64)
     w = np.int32(width)
