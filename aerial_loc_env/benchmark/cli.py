@@ -22,6 +22,7 @@ from pathlib import Path
 from aerial_loc_env.benchmark.grid import Grid, ScenarioEntry, available_experiments, check_scenarios, load_grid
 from aerial_loc_env.benchmark.report import markdown_report, paper_sections, summarize, summary_table
 from aerial_loc_env.benchmark.runner import run_grid
+from aerial_loc_env.benchmark.store import TrialStore
 from aerial_loc_env.errors import ConfigError
 from aerial_loc_env.sysinfo import machine
 
@@ -69,6 +70,7 @@ def main(argv: list[str] | None = None) -> int:
     except OSError as exc:
         raise ConfigError(f"--out '{out}': cannot create the results folder ({exc.strerror}); choose a folder "
                           "you can write to") from None
+    TrialStore(out).check(grid.name, add=args.add)      # the folder first: building the scenarios takes time
     check_scenarios(grid)
     print(f"{grid.name}: {len(grid.agents)} agents x {len(grid.scenarios)} scenarios x "
           f"{len(grid.seeds)} seeds = {grid.trials()} trials -> {out}/", flush=True)

@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import itertools
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -178,6 +178,17 @@ def _expand_agents(items: Sequence[Any], where: str) -> list[AgentEntry]:
     return out
 
 
+def _entries(value: Any, key: str, where: str, single: tuple[type, ...] = (str,)) -> list[Any]:
+    """A list of entries; a single one (a name, or a table where ``single`` allows) is a list of one, never
+    split into its letters or keys."""
+    if isinstance(value, single):
+        return [value]
+    if isinstance(value, Iterable) and not isinstance(value, (str, bytes, Mapping)):
+        return list(value)
+    raise ConfigError(f"{where}: {key} = {value!r} must be a list (e.g. {key} = [\"...\", \"...\"]) or a "
+                      "single name")
+
+
 def _integer(value: Any, field: str, where: str) -> int:
     if isinstance(value, bool) or not isinstance(value, int):
         raise ConfigError(f"{where}: {field} = {value!r} must be an integer")
@@ -238,10 +249,12 @@ def grid_from_dict(data: Mapping[str, Any], where: str = "experiment", base_dir:
     for key in ("agents", "scenarios", "seeds"):
         if key not in data:
             raise ConfigError(f"{where}: missing '{key}'")
-    if not data["agents"] or not data["scenarios"]:
+    agents = _entries(data["agents"], "agents", where, (str, Mapping))
+    scenario_items = _entries(data["scenarios"], "scenarios", where, (str, Mapping))
+    if not agents or not scenario_items:
         raise ConfigError(f"{where}: 'agents' and 'scenarios' must each list at least one entry")
     scenarios = []
-    for i, s in enumerate(data["scenarios"]):
+    for i, s in enumerate(scenario_items):
         s = {"id": s} if isinstance(s, str) else dict(s)
         if not isinstance(s.get("id"), str) or set(s) - {"id", "overrides", "label"}:
             raise ConfigError(f"{where}: scenarios[{i}] needs 'id' and may have 'overrides', 'label'")
@@ -251,11 +264,11 @@ def grid_from_dict(data: Mapping[str, Any], where: str = "experiment", base_dir:
         if base_dir is not None:
             overrides = _resolve_map_paths(overrides, base_dir)
         scenarios.append(ScenarioEntry(s["id"], dict(overrides), s.get("label", "")))
-    plots = tuple(data.get("plots", ("error_vs_time",)))
+    plots = tuple(_entries(data.get("plots", ["error_vs_time"]), "plots", where))
     bad = [p for p in plots if p not in PLOTS and not p.startswith("rmse_vs_")]
     if bad:
         raise ConfigError(f"{where}: unknown plot(s) {bad}; use {', '.join(PLOTS)} or rmse_vs_<parameter>")
-    paper = tuple(data.get("paper", ()))
+    paper = tuple(_entries(data.get("paper", []), "paper", where))
     bad = [p for p in paper if p not in PAPER_SECTION_NAMES]
     if bad:
         raise ConfigError(f"{where}: unknown paper section(s) {bad}; use {', '.join(PAPER_SECTION_NAMES)}")
@@ -267,7 +280,7 @@ def grid_from_dict(data: Mapping[str, Any], where: str = "experiment", base_dir:
                           f"diverge_threshold_m ({diverge})")
     return Grid(
         name=str(data.get("name", Path(where).stem)),
-        agents=tuple(_expand_agents(data["agents"], where)),
+        agents=tuple(_expand_agents(agents, where)),
         scenarios=tuple(scenarios),
         seeds=_seeds(data["seeds"], where),
         description=str(data.get("description", "")),
@@ -297,8 +310,10 @@ def check_scenarios(grid: Grid) -> None:
 
 def make_grid(name: str, agents: Sequence[Any], scenarios: Sequence[Any], seeds: Any, **options: Any) -> Grid:
     """A grid from Python: ``make_grid("mine", ["mcl-shadow-aware"], ["AerialLoc/Small-v1"], seeds=5)``."""
-    return grid_from_dict({"name": name, "agents": list(agents), "scenarios": list(scenarios), "seeds": seeds,
-                           **options}, where=f"grid '{name}'")
+    where = f"grid '{name}'"
+    return grid_from_dict({"name": name, "agents": _entries(agents, "agents", where, (str, Mapping)),
+                           "scenarios": _entries(scenarios, "scenarios", where, (str, Mapping)), "seeds": seeds,
+                           **options}, where=where)
 
 
 def available_experiments() -> list[str]:

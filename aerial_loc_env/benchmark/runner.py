@@ -132,6 +132,7 @@ def run_grid(grid: Grid, out_dir: str, *, workers: int = 1, executor: str | Exec
     for a folder holding another experiment's results, unless ``add``.
     """
     store = TrialStore(out_dir)
+    store.check(grid.name, add=add)       # a bad folder is refused before the specs are resolved
     resolved = resolve_grid(grid)
     with store.lock():
         store.claim(grid.name, add=add)

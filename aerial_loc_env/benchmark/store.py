@@ -26,6 +26,8 @@ TRIALS_FILE = "trials.jsonl"
 FAILURES_FILE = "failures.jsonl"
 LOCK_FILE = "run.lock"
 MANIFEST_FILE = "experiment.json"
+#: the files a run reads or writes in its folder (report.md and the summaries are replaced at the end)
+RUN_FILES = (TRIALS_FILE, FAILURES_FILE, LOCK_FILE, MANIFEST_FILE, "trials.csv", "trials.json", "report.md")
 
 
 def trial_key(agent: Mapping[str, Any], scenario: Mapping[str, Any], seed: int) -> str:
@@ -53,27 +55,41 @@ class TrialStore:
             raise ConfigError(f"results path '{self.out_dir}' exists and is not a folder; "
                               "choose another --out")
         self.out_dir.mkdir(parents=True, exist_ok=True)
+        for name in RUN_FILES:    # checked before the run, not found when its last write fails
+            path = self.out_dir / name
+            if path.exists() and not path.is_file():
+                raise ConfigError(f"results folder '{self.out_dir}': '{path}' is a folder (or not a regular "
+                                  f"file) where the run keeps its {name}; move it out of the way, or choose "
+                                  "another --out")
         self.path = self.out_dir / TRIALS_FILE
         self.failures_path = self.out_dir / FAILURES_FILE
 
     def rows(self) -> list[dict]:
         """All complete rows on disk, each trial once (the first row of a key: a file doubled by two runs at
         once, before the lock, counts each trial once). A torn last line from a killed run is ignored, and
-        kept on disk."""
+        kept on disk. A line of valid JSON that is not a row (an object) is a ``ConfigError`` naming it: the
+        file was edited or is not this package's, and guessing would mix foreign data into the results."""
         if not self.path.exists():
             return []
         out = []
         seen: set[str] = set()
-        with open(self.path, encoding="utf-8") as fh:
-            for line in fh:
-                line = line.strip()
+        with open(self.path, "rb") as fh:
+            for number, raw in enumerate(fh, start=1):
+                line = raw.strip()
                 if not line:
                     continue
                 try:
                     row = json.loads(line)
-                except json.JSONDecodeError:
+                except (json.JSONDecodeError, UnicodeDecodeError):    # torn (or garbled) like a killed run's
                     continue
-                key = row.get("key") if isinstance(row, dict) else None
+                if not isinstance(row, dict):
+                    text = line.decode("utf-8", "replace")
+                    shown = text if len(text) <= 60 else text[:57] + "..."
+                    raise ConfigError(
+                        f"{self.path}, line {number}: {shown} is not a trial row (each line is one JSON object "
+                        f"written by a run); delete that line (the rows around it are kept), or choose another "
+                        f"--out")
+                key = row.get("key")
                 if key is not None:
                     if key in seen:
                         continue
@@ -89,25 +105,30 @@ class TrialStore:
         """Record that ``experiment`` writes here; refuse a folder holding another experiment's results unless
         ``add`` (then both are named). A folder from before the manifest is judged by its report's title."""
         manifest = self.out_dir / MANIFEST_FILE
-        if manifest.exists():
-            try:
-                names = list(json.loads(manifest.read_text(encoding="utf-8"))["experiments"])
-            except (ValueError, KeyError, TypeError, UnicodeDecodeError) as exc:
-                raise ConfigError(f"{manifest}: not a results manifest ({exc}); choose another --out") from exc
-        else:
-            names = _report_title(self.out_dir / "report.md")
-        if experiment in names:
-            if manifest.exists():
-                return
-        elif names and not add:
-            raise ConfigError(
-                f"results folder '{self.out_dir}' holds the results of experiment "
-                f"{', '.join(repr(n) for n in names)}, not {experiment!r}; choose another --out, or pass "
-                f"--add (run_experiment(..., add=True)) to add {experiment!r}'s trials to it")
+        names = self._owners(experiment, add)
+        if experiment in names and manifest.exists():
+            return
         from aerial_loc_env.paths import atomic_write_bytes
 
         names = names if experiment in names else [*names, experiment]
         atomic_write_bytes(manifest, json.dumps({"experiments": names}, indent=1).encode())
+
+    def _owners(self, experiment: str, add: bool) -> list[str]:
+        """The experiments the folder holds; refused when another's, unless ``add``."""
+        manifest = self.out_dir / MANIFEST_FILE
+        names = _manifest_names(manifest) if manifest.exists() else _report_title(self.out_dir / "report.md")
+        if names and experiment not in names and not add:
+            raise ConfigError(
+                f"results folder '{self.out_dir}' holds the results of experiment "
+                f"{', '.join(repr(n) for n in names)}, not {experiment!r}; choose another --out, or pass "
+                f"--add (run_experiment(..., add=True)) to add {experiment!r}'s trials to it")
+        return names
+
+    def check(self, experiment: str, *, add: bool = False) -> None:
+        """Everything ``claim`` and the run will refuse about this folder (its rows, its manifest, another
+        experiment's results), found now, before any scenario is built or episode rendered; writes nothing."""
+        self.rows()
+        self._owners(experiment, add)
 
     def done_keys(self) -> set[str]:
         return {r["key"] for r in self.rows() if "key" in r}
@@ -119,6 +140,22 @@ class TrialStore:
     def append_failure(self, record: Mapping[str, Any]) -> None:
         """Log an agent that raised (not a finished trial: a re-run tries it again)."""
         _append_line(self.failures_path, record)
+
+
+def _manifest_names(manifest: Path) -> list[str]:
+    """The experiments a manifest names: ``{"experiments": [names]}``; a single name written as a string
+    counts as that one name (not as its letters)."""
+    try:
+        names = json.loads(manifest.read_text(encoding="utf-8"))["experiments"]
+    except (OSError, ValueError, KeyError, TypeError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"{manifest}: not a results manifest ({type(exc).__name__}: {exc}); it should read "
+                          '{"experiments": ["<name>", ...]}: fix it, or choose another --out') from exc
+    if isinstance(names, str):
+        names = [names]
+    if not isinstance(names, list) or not all(isinstance(n, str) and n for n in names):
+        raise ConfigError(f"{manifest}: \"experiments\" is {json.dumps(names)}, not a list of experiment names; "
+                          'it should read {"experiments": ["<name>", ...]}: fix it, or choose another --out')
+    return names
 
 
 def _report_title(path: Path) -> list[str]:
@@ -161,7 +198,12 @@ class RunLock:
             self._portable = True
             self._acquire_portable()
             return
-        fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o666)
+        try:
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o666)
+        except OSError as exc:
+            raise ConfigError(f"results folder '{self.path.parent}': cannot open the lock file {self.path} "
+                              f"({exc.strerror}); if it is a folder, move it out of the way, or choose another "
+                              "--out") from None
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError:
