@@ -189,10 +189,13 @@ class ShadowDetector:
 
 
 def _rgb8(image: np.ndarray, what: str) -> np.ndarray:
-    """``image`` as an array, refused unless (H, W, 3) uint8."""
+    """``image`` as an array, refused unless (H, W, 3) uint8 with at least one pixel."""
     a = np.asarray(image)
     if a.ndim != 3 or a.shape[2] != 3 or a.dtype != np.uint8:
         raise ConfigError(f"shadow detector: expected an (H, W, 3) uint8 RGB {what}, got {a.shape} {a.dtype}")
+    if a.shape[0] == 0 or a.shape[1] == 0:
+        raise ConfigError(f"shadow detector: the {what} is empty ({a.shape[1]} x {a.shape[0]} px); pass an image "
+                          "of at least 1 x 1 px (a camera frame, or its reduced copy)")
     return a
 
 

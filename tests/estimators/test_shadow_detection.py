@@ -125,6 +125,15 @@ def test_bad_inputs_are_clear_errors() -> None:
         build_config(ShadowDetectorConfig, {"index": "ndvi"})
 
 
+@pytest.mark.parametrize("shape", [(0, 0, 3), (0, 10, 3), (10, 0, 3)])
+def test_an_empty_frame_is_a_clear_error(shape: tuple[int, int, int]) -> None:
+    with pytest.raises(ConfigError, match=r"the frame is empty .*at least 1 x 1 px"):
+        ShadowDetector().detect(np.zeros(shape, np.uint8))
+    with pytest.raises(ConfigError, match=r"the reduced frame is empty"):
+        ShadowDetector().detect(np.zeros((8, 8, 3), np.uint8), small=np.zeros(shape, np.uint8))
+    assert ShadowDetector().detect(np.zeros((1, 1, 3), np.uint8)).mask.shape == (1, 1)   # the smallest frame
+
+
 def test_map_ratio_detector_sees_shadows_the_image_detector_cannot() -> None:
     """On a high-contrast map (dark texture as dark as the shadows) the image alone is ambiguous; the ratio to
     the shadow-free database at the (slightly wrong) pose is not."""
