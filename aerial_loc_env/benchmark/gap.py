@@ -184,6 +184,11 @@ def window_stats(camera: np.ndarray, database: np.ndarray, cfg: GapConfig, gsd_m
         raise ConfigError(f"gap: the database window is {db.shape[1]} x {db.shape[0]} px; with a "
                           f"{w} x {h} camera window and a {m} px search margin it must be "
                           f"{w + 2 * m} x {h + 2 * m}")
+    for name, window in (("camera", cam), ("database", db)):
+        bad = window.size - int(np.count_nonzero(np.isfinite(window)))
+        if bad:   # NaN compares false: the statistics would come out plausible and wrong (bit agreement 1)
+            raise ConfigError(f"gap: the {name} window has {bad} of {window.size} pixels that are not finite "
+                              "(NaN or inf); leave out windows that touch no-data (as pair_gap does) or fill them")
     core = db[m:m + h, m:m + w]
     return {"ncc": ncc(cam, core), "bit_agreement": bit_agreement(cam, core, cfg.n_bits, cfg.seed),
             **surface_stats(ncc_surface(cam, db), gsd, cfg.success_radius_m),

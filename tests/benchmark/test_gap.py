@@ -93,6 +93,24 @@ def test_bad_windows_are_clear_errors():
         gap.gap_config(n_bits=0)
 
 
+@pytest.mark.parametrize("where", ["camera", "database"])
+@pytest.mark.parametrize("fill", ["all", "one"])
+def test_windows_with_non_finite_pixels_are_refused_not_scored(where: str, fill: str):
+    """NaN compares false, so an all-NaN pair scored as identical order (bit agreement 1.0): refused instead."""
+    cfg = gap.GapConfig()
+    cam = texture(200, 300)[..., 0].astype(np.float32)         # grey windows: one value per pixel
+    db = texture(240, 340, seed=1)[..., 0].astype(np.float32)
+    target = cam if where == "camera" else db
+    if fill == "all":
+        target[:] = np.nan
+    else:
+        target[7, 9] = np.inf
+    bad = target.size if fill == "all" else 1
+    with pytest.raises(ConfigError, match=rf"the {where} window has {bad} of {target.size} pixels that are not "
+                                          r"finite .*leave out windows that touch no-data"):
+        gap.window_stats(cam, db, cfg)
+
+
 def test_pairs_from_files_and_the_command(tmp_path, capsys):
     """Real PNG files on disk, found as A/ and B/, through ``aerial-loc gap`` with --json."""
     for sub in ("A", "B"):
