@@ -21,7 +21,7 @@ import numpy as np
 from aerial_loc_env.config import rng
 from aerial_loc_env.env import action_to_world
 from aerial_loc_env.errors import ConfigError, require_extra
-from aerial_loc_env.estimators.protocol import Agent, Estimate, prior_estimate
+from aerial_loc_env.estimators.protocol import Agent, Estimate, parse_observation, prior_estimate
 from aerial_loc_env.learning.observations import LocalRegistration, square_image
 from aerial_loc_env.learning.recipes import algo_class
 from aerial_loc_env.learning.train import check_model_zip, load_training_meta
@@ -85,9 +85,11 @@ class LearnedAgent(Agent):
         return prior_estimate(briefing)
 
     def policy_observation(self, observation: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
-        """What the policy sees for this env observation (advances the dead reckoning by one step)."""
+        """What the policy sees for this env observation (advances the dead reckoning by one step). Frames
+        that cannot come from the briefed scenario are refused, as by every agent (``parse_observation``)."""
         if not hasattr(self, "briefing"):
             raise ConfigError("LearnedAgent.step called before reset(briefing, seed=...)")
+        parse_observation(observation, self.briefing, self.altitude_range_m(self.briefing), type(self).__name__)
         if self._core is not None:
             return self._core.observe(observation)
         p = self.recipe.observation_params
