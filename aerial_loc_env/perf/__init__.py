@@ -11,7 +11,7 @@ with each benchmark (a few floor calls after every benchmark call) and the ratio
 both sides of each ratio alike and the ratio stays put. The first floor calls after a heavy benchmark are
 several times slower (its freed memory faults back in, caches are cold), so each batch starts with untimed warm-up
 calls: the floor is always the warm, bare warp. Times are the process's CPU time (``time.process_time``): on a
-shared machine a long call is descheduled many times while a 1 ms floor call mostly runs whole, so wall-clock
+shared machine a long call is descheduled many times while a short floor call mostly runs whole, so wall-clock
 ratios of long benchmarks grow with the load; CPU times do not (the wall-clock median is reported beside them).
 Memory-bound work still slows when other processes share the caches: take figures from a quiet machine where
 possible, and always note the load (printed at the start and end). Targets are ratios (``target_ratio``).

@@ -5,13 +5,11 @@ Targets (issue 12, ratios to the floor, one bare map warp): the paper's 600 x 40
 seed (track, sun, shadows over the track's region, noise bank) and steps to the end of the track, so the per-step
 figure amortizes the reset.
 
-A PaperShadows step (2-core Xeon VM, load 1-2): the frame (see perf/render.py: the warp 1.0-1.3 ms, the compiled
-finishing pass 0.6), the baked tiles the flight reaches (about 2 per step at 0.14 ms each: the map tile read from
-memory, shaded in one compiled pass, the grid block resized under it), the reset amortized over 240 steps (45-50 ms:
-the noise bank's normal draws 10, the shadow sweep 7 (one compiled loop per slice; 17 as NumPy vector operations
-per slice), the first frame's tiles 8), the env's own bookkeeping under 0.1 ms (20 us with the render stubbed).
-A map tile is read from memory cold: 0.09 ms to shade the first time, 0.035 ms again. The harness's untimed first
-call (a whole episode) compiles the kernels (a first reset takes 4.7 s with an empty numba cache, 0.2 s with it).
+A PaperShadows step is the frame (perf/render.py's baked path), the baked tiles the flight reaches (each map tile
+read from memory, shaded in one compiled pass, the grid block resized under it), the reset amortized over the
+track's steps (the noise bank's normal draws, the shadow sweep, the first frame's tiles) and the env's own
+bookkeeping. The harness's untimed first call (a whole episode) compiles the kernels. The figures, and where a
+step's time goes, are in docs/perf-log.md.
 """
 
 from __future__ import annotations

@@ -1,67 +1,16 @@
-"""Speed of one full MCL step (issue 4): motion, shadow detection, shadow-aware likelihood, resampling, estimate
-at N = 700 particles, K = 70 pairs, c = 3 channels, on a 600 x 400 frame with cast shadows over a 2000 x 2000 px,
-0.25 m/px synthetic map (the paper's camera at 200 m). Rendering is excluded: the frame is made once.
+"""Speed of one full MCL step (issue 4): motion, shadow detection, likelihood, resampling, estimate at N = 700
+particles, K = 70 pairs, c = 3 channels, on a 600 x 400 frame with cast shadows over a 2000 x 2000 px, 0.25 m/px
+synthetic map (the paper's camera at 200 m). Rendering is excluded: the frame is made once (``_scene``: a bare warp
+of the map at one pose, two building shadows shaded in).
 
-Target (issue 12): <= 1.0x the floor (one bare map warp) per step, median on one core.
+Each row times ``step`` of one shipped agent (shadow-aware, conventional, restoration, shadow-weighted with the map
+detector) on that frame after a first step, with zero odometry so that the particles stay on the map. Each step
+does an episode's work: it draws new pairs, so the frame's side (detection, pairs) and the particles' side
+(projection, lookups, counts) are redone, and the harness's floor warps between steps leave the caches cold as
+an episode's rendering does.
 
-Where the time goes (shadow-aware step, profiled): the frame's shadow detection and pairs ~0.3x the floor, the
-particles' likelihood ~0.35x (of which the per-particle affines of ``camera_to_map`` and their product with
-the pair points ~0.2x; the gather of 2K database words per particle and the XNOR count the rest), motion,
-resampling, estimate and the filter's bookkeeping ~0.4-0.5x together: many small NumPy calls on N = 700, whose
-fixed costs also dominate Table 5's steps at small K (a K = 10 step costs 0.7-0.8 of a K = 70 one).
-
-Since then (bit-identical outputs, tests/estimators/test_mcl_step_speedups.py): ``camera_to_map`` scales the rows of the
-world affine instead of N tiny 3x3 products (~100 -> ~40 us at N = 700), the motion model draws all its normals
-in one call, the estimate's spread is a closed-form 2x2 eigenvalue, the detector's luminance means are exact
-integer sums and the pair indices int32: ~1.23 -> ~1.12 ms a step (-9 %) on the 2-core machine, quiet. What is
-left is still spread thin: detection ~0.15 ms (c3 0.035, its two masked means 0.035), reduction 0.03, the
-particles' projections ~0.1 (the float32 einsum 0.06), index + gather + XNOR ~0.17, motion 0.08 (0.03 of it the
-3.5k normal draws), resampling 0.045, estimate 0.05; no single call is above 0.06 ms.
-
-Then compiled passes (numba; bit-identical, a 3-seed Table 5 run on the paper and realistic settings equal trial
-for trial): the particles' side of the pairs (``mcl/intensity_pairs_kernels.pair_agreements``: projection, rounding,
-lookup in the map's own RGB bytes and the XNOR count, pair-major so that one pair's lookups at all particles share
-cache lines; ~0.1 ms), the frame's side (``camera_pairs``: pixels, reduced mask, coordinates), and the detector's
-index, quantization and class statistics (``shadow_detection._index8`` / ``_split_stats``, c3 from a table of
-NumPy's own arctan2 floats). Measured as the harness measures (each step right after floor warps, which evict
-the caches; two alternating runs each against 3045540, load 1.2-1.5): shadow-aware 1.26x -> 0.96-0.99x,
-conventional 1.12-1.15x -> 0.77-0.80x, restoration 1.70-1.72x -> 1.27-1.29x. What is left
-after a floor warp: detection 0.21 ms (0.07 of it OpenCV's reduction, then cvtColor, Otsu and two morphology
-passes), the pair kernel ~0.25 (cold: its lookups miss), ``camera_to_map`` ~0.14, the two ``rng.integers`` ~0.08,
-motion ~0.13, the two observation parses ~0.12, estimate ~0.09.
-
-Then fewer fixed costs and a prefetch (same bytes: the tests above, tests/estimators/test_mcl_step_speedups.py, and an
-8-agent, 2-episode, 41-step PaperShadows run equal estimate for estimate, particle for particle): each particle's
-``camera_to_map`` affine inside the pair kernel (``intensity_pairs_kernels.pose_affine``, NumPy's cos/sin), the motion's
-per-particle arithmetic one pass, the detector's opening and closing one call (``_OpenClose``), its 1/4 reduction
-(``_quarter``, cv2.resize's bytes) and exact luminance sums compiled, the likelihoods' log-mean without the
-normalized weights, the pair lookups unrolled for RGB, and each pair's map lines prefetched while the previous
-pair's lookups run (every step draws new pairs, whose lines no step touched: 4.5 -> 3.6 us a pair after floor
-warps, 6.6 -> 4.4 on a 5 m cloud). Three runs each alternating with 57ad3e6 in one session on the 2-core Xeon VM
-(load 1.55-1.92 from ``uptime``, another engineer's benchmarks on the other core; floor 0.84-0.89 ms):
-
-=============================================  ===============  ===============
-row                                            57ad3e6          now
-=============================================  ===============  ===============
-shadow-aware N=700 K=70 c=3                    0.96-0.98x       0.73-0.74x
-conventional                                   0.80-0.81x       0.60-0.61x
-restoration                                    1.30-1.32x       1.02-1.03x
-shadow-weighted, map detector                  1.36-1.39x       1.13-1.14x
-SSD / NCC 60x40 (perf/models.py)               4.22-4.31x /     4.19-4.26x /
-                                               4.32-4.36x       4.32-4.38x
-MI / abBRIEF / edges                           5.87-5.94x /     5.87-5.93x /
-                                               7.29-7.36x /     7.29-7.33x /
-                                               6.68-6.72x       6.66-6.78x
-=============================================  ===============  ===============
-
-What is left of a shadow-aware step after floor warps (instrumented, wall us, load 0.5): the first observation parse
-~48 (6 warm: whatever runs first after the floor pays ~40), motion ~75 (the 3.5k normal draws ~35), the two
-``rng.integers`` ~24, reduction ~38 (reading the cold frame), detection ~110 (cvtColor 10, the c3-table index 42,
-Otsu 13, class statistics 29, morphology 25), the frame's pairs ~33, the pair kernel ~165 (~34 pairs kept), the
-two log-sum-exps ~27, resampling ~37 plus the gather 10, estimate ~48. Tried and not kept: one ``rng.integers``
-with per-element bounds (the same draws) was slower in the step (28 vs 24 us); the luminance (cvtColor's 15-bit
-fixed point, exact over all 2^24 colours) inside the index pass made that pass as much slower as cvtColor cost;
-prefetching every 4th or 16th particle, or two pairs ahead, was no better than every particle one pair ahead.
+Target (issue 12): <= 1.0x the floor (one bare map warp) per step, median on one core. The figures, and where a
+step's time goes, are in docs/perf-log.md.
 """
 
 from __future__ import annotations

@@ -4,16 +4,12 @@ N = 700 particles) on a 2000 x 2000 px, 0.25 m/px synthetic map with the paper's
 Targets (issue 12, ratios to the floor, one bare map warp): SSD and NCC at 60 x 40 patches <= 5x; MI <= 10x;
 abBRIEF <= 8x.
 
-Where the time goes: every model samples each particle's view straight from the stored map level by its affine
-and scores it in the same compiled pass (``estimators/patches_kernels.py``, numba): no coordinate maps, no
-(N, h, w) stack. Before it, SSD and NCC were one ``cv2.remap`` of N h w = 1.68 M samples (~2.9 ms) plus its two
-float32 coordinate maps (~1.4 ms) plus the NumPy similarity (~0.5 ms), MI a bincount of joint bins on top, and
-abBRIEF a remap of its pattern's ~940 distinct nodes through a 4-channel padded level: 6.3-6.4x / 6.8x /
-10.7-11.1x / 9.0x the floor against 3045540, 4.1-4.2x / 4.1x / 5.5x / 7.0x with the kernel (two alternating
-runs each, load 1.2-1.5). The kernel is ~1.8 ns a sample (the coordinates in one vectorized loop, the four loads
-and the fma chain in a second); abBRIEF's camera side (CIELab of the whole 600 x 400 frame and its area
-reduction, ~1 ms) is a fixed cost. The harness's warm-up call compiles the kernel (~2.5 s the first time on a
-machine, cached on disk after).
+What a row times: every model samples each particle's view straight from the stored map level by its affine and
+scores it in the same compiled pass (``estimators/patches_kernels.py``, numba): no coordinate maps, no (N, h, w)
+stack, N h w samples a step (1.68 M for SSD and NCC at 60 x 40), the coordinates in one vectorized loop, the four
+loads and the fma chain in a second. abBRIEF's camera side (CIELab of the whole 600 x 400 frame and its area
+reduction) is a fixed cost per step. The harness's warm-up call compiles the kernel (cached on disk after). The
+figures are in docs/perf-log.md.
 """
 
 from __future__ import annotations
