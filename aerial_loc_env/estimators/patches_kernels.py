@@ -169,7 +169,7 @@ def _bilinear(plane, u, v, fill):
     """``cv2.remap`` INTER_LINEAR / BORDER_CONSTANT of one channel ``plane`` (h, w) float32 at the float32 point
     (u, v), the border value ``fill`` (NaN for channel 0, 0 for the others: OpenCV's Scalar (nan, 0, 0, 0)), the
     floor clamped to [-2, size + 1] (every point beyond is as far outside, and the conversion stays defined;
-    NaN -> outside, as in OpenCV). The general path of ``scan``: ~9 ns a point."""
+    NaN -> outside, as in OpenCV). The general path of ``scan``."""
     lh, lw = plane.shape
     cu = u if u > -2.0 else np.float32(-2.0)
     cu = cu if cu < lw + 1 else np.float32(lw + 1)

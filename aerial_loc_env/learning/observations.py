@@ -14,8 +14,8 @@ policy sees at test time exactly what it saw in training.
 
 Rewards (training only; the env's own reward is ignored): ``"improvement"`` pays the error reduction the
 correction achieved over the dead-reckoned prediction, minus ``error_weight`` times the remaining error (both
-over ``reward_scale_m``): the per-step signal is attributable to the action, and the sum still rewards a low
-error all along. ``"error"`` is the env's ``-error / scale``.
+over ``scale_m`` of the recipe's ``[train.reward]``): the per-step signal is attributable to the action, and the
+sum still rewards a low error all along. ``"error"`` is the env's ``-error / scale_m``.
 """
 
 from __future__ import annotations

@@ -132,7 +132,7 @@ def _read_row(flat: np.ndarray, base: int, q: np.ndarray, out: np.ndarray) -> No
 
 def _march_kernel(perspective: bool):
     """``march`` for affine (nadir) or projective (tilted) cell->pooled warps: a compile-time constant (a runtime
-    flag tripled the probe's cost; numba keys its cache on the closure's value)."""
+    flag made the probe several times slower; numba keys its cache on the closure's value)."""
 
     @numba.njit(**_JIT)
     def march(z0: np.ndarray, relief: np.ndarray, probes: np.ndarray, thresholds: np.ndarray, levels: np.ndarray,

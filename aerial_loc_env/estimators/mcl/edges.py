@@ -23,8 +23,9 @@ Feature map (II), built once per episode from the DATABASE image:
 Measurement (IV), adapted to a nadir camera: the reference's "view sections" become the cells of a
 ``cells_x x cells_y`` grid over the camera image. The camera image goes through steps 1, 3 and 4 (the
 camera's shadows are not known); each cell with enough line pixels gives an observed orientation
-``psi_s`` (its dominant one). For each particle the feature map is reconstructed at its pose (one
-``cv2.remap`` for all particles), rotated into the camera frame by the particle's yaw, and each cell gives
+``psi_s`` (its dominant one). For each particle the feature map is reconstructed at its pose (one compiled
+sampling pass for all particles, ``PatchSampler.sample``: ``cv2.remap``'s values), rotated into the camera frame
+by the particle's yaw, and each cell gives
 its expected orientation ``psi_r`` (or none). Eq. (2): ``eta_e = 1 - 1 / (1 + exp((20 - |psi_s - psi_r|) / 2))``
 (degrees, orientation difference in [0, 90]; 0 where the map has no line); eq. (3): ``rho_e`` = the cell's
 share of the observed cells (equal cells); eq. (4): ``W = sum_e rho_e eta_e``. Log-likelihood:
