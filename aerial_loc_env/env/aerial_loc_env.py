@@ -16,7 +16,7 @@ import numpy as np
 from gymnasium import spaces
 
 from aerial_loc_env.env.briefing import Briefing, Prior
-from aerial_loc_env.env.scenarios import Scenario, build_scenario, load_scenario
+from aerial_loc_env.env.scenarios import Scenario, build_scenario, check_relief, load_scenario
 from aerial_loc_env.errors import AerialLocError, ConfigError
 from aerial_loc_env.sensors.camera import CameraModel, Pose, SceneExposure, apply_affine, world_to_map_affine
 from aerial_loc_env.sensors.flight import (
@@ -185,6 +185,7 @@ class AerialLocEnv(gym.Env):
         self.render_mode = render_mode
         self.metadata = {**self.metadata, "render_fps": sc.flight.rate_hz}
         self.world = build_world(WorldSpec(sc.map, sc.city, sc.epoch, sc.shadows, sc.database, where=sc.id))
+        check_relief(sc, self.world)                 # a perspective camera above the tallest building
         self.orthomap = self.world.ground            # the ground the camera sees (epoch B, or the map's own)
         self.database = self.world.database          # what the estimators get as the map
         sensor: CameraModel = sc.camera

@@ -41,14 +41,16 @@ import argparse
 import dataclasses
 import importlib
 import json
+import math
 import re
+import typing
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from functools import cache
 from pathlib import Path
 from typing import Any
 
-from aerial_loc_env.config import build_config, check_value, config_to_dict, read_toml, rng
+from aerial_loc_env.config import build_config, check_value, config_to_dict, is_number, read_toml, rng
 from aerial_loc_env.errors import ConfigError
 from aerial_loc_env.paths import spec_dir
 from aerial_loc_env.world.scene import MapConfig
@@ -150,14 +152,56 @@ def _section_fields(name: str) -> set[str]:
     return {f.name for f in dataclasses.fields(SECTIONS[name]()) if f.init}
 
 
+def _fits(annotation: Any, value: Any, choices: tuple | None = None) -> bool:
+    """Whether ``value`` could be a value of a field annotated ``annotation`` (for an example in a message)."""
+    if choices is not None:
+        return value in choices
+    args = typing.get_args(annotation)
+    kinds = [a for a in args if a is not type(None)] if args and typing.get_origin(annotation) is not tuple \
+        else [annotation]
+    for kind in kinds:
+        origin = typing.get_origin(kind) or kind
+        if isinstance(value, bool):
+            if kind is bool:
+                return True
+        elif is_number(value) and kind in (float, int):
+            return True
+        elif isinstance(value, str) and kind is str:
+            return True
+        elif isinstance(value, (list, tuple)) and origin is tuple:
+            return True
+    return False
+
+
+def not_a_section_error(where: str, section: str, value: Any, *, toml: bool = False) -> ConfigError:
+    """The error for a section given a single value (``haze=0.5``): it names the section's fields, with an
+    example of setting one of them to that value (a field of the value's type), and, when another section
+    has a field of that name (``database.haze``), that one."""
+    cls = SECTIONS[section]()
+    hints = typing.get_type_hints(cls)
+    fields = [f for f in dataclasses.fields(cls) if f.init]
+    names = [f.name for f in fields]
+    fit = next((f.name for f in fields if _fits(hints.get(f.name), value, f.metadata.get("choices"))), None)
+    shown = json.dumps(value) if toml else repr(value)
+    field_name, example = (fit, shown) if fit else (names[0], "...")
+    if toml:
+        how = f"write it as a table: [{section}] with a line such as {field_name} = {example}"
+    else:
+        how = (f"set one of its fields, e.g. {section}={{'{field_name}': {example}}} or "
+               f"**{{'{section}.{field_name}': {example}}}")
+    owners = [f"'{s}.{section}'" for s in SECTIONS if s != section and section in _section_fields(s)]
+    also = f" (or did you mean the field {' or '.join(owners)}?)" if owners else ""
+    return ConfigError(f"{where}: {section} = {shown}: '{section}' is a section of fields, not one value; {how}"
+                       f"{also}. Fields of [{section}]: {', '.join(names)}")
+
+
 def split_overrides(overrides: Mapping[str, Any], where: str = "gym.make overrides") -> dict[str, dict]:
     """Turn the three override forms (section dict, dotted key, unique bare field) into section dicts."""
     out: dict[str, dict] = {}
     for key, value in overrides.items():
         if key in SECTIONS:
             if not isinstance(value, Mapping):
-                raise ConfigError(f"{where}: section {key!r} must be a table (a dict of its fields, e.g. "
-                                  f"{key}={{...}}), got {value!r}; or set one field with '{key}.<field>'")
+                raise not_a_section_error(where, key, value)
             out.setdefault(key, {}).update(value)
             continue
         if "." in key:
@@ -195,14 +239,40 @@ def build_scenario(spec: Mapping[str, Any], overrides: Mapping[str, Any] | None 
     for name, cls_fn in SECTIONS.items():
         table = spec.get(name, {})
         if not isinstance(table, Mapping):
-            raise ConfigError(f"{where}: [{name}] must be a table, got {table!r}")
+            raise not_a_section_error(where, name, table, toml=True)
         if name in extra:
             table = {**table, **extra[name]}
             label = f"{sid} [{name}] (spec {where} + overrides {sorted(extra[name])})"
         else:
             label = f"{where} [{name}]"
         sections[name] = build_config(cls_fn(), table, where=label)
+    sections["altimeter"].check_flight(sections["flight"], sid)     # checks across sections
     return Scenario(id=sid, description=str(spec.get("description", "")), source=where, sections=sections)
+
+
+def check_relief(scenario: Scenario, world: Any) -> None:
+    """Refuse a perspective camera flying too low over its world's height model: the perspective view clips
+    heights at a share of the camera's altitude (``sensors.perspective``; a camera among the roofs has no view
+    down), so taller buildings would be cut off without a word. ``world``: the scenario's ``world.scene.World``."""
+    if not (scenario.perspective.enabled and scenario.map.use_dsm) or world.ground.dsm_m is None:
+        return
+    from aerial_loc_env.sensors.perspective import _MAX_HEIGHT_FRACTION as share
+
+    tallest_m, altitude_m = float(world.dsm_max_m), float(scenario.flight.altitude_m)
+    if tallest_m <= share * altitude_m:
+        return
+    if scenario.map.kind == "city":
+        meta = {f.name: f.metadata for f in dataclasses.fields(scenario.city)}["max_building_height_m"]
+        lower = (f"lower the city's towers: city.max_building_height_m (allowed [{meta['lo']:g}, {meta['hi']:g}] m, "
+                 f"now {scenario.city.max_building_height_m:g}) at most {share * altitude_m:.4g} for this altitude")
+    else:
+        lower = "turn the height model off (map.use_dsm = false)"
+    raise ConfigError(
+        f"{scenario.id}: the tallest building of the map is {tallest_m:.1f} m, but flight.altitude_m = "
+        f"{altitude_m:g} m: the perspective camera sees heights only up to {share:.0%} of its altitude "
+        f"({share * altitude_m:.4g} m), so taller buildings would be cut off; fly higher (flight.altitude_m >= "
+        f"{math.ceil(tallest_m / share):g} m), or {lower}, or render without perspective (perspective.enabled = "
+        "false)")
 
 
 def _read(path: Path) -> dict:

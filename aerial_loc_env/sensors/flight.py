@@ -167,6 +167,10 @@ def _next_waypoint(region: FlyableRegion, rng: np.random.Generator, here, min_le
     return cand[far[0]] if far.size else cand[int(np.argmax(d))]
 
 
+#: 3 sigma of the altimeter's error may reach this share of the flight altitude (``AltimeterConfig.check_flight``)
+ALTIMETER_MAX_ERROR_SHARE = 0.5
+
+
 @dataclass(frozen=True)
 class AltimeterConfig:
     """The [altimeter] section: barometric altitude errors. All zero by default (only ``odometry.altitude_std_m``).
@@ -178,6 +182,33 @@ class AltimeterConfig:
 
     bias_std_m: float = field(default=0.0, metadata=rng(0.0, 500.0, doc="per-episode bias std"))
     drift_std_m_per_sqrt_s: float = field(default=0.0, metadata=rng(0.0, 10.0, doc="random-walk drift"))
+
+    def check_flight(self, flight: FlightConfig, where: str) -> None:
+        """Refuse errors too large for ``flight``'s altitude: 3 sigma of the error at the end of the flight
+        (bias and drift together) must stay within ``ALTIMETER_MAX_ERROR_SHARE`` of the altitude. Beyond, the
+        measured altitude is often clipped to 0 m or far from the truth, and agents refuse the frames naming
+        the altitude, not this section."""
+        limit_m = ALTIMETER_MAX_ERROR_SHARE * flight.altitude_m / 3.0     # the largest 1-sigma error
+        drift_var = self.drift_std_m_per_sqrt_s ** 2 * flight.duration_s
+        total_m = math.sqrt(self.bias_std_m ** 2 + drift_var)
+        if total_m <= limit_m:
+            return
+        duration = f"flight.duration_s = {flight.duration_s:g} s"
+        if self.bias_std_m > 0.0 and drift_var < limit_m ** 2:
+            name, value, unit = "bias_std_m", self.bias_std_m, "m"
+            high, given = math.sqrt(limit_m ** 2 - drift_var), \
+                f"drift_std_m_per_sqrt_s = {self.drift_std_m_per_sqrt_s:g} over {duration}"
+        else:
+            name, value, unit = "drift_std_m_per_sqrt_s", self.drift_std_m_per_sqrt_s, "m/sqrt(s)"
+            high = math.sqrt(max(limit_m ** 2 - self.bias_std_m ** 2, 0.0) / flight.duration_s)
+            given = f"bias_std_m = {self.bias_std_m:g}, over {duration}"
+        raise ConfigError(
+            f"{where}: altimeter.{name} = {value:g} {unit} is too large for flight.altitude_m = "
+            f"{flight.altitude_m:g} m: 3 sigma of the altimeter's error ({3.0 * total_m:.4g} m) must stay within "
+            f"{ALTIMETER_MAX_ERROR_SHARE:.0%} of the altitude ({3.0 * limit_m:.4g} m), else measured altitudes "
+            f"fall to 0 m or far from the truth; allowed at this altitude: altimeter.{name} in [0, {high:.4g}] "
+            f"{unit} (with {given}); lower it, or fly at flight.altitude_m >= "
+            f"{math.ceil(3.0 * total_m / ALTIMETER_MAX_ERROR_SHARE):g} m")
 
     def draw_error(self, rng: np.random.Generator, t_s: np.ndarray) -> np.ndarray:
         """The altitude error (m) at the frame times ``t_s``; zeros without a draw when off."""
