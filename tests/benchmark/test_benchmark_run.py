@@ -218,3 +218,25 @@ def test_track_and_likelihood_plots(tmp_path):
     png = plots.likelihood_plot([agent, AgentEntry("dead-reckoning")], [scen, flat], 0, tmp_path / "lik.png",
                                 radius_m=10.0, step_m=2.0)
     assert png.stat().st_size > 1000
+
+
+def test_bench_out_that_cannot_be_created(tmp_path, capsys):
+    from aerial_loc_env.cli import main
+
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    rc = main(["bench", "--quiet", "--no-plots", "--seeds", "1", "--out", str(blocker / "sub")])
+    err = capsys.readouterr().err
+    assert rc != 0 and "Traceback" not in err and "--out" in err and str(blocker / "sub") in err, err
+
+
+def test_bench_refuses_unusable_map_before_running(tmp_path, capsys):
+    from aerial_loc_env.cli import main
+
+    exp = tmp_path / "exp.toml"
+    exp.write_text('name = "m"\nagents = ["dead-reckoning"]\nseeds = 2\n[[scenarios]]\nid = "AerialLoc/RealMap-v1"\n'
+                   'overrides = {"map.path" = "nowhere.tif"}\n')
+    rc = main(["bench", str(exp), "--quiet", "--no-plots", "--out", str(tmp_path / "out")])
+    err = capsys.readouterr().err
+    assert rc != 0 and "nowhere.tif" in err and "Traceback" not in err, err
+    assert not (tmp_path / "out" / "trials.jsonl").exists()

@@ -6,6 +6,7 @@ import dataclasses
 import math
 import pickle
 
+import cv2
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -19,7 +20,7 @@ from aerial_loc_env.env import (
     action_to_world,
     world_to_action,
 )
-from aerial_loc_env.errors import AerialLocError
+from aerial_loc_env.errors import AerialLocError, ConfigError
 
 SMALL = "AerialLoc/Small-v1"
 SHORT = {"duration_s": 5.0}          # 20 steps: enough for every property, fast
@@ -320,3 +321,40 @@ def test_database_with_another_suns_shadows():
     plain = make()
     plain.reset(seed=0)
     assert plain.briefing.orthomap is plain.orthomap       # default: the shadow-free scene
+
+
+def test_env_reset_refuses_a_boolean_seed():
+    env = gym.make("AerialLoc/Small-v1")
+    with pytest.raises((ConfigError, ValueError), match="seed"):
+        env.reset(seed=True)
+    env.close()
+
+
+def test_realmap_clouds_cover_the_flown_window_not_the_whole_map(tmp_path):
+    """RealMap-v1 on a 1 km map: the episode's cloud field spans the track's window plus the drift (no repeat
+    while the episode flies), at cells matched to the cloud scale, instead of the whole map at 0.5 m."""
+    from aerial_loc_env.sensors.flight import footprint_radius_m
+    from aerial_loc_env.world.shadows import CloudField
+
+    g = np.random.default_rng(0)
+    tex = cv2.GaussianBlur(g.integers(0, 255, (2000, 2000, 3)).astype(np.uint8), (0, 0), 3)
+    png = tmp_path / "km.png"
+    cv2.imwrite(str(png), cv2.normalize(tex, None, 0, 255, cv2.NORM_MINMAX))
+    env = gym.make("AerialLoc/RealMap-v1", path=str(png), **{"map.gsd_m": 0.5})
+    for seed in range(3):
+        env.reset(seed=seed)
+        u = env.unwrapped
+        clouds = [o for o in u._occlusion if isinstance(o, CloudField)]
+        assert len(clouds) == 1
+        c = clouds[0]
+        sc = u.scenario.shadows
+        assert c.cell_m == sc.cloud_cell_m >= sc.cloud_scale_m / 32
+        x0, y0, x1, y1 = u._track.bounds_m()
+        pad = 2.0 * footprint_radius_m(*u.camera.footprint_m(float(u._track.altitude_m.max())))
+        t_end = float(u._track.t_s[-1])
+        ny, nx = c.shape
+        vx, vy = c.drift_mps
+        assert nx * c.cell_m >= min(1000.0, x1 - x0 + pad) + abs(vx) * t_end - c.cell_m
+        assert ny * c.cell_m >= min(1000.0, y1 - y0 + pad) + abs(vy) * t_end - c.cell_m
+        assert nx * ny * c.cell_m ** 2 < 0.8 * 1000.0 ** 2          # not the whole map
+    env.close()

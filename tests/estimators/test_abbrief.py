@@ -4,11 +4,26 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from test_dense_models import ALT_M, briefing_standin, observation, offset_grid, render_frame, textured_map
+from test_dense_models import (
+    ALT_M,
+    briefing_standin,
+    observation,
+    offset_grid,
+    particle_states,
+    render_frame,
+    textured_map,
+)
 
 from aerial_loc_env.config import build_config
 from aerial_loc_env.errors import ConfigError
-from aerial_loc_env.estimators.mcl.abbrief import ABBriefConfig, ABBriefModel, brief_pattern, lab_channels
+from aerial_loc_env.estimators.mcl.abbrief import (
+    ABBriefConfig,
+    ABBriefModel,
+    brief_pattern,
+    lab_channels,
+    reduced_lab,
+)
+from aerial_loc_env.estimators.patches import reduce_image
 
 
 def test_brief_pattern_is_seeded_inside_its_cells_and_gaussian():
@@ -66,3 +81,31 @@ def test_abbrief_config_checks_the_grid():
         build_config(ABBriefConfig, {"grid_width_px": 8, "keypoints_x": 5})
     with pytest.raises(ConfigError, match="channels"):
         build_config(ABBriefConfig, {"channels": "rgb"})
+
+
+@pytest.mark.parametrize("channels", ["ab", "L", "Lab"])
+@pytest.mark.parametrize("with_nodata", [False, True])
+def test_abbrief_kernel_count_is_bit_identical_to_the_bool_descriptor(channels, with_nodata):
+    """The kernel's count at the pattern's nodes against the whole patch's bool descriptor (the same samples:
+    exact integer counts)."""
+    m = textured_map(300, seed=5)
+    if with_nodata:
+        m.nodata = np.zeros((m.height_px, m.width_px), bool)
+        m.nodata[20:60, 30:90] = True            # near the corner: the true pose keeps its data
+    model = ABBriefModel(ABBriefConfig(channels=channels, grid_width_px=30, grid_height_px=20))
+    model.reset(briefing_standin(m), np.random.default_rng(1))
+    x, y, yaw = m.width_m / 2, m.height_m / 2, -0.7
+    prep = model.prepare(observation(render_frame(m, x, y, yaw), yaw), np.random.default_rng(0))
+    states = np.concatenate([[[x, y, yaw]], particle_states(m)])
+    xi = model.similarity(prep, states, ALT_M)
+    ref = model.similarity_reference(prep, states, ALT_M)
+    np.testing.assert_array_equal(xi, ref)                 # exact integer counts over the same bits
+    assert np.any(xi == 0.5) and xi[0] > 0.8 and int(np.argmax(xi)) == 0
+
+
+@pytest.mark.parametrize("channels", ["ab", "L", "Lab"])
+@pytest.mark.parametrize("size", [(60, 40), (37, 23), (120, 80)])
+def test_reduced_lab_is_bit_identical_to_reducing_the_selected_channels(channels, size):
+    img = render_frame(textured_map(200, seed=6), 50.0, 50.0, 0.2)
+    ref = reduce_image(lab_channels(img, channels), *size)          # (h, w) for one channel: cv2 drops it
+    np.testing.assert_array_equal(reduced_lab(img, channels, *size), ref.reshape(size[1], size[0], -1))

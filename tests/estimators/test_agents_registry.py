@@ -8,6 +8,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import pytest
+from conftest import LATIN1
 from test_dense_models import briefing_standin, textured_map
 
 from aerial_loc_env.config import rng
@@ -16,6 +17,7 @@ from aerial_loc_env.estimators import registry
 from aerial_loc_env.estimators.dead_reckoning import DeadReckoningAgent
 from aerial_loc_env.estimators.mcl.agent import MCLAgent
 from aerial_loc_env.estimators.protocol import Agent, Estimate, parse_observation
+from aerial_loc_env.estimators.registry import load_spec
 
 
 @dataclass(frozen=True)
@@ -153,3 +155,10 @@ def test_dead_reckoning_integrates_the_odometry() -> None:
     y = 20.0 + 80.0 * (1 - math.cos(1.0))
     assert math.hypot(est.x_m - x, est.y_m - y) < 0.05
     assert est.status == "dead_reckoning" and est.std_m > 5.0
+
+
+def test_non_utf8_agent_spec_is_a_clear_error(tmp_path):
+    p = tmp_path / "latin.toml"
+    p.write_bytes(LATIN1)
+    with pytest.raises(ConfigError, match=r"latin\.toml.*UTF-8"):
+        load_spec(p)

@@ -12,7 +12,12 @@ from types import SimpleNamespace
 import cv2
 import numpy as np
 import pytest
-from reference_models import msd, mutual_information, ncc  # noqa: E402  (tests/: the kernels' references)
+from reference_models import (  # tests/: the kernels' references
+    msd,
+    mutual_information,
+    mutual_information_reference,
+    ncc,
+)
 
 from aerial_loc_env.config import build_config
 from aerial_loc_env.errors import ConfigError
@@ -91,6 +96,15 @@ def offset_grid(x_m: float, y_m: float, yaw_rad: float, step_m: float = 2.0, n: 
     states = np.stack([x_m + dx.ravel(), y_m + dy.ravel(), yaw_rad + dyaw.ravel()], axis=1)
     centre = np.flatnonzero((dx.ravel() == 0) & (dy.ravel() == 0) & (dyaw.ravel() == 0))[0]
     return np.concatenate([states[centre:centre + 1], np.delete(states, centre, axis=0)])
+
+
+def particle_states(m, n: int = 150, seed: int = 4) -> np.ndarray:
+    """Particles around the map centre plus some whose footprint leaves the map."""
+    g = np.random.default_rng(seed)
+    cx, cy = m.width_m / 2, m.height_m / 2
+    near = np.column_stack([cx + g.normal(0, 15, n), cy + g.normal(0, 15, n), g.uniform(-np.pi, np.pi, n)])
+    far = np.array([[-40.0, cy, 0.3], [m.width_m + 5, cy, 1.0], [cx, 3.0, -2.0]])
+    return np.concatenate([near, far])
 
 
 # ---------------------------------------------------------------------- similarity functions
@@ -200,3 +214,40 @@ def test_models_refuse_to_run_before_reset_and_a_wrong_image_size():
     model.reset(briefing_standin(textured_map(200)), np.random.default_rng(0))
     with pytest.raises(ConfigError, match="differs"):
         model.prepare(observation(np.zeros((40, 120, 3), np.uint8)), np.random.default_rng(0))
+
+
+def test_mi_from_counts_matches_the_probability_form():
+    """Tolerance: each entropy is a float64 sum of at most B^2 = 256 terms; in the count form the terms are
+    c log c <= K log K and the sum is divided by K, so the rounding is <= 256 K log K eps / K = 256 log K eps
+    (~2.3e-13 nats at K = 2400); the probability form errs alike. 1e-12 nats covers both, 4x over."""
+    g = np.random.default_rng(3)
+    k = 2400
+    ref = cv2.GaussianBlur(g.uniform(0, 255, (40, 60)).astype(np.float32), (0, 0), 1.5).ravel()
+    rows = np.concatenate([ref[None] + g.normal(0, s, (20, k)) for s in (0.0, 5.0, 30.0, 200.0)])
+    rows = np.clip(rows, 0, 255).astype(np.float32)
+    rows[-1] = 0.0                                          # a constant row (an invalid particle's zeros)
+    for bins in (2, 16, 17, 64):
+        np.testing.assert_allclose(mutual_information(rows, ref, bins), mutual_information_reference(rows, ref, bins),
+                                   rtol=0, atol=1e-12)
+    # beyond the gray range: quantization clips to the edge bins alike
+    wild = np.concatenate([rows[:5], rows[:5] * 3 - 300])
+    np.testing.assert_allclose(mutual_information(wild, ref), mutual_information_reference(wild, ref),
+                               rtol=0, atol=1e-12)
+
+
+def test_mi_model_log_likelihoods_match_the_reference_on_the_same_samples():
+    """log L = -(1 - xi)^2 / (2 sigma^2) with xi = MI / H: |d log L| <= |1 - xi| / sigma^2 * dMI / H
+    <= 100 * 1e-12 / H (sigma = 0.1, H ~ 2 nats here): 1e-9 is generous."""
+    m = textured_map(300, seed=2)
+    model = MIModel()
+    model.reset(briefing_standin(m), np.random.default_rng(0))
+    x, y, yaw = m.width_m / 2, m.height_m / 2, 0.4
+    prep = model.prepare(observation(render_frame(m, x, y, yaw), yaw), np.random.default_rng(0))
+    states = particle_states(m)
+    ll = model.log_likelihood(prep, states, ALT_M)
+    patches, valid = model.sampler.sample(states, ALT_M)
+    flat = patches.reshape(len(states), -1)
+    flat[~valid] = 0.0
+    xi = np.where(valid, mutual_information_reference(flat, prep.ref, model.config.bins) / prep.extra[0], 0.0)
+    np.testing.assert_allclose(ll, -np.square(1.0 - xi) / (2.0 * model.config.sigma ** 2), rtol=0, atol=1e-9)
+    assert int(np.argmax(ll)) != len(states) - 1 and np.isfinite(ll).all()

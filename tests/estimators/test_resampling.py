@@ -88,3 +88,35 @@ def test_ess_and_normalization() -> None:
 def test_unknown_scheme_is_a_clear_error() -> None:
     with pytest.raises(ConfigError, match="multinomial"):
         resampling.get_scheme("bogus")
+
+
+def _normalize_reference(log_w: np.ndarray) -> tuple[np.ndarray, float]:
+    """``normalize_log_weights`` as it was: the non-finite values masked to -inf first, always."""
+    lw = np.where(np.isfinite(log_w), log_w, -np.inf)
+    m = float(np.max(lw))
+    if not np.isfinite(m):
+        return np.full(lw.shape[0], 1.0 / lw.shape[0]), -np.inf
+    w = np.exp(lw - m)
+    s = float(w.sum())
+    return w / s, m + float(np.log(s / lw.shape[0]))
+
+
+def test_normalization_skips_the_mask_only_where_it_changes_nothing():
+    """Weights and log-mean (also ``log_mean_weight`` alone) equal the always-masking form bit for bit: finite
+    log-weights of many scales, with -inf, +inf and NaN among them, and none finite."""
+    from aerial_loc_env.estimators.mcl.resampling import log_mean_weight, normalize_log_weights
+
+    g = np.random.default_rng(4)
+    for t in range(300):
+        n = int(g.integers(1, 900))
+        lw = g.normal(g.uniform(-1e3, 1e3), 10 ** g.uniform(-3, 3), n)
+        for bad, p in ((-np.inf, 0.2), (np.inf, 0.01), (np.nan, 0.01)):
+            if t % 4 == 1 or (t % 4 == 2 and bad != -np.inf):
+                lw[g.random(n) < p] = bad
+        if t % 50 == 3:
+            lw[:] = [-np.inf, np.nan][t % 2]
+        W, lm = normalize_log_weights(lw)
+        ref_W, ref_lm = _normalize_reference(lw)
+        np.testing.assert_array_equal(W, ref_W)
+        assert lm == ref_lm or (np.isnan(lm) and np.isnan(ref_lm))
+        assert log_mean_weight(lw) == lm or (np.isnan(lm) and np.isnan(log_mean_weight(lw)))

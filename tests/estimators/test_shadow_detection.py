@@ -12,11 +12,18 @@ from aerial_loc_env.estimators.shadow_detection import (
     INDICES,
     ShadowDetector,
     ShadowDetectorConfig,
+    ShadowMask,
+    _disc,
+    _masked_channel_means,
+    _OpenClose,
     mask_quality,
     oracle_mask,
     restoration_lut,
+    restoration_lut_reference,
     restore,
+    shadow_index,
 )
+from aerial_loc_env.estimators.shadow_detection_kernels import _pairwise_sum
 from aerial_loc_env.world.shadows import apply_shading
 
 
@@ -156,3 +163,161 @@ def test_map_ratio_detector_sees_shadows_the_image_detector_cannot() -> None:
         ious_image.append(mask_quality(ShadowDetector().detect(shadowed).full(), truth)["iou"])
         assert det.detect(frame, x, y, yaw, ALT_M).fraction < 0.02            # sunlit: no shadow
     assert np.mean(ious) > 0.7 and np.mean(ious) > np.mean(ious_image) + 0.2, (ious, ious_image)
+
+
+def test_mask_quality_scores_an_empty_prediction_of_a_shadowed_frame_as_imprecise():
+    from aerial_loc_env.estimators.shadow_detection import mask_quality
+
+    truth = np.zeros((10, 10), bool)
+    truth[:4] = True
+    empty = np.zeros((10, 10), bool)
+    q = mask_quality(empty, truth)
+    assert q["precision"] == 0.0 and q["recall"] == 0.0 and q["iou"] == 0.0
+    assert mask_quality(empty, empty)["precision"] == 1.0
+    assert mask_quality(truth, empty)["precision"] == 0.0 and mask_quality(truth, empty)["recall"] == 1.0
+
+
+def test_luminance_means_from_exact_sums_equal_the_masked_means():
+    g = np.random.default_rng(3)
+    for shape in [(100, 150), (7, 9), (1, 300)]:
+        lum = g.integers(0, 256, shape).astype(np.float32)
+        for p in (0.01, 0.3, 0.9):
+            mask = g.random(shape) < p
+            if not mask.any() or mask.all():
+                continue
+            out_mean, in_mean = _masked_channel_means(lum, mask)
+            assert float(in_mean[0]) == float(lum[mask].mean())
+            assert float(out_mean[0]) == float(lum[~mask].mean())
+            assert ShadowMask(mask, shape).fraction == float(mask.mean())
+
+
+def test_pairwise_sum_is_numpys_float32_sum():
+    """The detector's compiled sum against NumPy's float32 ``mean`` (its pairwise ``add.reduce``), sizes from
+    short runs to above 16 384 (three levels of halving), bit for bit."""
+    g = np.random.default_rng(0)
+    for t in range(600):
+        n = int(g.integers(1, 40000)) if t % 3 else int(g.integers(1, 300))
+        a = (g.random(n) * g.uniform(0.1, 300)).astype(np.float32)
+        assert np.float32(_pairwise_sum(a, 0, n)) / np.float32(n) == a.mean()
+
+
+def _detect_reference(det: ShadowDetector, image: np.ndarray) -> np.ndarray:
+    """The detector as it was (before its compiled passes): the float32 index image from ``shadow_index``,
+    NumPy's masked (``compress``) float32 means; the mask (h, w) bool."""
+    small = det.reduce(image)
+    idx, lum, c3 = shadow_index(small, det.config.index)
+    idx8 = np.clip(idx * 255.0, 0, 255).astype(np.uint8)
+    _, binary = cv2.threshold(idx8, 0, 1, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
+    mask = binary.astype(bool)
+    if not mask.any() or mask.all():
+        return np.zeros(mask.shape, bool)
+    inside, outside = mask.ravel(), ~mask.ravel()
+    ratio = float(np.compress(inside, lum).mean()) / max(float(np.compress(outside, lum).mean()), 1e-6)
+    bluer = c3 is None or (float(np.compress(inside, c3).mean()) - float(np.compress(outside, c3).mean())
+                           >= det.config.min_blue_shift)
+    if ratio > det.config.max_luminance_ratio or not bluer:
+        return np.zeros(mask.shape, bool)
+    return _open_close_reference(binary, det.config.open_px, det.config.close_px)
+
+
+def _open_close_reference(binary: np.ndarray, open_px: int, close_px: int) -> np.ndarray:
+    """The detectors' morphology as it was: OpenCV's opening, then closing, by discs; the mask as bool."""
+    if open_px > 0:
+        binary = cv2.morphologyEx(binary, cv2.MORPH_OPEN, _disc(open_px))
+    if close_px > 0:
+        binary = cv2.morphologyEx(binary, cv2.MORPH_CLOSE, _disc(close_px))
+    return binary.astype(bool)
+
+
+@pytest.mark.parametrize("radii", [(1, 1), (0, 1), (1, 0), (0, 0), (2, 3), (5, 1), (12, 7)])
+def test_compiled_opening_and_closing_are_opencvs(radii):
+    """``_OpenClose`` against ``cv2.morphologyEx`` with the same discs: masks of many sizes (down to one pixel,
+    one row, one column, smaller than the disc), densities and blob sizes, specks and holes at the borders."""
+    op = _OpenClose(*radii)
+    g = np.random.default_rng(sum(radii) + 10 * radii[0])
+    for t in range(60):
+        h, w = (int(v) for v in g.integers(1, 160, 2)) if t % 4 else [(1, 1), (1, 57), (43, 1), (3, 4)][t // 4 % 4]
+        mask = g.random((h, w)) < g.uniform(0.02, 0.98)
+        if t % 2:                                    # blobs: a blurred field thresholded
+            mask = cv2.GaussianBlur(g.random((h, w)).astype(np.float32), (0, 0), 1 + t % 5) > 0.5
+        binary = mask.astype(np.uint8)
+        out = op(binary)
+        assert out.dtype == np.bool_ and out.shape == (h, w)
+        np.testing.assert_array_equal(out, _open_close_reference(binary, *radii))
+        np.testing.assert_array_equal(binary, mask)          # the input is left as it was
+
+
+@pytest.mark.parametrize("index", ["c3_luminance", "c3", "luminance", "tsai"])
+@pytest.mark.parametrize("scale", [0.25, 0.7])
+def test_detector_kernels_keep_the_masks_of_the_numpy_path(index, scale):
+    """The compiled index/quantization and class statistics against the NumPy path (masked means; exact for
+    8-bit luminance sums below 2^24, pairwise float32 above: scale 0.7 of a 600 x 400 frame is 117 600 px),
+    over frames with darkened, blued shadows of many sizes and strengths, and frames without."""
+    g = np.random.default_rng(9)
+    det = ShadowDetector(ShadowDetectorConfig(index=index, scale=scale))
+    decided = 0
+    for k in range(24):
+        img = cv2.GaussianBlur(g.normal(120, 40, (400, 600, 3)), (0, 0), 1 + k % 4)
+        img = np.clip(img, 0, 255).astype(np.uint8)
+        if k % 6:
+            y0, x0 = g.integers(0, 300, 2)
+            gain = np.array([0.3, 0.35, 0.5]) + g.uniform(0, 0.4)
+            img[y0:y0 + 40 + 8 * k, x0:x0 + 300] = (img[y0:y0 + 40 + 8 * k, x0:x0 + 300] * gain).astype(np.uint8)
+        mask = det.detect(img).mask
+        np.testing.assert_array_equal(mask, _detect_reference(det, img))
+        decided += bool(mask.any())
+    assert (1 if index == "tsai" else 6) <= decided <= 22   # shadows found on shadowed frames, not on all frames
+
+
+def test_quarter_reduction_is_cv2_resize():
+    """The default scale's reduction (1/4 of a frame whose sides are multiples of 4) against ``cv2.resize``'s
+    bilinear result: random bytes over every value, frames from 4 x 4 up, and the detector's ``reduce`` still
+    OpenCV's at other scales and sizes."""
+    from aerial_loc_env.estimators.shadow_detection_kernels import _quarter
+
+    g = np.random.default_rng(12)
+    for h, w in [(400, 600), (4, 4), (8, 12), (404, 604), (1200, 1600), (36, 4), (4, 88)]:
+        img = g.integers(0, 256, (h, w, 3)).astype(np.uint8)
+        ref = cv2.resize(img, (w // 4, h // 4), interpolation=cv2.INTER_LINEAR)
+        np.testing.assert_array_equal(_quarter(img), ref)
+        np.testing.assert_array_equal(ShadowDetector(ShadowDetectorConfig(scale=0.25)).reduce(img), ref)
+    img = g.integers(0, 256, (402, 600, 3)).astype(np.uint8)
+    for scale in (0.25, 0.3, 0.5):
+        size = (round(600 * scale), round(402 * scale))
+        np.testing.assert_array_equal(ShadowDetector(ShadowDetectorConfig(scale=scale)).reduce(img),
+                                      cv2.resize(img, size, interpolation=cv2.INTER_LINEAR))
+
+
+def test_c3_table_holds_the_invariant_of_every_pixel():
+    """The detector looks c3 up by (B, max(R, G)); NumPy's ``arctan2`` gives those floats wherever the pixel
+    sits in the frame (frames of many sizes, every 8-bit value)."""
+    from aerial_loc_env.estimators.shadow_detection import _c3_table, c3_invariant
+
+    table = _c3_table()
+    g = np.random.default_rng(1)
+    for _ in range(100):
+        h, w = g.integers(1, 130, 2)
+        rgb = g.integers(0, 256, (h, w, 3)).astype(np.uint8)
+        np.testing.assert_array_equal(table[rgb[..., 2], np.maximum(rgb[..., 0], rgb[..., 1])], c3_invariant(rgb))
+
+
+def test_detector_refuses_a_reduced_frame_the_c3_table_cannot_index():
+    """The kernel looks c3 up by byte values, unchecked: a reduced frame passed in must be (h, w, 3) uint8 too."""
+    det = ShadowDetector(ShadowDetectorConfig())
+    img = np.full((40, 60, 3), 100, np.uint8)
+    for small in (np.full((10, 15, 3), 300, np.int32), np.zeros((10, 15, 3), np.float32), np.zeros((10, 15), np.uint8)):
+        with pytest.raises(ConfigError, match="reduced frame"):
+            det.detect(img, small=small)
+
+
+@pytest.mark.parametrize("method", ["gain", "equalize"])
+def test_restoration_lut_is_bit_identical_to_the_reference(method):
+    """Exact integer sums and counts (8-bit values, fewer than 2^24 / 255 pixels) divided as NumPy divides."""
+    g = np.random.default_rng(8)
+    for trial in range(200):
+        h, w = g.integers(3, 110, 2)
+        img = g.integers(0, 256, (h, w, 3)).astype(np.uint8)
+        if trial % 2:
+            img //= np.uint8(g.integers(2, 40))            # dark, narrow histograms
+        mask = g.random((h, w)) < g.random()
+        np.testing.assert_array_equal(restoration_lut(img, mask, method), restoration_lut_reference(img, mask, method))

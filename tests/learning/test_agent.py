@@ -3,8 +3,12 @@ the one whose briefing it was reset with, instead of answering 'ok' with a camer
 
 from __future__ import annotations
 
+import shutil
+import zipfile
+
 import gymnasium as gym
 import pytest
+from conftest import REPO_ROOT
 
 import aerial_loc_env.env  # noqa: F401  (registers the scenarios)
 from aerial_loc_env.errors import ConfigError
@@ -48,3 +52,22 @@ def test_frames_of_another_altitude_are_refused(briefed) -> None:
     agent, _env, _obs = briefed
     with pytest.raises(ConfigError, match=r"altitude 2\d\d\.\d m is outside the 50\.0-200\.0 m LearnedAgent"):
         agent.step(_first_frame(altitude_m=230.0))
+
+
+def test_truncated_model_zip_is_a_clear_error(tmp_path):
+    pytest.importorskip("stable_baselines3")
+    src = REPO_ROOT / "aerial_loc_env" / "models" / "ppo-local-registration"
+    if not (src / "model.zip").is_file():
+        pytest.skip("the shipped model is absent")
+    shutil.copy(src / "training.json", tmp_path / "training.json")
+    data = (src / "model.zip").read_bytes()
+    (tmp_path / "model.zip").write_bytes(data[: len(data) // 2])
+    with pytest.raises(ConfigError, match=r"model\.zip.*(truncated|corrupt)"):
+        make_agent("ppo-local-registration", model=str(tmp_path / "model.zip"))
+    with zipfile.ZipFile(src / "model.zip") as zin, zipfile.ZipFile(tmp_path / "m2.zip", "w") as zout:
+        for item in zin.infolist():
+            if item.filename != "policy.pth":
+                zout.writestr(item, zin.read(item.filename))
+    shutil.copy(tmp_path / "m2.zip", tmp_path / "model.zip")
+    with pytest.raises(ConfigError, match=r"model\.zip"):
+        make_agent("ppo-local-registration", model=str(tmp_path / "model.zip"))

@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
 from aerial_loc_env.config import build_config
 from aerial_loc_env.errors import ConfigError
-from aerial_loc_env.sensors.camera import CameraModel, Pose, apply_affine, invert_affine
+from aerial_loc_env.sensors.camera import CameraModel, Pose, apply_affine, invert_affine, world_to_map_affine
 
 
 @dataclass(frozen=True)
@@ -112,3 +113,49 @@ def test_bad_altitude_is_rejected():
         CameraModel().gsd_m(0.0)
     with pytest.raises(ConfigError, match="altitude_m"):
         CameraModel().camera_to_world(0, 0, 0, [100.0, float("nan")])
+
+
+def _camera_to_world_reference(cam: CameraModel, x_m, y_m, yaw_rad, altitude_m) -> np.ndarray:
+    """The replaced entry: every argument broadcast to a float64 array first (the altitude too, so the pixel
+    size is an array) before the per-element arithmetic, which is unchanged."""
+    return cam.camera_to_world(*np.broadcast_arrays(*(np.asarray(a, dtype=np.float64)
+                                                      for a in (x_m, y_m, yaw_rad, altitude_m))))
+
+
+def _camera_to_map_reference(cam: CameraModel, grid, *pose) -> np.ndarray:
+    to_world = _camera_to_world_reference(cam, *pose)
+    hom = np.zeros(to_world.shape[:-2] + (3, 3))
+    hom[..., :2, :] = to_world
+    hom[..., 2, 2] = 1.0
+    return world_to_map_affine(grid) @ hom
+
+
+@pytest.mark.parametrize("gsd_xy", [(0.25, 0.25), (0.3, 0.21), (1.0, 0.5)])
+def test_camera_to_map_is_the_composed_affine_bit_for_bit(gsd_xy):
+    cam = CameraModel(width_px=640, height_px=360, hfov_deg=50.0, pixel_aspect=1.1)
+    grid = SimpleNamespace(gsd_x_m=gsd_xy[0], gsd_y_m=gsd_xy[1], height_px=1234)
+    g = np.random.default_rng(7)
+    n = 5000
+    x, y, yaw = g.uniform(-50, 900, n), g.uniform(-50, 900, n), g.uniform(-4, 4, n)
+    alts = g.uniform(50, 400, n)
+    cases = [(x, y, yaw, 200.0), (x, y, yaw, 173), (x, y, yaw, np.float64(88.8)), (x, y, yaw, alts),
+             (x[0], y[0], yaw[0], 150.0), (x[:7], 42.0, yaw[:7], 120.0), (1.0, 2.0, yaw[:3], alts[:3]),
+             (x.reshape(50, 100), y.reshape(50, 100), yaw.reshape(50, 100), np.array(210.0))]
+    for pose in cases:
+        ref = _camera_to_map_reference(cam, grid, *pose)
+        out = cam.camera_to_map(grid, *pose)
+        assert out.shape == ref.shape
+        np.testing.assert_array_equal(out, ref)
+        np.testing.assert_array_equal(cam.camera_to_world(*pose), _camera_to_world_reference(cam, *pose))
+
+
+def test_gsd_of_a_plain_number_equals_the_array_path_and_bad_altitudes_still_fail():
+    cam = CameraModel()
+    for alt in (200, 200.0, 57.3, np.float64(123.4), 1e-3, 19999.9):
+        assert cam.gsd_m(alt) == float(cam.gsd_m(np.array([alt]))[0])
+        assert isinstance(cam.gsd_m(alt), float)
+    for bad in (0.0, -5.0, float("nan"), float("inf"), 0):
+        with pytest.raises(ConfigError, match="altitude_m"):
+            cam.gsd_m(bad)
+        with pytest.raises(ConfigError, match="altitude_m"):
+            cam.camera_to_map(SimpleNamespace(gsd_x_m=1.0, gsd_y_m=1.0, height_px=10), 0.0, 0.0, 0.0, bad)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import pickle
 from collections.abc import Callable
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -248,3 +249,16 @@ def test_concurrent_writer_race_is_a_clear_error(tmp_path, monkeypatch):
     monkeypatch.undo()
     assert np.array_equal(Orthomap.load_bundle(tmp_path / "race.alm").rgb, make_map(seed=9).rgb)
     assert [p.name for p in tmp_path.iterdir()] == ["race.alm"]
+
+
+@pytest.mark.parametrize("layers", [[1, 2], {"rgb": "x.npy"}, {"rgb": {"file": "rgb.npy"}}, "rgb"])
+def test_bundle_with_malformed_layers_is_a_map_error(tmp_path, layers):
+    om = Orthomap(np.zeros((20, 30, 3), np.uint8), 1.0, 1.0,
+                  __import__("aerial_loc_env.world.maps.geo", fromlist=["x"]).LocalTangentGeoref.centered(
+                      0.0, 0.0, 30, 20, 1.0, 1.0), name="m")
+    path = om.save_bundle(tmp_path / "m.alm")
+    meta = json.loads((Path(path) / "meta.json").read_text())
+    meta["layers"] = layers
+    (Path(path) / "meta.json").write_text(json.dumps(meta))
+    with pytest.raises(MapError, match=r"meta\.json.*layers"):
+        Orthomap.load_bundle(path)

@@ -3,12 +3,16 @@
 from __future__ import annotations
 
 import math
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 import tifffile
+from conftest import REPO_ROOT, crop_png
 
 from aerial_loc_env.errors import MapError
 from aerial_loc_env.world.maps.geo import LocalTangentGeoref, WorldMercatorGeoref, mercator_scale_factor
@@ -292,3 +296,80 @@ def test_planar_grey_tiff_and_jpeg_world_file(tmp_path):
     om = load_orthomap(tmp_path / "photo.jpg", crs="EPSG:3395")
     assert np.abs(om.rgb.astype(int) - smooth).mean() < 3            # RGB order kept (JPEG is lossy)
     assert om.georef == load_orthomap(write_geotiff(tmp_path / "ref.tif", img)).georef
+
+
+US_FT_M = 1200.0 / 3937.0          # one US survey foot in metres
+
+
+def _tmerc_us_ft_wkt(lat0: float, lon0: float) -> str:
+    """A transverse Mercator CRS in US survey feet, as ESRI-style WKT without an EPSG authority."""
+    pyproj = pytest.importorskip("pyproj")
+    crs = pyproj.CRS.from_proj4(f"+proj=tmerc +lat_0={lat0} +lon_0={lon0} +k=1 +x_0=0 +y_0=0 +ellps=WGS84 "
+                                "+units=us-ft +no_defs")
+    return crs.to_wkt(pyproj.enums.WktVersion.WKT1_ESRI)
+
+
+def test_image_over_opencvs_pixel_limit_is_a_map_error(tmp_path):
+    png = tmp_path / "big.png"
+    cv2.imwrite(str(png), np.full((40, 50, 3), 128, np.uint8))
+    code = ("import sys\nfrom aerial_loc_env.world.maps.io import load_orthomap\nfrom aerial_loc_env.errors import "
+            "MapError\ntry:\n    load_orthomap(sys.argv[1], gsd_m=1.0)\nexcept MapError as e:\n"
+            "    print('MAPERROR', e)\n")
+    env = {**os.environ, "OPENCV_IO_MAX_IMAGE_PIXELS": "1000", "PYTHONPATH": str(REPO_ROOT)}
+    res = subprocess.run([sys.executable, "-c", code, str(png)], capture_output=True, text=True, env=env,
+                         timeout=120)
+    assert "Traceback" not in res.stderr, res.stderr[-2000:]
+    assert "MAPERROR" in res.stdout and "big.png" in res.stdout and "2000" in res.stdout, res.stdout
+
+
+@pytest.mark.parametrize("pixel, crs", [(1e9, "EPSG:32633"), (1e-7, "EPSG:32633"), (5.0, "EPSG:4326")])
+def test_world_file_pixel_size_absurd_for_its_crs(tmp_path, pixel, crs):
+    png = tmp_path / "m.png"
+    cv2.imwrite(str(png), np.full((40, 50, 3), 128, np.uint8))
+    north = 5_000_000.0 if crs != "EPSG:4326" else 45.0
+    east = 500_000.0 if crs != "EPSG:4326" else 10.0
+    (tmp_path / "m.pgw").write_text(f"{pixel}\n0\n0\n{-pixel}\n{east}\n{north}\n")
+    with pytest.raises(MapError, match=r"m\.pgw.*pixel size"):
+        load_orthomap(png, crs=crs)
+
+
+def test_world_file_in_us_survey_feet_with_a_prj(manila, tmp_path):
+    """A world file in US survey feet with its .prj: the map loads at the true ground scale (not 3.28x)."""
+    png, lat, lon = crop_png(manila, tmp_path)
+    gsd_m = float(manila.gsd_x_m)                    # ~0.097 m on the ground
+    px_ft = gsd_m / US_FT_M
+    (tmp_path / "crop.prj").write_text(_tmerc_us_ft_wkt(lat, lon))
+    # the crop centre is the projection origin: top-left pixel centre at (-255.5, +255.5) pixels
+    (tmp_path / "crop.pgw").write_text(f"{px_ft}\n0\n0\n{-px_ft}\n{-255.5 * px_ft}\n{255.5 * px_ft}\n")
+    om = load_orthomap(png)
+    assert om.gsd_x_m == pytest.approx(gsd_m, rel=1e-3) and om.gsd_y_m == pytest.approx(gsd_m, rel=1e-3)
+    assert "crop.prj" in om.source
+    c_lat, c_lon = om.world_to_latlon(om.width_m / 2, om.height_m / 2)
+    assert math.hypot((float(np.ravel(c_lat)[0]) - lat) * 111_000.0,
+                      (float(np.ravel(c_lon)[0]) - lon) * 111_000.0 * math.cos(math.radians(lat))) < 0.5
+    # following the old fixed hint (crs='EPSG:3395') now fails, naming the .prj, instead of a 3.25x map
+    with pytest.raises(MapError, match=r"crs='EPSG:3395'.*crop\.prj"):
+        load_orthomap(png, crs="EPSG:3395")
+
+
+def test_world_file_crs_from_an_aux_xml(manila, tmp_path):
+    png, lat, lon = crop_png(manila, tmp_path)
+    t = manila.georef.pixel_to_crs                 # World Mercator, as in the source GeoTIFF
+    v0 = u0 = (manila.width_px - 512) // 2 + 200
+    c, f = t[0] * u0 + t[2], t[4] * v0 + t[5]
+    (tmp_path / "crop.pgw").write_text(f"{t[0]}\n0\n0\n{t[4]}\n{c}\n{f}\n")
+    (tmp_path / "crop.png.aux.xml").write_text('<PAMDataset>\n  <SRS dataAxisToSRSAxisMapping="1,2">PROJCS["WGS 84 / '
+                                              'World Mercator",AUTHORITY["EPSG","3395"]]</SRS>\n</PAMDataset>\n')
+    om = load_orthomap(png)
+    assert om.gsd_x_m == pytest.approx(manila.gsd_x_m, rel=1e-3)
+    assert om.georef.crs == "EPSG:3395"
+
+
+def test_world_file_without_crs_suggests_how_to_find_it(tmp_path):
+    png = tmp_path / "m.png"
+    cv2.imwrite(str(png), np.full((40, 50, 3), 128, np.uint8))
+    (tmp_path / "m.pgw").write_text("0.5\n0\n0\n-0.5\n1000000.0\n200000.0\n")
+    with pytest.raises(MapError) as err:
+        load_orthomap(png)
+    msg = str(err.value)
+    assert ".prj" in msg and "gdalsrsinfo" in msg and "EPSG:3395" not in msg
