@@ -164,7 +164,7 @@ class ShadowDetector:
         The index, its 8-bit quantization and the two classes' statistics after Otsu are two compiled passes
         (``_index8``, ``_split_stats``) around OpenCV's threshold: the same floats as NumPy's element-wise
         float32 arithmetic, exact integer luminance sums, and NumPy's pairwise float32 sums for the c3 means
-        (tests/estimators/test_mcl_step_speedups.py checks the masks against the NumPy path over many frames)."""
+        (tests/estimators/test_shadow_detection.py checks the masks against the NumPy path over many frames)."""
         img = _rgb8(image, "frame")
         small = self.reduce(img) if small is None else _rgb8(small, "reduced frame")   # (the c3 table: bytes only)
         index = self.config.index

@@ -69,7 +69,7 @@ class OdometryMotionModel:
         in the same order, as one ``rng.normal(0, std, n)`` call per noise term (``normal`` is
         ``0 + std * z`` over the same stream), without the fixed cost of four calls on N = 700. The headings'
         cos and sin are NumPy's; the rest is one compiled pass (``_move``: the same float operations, in the same
-        order, as the NumPy expressions it replaced, tests/estimators/test_mcl_step_speedups.py).
+        order, as the NumPy expressions it replaced, tests/estimators/test_motion.py).
         """
         n = states.shape[0]
         k, dt = self.noise_scale, self.dt_s
