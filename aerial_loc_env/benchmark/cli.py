@@ -1,5 +1,6 @@
 """``aerial-loc bench [EXPERIMENT]``: run an experiment grid, print the table, write CSV/JSON, a Markdown
-report and plots. With no argument it runs the default comparison on the embedded procedural city.
+report and plots. With no argument it runs the default comparison on the embedded procedural city: the paper's
+setting (AerialLoc/PaperShadows-v1) beside the realistic map-camera gap (AerialLoc/RealisticPaper-v1).
 
 Results go to ``results/<experiment>/`` (``--out``): ``trials.jsonl`` (the source of truth, appended as each
 episode ends), ``trials.csv`` / ``trials.json`` (derived), ``report.md`` and PNG plots. A re-run skips the
@@ -20,7 +21,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from aerial_loc_env.benchmark.grid import Grid, ScenarioEntry, available_experiments, check_scenarios, load_grid
-from aerial_loc_env.benchmark.report import markdown_report, paper_sections, summarize, summary_table
+from aerial_loc_env.benchmark.report import detector_table, markdown_report, paper_sections, summarize, summary_table
 from aerial_loc_env.benchmark.runner import run_grid
 from aerial_loc_env.benchmark.store import TrialStore
 from aerial_loc_env.errors import ConfigError
@@ -48,6 +49,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--executor", default="local", choices=("local", "ray"),
                     help="where episodes run: local processes, or Ray (RAY_ADDRESS or a local instance)")
     ap.add_argument("--seeds", type=int, metavar="N", help="use only the first N seeds of the experiment")
+    ap.add_argument("--detector-quality", action="store_true",
+                    help="score the image shadow detector against the simulator's masks (a report section)")
     ap.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     ap.add_argument("--quiet", action="store_true", help="no progress bar")
     ap.add_argument("--list", action="store_true", help="list the experiments and exit")
@@ -64,6 +67,8 @@ def main(argv: list[str] | None = None) -> int:
         if args.seeds < 1:
             ap.error("--seeds must be >= 1")
         grid = dataclasses.replace(grid, seeds=grid.seeds[: args.seeds])
+    if args.detector_quality:
+        grid = dataclasses.replace(grid, detector_quality=True)
     out = Path(args.out or Path("results") / grid.name)
     try:
         out.mkdir(parents=True, exist_ok=True)
@@ -80,6 +85,9 @@ def main(argv: list[str] | None = None) -> int:
     elapsed = time.monotonic() - t0
     print()
     print(summary_table(summarize(rows)))
+    if any("detector_iou" in r for r in rows):
+        print()
+        print(detector_table(rows))
     for section in paper_sections(grid.paper, rows):
         print()
         print(section)
@@ -111,13 +119,22 @@ def write_report(grid: Grid, rows: Sequence[dict], out: Path, *, plots: bool = T
 
 
 def _with_and_without_shadows(grid: Grid) -> list[ScenarioEntry]:
-    """The grid's first two scenarios, or its only one beside a shadow-free twin (same track for a seed)."""
+    """The grid's first two scenarios when they are one ground in two conditions (the same id, or one of them
+    shadow-free), else the first beside its shadow-free twin (same track for a seed)."""
     if len(grid.scenarios) >= 2:
-        return list(grid.scenarios[:2])
+        first, second = grid.scenarios[:2]
+        if first.id == second.id or _shadow_free(first) or _shadow_free(second):
+            return [first, second]
     s = grid.scenarios[0]
     twin = ScenarioEntry(s.id, {**s.overrides, "shadows.strength_range": [0.0, 0.0]},
                          f"{s.display}, no shadows")
     return [s, twin]
+
+
+def _shadow_free(scenario: ScenarioEntry) -> bool:
+    from aerial_loc_env.env import load_scenario
+
+    return max(load_scenario(scenario.id, scenario.overrides).shadows.strength_range) == 0.0
 
 
 def _plots(grid: Grid, rows: Sequence[dict], out: Path) -> list[str]:

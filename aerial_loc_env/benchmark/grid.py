@@ -9,6 +9,7 @@ An experiment spec::
     plots = ["error_vs_time", "rmse_vs_n_pairs"]
     converge_threshold_m = "auto"             # the default: min(footprint width / 15, prior sigma) per
                                               # scenario (the paper's 10 m); diverge_threshold_m: 5x that
+    detector_quality = false                  # true: score the image shadow detector against the true masks
 
     [[agents]]
     name = "mcl-conventional"                 # agents/<name>.toml
@@ -42,8 +43,9 @@ from aerial_loc_env.errors import ConfigError
 
 EXPERIMENT_DIR = Path(__file__).resolve().parent / "experiments"
 PLOTS = ("error_vs_time", "track", "likelihood", "shadow_pairs")  # plus "rmse_vs_<param>"
-#: the paper's tables an experiment may ask for (``paper = [...]``); report.PAPER_SECTIONS builds each
-PAPER_SECTION_NAMES = ("table5", "table9", "sweeps", "global")
+#: the report sections an experiment may ask for (``paper = [...]``): the paper's tables, and "comparison" (every
+#: agent on every scenario side by side); report.PAPER_SECTIONS builds each
+PAPER_SECTION_NAMES = ("table5", "table9", "sweeps", "global", "comparison")
 
 
 def nest_params(params: Mapping[str, Any]) -> dict[str, Any]:
@@ -140,6 +142,9 @@ class Grid:
     diverge_threshold_m: float | None = None
     plots: tuple[str, ...] = ("error_vs_time",)
     paper: tuple[str, ...] = ()
+    #: score the image shadow detector against the simulator's masks (report section, row columns); trials
+    #: stored without it keep their rows (the option is not part of a trial's identity)
+    detector_quality: bool = False
 
     def trials(self) -> int:
         return len(self.agents) * len(self.scenarios) * len(self.seeds)
@@ -215,6 +220,13 @@ def _seeds(value: Any, where: str) -> tuple[int, ...]:
                       "or {start = 0, count = N}")
 
 
+def _flag(data: Mapping[str, Any], key: str, where: str) -> bool:
+    value = data.get(key, False)
+    if not isinstance(value, bool):
+        raise ConfigError(f"{where}: {key} = {value!r} must be true or false")
+    return value
+
+
 def _threshold(data: Mapping[str, Any], key: str, where: str) -> float | None:
     """A fixed threshold in metres, or None (absent or "auto"): scaled with each scenario."""
     value = data.get(key, "auto")
@@ -242,7 +254,7 @@ def grid_from_dict(data: Mapping[str, Any], where: str = "experiment", base_dir:
     """A grid from a mapping laid out like an experiment spec (see the module docstring); a relative
     ``map.path`` in scenario overrides is relative to ``base_dir`` (the experiment file's folder) when given."""
     allowed = {"name", "description", "agents", "scenarios", "seeds", "converge_threshold_m",
-               "diverge_threshold_m", "plots", "paper"}
+               "diverge_threshold_m", "plots", "paper", "detector_quality"}
     unknown = set(data) - allowed
     if unknown:
         raise ConfigError(f"{where}: unknown key(s) {sorted(unknown)}; allowed: {sorted(allowed)}")
@@ -288,6 +300,7 @@ def grid_from_dict(data: Mapping[str, Any], where: str = "experiment", base_dir:
         diverge_threshold_m=diverge,
         plots=plots,
         paper=paper,
+        detector_quality=_flag(data, "detector_quality", where),
     )
 
 

@@ -109,6 +109,26 @@ def summary_table(summaries: Sequence[dict]) -> str:
     return "\n".join(lines)
 
 
+def detector_table(rows: Sequence[dict]) -> str:
+    """The image shadow detector against the simulator's masks (a grid's ``detector_quality``), per scenario:
+    IoU, precision, recall and the true / detected shadow fractions, means over the episodes (each episode once,
+    whichever agents ran on it) of the means over their frames."""
+    from aerial_loc_env.benchmark.episodes import DETECTOR_COLUMNS
+
+    episodes: dict[str, dict[int, dict]] = {}
+    for r in rows:
+        if r.get("detector_iou") is not None:
+            episodes.setdefault(r["scenario"], {}).setdefault(r["seed"], r)
+    columns = tuple(DETECTOR_COLUMNS.values())
+    lines = ["## Shadow detector against the true masks (image alone, default config)", "",
+             "| scenario | episodes | IoU | precision | recall | shadow fraction true | detected |",
+             "|---|" + "---|" * 6]
+    for scenario, by_seed in episodes.items():
+        means = [_nanmean(r.get(c) for r in by_seed.values()) for c in columns]
+        lines.append(f"| {scenario} | {len(by_seed)} | " + " | ".join(_fmt(m, 3) for m in means) + " |")
+    return "\n".join(lines) + "\n"
+
+
 def markdown_report(title: str, description: str, rows: Sequence[dict], machine: str,
                     extra_sections: Sequence[str] = ()) -> str:
     seeds = sorted({r["seed"] for r in rows})
@@ -130,6 +150,8 @@ def markdown_report(title: str, description: str, rows: Sequence[dict], machine:
              "machine); 'shadow pairs / K' is the mean fraction of the K pixel pairs with one end in "
              "detected shadow.", "",
              summary_table(summarize(rows)), ""]
+    if any("detector_iou" in r for r in rows):
+        parts += [detector_table(rows), ""]
     parts.extend(extra_sections)
     return "\n".join(parts)
 
@@ -192,7 +214,23 @@ def _table5_one(scenario: str, rows: Sequence[dict]) -> str:
 
 
 def table9(rows: Sequence[dict]) -> str:
-    """Tables 6 and 9: RMSE without / with shadows and computation time per measurement model."""
+    """Tables 6 and 9: RMSE without / with shadows and computation time per measurement model.
+
+    The shadow-free and the shadowed trials are pooled over the grid's scenarios (the paper's pair: a
+    scenario without and one with shadows); a grid with more than one scenario with shadows (the paper's
+    setting beside the realistic gap) gets one table per scenario instead, so no cell pools two settings.
+    """
+    shadowed = {r["scenario"] for r in rows if r["agent_spec"]["name"] in TABLE9_COLUMNS
+                and r.get("shadow_fraction_mean", 0) > 0}
+    if len(shadowed) > 1:
+        by_scenario: dict[str, list[dict]] = {}
+        for r in rows:
+            by_scenario.setdefault(r["scenario"], []).append(r)
+        return "\n".join(_table9_one(rs, f" ({scenario})") for scenario, rs in by_scenario.items())
+    return _table9_one(rows)
+
+
+def _table9_one(rows: Sequence[dict], title: str = "") -> str:
     cols: dict[str, dict[str, list[dict]]] = {}
     for r in rows:
         col = TABLE9_COLUMNS.get(r["agent_spec"]["name"])
@@ -201,9 +239,9 @@ def table9(rows: Sequence[dict]) -> str:
         cond = "with" if r.get("shadow_fraction_mean", 0) > 0 else "without"
         cols.setdefault(col, {}).setdefault(cond, []).append(r)
     if not cols:
-        return "## Tables 6 and 9\n\nNo trials of the paper's measurement models.\n"
+        return f"## Tables 6 and 9{title}\n\nNo trials of the paper's measurement models.\n"
     names = [c for c in PAPER_TABLE9 if c in cols]
-    lines = ["## Tables 6 and 9: ours / paper", "",
+    lines = [f"## Tables 6 and 9{title}: ours / paper", "",
              "| | " + " | ".join(names) + " |", "|---|" + "---|" * len(names)]
 
     def row(label: str, fn: Callable[[str], str]) -> None:
@@ -270,9 +308,31 @@ def global_table(rows: Sequence[dict]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def comparison_table(rows: Sequence[dict]) -> str:
+    """Every agent on every scenario side by side (e.g. the paper's setting beside the realistic gap): RMSE /
+    p95 [m] and converged trials per scenario, agents ordered by their worst RMSE over the scenarios."""
+    cells = {(s["agent"], s["scenario"]): s for s in summarize(rows)}
+    scenarios = list(dict.fromkeys(r["scenario"] for r in rows))
+    agents = sorted(dict.fromkeys(r["agent"] for r in rows), key=lambda a: max(
+        (cells[a, s]["rmse_m"] for s in scenarios if (a, s) in cells), default=math.inf))
+    trials = {s: sorted({cells[a, s]["trials"] for a in agents if (a, s) in cells}) for s in scenarios}
+    lines = ["## Scenarios side by side: RMSE / p95 [m] over all steps, trials converged", "",
+             "| agent | " + " | ".join(f"{s}: RMSE / p95 [m] | converged ({'/'.join(map(str, trials[s]))} trials)"
+                                      for s in scenarios) + " |",
+             "|---|" + "---|---|" * len(scenarios)]
+    for a in agents:
+        vals = []
+        for s in scenarios:
+            c = cells.get((a, s))
+            vals += ["-", "-"] if c is None else [f"{_fmt(c['rmse_m'])} / {_fmt(c['p95_error_m'])}",
+                                                  f"{round(c['converged_frac'] * c['trials'])}/{c['trials']}"]
+        lines.append(f"| {a} | " + " | ".join(vals) + " |")
+    return "\n".join(lines) + "\n"
+
+
 #: paper-section name (grid.PAPER_SECTION_NAMES, which experiment specs list) -> builder
 PAPER_SECTIONS: dict[str, Callable[[Sequence[dict]], str]] = dict(zip(
-    PAPER_SECTION_NAMES, (table5, table9, sweep_tables, global_table), strict=True))
+    PAPER_SECTION_NAMES, (table5, table9, sweep_tables, global_table, comparison_table), strict=True))
 
 
 def paper_sections(names: Iterable[str], rows: Sequence[dict]) -> list[str]:
