@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
+import os
 import pickle
 from collections.abc import Callable
 from pathlib import Path
@@ -11,9 +13,10 @@ import numpy as np
 import pytest
 
 from aerial_loc_env.errors import MapError
+from aerial_loc_env.world.maps import orthomap as om_mod
 from aerial_loc_env.world.maps.geo import LocalTangentGeoref, WorldMercatorGeoref
 from aerial_loc_env.world.maps.landcover import LandCover, colorize_classes
-from aerial_loc_env.world.maps.orthomap import Orthomap
+from aerial_loc_env.world.maps.orthomap import Orthomap, add_bundle_checksums
 
 H, W = 60, 80
 
@@ -232,8 +235,6 @@ def test_landcover_palette():
 
 def test_concurrent_writer_race_is_a_clear_error(tmp_path, monkeypatch):
     """Two processes caching the same bundle: the loser gets a MapError, the winner's bundle stays whole."""
-    import aerial_loc_env.world.maps.orthomap as om_mod
-
     real_replace = om_mod.os.replace
     state = {"raced": False}
 
@@ -261,4 +262,102 @@ def test_bundle_with_malformed_layers_is_a_map_error(tmp_path, layers):
     meta["layers"] = layers
     (Path(path) / "meta.json").write_text(json.dumps(meta))
     with pytest.raises(MapError, match=r"meta\.json.*layers"):
+        Orthomap.load_bundle(path)
+
+
+# ------------------------------------------------------------------------------------------------ layer checksums
+def _change_same_size(file: Path, *, new_file: bool = False) -> None:
+    """Change 32 bytes in the middle of a layer file, keeping its size: in place, or as a new file renamed over."""
+    data = bytearray(file.read_bytes())
+    mid = len(data) // 2
+    data[mid:mid + 32] = bytes(255 - b for b in data[mid:mid + 32])
+    if new_file:
+        file.with_name("swap").write_bytes(data)
+        os.replace(file.with_name("swap"), file)
+    else:
+        with open(file, "r+b") as fh:
+            fh.write(data)
+
+
+@pytest.mark.parametrize("layer", ["rgb", "dsm_m", "nodata", "classes"])
+def test_a_layer_changed_at_the_same_size_is_a_map_error(tmp_path, layer):
+    path = make_map().save_bundle(tmp_path / "toy.alm")
+    meta = json.loads((path / "meta.json").read_text())
+    assert meta["layers"][layer]["sha256"] == hashlib.sha256((path / f"{layer}.npy").read_bytes()).hexdigest()
+    Orthomap.load_bundle(path)
+    _change_same_size(path / f"{layer}.npy")
+    with pytest.raises(MapError, match=rf"{layer}\.npy: layer '{layer}' does not match the SHA-256 in meta\.json "
+                                       r"\(the file changed after the bundle was written\); the bundle is corrupt"):
+        Orthomap.load_bundle(path)
+
+
+def test_verified_layers_are_read_again_only_when_they_change(tmp_path, monkeypatch):
+    """The stamp spares the hashing of unchanged files; a replaced, touched or unstamped file is hashed."""
+    monkeypatch.setattr(om_mod, "_RACY_NS", -10**15)     # as if file times were exact: trust every stamp entry
+    hashed: list[str] = []
+    real = om_mod._file_sha256
+    monkeypatch.setattr(om_mod, "_file_sha256", lambda f: hashed.append(Path(f).name) or real(f))
+    path = make_map().save_bundle(tmp_path / "toy.alm")
+    hashed.clear()
+    Orthomap.load_bundle(path)                       # the first load checks everything and stamps it
+    assert sorted(hashed) == ["classes.npy", "dsm_m.npy", "nodata.npy", "rgb.npy"]
+    hashed.clear()
+    for _ in range(3):
+        assert np.array_equal(Orthomap.load_bundle(path).rgb, make_map().rgb)
+    assert hashed == []
+    st = (path / "dsm_m.npy").stat()
+    os.utime(path / "dsm_m.npy", ns=(st.st_atime_ns, st.st_mtime_ns + 10**9))      # touched, same bytes
+    Orthomap.load_bundle(path)
+    assert hashed == ["dsm_m.npy"]
+    hashed.clear()
+    _change_same_size(path / "rgb.npy", new_file=True)
+    with pytest.raises(MapError, match="layer 'rgb' does not match"):
+        Orthomap.load_bundle(path)
+    assert hashed == ["rgb.npy"]
+
+
+def test_a_change_within_a_timestamp_tick_of_the_check_is_still_caught(tmp_path):
+    """A file changed so soon after its check that its (size, mtime, ctime, inode) read the same: the stamp is
+    not trusted for files that recent, so the content is hashed."""
+    path = make_map().save_bundle(tmp_path / "toy.alm")
+    Orthomap.load_bundle(path)
+    stamp = json.loads((path / om_mod.STAMP_FILE).read_text())
+    _change_same_size(path / "classes.npy")
+    st = (path / "classes.npy").stat()               # what a coarse clock would have left unchanged
+    stamp["layers"]["classes"]["stat"] = [st.st_size, st.st_mtime_ns, st.st_ctime_ns, st.st_ino, st.st_dev]
+    (path / om_mod.STAMP_FILE).write_text(json.dumps(stamp))
+    with pytest.raises(MapError, match="layer 'classes' does not match"):
+        Orthomap.load_bundle(path)
+
+
+def test_a_bundle_written_before_checksums_loads_and_can_gain_them(tmp_path):
+    path = make_map().save_bundle(tmp_path / "toy.alm")
+    meta = json.loads((path / "meta.json").read_text())
+    for info in meta["layers"].values():
+        del info["sha256"]
+    (path / "meta.json").write_text(json.dumps(meta))
+    _change_same_size(path / "rgb.npy")                 # unchecked: nothing to compare with
+    changed = np.asarray(Orthomap.load_bundle(path).rgb).copy()
+    add_bundle_checksums(path)
+    gained = json.loads((path / "meta.json").read_text())
+    assert gained["bundle_id"] == meta["bundle_id"]
+    assert gained["layers"]["rgb"]["sha256"] == hashlib.sha256((path / "rgb.npy").read_bytes()).hexdigest()
+    assert np.array_equal(Orthomap.load_bundle(path).rgb, changed)
+    _change_same_size(path / "rgb.npy")
+    with pytest.raises(MapError, match="layer 'rgb' does not match"):
+        Orthomap.load_bundle(path)
+
+
+def test_a_read_only_bundle_is_checked_on_every_load(tmp_path, monkeypatch):
+    path = make_map().save_bundle(tmp_path / "toy.alm")
+
+    def cannot_write(*_a, **_k):
+        raise PermissionError(13, "Permission denied")
+
+    monkeypatch.setattr(om_mod, "atomic_write_bytes", cannot_write)
+    for _ in range(2):
+        assert np.array_equal(Orthomap.load_bundle(path).classes, make_map().classes)
+    assert not (path / om_mod.STAMP_FILE).exists()
+    _change_same_size(path / "nodata.npy")
+    with pytest.raises(MapError, match="layer 'nodata' does not match"):
         Orthomap.load_bundle(path)

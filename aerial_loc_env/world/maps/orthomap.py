@@ -6,16 +6,24 @@ the georeference.
 
 Bundle (``<name>.alm/``): ``meta.json`` + one ``.npy`` per layer. Bundles are written atomically (a temporary
 directory beside the target, then ``os.replace``) and loaded memory-mapped and read-only, so vectorized env
-workers share one copy of the layers; a memory-mapped Orthomap pickles as its bundle path.
+workers share one copy of the layers; a memory-mapped Orthomap pickles as its bundle path. ``meta.json`` holds
+each layer file's SHA-256, and loading checks it, so a layer changed on disk (even at the same size) is an
+error, never a different map. Hashing every load would cost more than mapping, so ``.verified.json`` in the
+bundle records each file's (size, mtime, ctime, inode) when its hash last matched; a file whose record still
+holds is not read again (a write changes its mtime and ctime; a file changed within ``_RACY_NS`` of the record
+is hashed anyway, as file timestamps are coarse). Bundles written before checksums load unchecked;
+``add_bundle_checksums`` gives them theirs (the map cache does so for its entries).
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import os
 import shutil
 import tempfile
+import time
 import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -24,7 +32,7 @@ from typing import Any
 import numpy as np
 
 from aerial_loc_env.errors import MapError
-from aerial_loc_env.paths import umask_mode
+from aerial_loc_env.paths import atomic_write_bytes, umask_mode
 from aerial_loc_env.world.maps.geo import Georeference, georeference_from_dict
 
 BUNDLE_FORMAT = "aerial_loc_env.orthomap"
@@ -204,6 +212,7 @@ class Orthomap:
         try:
             for n, a in layers.items():
                 np.save(tmp / f"{n}.npy", np.ascontiguousarray(a), allow_pickle=False)
+                meta["layers"][n]["sha256"] = _file_sha256(tmp / f"{n}.npy")   # what is on disk, header included
             (tmp / "meta.json").write_text(json.dumps(meta, indent=2))
             if path.exists():   # a directory cannot be os.replace'd onto a non-empty one: move the old aside
                 old = Path(tempfile.mkdtemp(prefix=f".{path.name}.old-", dir=path.parent))
@@ -228,14 +237,17 @@ class Orthomap:
         """Load a bundle; with ``mmap`` the layers are read-only memory maps shared between processes."""
         path = Path(path).absolute()
         meta = read_bundle_meta(path)
-        arrays: dict[str, np.ndarray] = {}
         for n, info in meta["layers"].items():
             if not isinstance(info, dict) or not isinstance(info.get("file"), str) or \
-                    not isinstance(info.get("dtype"), str) or not isinstance(info.get("shape"), list):
+                    not isinstance(info.get("dtype"), str) or not isinstance(info.get("shape"), list) or \
+                    not isinstance(info.get("sha256", ""), str):
                 raise MapError(f"{path / 'meta.json'}: layers[{n!r}] = {info!r} must be a table with 'file', "
-                               "'dtype' and 'shape'; the bundle is corrupt, rebuild it with save_bundle")
+                               "'dtype', 'shape' (and 'sha256'); the bundle is corrupt, rebuild it with save_bundle")
             if n not in _LAYERS:
                 raise MapError(f"{path}: unknown layer {n!r} in meta.json; known: {', '.join(_LAYERS)}")
+        _verify_layers(path, meta)
+        arrays: dict[str, np.ndarray] = {}
+        for n, info in meta["layers"].items():
             f = path / info["file"]
             try:
                 a = np.load(f, mmap_mode="r" if mmap else None, allow_pickle=False)
@@ -265,6 +277,88 @@ class Orthomap:
         if self._bundle is not None:   # memory-mapped: pickle the path, re-map on unpickle
             return _unpickle_bundle, self._bundle
         return super().__reduce_ex__(protocol)
+
+
+#: the stamp of verified layer files inside a bundle (see the module docstring)
+STAMP_FILE = ".verified.json"
+#: a file changed less than this before its stamp was written is hashed again: timestamps are coarse (a jiffy on
+#: Linux, 1-2 s on some file systems), so a change within the same tick leaves (size, mtime, ctime) unchanged
+_RACY_NS = 3_000_000_000
+
+
+def _file_sha256(path: Path) -> str:
+    """The SHA-256 of a file's bytes, read in 4 MiB blocks (hashlib releases the GIL on each)."""
+    digest, buf = hashlib.sha256(), bytearray(1 << 22)
+    view = memoryview(buf)
+    with open(path, "rb", buffering=0) as fh:
+        while n := fh.readinto(buf):
+            digest.update(view[:n])
+    return digest.hexdigest()
+
+
+def _stat_key(path: Path) -> list[int]:
+    st = os.stat(path)
+    return [st.st_size, st.st_mtime_ns, st.st_ctime_ns, st.st_ino, st.st_dev]
+
+
+def _verify_layers(path: Path, meta: dict) -> None:
+    """Check every layer file that ``meta`` gives a SHA-256 against it, unless the bundle's stamp shows the file
+    unchanged since it last matched; raise MapError naming the first layer that differs. Records what matched
+    in the stamp (best effort: a read-only bundle is hashed on every load)."""
+    want = {n: info["sha256"] for n, info in meta["layers"].items() if "sha256" in info}
+    if not want:
+        return
+    try:
+        stamp = json.loads((path / STAMP_FILE).read_text())
+        if not isinstance(stamp, dict) or stamp.get("bundle_id") != meta["bundle_id"] or \
+                not isinstance(stamp.get("layers"), dict) or not isinstance(stamp.get("written_ns"), int):
+            stamp = {}
+    except (OSError, ValueError):
+        stamp = {}
+    trusted_before = stamp.get("written_ns", 0) - _RACY_NS
+    record: dict[str, Any] = {}
+    hashed = False
+    for n, digest in want.items():
+        f = path / meta["layers"][n]["file"]
+        try:
+            key = _stat_key(f)
+        except OSError as exc:
+            raise MapError(f"{f}: cannot read layer {n!r} of the bundle: {exc}") from exc
+        entry = {"sha256": digest, "stat": key}
+        if stamp.get("layers", {}).get(n) == entry and key[2] < trusted_before:
+            record[n] = entry
+            continue
+        try:
+            have = _file_sha256(f)
+        except OSError as exc:
+            raise MapError(f"{f}: cannot read layer {n!r} of the bundle: {exc}") from exc
+        if have != digest:
+            raise MapError(f"{f}: layer {n!r} does not match the SHA-256 in meta.json (the file changed after the "
+                           "bundle was written); the bundle is corrupt, rebuild it")
+        record[n], hashed = entry, True
+    if hashed:
+        try:
+            atomic_write_bytes(path / STAMP_FILE, json.dumps({"bundle_id": meta["bundle_id"], "written_ns":
+                                                              time.time_ns(), "layers": record}).encode())
+        except OSError:
+            pass
+
+
+def add_bundle_checksums(path: str | os.PathLike) -> None:
+    """Give a bundle written without layer checksums (by a version before them) the SHA-256 of each layer file as
+    it is now, in its meta.json (replaced atomically), so that loading verifies it from then on. Best effort: a
+    bundle that cannot be written keeps loading unchecked."""
+    path = Path(path).absolute()
+    meta = read_bundle_meta(path)
+    missing = [n for n, info in meta["layers"].items() if isinstance(info, dict) and "sha256" not in info]
+    if not missing:
+        return
+    for n in missing:
+        meta["layers"][n]["sha256"] = _file_sha256(path / meta["layers"][n]["file"])
+    try:
+        atomic_write_bytes(path / "meta.json", json.dumps(meta, indent=2).encode())
+    except OSError:
+        pass
 
 
 def read_bundle_meta(path: str | os.PathLike) -> dict:
