@@ -12,20 +12,155 @@
   with ``NUMBA_CPU_NAME`` set (a portable cache) the portable code.
 
 Every compiled module is named ``<module>_kernels.py`` and sits beside the module it serves.
+
+numba's compile cache is made robust here, for the project's kernels only (importing this module, as every
+kernel module does, installs it): a corrupt or truncated index or data file (numba raises whatever unpickling
+the garbage raises, on every call, until the files are deleted by hand) has that function's cache files removed
+and is compiled again with a ``CacheRebuiltWarning``; a cache that cannot be written costs a compile, never the
+call; and where neither ``NUMBA_CACHE_DIR``, the module's ``__pycache__`` nor numba's user cache folder can be
+written, the kernels are cached in ``paths.temporary_cache_dir("numba")`` with a ``CacheLocationWarning``.
 """
 
 from __future__ import annotations
+
+import os
+import warnings
 
 import numba as nb
 import numpy as np
 from llvmlite import ir
 from numba import types
-from numba.core import cgutils
+from numba.core import caching, cgutils
 from numba.extending import intrinsic, overload
+
+from aerial_loc_env.paths import CacheLocationWarning, CacheRebuiltWarning, temporary_cache_dir
 
 #: numba options of the project's kernels: cached compiles, no GIL, NumPy's error model, no bounds checks;
 #: single-threaded on purpose (benchmarks are per core; users parallelize over environments and workers)
 JIT = {"cache": True, "nogil": True, "error_model": "numpy", "boundscheck": False}
+
+
+def _ours(cache: caching.Cache) -> bool:
+    return getattr(getattr(cache, "_py_func", None), "__module__", "").startswith("aerial_loc_env.")
+
+
+def _kernel_name(cache: caching.Cache) -> str:
+    func = cache._py_func
+    return f"{func.__module__}.{func.__qualname__}"
+
+
+def _warn_at(func, message: str, category: type[Warning]) -> None:
+    """Warn at the kernel's definition: the call that compiles it runs deep inside numba's dispatcher."""
+    code = func.__code__
+    warnings.warn_explicit(message, category, code.co_filename, code.co_firstlineno, module=func.__module__)
+
+
+def _purge(cache: caching.Cache) -> list[str]:
+    """Remove one function's index (.nbi) and data files (.nbc) from its numba cache folder; the names removed."""
+    folder = cache.cache_path
+    index = getattr(getattr(cache, "_cache_file", None), "_index_path", None)     # numba's IndexDataCacheFile
+    removed: list[str] = []
+    try:
+        names = sorted(os.listdir(folder)) if isinstance(index, str) else []
+    except OSError:
+        return removed
+    base = os.path.basename(index)[: -len(".nbi")]
+    for name in names:
+        if name == f"{base}.nbi" or (name.startswith(f"{base}.") and name.endswith(".nbc")):
+            try:
+                os.unlink(os.path.join(folder, name))
+                removed.append(name)
+            except OSError:
+                pass
+    return removed
+
+
+_numba_load_overload = caching.FunctionCache.load_overload
+_numba_save_overload = caching.FunctionCache.save_overload
+_unsaved: set[str] = set()
+
+
+def _load_overload(self, sig, target_context):
+    """numba's ``load_overload``; for the project's kernels a cache entry that cannot be read back (garbage,
+    truncated, from a broken write) is removed and reported, and the kernel compiled again."""
+    if not _ours(self):
+        return _numba_load_overload(self, sig, target_context)
+    try:
+        return _numba_load_overload(self, sig, target_context)
+    except Exception as exc:        # UnpicklingError, EOFError, ValueError, ... whatever the bytes make pickle raise
+        removed = _purge(self)
+        _warn_at(self._py_func, f"numba's cache of {_kernel_name(self)} in {self.cache_path} is corrupt "
+                 f"({type(exc).__name__}: {exc}); removed {', '.join(removed) or 'nothing'} and compiling it again",
+                 CacheRebuiltWarning)
+        return None
+
+
+def _save_overload(self, sig, data):
+    """numba's ``save_overload``; for the project's kernels a cache that cannot be written (disk full, read-only,
+    a corrupt index written meanwhile) leaves the compiled kernel in use, with a warning."""
+    if not _ours(self):
+        return _numba_save_overload(self, sig, data)
+    try:
+        return _numba_save_overload(self, sig, data)
+    except Exception as first:
+        if not isinstance(first, OSError):      # an unreadable index in the way: remove it and write afresh
+            _purge(self)
+            try:
+                return _numba_save_overload(self, sig, data)
+            except Exception as again:
+                first = again
+        if self.cache_path not in _unsaved:
+            _unsaved.add(self.cache_path)
+            _warn_at(self._py_func, f"numba cannot write its cache of {_kernel_name(self)} in {self.cache_path} "
+                     f"({type(first).__name__}: {first}); the kernels are compiled again in each process; free space "
+                     "there or set NUMBA_CACHE_DIR to a writable folder", CacheLocationWarning)
+        return None
+
+
+class _TemporaryCacheLocator(caching._SourceFileBackedLocatorMixin, caching._CacheLocator):
+    """numba's last resort for the project's kernels: ``paths.temporary_cache_dir("numba")``, where numba's own
+    locations (``NUMBA_CACHE_DIR``, the module's ``__pycache__``, its user cache folder) cannot be written."""
+
+    warned = False
+
+    def __init__(self, py_func, py_file):
+        self._py_file = py_file
+        self._lineno = py_func.__code__.co_firstlineno
+        self._cache_path = str(temporary_cache_dir("numba") / self.get_suitable_cache_subpath(py_file))
+
+    def get_cache_path(self):
+        return self._cache_path
+
+    @classmethod
+    def from_function(cls, py_func, py_file):
+        if not getattr(py_func, "__module__", "").startswith("aerial_loc_env."):
+            return None
+        try:
+            self = super().from_function(py_func, py_file)
+        except Exception:      # no usable temporary folder either (ConfigError): numba says it cannot cache
+            return None
+        if self is not None and not cls.warned:
+            cls.warned = True
+            _warn_at(py_func, f"numba cannot write its cache of the compiled kernels beside {os.path.dirname(py_file)} "
+                     "(__pycache__), in NUMBA_CACHE_DIR or in its user cache folder; caching them in the temporary "
+                     f"folder {os.path.dirname(self._cache_path)} instead, which the system may clear; set "
+                     "NUMBA_CACHE_DIR to a writable folder to keep them", CacheLocationWarning)
+        return self
+
+
+def _install_cache_guard() -> None:
+    """Route numba's function cache through the guards above (once per process; other packages' functions keep
+    numba's behaviour) and add the temporary folder as the last cache location."""
+    if getattr(caching.FunctionCache, "_aerial_loc_env_guard", False):
+        return
+    caching.FunctionCache.load_overload = _load_overload
+    caching.FunctionCache.save_overload = _save_overload
+    caching.FunctionCache._aerial_loc_env_guard = True
+    impl = caching.CompileResultCacheImpl
+    impl._locator_classes = [*impl._locator_classes, _TemporaryCacheLocator]
+
+
+_install_cache_guard()
 
 
 @intrinsic

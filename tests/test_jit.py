@@ -1,0 +1,100 @@
+"""jit.py's guard of numba's compile cache, in fresh interpreters with their own NUMBA_CACHE_DIR: a corrupt or
+truncated cache file, a cache that cannot be written, and no writable cache location at all each cost a compile
+and a warning, never the call."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+
+#: calls two of the toolkit's own kernels and prints the values and where they came from
+_CALL = """
+import numpy as np
+from aerial_loc_env.jit import mul255, quantize
+print("values", mul255(np.int32(200), np.int32(100)), quantize(np.float32(0.5)))
+print("mul255 hits", sum(mul255.stats.cache_hits.values()), "misses", sum(mul255.stats.cache_misses.values()))
+"""
+
+
+def _run(tmp_path: Path, prelude: str = "", *, numba_cache: bool = True) -> tuple[list[str], list[str]]:
+    """Run ``prelude`` then ``_CALL`` in a fresh interpreter: (its printed lines, its warning lines)."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith("NUMBA_")}
+    env.update(TMPDIR=str(tmp_path / "tmp"), PYTHONWARNINGS="default")
+    if numba_cache:
+        env["NUMBA_CACHE_DIR"] = str(tmp_path / "numba")
+    (tmp_path / "tmp").mkdir(exist_ok=True)
+    code = textwrap.dedent(prelude) + _CALL
+    r = subprocess.run([sys.executable, "-c", code], env=env, cwd=REPO, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    warned = [line for line in r.stderr.splitlines() if "Warning: " in line]
+    return r.stdout.splitlines(), warned
+
+
+def _cache_files(tmp_path: Path, suffix: str) -> list[Path]:
+    return sorted((tmp_path / "numba").rglob(f"jit.mul255-*{suffix}"))
+
+
+GOOD = "values 78 128"
+
+
+@pytest.mark.parametrize("damage", ["garbage_index", "truncated_index", "garbage_data", "truncated_data"])
+def test_a_corrupt_cache_file_is_removed_and_compiled_again(tmp_path, damage):
+    out, warned = _run(tmp_path)
+    assert out == [GOOD, "mul255 hits 0 misses 1"] and warned == []
+    target = _cache_files(tmp_path, ".nbi" if "index" in damage else ".nbc")
+    assert len(target) == 1
+    size = target[0].stat().st_size
+    target[0].write_bytes(os.urandom(size) if "garbage" in damage else target[0].read_bytes()[: size // 2])
+    out, warned = _run(tmp_path)
+    assert out == [GOOD, "mul255 hits 0 misses 1"]
+    assert len(warned) == 1, warned
+    folder = target[0].parent
+    assert f"CacheRebuiltWarning: numba's cache of aerial_loc_env.jit.mul255 in {folder} is corrupt (" in warned[0]
+    names = ", ".join(p.name for p in sorted(_cache_files(tmp_path, ".nbc") + _cache_files(tmp_path, ".nbi")))
+    assert warned[0].endswith(f"); removed {names} and compiling it again")
+    assert warned[0].startswith(f"{REPO / 'aerial_loc_env' / 'jit.py'}:")      # at the kernel, not inside numba
+    out, warned = _run(tmp_path)                                           # written again, whole
+    assert out == [GOOD, "mul255 hits 1 misses 0"] and warned == []
+
+
+def test_a_cache_that_cannot_be_written_costs_a_compile_not_the_call(tmp_path):
+    full_disk = """
+        import errno, os
+        from numba.core import caching
+        def full(self, *args):
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        caching.IndexDataCacheFile._save_index = full
+    """
+    out, warned = _run(tmp_path, full_disk)
+    assert out == [GOOD, "mul255 hits 0 misses 1"]
+    assert len(warned) == 1, warned
+    assert ("CacheLocationWarning: numba cannot write its cache of aerial_loc_env.jit.mul255 in "
+            f"{tmp_path / 'numba'}") in warned[0]
+    assert warned[0].endswith("(OSError: [Errno 28] No space left on device); the kernels are compiled again in "
+                              "each process; free space there or set NUMBA_CACHE_DIR to a writable folder")
+
+
+def test_no_writable_cache_location_falls_back_to_a_temporary_folder(tmp_path):
+    nowhere = """
+        from numba.core import caching
+        for cls in (caching.UserProvidedCacheLocator, caching.InTreeCacheLocator, caching.UserWideCacheLocator):
+            cls.from_function = classmethod(lambda cls, func, file: None)     # none of them can be written
+    """
+    out, warned = _run(tmp_path, nowhere, numba_cache=False)
+    assert out == [GOOD, "mul255 hits 0 misses 1"]
+    root = tmp_path / "tmp" / f"aerial_loc_env-cache-{os.getuid()}" / "numba"
+    assert len(warned) == 1, warned
+    assert warned[0].endswith(
+        f"CacheLocationWarning: numba cannot write its cache of the compiled kernels beside {REPO / 'aerial_loc_env'} "
+        f"(__pycache__), in NUMBA_CACHE_DIR or in its user cache folder; caching them in the temporary folder {root} "
+        "instead, which the system may clear; set NUMBA_CACHE_DIR to a writable folder to keep them")
+    assert len(list(root.rglob("jit.mul255-*.nbi"))) == 1
+    out, _ = _run(tmp_path, nowhere, numba_cache=False)
+    assert out == [GOOD, "mul255 hits 1 misses 0"]
