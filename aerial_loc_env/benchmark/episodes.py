@@ -8,6 +8,10 @@ and the timing; this module turns its records into trial rows. The env's early-f
 switched off for benchmark episodes (it would depend on whichever agent's estimate is passed as the action),
 so every trial runs to the end of the track. Agents are reset with the episode's seed, so a trial is fully
 determined by (agent spec, scenario spec, seed).
+
+With ``detector_quality`` (the grid's option) each frame's image shadow detection (``ShadowDetector``, default
+config) is scored against the simulator's ground-truth mask, and each row of the episode gets the means over its
+frames (``DETECTOR_COLUMNS``): how well shadows can be found from the image alone on that scenario.
 """
 
 from __future__ import annotations
@@ -35,6 +39,12 @@ class EpisodeTask:
     metric: MetricConfig
     agent_configs: tuple[dict, ...] = ()   # the resolved specs (stored in each row, so any row can be re-run)
     scenario_config: dict | None = None
+    detector_quality: bool = False          # score the image shadow detector against the true masks
+
+
+#: row columns of ``detector_quality``: ``mask_quality``'s figures (means over the episode's frames)
+DETECTOR_COLUMNS = {"iou": "detector_iou", "precision": "detector_precision", "recall": "detector_recall",
+                    "fraction_true": "shadow_fraction_true", "fraction_predicted": "shadow_fraction_detected"}
 
 
 _ENV_CACHE: dict[str, Any] = {}
@@ -69,6 +79,7 @@ def run_episode(task: EpisodeTask) -> tuple[list[dict], list[dict]]:
     """
     from aerial_loc_env.estimators.episode import EpisodeDriver, needs_ground_truth
     from aerial_loc_env.estimators.registry import make_agent
+    from aerial_loc_env.estimators.shadow_detection import ShadowDetector, mask_quality
 
     agents = [make_agent(a.name, **a.params) for a in task.agents]
     n = len(agents)
@@ -78,7 +89,7 @@ def run_episode(task: EpisodeTask) -> tuple[list[dict], list[dict]]:
                 "seed": task.seed, "stage": stage, "error": error, "traceback": trace}
 
     try:
-        env = make_benchmark_env(task.scenario, shadow_mask=needs_ground_truth(agents))
+        env = make_benchmark_env(task.scenario, shadow_mask=needs_ground_truth(agents) or task.detector_quality)
     except Exception as exc:  # noqa: BLE001 (a bad episode fails its trials, not the whole grid)
         trace = traceback.format_exc(limit=8)
         return [], [failure(i, "env reset", f"{type(exc).__name__}: {exc}", trace) for i in range(n)]
@@ -91,12 +102,16 @@ def run_episode(task: EpisodeTask) -> tuple[list[dict], list[dict]]:
     statuses: list[list[str]] = [[] for _ in range(n)]
     t_s: list[float] = []
     shadow_fraction: list[float] = []
+    detector = ShadowDetector() if task.detector_quality else None
+    quality: list[dict[str, float]] = []
     env_cpu_s = 0.0
     with EpisodeDriver(env, agents, isolate_failures=True) as driver:
         for rec in driver.episode(task.seed):
             t_s.append(rec.time_s)
             shadow_fraction.append(float(rec.info.get("shadow_fraction", 0.0)))
             env_cpu_s += rec.env_cpu_s
+            if detector is not None:
+                quality.append(mask_quality(detector.detect(rec.observation["image"]).full(), rec.info["shadow_mask"]))
             for i, est in enumerate(rec.estimates):
                 if est is None:
                     continue
@@ -112,6 +127,8 @@ def run_episode(task: EpisodeTask) -> tuple[list[dict], list[dict]]:
     metric = task.metric.for_scenario(env.scenario)   # thresholds scaled with the scenario unless fixed
     rows = []
     t_arr = np.asarray(t_s)
+    detector_columns = {column: float(np.mean([q[k] for q in quality])) if quality else float("nan")
+                        for k, column in DETECTOR_COLUMNS.items()} if detector is not None else {}
     for i, entry in enumerate(task.agents):
         if not driver.alive[i]:
             continue
@@ -132,6 +149,7 @@ def run_episode(task: EpisodeTask) -> tuple[list[dict], list[dict]]:
             "episode_render_cpu_s": env_cpu_s,
             "shadow_pairs_normalized": float(np.mean(shadow_pairs[i])) if shadow_pairs[i] else float("nan"),
             "shadow_fraction_mean": float(np.mean(shadow_fraction)),
+            **detector_columns,
             "t_s": [round(x, 4) for x in t_s],
             "errors_m": [round(float(x), 4) for x in errors[i]],
             "shadow_pairs_series": [round(float(x), 4) for x in shadow_pairs[i]],

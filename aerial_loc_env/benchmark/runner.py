@@ -90,7 +90,8 @@ def plan(grid: Grid, done: set[str], resolved: ResolvedGrid | None = None) -> li
                 tasks.append(EpisodeTask(
                     scenario, seed, tuple(grid.agents[ai] for ai in todo),
                     tuple(res.keys[si, seed, ai] for ai in todo), metric,
-                    tuple(res.agent_configs[ai] for ai in todo), res.scenario_configs[si]))
+                    tuple(res.agent_configs[ai] for ai in todo), res.scenario_configs[si],
+                    grid.detector_quality))
     return tasks
 
 

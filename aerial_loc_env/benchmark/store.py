@@ -291,11 +291,14 @@ def write_summaries(rows: Iterable[Mapping[str, Any]], out_dir: Path) -> tuple[P
     import io
 
     buf = io.StringIO()
-    writer = csv.DictWriter(buf, fieldnames=FLAT_COLUMNS + ["agent_spec", "scenario_spec"],
-                            extrasaction="ignore")
+    from aerial_loc_env.benchmark.episodes import DETECTOR_COLUMNS
+
+    # a grid's optional columns only when its rows have them: the file of a grid without them stays the same
+    columns = FLAT_COLUMNS + [c for c in DETECTOR_COLUMNS.values() if any(c in r for r in rows)]
+    writer = csv.DictWriter(buf, fieldnames=columns + ["agent_spec", "scenario_spec"], extrasaction="ignore")
     writer.writeheader()
     for r in rows:
-        flat = {k: r.get(k) for k in FLAT_COLUMNS}
+        flat = {k: r.get(k) for k in columns}
         flat["agent_spec"] = json.dumps(r.get("agent_spec"), sort_keys=True)
         flat["scenario_spec"] = json.dumps(r.get("scenario_spec"), sort_keys=True)
         writer.writerow(flat)

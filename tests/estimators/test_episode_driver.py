@@ -231,18 +231,6 @@ def test_record_episode_uses_the_driver_time_line():
     assert rec["shadow_mask"] is not None and rec["image"].flags.writeable
 
 
-def test_the_evaluation_script_runs_the_benchmarks_time_line():
-    """evaluate.run_episodes and the benchmark give the same per-frame errors (the last frame included)."""
-    from aerial_loc_env.estimators.mcl.evaluate import run_episodes
-
-    res = run_episodes(TINY["id"], ["dead-reckoning"], [1], overrides={"flight": {"duration_s": 3.0}},
-                       detector_quality=False)
-    assert res["errors"]["dead-reckoning"].shape == (1, N_FRAMES)
-    (task,) = plan(make_grid("dr", [{"name": "dead-reckoning"}], [TINY], seeds=[1]), set())
-    (row,), _ = run_episode(task)
-    assert np.round(res["errors"]["dead-reckoning"][0], 4).tolist() == row["errors_m"]
-
-
 def test_read_only_views_share_memory():
     a = np.zeros((2, 2, 3), np.uint8)
     view = read_only({"image": a})["image"]
