@@ -234,7 +234,7 @@ def test_cache_key_holds_generator_and_epoch_config(monkeypatch):
     assert p1 != epoch_cache_path(small_city_config(1), _cfg(leaf_off=0.5))
     monkeypatch.setattr(epochs, "GENERATOR_VERSION", epochs.GENERATOR_VERSION + 1)
     assert p1 != epoch_cache_path(city, _cfg(leaf_off=0.5))
-    from aerial_loc_env.world import city as city_mod
+    from aerial_loc_env.world.city import generator as city_mod
 
     monkeypatch.setattr(epochs, "GENERATOR_VERSION", epochs.GENERATOR_VERSION - 1)
     monkeypatch.setattr(city_mod, "GENERATOR_VERSION", city_mod.GENERATOR_VERSION + 1)

@@ -281,7 +281,7 @@ def _database_spec(city_config: Any, shadows: Any, config: AcquisitionConfig | N
     """Everything the database of a procedural city depends on (its cache key and provenance). The other sun's
     shadows depend on the whole ``[shadows]`` section and the shadow generator only when that sun is set."""
     from aerial_loc_env.world import shadows as shadow_module
-    from aerial_loc_env.world.city import GENERATOR_VERSION as CITY_VERSION
+    from aerial_loc_env.world.city.generator import GENERATOR_VERSION as CITY_VERSION
 
     sun = shadows.database_sun_deg is not None
     return {"generator": "aerial_loc_env.world.maps.acquisition", "generator_version": GENERATOR_VERSION,
