@@ -129,7 +129,7 @@ def test_an_older_version_of_an_id_names_the_registered_one():
 
 
 def test_section_given_a_non_table_says_so():
-    with pytest.raises(ConfigError, match=r"section 'flight'.*table.*got 5") as err:
+    with pytest.raises(ConfigError, match=r"flight = 5: 'flight' is a section of fields, not one value") as err:
         scenarios.split_overrides({"flight": 5})
     assert "unknown key" not in str(err.value)
 
@@ -172,3 +172,74 @@ def test_scenarios_show_realmap_without_a_path(capsys):
     assert main(["--show", "AerialLoc/RealMap-v1"]) == 0
     out = capsys.readouterr().out
     assert 'id = "AerialLoc/RealMap-v1"' in out and "# path = (required" in out and "altitude_m = 50.0" in out
+
+
+@pytest.mark.parametrize("section, value, example", [
+    ("haze", 0.5, "haze={'extinction_per_km': 0.5} or **{'haze.extinction_per_km': 0.5}"),
+    ("flight", 100, "flight={'altitude_m': 100}"),
+    ("perspective", True, "perspective={'enabled': True}"),
+    ("episode", "global", "episode={'start': 'global'}"),
+    ("map", "tile.tif", "map={'path': 'tile.tif'}"),
+    ("reward", None, "reward={'scale_m': ...}"),
+])
+def test_a_section_given_one_value_names_its_fields_with_an_example(section, value, example):
+    """Every section given a single value gets the same message: it is a section, how to set one of its fields
+    (one whose type fits the value, as a dict or a dotted key), and the list of its fields."""
+    with pytest.raises(ConfigError) as err:
+        gym.make("AerialLoc/Small-v1", **{section: value})
+    text = str(err.value)
+    assert text.startswith(f"AerialLoc/Small-v1 overrides: {section} = {value!r}: '{section}' is a section of fields, "
+                           "not one value; set one of its fields, e.g. "), text
+    assert example in text and f"Fields of [{section}]: " in text
+
+
+def test_haze_given_one_value_also_names_the_databases_haze_field():
+    with pytest.raises(ConfigError, match=r"did you mean the field 'database\.haze'\?.*extinction_per_km"):
+        load_scenario("AerialLoc/Small-v1", {"haze": 0.5})
+
+
+def test_a_spec_file_with_a_section_as_one_value_shows_the_table_form():
+    with pytest.raises(ConfigError, match=r"x\.toml: haze = 0\.5: .*write it as a table: \[haze\] with a line such "
+                                          r"as extinction_per_km = 0\.5"):
+        build_scenario({"id": "AerialLoc/X-v1", "haze": 0.5}, where="x.toml")
+
+
+def test_an_altimeter_too_noisy_for_the_altitude_is_refused_at_gym_make_naming_its_field():
+    with pytest.raises(ConfigError, match=r"^AerialLoc/Small-v1: altimeter\.bias_std_m = 500 m is too large for "
+                                          r"flight\.altitude_m = 100 m.*in \[0, 16\.67\] m"):
+        gym.make("AerialLoc/Small-v1", **{"altimeter.bias_std_m": 500})
+    assert load_scenario("AerialLoc/Small-v1", {"altimeter.bias_std_m": 500, "altitude_m": 3000.0,
+                                                "camera.hfov_deg": 1.0}).altimeter.bias_std_m == 500
+
+
+class _World:
+    """What check_relief reads of a world: the ground's height model and its maximum."""
+
+    def __init__(self, tallest_m: float | None) -> None:
+        self.ground = type("Ground", (), {"dsm_m": None if tallest_m is None else [[tallest_m]]})()
+        self.dsm_max_m = tallest_m
+
+
+@pytest.mark.parametrize("overrides, tallest_m, refused", [
+    ({"perspective.enabled": True, "altitude_m": 100.0}, 95.0, False),       # at 0.95 x the altitude: seen whole
+    ({"perspective.enabled": True, "altitude_m": 100.0}, 95.1, True),
+    ({"perspective.enabled": False, "altitude_m": 100.0}, 200.0, False),     # the affine view: no clipping
+    ({"perspective.enabled": True, "map.use_dsm": False}, 200.0, False),
+    ({"perspective.enabled": True}, None, False),                            # a map without a height model
+])
+def test_check_relief_refuses_buildings_the_perspective_camera_would_cut(overrides, tallest_m, refused):
+    sc = load_scenario("AerialLoc/Small-v1", overrides)
+    if refused:
+        with pytest.raises(ConfigError, match=r"tallest building of the map is 95\.1 m, but flight\.altitude_m = 100 m"
+                                              r".*flight\.altitude_m >= 101 m.*city\.max_building_height_m \(allowed "
+                                              r"\[6, 300\] m, now 60\) at most 95"):
+            scenarios.check_relief(sc, _World(tallest_m))
+    else:
+        scenarios.check_relief(sc, _World(tallest_m))
+
+
+def test_a_perspective_camera_below_the_towers_is_refused_at_gym_make():
+    """Small-v1's city has 60 m buildings: a perspective camera at 60 m would see them cut at 57 m."""
+    with pytest.raises(ConfigError, match=r"^AerialLoc/Small-v1: the tallest building of the map is 60\.0 m, but "
+                                          r"flight\.altitude_m = 60 m: .*fly higher \(flight\.altitude_m >= 64 m\)"):
+        gym.make("AerialLoc/Small-v1", **{"perspective.enabled": True, "flight.altitude_m": 60.0})

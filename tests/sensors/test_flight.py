@@ -9,7 +9,7 @@ import pytest
 
 from aerial_loc_env.config import build_config
 from aerial_loc_env.errors import ConfigError, MapError
-from aerial_loc_env.sensors.flight import FlightConfig, measure, sample_track, wrap_angle
+from aerial_loc_env.sensors.flight import AltimeterConfig, FlightConfig, measure, sample_track, wrap_angle
 from aerial_loc_env.world.maps.region import FlyableRegion
 
 
@@ -105,3 +105,24 @@ def test_duration_too_short_for_any_track_names_duration_not_the_map():
     with pytest.raises(ConfigError, match=r"duration_s.*min_steps") as err:
         build_config(FlightConfig, {"duration_s": 1.0, "rate_hz": 4.0, "min_steps": 8}, where="spec [flight]")
     assert "map too small" not in str(err.value)
+
+
+@pytest.mark.parametrize("altimeter, field, allowed", [
+    ({"bias_std_m": 500.0}, "bias_std_m = 500 m", r"bias_std_m in \[0, 33\.33\] m"),
+    ({"bias_std_m": 30.0, "drift_std_m_per_sqrt_s": 2.0}, "bias_std_m = 30 m", r"bias_std_m in \[0, 29\.51\] m"),
+    ({"drift_std_m_per_sqrt_s": 10.0}, r"drift_std_m_per_sqrt_s = 10 m/sqrt\(s\)",
+     r"drift_std_m_per_sqrt_s in \[0, 4\.303\] m/sqrt\(s\)"),
+])
+def test_an_altimeter_error_too_large_for_the_altitude_names_the_field_and_its_range(altimeter, field, allowed):
+    """3 sigma of the error at the end of the flight (bias and drift) must stay within half the altitude: at
+    200 m for 60 s, sqrt(bias^2 + drift^2 60) <= 33.3 m."""
+    flight = FlightConfig(altitude_m=200.0, duration_s=60.0)
+    with pytest.raises(ConfigError, match=rf"^spec: altimeter\.{field} is too large for flight\.altitude_m = 200 m"
+                                          rf".*allowed at this altitude: altimeter\.{allowed}"):
+        AltimeterConfig(**altimeter).check_flight(flight, "spec")
+
+
+def test_an_altimeter_error_within_half_the_altitude_is_accepted():
+    flight = FlightConfig(altitude_m=200.0, duration_s=60.0)
+    AltimeterConfig(bias_std_m=33.3).check_flight(flight, "spec")
+    AltimeterConfig(bias_std_m=2.0, drift_std_m_per_sqrt_s=4.0).check_flight(flight, "spec")   # sqrt(4 + 960)
