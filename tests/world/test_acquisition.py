@@ -217,8 +217,8 @@ def test_database_cache_misses_on_a_changed_database_field(cache_home, field_nam
 
 
 def test_database_cache_key_holds_city_sun_and_generator_versions(cache_home, monkeypatch):
-    from aerial_loc_env.world.city import generator as city_mod
     from aerial_loc_env.world import shadows as shadow_mod
+    from aerial_loc_env.world.city import generator as city_mod
     from aerial_loc_env.world.city import small_city_config
     from aerial_loc_env.world.maps import acquisition
 

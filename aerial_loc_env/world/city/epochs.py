@@ -522,8 +522,8 @@ def epoch_cache_path(city_config, config: EpochConfig) -> Path:
 
 def epoch_city(city_config, config: EpochConfig) -> Orthomap:
     """Epoch B of the procedural city ``city_config``, memory-mapped from the cache (built on first use)."""
-    from aerial_loc_env.world.city.generator import GENERATOR_VERSION as CITY_VERSION
     from aerial_loc_env.world.city import default_city
+    from aerial_loc_env.world.city.generator import GENERATOR_VERSION as CITY_VERSION
 
     if not isinstance(config, EpochConfig):
         raise ConfigError(f"epoch_city: expected an EpochConfig, got {type(config).__name__}")
