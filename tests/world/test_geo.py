@@ -23,8 +23,11 @@ from aerial_loc_env.world.maps.geo import (
     UTMProjection,
     WebMercatorGeoref,
     WorldMercatorGeoref,
+    distance_m,
+    east_north_m,
     georeference_from_dict,
     mercator_scale_factor,
+    offset_latlon,
 )
 
 
@@ -259,3 +262,53 @@ def test_fixed_crs_classes_from_gdal():
     assert WebMercatorGeoref.from_gdal(gt).crs == "EPSG:3857"
     with pytest.raises(MapError, match="WebMercatorGeoref: crs must be EPSG:3857"):
         WebMercatorGeoref.from_gdal(gt, "EPSG:3395")
+
+
+@pytest.mark.parametrize("lat0", [0.0, -35.36, 47.4, 70.0])
+def test_offsets_and_distances_match_vincenty(lat0: float, vincenty_m: Callable[..., float]):
+    """offset_latlon puts a point the given ground metres east and north (its distance and bearing from the start
+    are the geodesic's), east_north_m gives them back, distance_m is the geodesic distance, up to 5 km."""
+    rng = np.random.default_rng(int(abs(lat0) * 100) + 7)
+    east, north = rng.uniform(-3500, 3500, 30), rng.uniform(-3500, 3500, 30)
+    lat, lon = offset_latlon(lat0, 149.16, east, north)
+    geod = np.array([vincenty_m(lat0, 149.16, a, b) for a, b in zip(lat, lon, strict=True)])
+    # the plane shortens a ground distance r by about r^3 / (24 R^2): 1e-7 relative at 5 km
+    assert np.max(np.abs(np.hypot(east, north) / geod - 1)) < 2e-7
+    assert np.max(np.abs(distance_m(lat0, 149.16, lat, lon) / geod - 1)) < 2e-7
+    e2, n2 = east_north_m(lat0, 149.16, lat, lon)
+    assert np.max(np.abs(e2 - east)) < 1e-6 and np.max(np.abs(n2 - north)) < 1e-6
+    # the plane's north axis is the meridian's tangent: due north stays on the start's meridian
+    lat_n, lon_n = offset_latlon(lat0, 149.16, 0.0, 1000.0)
+    assert float(lon_n) == pytest.approx(149.16, abs=1e-12) and float(lat_n) > lat0
+
+
+def test_offsets_are_the_local_tangent_georeference():
+    """One convention: a synthetic map's LocalTangentGeoref and these functions agree to the last bit at its
+    origin's metres (pixel size 1 m, origin pixel 0)."""
+    g = LocalTangentGeoref(-35.363261, 149.165230, 1.0, 1.0)
+    east, north = np.array([0.0, 80.0, -150.0, 2500.0]), np.array([0.0, 0.0, 40.0, -1800.0])
+    lat, lon = offset_latlon(-35.363261, 149.165230, east, north)
+    lat_g, lon_g = g.pixel_to_latlon(east, -north)
+    assert np.array_equal(lat, lat_g) and np.array_equal(lon, lon_g)
+    assert (float(lat[0]), float(lon[0])) == pytest.approx((-35.363261, 149.165230), abs=1e-12)
+    u, v = g.latlon_to_pixel(lat, lon)
+    e2, n2 = east_north_m(-35.363261, 149.165230, lat, lon)
+    assert np.allclose(e2, u, rtol=0, atol=1e-9) and np.allclose(n2, -v, rtol=0, atol=1e-9)
+
+
+def test_east_north_takes_one_origin_per_point(vincenty_m: Callable[..., float]):
+    """Vectorized over origins too (an EKF sample against the truth at its own time): each pair on its own."""
+    lat0, lon0 = np.array([-35.0, 10.0, 60.0]), np.array([149.0, 0.0, -20.0])
+    lat, lon = offset_latlon(-35.0, 149.0, 30.0, 40.0)
+    lat1, lon1 = offset_latlon(10.0, 0.0, -5.0, 0.0)
+    lat2, lon2 = offset_latlon(60.0, -20.0, 0.0, 700.0)
+    d = distance_m(lat0, lon0, np.array([lat, lat1, lat2]), np.array([lon, lon1, lon2]))
+    assert d == pytest.approx([50.0, 5.0, 700.0], abs=1e-6)
+    assert float(d[2]) == pytest.approx(vincenty_m(60.0, -20.0, float(lat2), float(lon2)), abs=1e-4)
+
+
+def test_offsets_refuse_the_poles():
+    with pytest.raises(MapError, match="latitude"):
+        east_north_m(90.0, 0.0, 89.0, 0.0)
+    with pytest.raises(MapError, match="origin_lat_deg"):
+        offset_latlon(89.5, 0.0, 10.0, 10.0)
