@@ -244,13 +244,12 @@ class LibmavCollector:
             return [x for x in self.messages if x[1] == name]
 
     def close(self, timeout_s: float = 5.0) -> None:
-        """Stop libmav's runtime. Its stop() joins a C++ thread and has been seen to block for good on a
-        loaded machine, so it runs in a daemon thread: a stuck decoder cannot hang the caller.
+        """Stop libmav's runtime. Its stop() joins a C++ thread that can block for good on a loaded machine, so
+        it runs in a daemon thread: a stuck decoder cannot hang the caller.
 
         First wait until no frame has arrived for 0.3 s (the sender has stopped; libmav's receive thread drains
-        its queue): a suite run once hung for good in remove_all_callbacks while frames were still being
-        delivered (most likely the binding holds the GIL there while the receive thread, inside a delivery,
-        waits for it)."""
+        its queue): remove_all_callbacks can hang for good while frames are still being delivered (most likely
+        the binding holds the GIL there while the receive thread, inside a delivery, waits for it)."""
         if self._conn is not None:
             deadline = time.monotonic() + timeout_s
             seen = -1

@@ -1,6 +1,6 @@
 """The MAVLink sender: a thread that streams the latest fix at a steady rate, as a vision companion computer.
 
-Why a thread with absolute deadlines: ArduPilot declares a MAVLink GPS unhealthy after ~245 ms without
+Why a thread with absolute deadlines: ArduPilot declares a MAVLink GPS unhealthy after about 0.245 s without
 GPS_INPUT, and the EKFs dislike jittery external-navigation timing, so the send rate must not depend on how
 long the simulator or the estimator take. The sender emits whatever fix the slot holds, ageing it.
 """

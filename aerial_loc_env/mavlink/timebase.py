@@ -17,7 +17,7 @@ from aerial_loc_env.errors import ConfigError
 GPS_EPOCH_UNIX_S = 315_964_800  # 1980-01-06T00:00:00Z as a Unix time
 GPS_LEAP_SECONDS = 18            # GPS - UTC since 2017-01-01 (no leap second announced since)
 SECONDS_PER_WEEK = 7 * 86_400
-SIGNING_EPOCH_UNIX_S = 1_420_070_400  # 2015-01-01T00:00:00Z: origin of MAVLink 2 signing timestamps (10 us)
+SIGNING_EPOCH_UNIX_S = 1_420_070_400  # 2015-01-01T00:00:00Z: origin of MAVLink 2 signing time (10 microsecond units)
 
 
 def gps_week_ms(unix_s: float, leap_s: int = GPS_LEAP_SECONDS) -> tuple[int, int]:
