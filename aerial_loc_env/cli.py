@@ -14,7 +14,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "pictures": ("aerial_loc_env.pictures", "write a map overview and camera frames with/without shadows"),
     "train": ("aerial_loc_env.learning.cli", "train a learned policy from a recipe in agents/"),
     "mavlink": ("aerial_loc_env.mavlink.cli", "stream an agent's estimates to a flight controller"),
-    "sitl": ("aerial_loc_env.mavlink.sitl", "fly an ArduPilot SITL mission on the vision fix"),
+    "sitl": ("aerial_loc_env.sitl.cli", "fly an ArduPilot SITL mission on the vision fix"),
     "perf": ("aerial_loc_env.perf.__main__", "speed benchmarks on one core"),
     "scenarios": ("aerial_loc_env.env.scenarios", "list the registered scenarios"),
     "agents": ("aerial_loc_env.estimators.registry", "list the agent specs"),

@@ -26,14 +26,18 @@ from aerial_loc_env.mavlink.bridge import EstimateBridge
 from aerial_loc_env.mavlink.fix import FixPolicy
 from aerial_loc_env.mavlink.messages import MESSAGE_KINDS, ODOMETRY_FRAMES
 from aerial_loc_env.mavlink.sender import MavlinkSender, SenderConfig, SenderStats, VehicleState
+from aerial_loc_env.world.maps.geo import east_north_m, offset_latlon
 
 ALIASES = {"gps": "gps_input", "gps_input": "gps_input", "vision": "vision_position_estimate",
            "vision_position_estimate": "vision_position_estimate", "odom": "odometry", "odometry": "odometry"}
-EARTH_RADIUS_M = 6_371_008.8
 SITL_HOME = "-35.363261,149.165230,584.0"   # ArduPilot SITL's default home (CMAC)
 # 0.5 m per axis at 4 Hz: the reported accuracies (h 0.7 m, speed 0.8 m/s, hdop 0.5) pass ArduPilot's default
 # GPS checks (5 m, 1 m/s, GPS_HDOP_GOOD 1.4); 2 m reported 3.2 m/s speed accuracy and was never used
 DEMO_NOISE_M = 0.5
+# the terrain heights a map may declare, m AMSL (the Dead Sea shore to above the highest airfields)
+GROUND_AMSL_RANGE_M = (-500.0, 9000.0)
+# the simulator's speedups the bridge follows: its send rate and the camera's frames scale with it
+SIM_SPEEDUP_RANGE = (0.1, 20.0)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -126,8 +130,8 @@ class _Estimate:
 class DemoTrack:
     """A circle flown at constant speed about a geographic centre, with Gaussian estimate noise.
 
-    The georeference is an equirectangular tangent plane at the centre: adequate for a demo track of a few
-    hundred metres (maps use their own Georeference through the Orthomap).
+    World metres are east and north on the WGS84 tangent plane at the centre (``world.maps.geo``, as a synthetic
+    map's ``LocalTangentGeoref``): the circle's radius is ground metres.
     """
 
     def __init__(self, origin: str, seed: int, radius_m: float = 150.0, speed_mps: float = 10.0,
@@ -145,13 +149,12 @@ class DemoTrack:
         self.follow: VehicleState | None = None
 
     def world_to_latlon(self, x_m: float, y_m: float) -> tuple[float, float]:
-        lat = self.lat0 + math.degrees(y_m / EARTH_RADIUS_M)
-        lon = self.lon0 + math.degrees(x_m / (EARTH_RADIUS_M * math.cos(math.radians(self.lat0))))
-        return lat, lon
+        lat, lon = offset_latlon(self.lat0, self.lon0, x_m, y_m)
+        return float(lat), float(lon)
 
     def latlon_to_world(self, lat: float, lon: float) -> tuple[float, float]:
-        return (math.radians(lon - self.lon0) * EARTH_RADIUS_M * math.cos(math.radians(self.lat0)),
-                math.radians(lat - self.lat0) * EARTH_RADIUS_M)
+        x, y = east_north_m(self.lat0, self.lon0, lat, lon)
+        return float(x), float(y)
 
     def steps(self) -> Iterator[Step]:
         k = 0
@@ -318,15 +321,31 @@ def ground_amsl_m(given: float | None, orthomap: Any, scenario: str) -> float:
     """The terrain height under the map: ``--ground-amsl-m``, else the map's own ``ground_amsl_m``.
 
     Why no silent default: a wrong height puts the EKF origin (SET_GPS_GLOBAL_ORIGIN) and every GPS_INPUT altitude
-    that far off; sea level under a map at 584 m made the EKF origin 584 m below the vehicle.
+    that far off; sea level under a map at 584 m would put the EKF origin 584 m below the vehicle.
     """
     value = given if given is not None else getattr(orthomap, "ground_amsl_m", None)
     if value is None:
         raise ConfigError(f"--scenario {scenario}: its map declares no terrain height; give --ground-amsl-m "
                           "(metres above mean sea level of the ground under the map, e.g. 584 at ArduPilot "
                           "SITL's default home)")
-    if not math.isfinite(float(value)) or not -500.0 <= float(value) <= 9000.0:
-        raise ConfigError(f"--ground-amsl-m {value}: must be a finite height in [-500, 9000] m AMSL")
+    return check_ground_amsl_m(value)
+
+
+def check_ground_amsl_m(value: float) -> float:
+    """``--ground-amsl-m`` as a float, or a clear error outside ``GROUND_AMSL_RANGE_M``."""
+    lo, hi = GROUND_AMSL_RANGE_M
+    if not math.isfinite(float(value)) or not lo <= float(value) <= hi:
+        raise ConfigError(f"--ground-amsl-m {value}: must be a finite height in [{lo:g}, {hi:g}] m AMSL "
+                          "(the ground under the map)")
+    return float(value)
+
+
+def check_sim_speedup(value: float, option: str = "--sim-speedup") -> float:
+    """The simulator's speedup as a float, or a clear error outside ``SIM_SPEEDUP_RANGE``."""
+    lo, hi = SIM_SPEEDUP_RANGE
+    if not (math.isfinite(value) and lo <= value <= hi):
+        raise ConfigError(f"{option} {value}: must be in [{lo:g}, {hi:g}] (SITL's --speedup: simulated seconds "
+                          "per real second; 1 = real time)")
     return float(value)
 
 
@@ -338,8 +357,7 @@ def run(args: argparse.Namespace, *, out=sys.stdout, should_stop: Callable[[], b
         raise ConfigError(f"--speed {args.speed}: must be >= 0 (1 = real time, 0 = as fast as possible)")
     if not args.demo and not (args.scenario and args.agent):
         raise ConfigError("aerial-loc mavlink: give --scenario and --agent (or --demo for a synthetic track)")
-    if not (math.isfinite(args.sim_speedup) and 0.1 <= args.sim_speedup <= 20.0):
-        raise ConfigError(f"--sim-speedup {args.sim_speedup}: must be in [0.1, 20] (SITL's --speedup)")
+    check_sim_speedup(args.sim_speedup)
     config = sender_config(args)
     if args.demo:
         source: DemoTrack | ScenarioRun = DemoTrack(args.origin, args.seed)
@@ -371,7 +389,9 @@ def run(args: argparse.Namespace, *, out=sys.stdout, should_stop: Callable[[], b
                 if (args.duration_s > 0 and time.monotonic() - t0 >= args.duration_s) or should_stop():
                     break
                 continue
-            if follow_clock and t_first is None:
+            if follow_clock and (t_first is None or step.time_s < t_first):
+                # (the first truth samples may come before the simulator's own time is known: stamped by their
+                # arrival, they lie far ahead of its boot seconds, and the status line counts from its first one)
                 t_first = step.time_s
             t_sim = step.time_s - t_first if follow_clock else step.time_s
             error_m = step.error_m
