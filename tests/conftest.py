@@ -11,11 +11,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import pytest
-
-REPO_ROOT = Path(__file__).resolve().parents[1]
-SHARED_DATA = REPO_ROOT.parent / "shared" / "data"
-REAL_TILES = ("manila_pasig_river.tif", "valencia_orchard.tif")
-LATIN1 = "description = \"caf\xe9\"\n".encode("latin-1")   # a file saved in Latin-1, not UTF-8
+from shared_helpers import REAL_TILES, REPO_ROOT, SHARED_DATA
 
 
 @pytest.fixture(scope="session")
@@ -40,18 +36,6 @@ def manila(shared_data: Path):
     from aerial_loc_env.world.maps.io import load_orthomap
 
     return load_orthomap(shared_data / "manila_pasig_river.tif")
-
-
-def crop_png(om, folder: Path, size: int = 512) -> tuple[Path, float, float]:
-    """The centre crop of ``om`` as a PNG; returns it with the crop centre's lat/lon."""
-    import cv2
-    import numpy as np
-
-    v0 = u0 = (om.width_px - size) // 2 + min(200, (om.width_px - size) // 2)    # off the no-data wedge
-    png = folder / "crop.png"
-    cv2.imwrite(str(png), np.ascontiguousarray(np.asarray(om.rgb)[v0:v0 + size, u0:u0 + size, ::-1]))
-    lat, lon = om.georef.pixel_to_latlon(u0 + (size - 1) / 2.0, v0 + (size - 1) / 2.0)
-    return png, float(np.ravel(lat)[0]), float(np.ravel(lon)[0])
 
 
 def vincenty_m(lat1, lon1, lat2, lon2) -> float:

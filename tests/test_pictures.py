@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from conftest import crop_png
+from shared_helpers import crop_png
 
 
 def test_pictures_take_crs_and_gsd(manila, tmp_path):

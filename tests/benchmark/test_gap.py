@@ -9,7 +9,7 @@ import math
 import cv2
 import numpy as np
 import pytest
-from conftest import SHARED_DATA
+from shared_helpers import SHARED_DATA
 
 from aerial_loc_env.benchmark import gap
 from aerial_loc_env.errors import ConfigError

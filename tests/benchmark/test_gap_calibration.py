@@ -17,7 +17,7 @@ import math
 
 import numpy as np
 import pytest
-from conftest import SHARED_DATA
+from shared_helpers import SHARED_DATA
 
 from aerial_loc_env.benchmark import gap
 from aerial_loc_env.errors import ConfigError

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import pytest
-from conftest import LATIN1, REPO_ROOT, SHARED_DATA
+from shared_helpers import LATIN1, REPO_ROOT, SHARED_DATA
 
 from aerial_loc_env.benchmark.grid import (
     available_experiments,

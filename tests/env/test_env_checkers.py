@@ -12,8 +12,8 @@ import warnings
 import gymnasium as gym
 import numpy as np
 import pytest
-from conftest import REAL_TILES, SHARED_DATA
 from gymnasium.utils.env_checker import check_env
+from shared_helpers import REAL_TILES, SHARED_DATA
 
 import aerial_loc_env  # noqa: F401  (registers the scenarios)
 from aerial_loc_env.env.scenarios import specs

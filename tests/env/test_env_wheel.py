@@ -17,7 +17,7 @@ import venv
 from pathlib import Path
 
 import pytest
-from conftest import REPO_ROOT, SHARED_DATA
+from shared_helpers import REPO_ROOT, SHARED_DATA
 
 SCRIPT = r"""
 import sys, pathlib, gymnasium as gym, aerial_loc_env

@@ -7,7 +7,7 @@ import sys
 
 import gymnasium as gym
 import pytest
-from conftest import LATIN1, REPO_ROOT
+from shared_helpers import LATIN1, REPO_ROOT
 
 import aerial_loc_env  # noqa: F401  (registers the scenarios)
 from aerial_loc_env.env import scenarios

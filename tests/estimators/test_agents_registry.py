@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import pytest
-from conftest import LATIN1
+from shared_helpers import LATIN1
 from test_dense_models import briefing_standin, textured_map
 
 from aerial_loc_env.config import rng

@@ -8,7 +8,7 @@ import zipfile
 
 import gymnasium as gym
 import pytest
-from conftest import REPO_ROOT
+from shared_helpers import REPO_ROOT
 
 import aerial_loc_env.env  # noqa: F401  (registers the scenarios)
 from aerial_loc_env.errors import ConfigError

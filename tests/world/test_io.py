@@ -12,7 +12,7 @@ import cv2
 import numpy as np
 import pytest
 import tifffile
-from conftest import REPO_ROOT, crop_png
+from shared_helpers import REPO_ROOT, crop_png
 
 from aerial_loc_env.errors import MapError
 from aerial_loc_env.world.maps.geo import LocalTangentGeoref, WorldMercatorGeoref, mercator_scale_factor

@@ -1,0 +1,25 @@
+"""Constants and helpers that test files of several layers share.
+
+A plain module rather than conftest.py: ``from conftest import ...`` finds whichever conftest.py pytest loaded
+last (tests/sitl/ has its own), while this module is always this one."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+SHARED_DATA = REPO_ROOT.parent / "shared" / "data"
+REAL_TILES = ("manila_pasig_river.tif", "valencia_orchard.tif")
+LATIN1 = "description = \"caf\xe9\"\n".encode("latin-1")   # a file saved in Latin-1, not UTF-8
+
+
+def crop_png(om, folder: Path, size: int = 512) -> tuple[Path, float, float]:
+    """The centre crop of ``om`` as a PNG; returns it with the crop centre's lat/lon."""
+    import cv2
+    import numpy as np
+
+    v0 = u0 = (om.width_px - size) // 2 + min(200, (om.width_px - size) // 2)    # off the no-data wedge
+    png = folder / "crop.png"
+    cv2.imwrite(str(png), np.ascontiguousarray(np.asarray(om.rgb)[v0:v0 + size, u0:u0 + size, ::-1]))
+    lat, lon = om.georef.pixel_to_latlon(u0 + (size - 1) / 2.0, v0 + (size - 1) / 2.0)
+    return png, float(np.ravel(lat)[0]), float(np.ravel(lon)[0])
