@@ -6,7 +6,7 @@ PIP    := $(PY) -m pip
 # The CPU build of torch: pinned so that pip never pulls several GB of CUDA packages.
 TORCH  ?= torch==2.13.0
 
-.PHONY: venv run test bench pictures lint wheel clean
+.PHONY: venv run test test-fast bench pictures lint wheel clean
 
 $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -24,6 +24,10 @@ run: venv
 ## Quick start 2: install, then run the whole test suite.
 test: venv
 	$(PY) -m pytest -q
+
+# The developer's loop: the suite without the tests marked slow (statistical, training, long flights).
+test-fast: venv
+	$(PY) -m pytest -q -m "not slow"
 
 # Speed benchmarks on one core (BLAS/OpenMP pinned before numpy loads).
 bench: venv

@@ -160,6 +160,7 @@ def test_kill_mid_run_then_resume_loses_nothing(tmp_path):
     assert _comparable(resumed) == _comparable(full)
 
 
+@pytest.mark.slow
 def test_ray_executor_gives_the_same_rows_as_local(tmp_path):
     pytest.importorskip("ray", reason="Ray is an optional extra (pip install 'aerial-loc-env[ray]'); "
                                       "the Ray executor test needs it")

@@ -149,6 +149,7 @@ def test_scenario_frame_and_database_align_at_the_true_pose():
     assert shaded["ncc"]["median"] < s["ncc"]["median"]
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not PAIRS.is_dir(), reason=f"real two-epoch pairs not available ({PAIRS} is absent: they "
                                               "live beside the project, never in it)")
 def test_real_pairs_are_far_less_alike_than_the_paper_scenario():

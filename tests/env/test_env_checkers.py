@@ -107,6 +107,7 @@ def test_async_vector_env_for_every_id(sid):
         envs.close()
 
 
+@pytest.mark.slow
 def test_sb3_multi_input_policy_accepts_the_observation(tmp_path):
     sb3 = pytest.importorskip("stable_baselines3")
     from stable_baselines3.common.logger import configure
