@@ -251,10 +251,20 @@ def build_scenario(spec: Mapping[str, Any], overrides: Mapping[str, Any] | None 
 
 
 def check_relief(scenario: Scenario, world: Any) -> None:
-    """Refuse a perspective camera flying too low over its world's height model: the perspective view clips
+    """Refuse a perspective camera without a height model to draw (a map without a DSM, or ``map.use_dsm =
+    false``: it would be the affine camera without a word), and one flying too low over its world's height
+    model: the perspective view clips
     heights at a share of the camera's altitude (``sensors.perspective``; a camera among the roofs has no view
     down), so taller buildings would be cut off without a word. ``world``: the scenario's ``world.scene.World``."""
-    if not (scenario.perspective.enabled and scenario.map.use_dsm) or world.ground.dsm_m is None:
+    if scenario.perspective.enabled and (world.ground.dsm_m is None or not scenario.map.use_dsm):
+        what = "map.use_dsm = false turns the height model off" if world.ground.dsm_m is not None else \
+            f"the map '{world.ground.name}' has no height model (a real image or pair carries none; a bundle " \
+            "with a dsm_m layer, or load_orthomap(..., dsm=...), does)"
+        raise ConfigError(
+            f"{scenario.id}: perspective.enabled = true renders the ground's relief from a height model, but "
+            f"{what}, so the perspective camera would silently be the affine one; set perspective.enabled = false "
+            "(gym.make(id, perspective={'enabled': False})) or fly a map with a height model")
+    if not scenario.perspective.enabled or world.ground.dsm_m is None:
         return
     from aerial_loc_env.sensors.perspective import _MAX_HEIGHT_FRACTION as share
 
@@ -387,17 +397,18 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.show:
         _path, raw = resolve(args.show)
-        needs_path = isinstance(raw.get("map"), Mapping) and raw["map"].get("kind") == "file" \
-            and not raw["map"].get("path")
-        # a file scenario names its map at gym.make: show the spec with that one field marked as required
-        sc = load_scenario(args.show, {"map.path": _REQUIRED} if needs_path else None)
+        table = raw.get("map") if isinstance(raw.get("map"), Mapping) else {}
+        required = {"file": ("path",), "pair": ("path_a", "path_b")}.get(table.get("kind"), ())
+        # a file or pair scenario names its map at gym.make: show the spec with those fields marked as required
+        sc = load_scenario(args.show, {f"map.{n}": _REQUIRED for n in required if not table.get(n)} or None)
         for key in TOP_KEYS:
             print(f"{key} = {json.dumps(getattr(sc, key))}")
         for name, table in sc.to_dict().items():
             if isinstance(table, dict):
                 print(f"\n[{name}]")
                 for k, v in table.items():
-                    print(f"# {k} = (required: gym.make(id, path='tile.tif'), or map.path in an experiment's "
+                    example = f"{k}='tile.tif'" if k == "path" else f"{k}='{k[-1].upper()}/tile.png'"
+                    print(f"# {k} = (required: gym.make(id, {example}), or map.{k} in an experiment's "
                           "overrides)" if v == _REQUIRED else f"{k} = {json.dumps(v)}")
         return 0
     for sid, (_path, raw) in specs().items():

@@ -37,22 +37,50 @@ if TYPE_CHECKING:   # the scenario specs import this module: the maps load on fi
 
 @dataclass(frozen=True)
 class MapConfig:
-    """Which map the vehicle flies over: the procedural city or a file (``path`` required)."""
+    """Which map the vehicle flies over: the procedural city, a file (``path`` required), or a real two-epoch
+    pair (``kind = "pair"``: ``path_a`` the map database's epoch, ``path_b`` the camera's; ``world/maps/pairs.py``).
 
-    kind: str = field(default="city", metadata=rng(choices=("city", "file")))
+    For a pair, ``gsd_m`` is the ground sampling of images without a georeference (``gsd_b_m``: B's, when it
+    differs), ``max_shift_m`` the largest residual misregistration accepted (None: ``pairs.DEFAULT_MAX_SHIFT_M``)
+    and ``correct_shift = true`` removes a small constant one from A. The pair fields are None unless set, so
+    the other scenarios' specs (and their fingerprints) do not change."""
+
+    kind: str = field(default="city", metadata=rng(choices=("city", "file", "pair")))
     path: str | None = None
     gsd_m: float | None = None          # metres per pixel, for files without a georeference; (0, 1000]
     crs: str | None = None
     use_dsm: bool = True   # cast shadows from the map's height model (when it has one)
+    path_a: str | None = None           # pair: epoch A, the map database
+    path_b: str | None = None           # pair: epoch B, the ground the camera sees
+    gsd_b_m: float | None = None        # pair: B's metres per pixel when it has no georeference and differs
+    max_shift_m: float | None = None    # pair: largest residual misregistration accepted, metres; (0, 1000]
+    correct_shift: bool | None = None   # pair: remove a constant misregistration from A (None: false)
 
     def validate(self, where: str) -> None:
         if self.kind == "file" and not self.path:
             raise ConfigError(f"{where}: map.kind = 'file' needs map.path, the map file to fly over "
                               "(PNG/TIFF/GeoTIFF or a bundle); e.g. gym.make(id, path='tile.tif')")
-        if self.gsd_m is not None:
-            check_value("gsd_m", self.gsd_m, rng(0.0, 1000.0, lo_open=True), where)
+        for name in ("gsd_m", "gsd_b_m", "max_shift_m"):
+            if getattr(self, name) is not None:
+                check_value(name, getattr(self, name), rng(0.0, 1000.0, lo_open=True), where)
         if self.kind == "city" and self.path:
             raise ConfigError(f"{where}: map.path is only used with map.kind = 'file'")
+        pair_fields = [n for n in ("path_a", "path_b", "gsd_b_m", "max_shift_m", "correct_shift")
+                       if getattr(self, n) is not None]
+        if self.kind != "pair" and pair_fields:
+            raise ConfigError(f"{where}: map.{pair_fields[0]} is only used with map.kind = 'pair' (a real "
+                              "two-epoch pair, e.g. gym.make('AerialLoc/RealPair-v1', path_a=..., path_b=...))")
+        if self.kind == "pair":
+            missing = [n for n in ("path_a", "path_b") if not getattr(self, n)]
+            if missing:
+                raise ConfigError(
+                    f"{where}: map.kind = 'pair' needs map.path_a (epoch A, the map database) and map.path_b "
+                    f"(epoch B, the ground the camera sees); {' and '.join('map.' + m for m in missing)} "
+                    "missing: e.g. gym.make('AerialLoc/RealPair-v1', path_a='A/test_1.png', "
+                    "path_b='B/test_1.png', map={'gsd_m': 0.5}) (gsd_m: for images without a georeference)")
+            if self.path:
+                raise ConfigError(f"{where}: map.path is for map.kind = 'file'; a pair's images are map.path_a "
+                                  "and map.path_b")
 
 
 @dataclass(frozen=True)
@@ -72,6 +100,9 @@ class WorldSpec:
         cfg = self.map
         if cfg.kind == "city":
             return _key("city", config_to_dict(self.city))
+        if cfg.kind == "pair":
+            files = [(str(p.resolve()), p.stat().st_size, p.stat().st_mtime_ns) for p in self.pair_paths()]
+            return _key("pair", files, cfg.gsd_m, cfg.gsd_b_m, cfg.crs, cfg.max_shift_m, bool(cfg.correct_shift))
         path = self.map_path()
         stat = path.stat() if path.is_file() else _folder_stat(path)
         return _key("file", str(path.resolve()), stat, cfg.gsd_m, cfg.crs)
@@ -83,6 +114,18 @@ class WorldSpec:
             raise MapError(f"{self.where}: map.path '{self.map.path}' does not exist (resolved to "
                            f"{path.resolve()}); give an existing PNG/TIFF/GeoTIFF file or bundle folder")
         return path
+
+
+    def pair_paths(self) -> tuple[Path, Path]:
+        """The two images of a ``kind = "pair"`` map (A, B), checked to exist."""
+        out = []
+        for name, what in (("path_a", "epoch A, the map database"), ("path_b", "epoch B, the camera's ground")):
+            path = Path(str(getattr(self.map, name))).expanduser()
+            if not path.is_file():
+                raise MapError(f"{self.where}: map.{name} '{getattr(self.map, name)}' ({what}) does not exist or "
+                               f"is not a file (resolved to {path.resolve()}); give an existing PNG/TIFF/GeoTIFF")
+            out.append(path)
+        return out[0], out[1]
 
 
 @dataclass(frozen=True, eq=False)
@@ -154,7 +197,9 @@ def build_world(spec: WorldSpec) -> World:
 
 
 def _load_surveyed(spec: WorldSpec) -> Orthomap:
-    """Epoch A: the city (from its on-disk cache) or the map file."""
+    """Epoch A: the city (from its on-disk cache), the map file, or a pair's image A (on the pair's grid)."""
+    if spec.map.kind == "pair":
+        return _pair(spec).surveyed
     if spec.map.kind == "city":
         from aerial_loc_env.world.city import default_city
 
@@ -170,7 +215,10 @@ def _load_surveyed(spec: WorldSpec) -> Orthomap:
 
 
 def _epoch(spec: WorldSpec, surveyed: Orthomap) -> Orthomap:
-    """The ground the camera sees: ``surveyed`` itself, or epoch B of it (the city's cached on disk)."""
+    """The ground the camera sees: ``surveyed`` itself, epoch B of it (the city's cached on disk), or a pair's
+    image B."""
+    if spec.map.kind == "pair":
+        return _pair(spec).ground
     if spec.epoch.is_identity:
         return surveyed
     from aerial_loc_env.world.city import epochs
@@ -178,6 +226,25 @@ def _epoch(spec: WorldSpec, surveyed: Orthomap) -> Orthomap:
     if spec.map.kind == "city":
         return epochs.epoch_city(spec.city, spec.epoch)
     return epochs.change_epoch(surveyed, spec.epoch)
+
+
+def _pair(spec: WorldSpec) -> Any:
+    """A ``kind = "pair"`` map's two epochs on one grid (``world.maps.pairs.load_pair``), loaded once."""
+    if not spec.epoch.is_identity:
+        raise ConfigError(f"{spec.where}: map.kind = 'pair' flies the camera over image B, a real later epoch; "
+                          "[epoch] simulates one from the map and cannot apply to it: leave [epoch] at its "
+                          "defaults (or fly a map file, map.kind = 'file', with [epoch])")
+
+    def load() -> Any:
+        from aerial_loc_env.world.maps.pairs import DEFAULT_MAX_SHIFT_M, load_pair
+
+        cfg = spec.map
+        path_a, path_b = spec.pair_paths()
+        return load_pair(path_a, path_b, gsd_m=cfg.gsd_m, gsd_b_m=cfg.gsd_b_m, crs=cfg.crs,
+                         max_shift_m=cfg.max_shift_m or DEFAULT_MAX_SHIFT_M, correct_shift=bool(cfg.correct_shift),
+                         where=spec.where)
+
+    return _cached(("pair", spec.map_key()), load)
 
 
 def _database(spec: WorldSpec, surveyed: Orthomap) -> Orthomap:

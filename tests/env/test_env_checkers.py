@@ -18,7 +18,9 @@ from shared_helpers import REAL_TILES, SHARED_DATA
 import aerial_loc_env  # noqa: F401  (registers the scenarios)
 from aerial_loc_env.env.scenarios import specs
 
-IDS = [sid for sid in specs() if sid != "AerialLoc/RealMap-v1"]
+#: the ids whose map the user names (RealMap: a file; RealPair: two images) have tests of their own
+USER_MAPS = ("AerialLoc/RealMap-v1", "AerialLoc/RealPair-v1")
+IDS = [sid for sid in specs() if sid not in USER_MAPS]
 
 
 def _check_silently(sid: str, **kwargs) -> None:
@@ -56,6 +58,12 @@ def test_real_map_tracks_avoid_nodata(shared_data, tile):
 def _kwargs(sid: str, shared: bool) -> dict:
     """Short episodes (2 s, 8 steps) keep these tests fast; the real map flies over the Manila tile."""
     kw: dict = {"duration_s": 2.0}
+    if sid == "AerialLoc/RealPair-v1":
+        levir = SHARED_DATA / "pairs" / "levir-cd"
+        if not shared or not (levir / "A" / "test_1.png").is_file():
+            pytest.skip(f"real image pairs not available: {levir}")
+        kw.update(path_a=str(levir / "A" / "test_1.png"), path_b=str(levir / "B" / "test_1.png"),
+                  map={"gsd_m": 0.5})
     if sid == "AerialLoc/RealMap-v1":
         tile = SHARED_DATA / REAL_TILES[0]
         if not shared or not tile.is_file():

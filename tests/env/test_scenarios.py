@@ -38,7 +38,7 @@ def test_every_spec_file_is_registered_and_required_ids_exist():
         assert f"AerialLoc/{name}-v1" in ids
 
 
-@pytest.mark.parametrize("sid", [s for s in specs() if s != "AerialLoc/RealMap-v1"])
+@pytest.mark.parametrize("sid", [s for s in specs() if s not in ("AerialLoc/RealMap-v1", "AerialLoc/RealPair-v1")])
 def test_specs_validate_and_round_trip(sid):
     sc = load_scenario(sid)
     again = build_scenario(sc.to_dict(), where="round trip")
@@ -224,8 +224,7 @@ class _World:
     ({"perspective.enabled": True, "altitude_m": 100.0}, 95.0, False),       # at 0.95 x the altitude: seen whole
     ({"perspective.enabled": True, "altitude_m": 100.0}, 95.1, True),
     ({"perspective.enabled": False, "altitude_m": 100.0}, 200.0, False),     # the affine view: no clipping
-    ({"perspective.enabled": True, "map.use_dsm": False}, 200.0, False),
-    ({"perspective.enabled": True}, None, False),                            # a map without a height model
+    ({"perspective.enabled": False}, None, False),                           # affine, no height model: fine
 ])
 def test_check_relief_refuses_buildings_the_perspective_camera_would_cut(overrides, tallest_m, refused):
     sc = load_scenario("AerialLoc/Small-v1", overrides)
@@ -236,6 +235,32 @@ def test_check_relief_refuses_buildings_the_perspective_camera_would_cut(overrid
             scenarios.check_relief(sc, _World(tallest_m))
     else:
         scenarios.check_relief(sc, _World(tallest_m))
+
+
+@pytest.mark.parametrize("overrides, tallest_m, said", [
+    ({"perspective.enabled": True}, None, r"the map 'ground' has no height model"),
+    ({"perspective.enabled": True, "map.use_dsm": False}, 200.0, r"map\.use_dsm = false turns the height model off"),
+])
+def test_check_relief_refuses_a_perspective_camera_without_a_height_model(overrides, tallest_m, said):
+    """Without a height model the perspective camera is the affine one: refused, naming the fix (it used to be a
+    silent no-op)."""
+    sc = load_scenario("AerialLoc/Small-v1", overrides)
+    world = _World(tallest_m)
+    world.ground.name = "ground"
+    with pytest.raises(ConfigError, match=rf"^AerialLoc/Small-v1: perspective\.enabled = true .*{said}.*set "
+                                          r"perspective\.enabled = false"):
+        scenarios.check_relief(sc, world)
+
+
+def test_a_perspective_camera_over_a_map_file_without_dsm_is_refused_at_gym_make(tmp_path):
+    import cv2
+    import numpy as np
+
+    png = tmp_path / "tile.png"
+    cv2.imwrite(str(png), np.random.default_rng(0).integers(0, 255, (800, 800, 3), dtype=np.uint8))
+    with pytest.raises(ConfigError, match=r"^AerialLoc/RealMap-v1: perspective\.enabled = true .* the map 'tile' "
+                                          r"has no height model"):
+        gym.make("AerialLoc/RealMap-v1", path=str(png), map={"gsd_m": 0.5}, perspective={"enabled": True})
 
 
 def test_a_perspective_camera_below_the_towers_is_refused_at_gym_make():
