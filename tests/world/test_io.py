@@ -119,8 +119,8 @@ def test_world_file_png(tmp_path):
     om2 = load_orthomap(png, crs=3395, world_file=tmp_path / "other.txt")
     assert float(om2.georef.pixel_to_xy(0, 0)[0]) == pytest.approx(X0 + 100)
     (tmp_path / "m.pgw").unlink()
-    (tmp_path / "m.wld").write_text("0.5 0 0 -0.5 1000 2000")
-    assert load_orthomap(png, crs="EPSG:3857").georef.pixel_to_crs == (0.5, 0.0, 1000.0, 0.0, -0.5, 2000.0)
+    (tmp_path / "m.wld").write_text("0.5 0 0 -0.5 -46000 4746000")     # Valencia (not Null Island: refused)
+    assert load_orthomap(png, crs="EPSG:3857").georef.pixel_to_crs == (0.5, 0.0, -46000.0, 0.0, -0.5, 4746000.0)
 
 
 def test_bad_world_files(tmp_path):

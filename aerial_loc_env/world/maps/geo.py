@@ -73,6 +73,63 @@ def _check_lat(lat: np.ndarray, what: str) -> None:
 
 # --- projections (CRS) ----------
 
+def _deg_lon(lon: float) -> str:
+    return f"{abs(lon):g} deg {'W' if lon < 0 else 'E'}"
+
+
+def _deg_lat(lat: float) -> str:
+    return f"{abs(lat):g} deg {'S' if lat < 0 else 'N'}"
+
+
+@dataclass(frozen=True)
+class AreaOfUse:
+    """Where a CRS is meant to be used: a lat/lon box in degrees (``west > east`` crosses the antimeridian)."""
+
+    west: float
+    south: float
+    east: float
+    north: float
+    name: str = ""
+
+    def distance_deg(self, lat_deg: float, lon_deg: float) -> float:
+        """How many degrees (of latitude or longitude, the larger) the point lies outside the box; 0 inside."""
+        width = (self.east - self.west) % 360.0 or (360.0 if self.east != self.west else 0.0)
+        rel = (lon_deg - self.west) % 360.0
+        off_lon = 0.0 if rel <= width else min(rel - width, 360.0 - rel)
+        off_lat = max(0.0, self.south - lat_deg, lat_deg - self.north)
+        return max(off_lon, off_lat)
+
+    def describe(self) -> str:
+        box = f"{_deg_lon(self.west)} to {_deg_lon(self.east)}, {_deg_lat(self.south)} to {_deg_lat(self.north)}"
+        return f"{self.name} ({box})" if self.name and box not in self.name else (self.name or box)
+
+
+#: a regional CRS, for ``regional_crs_covering``: an area of use at most this many degrees on each side
+REGIONAL_CRS_MAX_DEG = 20.0
+
+
+def regional_crs_covering(lat_deg: float, lon_deg: float) -> list[str] | None:
+    """The projected CRSs of the EPSG/ESRI database (pyproj) whose area of use, at most ``REGIONAL_CRS_MAX_DEG``
+    on a side, contains the point: national and regional grids exist wherever land (or coastal water) is mapped,
+    so none at all means open ocean. None when pyproj is not installed (the check cannot be made)."""
+    try:
+        from pyproj.aoi import AreaOfInterest
+        from pyproj.database import query_crs_info
+        from pyproj.enums import PJType
+    except ImportError:   # pragma: no cover - depends on the environment
+        return None
+    found = query_crs_info(pj_types=PJType.PROJECTED_CRS, contains=False,
+                           area_of_interest=AreaOfInterest(lon_deg, lat_deg, lon_deg, lat_deg))
+    out = []
+    for info in found:
+        a = info.area_of_use
+        if a is None:
+            continue
+        if (a.east - a.west) % 360.0 <= REGIONAL_CRS_MAX_DEG and a.north - a.south <= REGIONAL_CRS_MAX_DEG:
+            out.append(f"{info.auth_name}:{info.code} {info.name}")
+    return out
+
+
 class Projection(ABC):
     """A projected (or geographic) CRS: lat/lon degrees <-> CRS coordinates (x east-ish, y north-ish)."""
 
@@ -89,11 +146,18 @@ class Projection(ABC):
         """Ground metres per CRS unit along x and y at ``lat_deg``, or None where no closed form is given."""
         return None
 
+    def area_of_use(self) -> AreaOfUse | None:
+        """Where the CRS is meant to be used (EPSG's area of use), or None when unknown."""
+        return None
+
 
 class WorldMercatorProjection(Projection):
     """EPSG:3395, Mercator on the WGS84 ellipsoid (conformal); the inverse iterates to machine precision."""
 
     crs = "EPSG:3395"
+
+    def area_of_use(self) -> AreaOfUse:
+        return AreaOfUse(-180.0, -80.0, 180.0, 84.0, "the world between 80 deg S and 84 deg N")
 
     def forward(self, lat_deg, lon_deg):
         lat_deg, lon_deg = _arrays(lat_deg, lon_deg)
@@ -127,6 +191,9 @@ class WebMercatorProjection(Projection):
 
     crs = "EPSG:3857"
 
+    def area_of_use(self) -> AreaOfUse:
+        return AreaOfUse(-180.0, -85.06, 180.0, 85.06, "the world between 85.06 deg S and 85.06 deg N")
+
     def forward(self, lat_deg, lon_deg):
         lat_deg, lon_deg = _arrays(lat_deg, lon_deg)
         _check_lat(lat_deg, self.crs)
@@ -149,6 +216,9 @@ class GeographicProjection(Projection):
     unit = "degree"
 
     crs = "EPSG:4326"
+
+    def area_of_use(self) -> AreaOfUse:
+        return AreaOfUse(-180.0, -90.0, 180.0, 90.0, "the world")
 
     def forward(self, lat_deg, lon_deg):
         lat_deg, lon_deg = _arrays(lat_deg, lon_deg)
@@ -190,6 +260,14 @@ class UTMProjection(Projection):
         self.crs = f"EPSG:{(32700 if south else 32600) + self.zone}"
         self._lon0 = math.radians(-183.0 + 6.0 * self.zone)
         self._n0 = 10_000_000.0 if south else 0.0
+
+    def area_of_use(self) -> AreaOfUse:
+        """The zone's 6-degree longitude band; 0-84 deg N (north zones) or 80 deg S-0 (south zones)."""
+        west = -180.0 + 6.0 * (self.zone - 1)
+        south, north = (-80.0, 0.0) if self.south else (0.0, 84.0)
+        return AreaOfUse(west, south, west + 6.0, north,
+                         f"UTM zone {self.zone}{'S' if self.south else 'N'}: {_deg_lon(west)} to "
+                         f"{_deg_lon(west + 6.0)}, {_deg_lat(south)} to {_deg_lat(north)}")
 
     def forward(self, lat_deg, lon_deg):
         lat_deg, lon_deg = _arrays(lat_deg, lon_deg)
@@ -243,6 +321,12 @@ class PyprojProjection(Projection):
         self.unit = axes[0].unit_name if axes else "unknown unit"
         self._fwd = pyproj.Transformer.from_crs("EPSG:4326", self._crs_obj, always_xy=True)
         self._inv = pyproj.Transformer.from_crs(self._crs_obj, "EPSG:4326", always_xy=True)
+
+    def area_of_use(self) -> AreaOfUse | None:
+        area = self._crs_obj.area_of_use
+        if area is None:
+            return None
+        return AreaOfUse(float(area.west), float(area.south), float(area.east), float(area.north), str(area.name))
 
     def forward(self, lat_deg, lon_deg):
         lat_deg, lon_deg = _arrays(lat_deg, lon_deg)

@@ -27,7 +27,14 @@ import cv2
 import numpy as np
 
 from aerial_loc_env.errors import MapError
-from aerial_loc_env.world.maps.geo import AffineGeoref, Georeference, LocalTangentGeoref, georef_for_crs, normalize_crs
+from aerial_loc_env.world.maps.geo import (
+    AffineGeoref,
+    Georeference,
+    LocalTangentGeoref,
+    georef_for_crs,
+    normalize_crs,
+    regional_crs_covering,
+)
 from aerial_loc_env.world.maps.orthomap import Orthomap
 
 SUPPORTED = "unsigned 8-bit or 16-bit rasters with 1 (grey), 3 (RGB) or 4 (RGBA) channels"
@@ -373,10 +380,10 @@ def _crs_hint(a: float, e: float, c: float, f: float) -> str:
            "(or put the .prj beside the image).")
     if abs(c) <= 180 and abs(f) <= 90 and abs(a) < 0.01:
         return how + f" The numbers (x {c:.6g}, y {f:.6g}, pixel {a:.3g}) look like degrees: EPSG:4326?"
-    if 100_000 <= c <= 900_000 and 0 <= f <= 10_000_000:
-        return how + (f" The numbers (easting {c:.0f}, northing {f:.0f}) fit a UTM zone (EPSG:326xx north, "
-                      "327xx south) but also many national grids, some in US survey feet")
-    return how + f" The numbers (x {c:.6g}, y {f:.6g}, pixel {a:.3g}) are projected coordinates"
+    return how + (f" The numbers (x {c:.6g}, y {f:.6g}, pixel {a:.3g}) are projected coordinates, in metres or "
+                  "feet: UTM zones, national grids and US State Plane zones (in feet) all give numbers of this size, "
+                  "so they cannot tell the CRS; a wrong guess puts the map elsewhere on Earth (loading refuses a "
+                  "place outside the CRS's area of use, or in open ocean)")
 
 
 #: ground metres per pixel an aerial or satellite map can have: beyond this the georeference or its CRS is wrong
@@ -393,6 +400,7 @@ def check_plausible_pixel(path: Path, georef: Georeference, how: str, w: int, h:
     lo, hi = GSD_PLAUSIBLE_M
     on_earth = bool(np.all(np.isfinite(lat)) and np.all(np.isfinite(lon)) and np.all(np.abs(lat) <= 90.0))
     if on_earth and all(math.isfinite(g) and lo <= g <= hi for g in (gx, gy)):
+        check_location(path, georef, how, w, h)
         return gx, gy
     t = getattr(georef, "pixel_to_crs", None)
     proj = getattr(georef, "projection", None)
@@ -404,6 +412,44 @@ def check_plausible_pixel(path: Path, georef: Georeference, how: str, w: int, h:
                    f"{lo:g} to {hi:g} m per pixel). The pixel size is in the CRS's unit ({unit}): check that the "
                    "CRS is the one the georeference was written in and that the world file belongs to this image")
 
+
+
+#: how far outside its CRS's area of use a map may lie, degrees: a UTM zone is commonly used up to half a zone
+#: beyond its band (a map straddling two zones keeps one), national grids somewhat beyond their borders
+AREA_OF_USE_MARGIN_DEG = 3.0
+_FIND_CRS = ("find the CRS the georeference was written in: a .prj or .aux.xml from the same source, the original "
+             "GeoTIFF's `gdalsrsinfo` / `gdalinfo`, or the data provider's description")
+
+
+def check_location(path: Path, georef: Georeference, how: str, w: int, h: int) -> None:
+    """Refuse a georeference that puts the map where its CRS is not used: outside the CRS's area of use (EPSG's,
+    through pyproj; for UTM the zone's band and hemisphere) by more than ``AREA_OF_USE_MARGIN_DEG``, or, for a
+    world file whose CRS the caller chose (no .prj beside it), in open ocean (no national or regional CRS of the
+    EPSG database covers the point: ``geo.regional_crs_covering``). Both are what a wrong CRS guess for the
+    same numbers gives (a US State Plane zone in feet read as a UTM zone lands in the Pacific)."""
+    proj = getattr(georef, "projection", None)
+    if proj is None:          # a nominal local tangent plane: nothing to check
+        return
+    lat, lon = (float(np.ravel(x)[0]) for x in georef.pixel_to_latlon((w - 1) / 2.0, (h - 1) / 2.0))
+    crs = getattr(georef, "crs", "the CRS")
+    where = f"{path}: {how}: the georeference puts the map's centre at {lat:.4f} deg, {lon:.4f} deg"
+    area = proj.area_of_use()
+    if area is not None:
+        off = area.distance_deg(lat, lon)
+        if off > AREA_OF_USE_MARGIN_DEG:
+            raise MapError(f"{where}, {off:.1f} deg outside the area of use of {crs} ({area.describe()}). The "
+                           f"numbers were most likely written in another CRS; {_FIND_CRS}; then pass "
+                           "crs='EPSG:<code>' or put the .prj beside the image")
+    chosen = how.startswith("world file") and " from " not in how
+    if not chosen:
+        return
+    regional = regional_crs_covering(lat, lon)
+    if regional is not None and not regional:
+        raise MapError(f"{where}, in open ocean: no national or regional CRS of the EPSG database covers that point, "
+                       f"so the world file's numbers were most likely written in another CRS than {crs} (a national "
+                       "grid, or a US State Plane zone in feet, gives numbers of the same size as a UTM zone's); "
+                       f"{_FIND_CRS}. A CRS named by the file itself (a .prj beside the image, GeoTIFF tags) is "
+                       "trusted: a map of open water loads that way")
 
 
 def _from_geotiff(path: Path, geo: dict, crs: str | int | None) -> tuple[Georeference, str] | None:
