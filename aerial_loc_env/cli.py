@@ -16,6 +16,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "mavlink": ("aerial_loc_env.mavlink.cli", "stream an agent's estimates to a flight controller"),
     "sitl": ("aerial_loc_env.sitl.cli", "fly an ArduPilot SITL mission on the vision fix"),
     "perf": ("aerial_loc_env.perf.__main__", "speed benchmarks on one core"),
+    "cog": ("aerial_loc_env.world.maps.cog", "write a map as a COG (tiled, overviews), which envs read by window"),
     "scenarios": ("aerial_loc_env.env.scenarios", "list the registered scenarios"),
     "agents": ("aerial_loc_env.estimators.registry", "list the agent specs"),
 }

@@ -193,6 +193,7 @@ class AerialLocEnv(gym.Env):
         w = obs.width_px or sensor.width_px
         h = obs.height_px or sensor.height_px
         self.camera = sensor if (w, h) == (sensor.width_px, sensor.height_px) else sensor.resized(w, h)
+        self._window_px: tuple[int, int, int, int] | None = None   # a map read by window: the episode's window
         self._build_renderer()
         self._scene_exposure = SceneExposure(sc.haze, sc.exposure, sc.flight.dt_s)   # pickled with its state
         fw, fh = self.camera.footprint_m(sc.flight.altitude_m + 3.0 * sc.flight.altitude_noise_m)
@@ -218,8 +219,34 @@ class AerialLocEnv(gym.Env):
         from aerial_loc_env.sensors.render import CameraRenderer
 
         sc = self.scenario
-        self._renderer = CameraRenderer(self.orthomap, self.camera, sc.photometry, strict=True,
-                                        perspective=sc.perspective if sc.map.use_dsm else None)
+        om, window = self.orthomap, {}
+        if self.world.windowed:   # the episode's window of a map read by window (none before the first reset)
+            if self._window_px is None:
+                self._renderer = None
+                return
+            om = self.orthomap.window(*self._window_px, name=f"{self.orthomap.name}-episode-window")
+            window = {"frame": self.orthomap, "origin_px": self._window_px[:2]}
+        self._renderer = CameraRenderer(om, self.camera, sc.photometry, strict=True,
+                                        perspective=sc.perspective if sc.map.use_dsm else None, **window)
+
+    def _read_window(self) -> None:
+        """A map read by window: read the window the episode's frames see (the track's box plus the widest
+        footprint, tilted and with the pyramid's kernels) and render from it; the world frame stays the map's."""
+        from aerial_loc_env.world.maps.raster import check_memory, window_for_box
+
+        sc, track, om = self.scenario, self._track, self.orthomap
+        alt = float(track.altitude_m.max())
+        fw, fh = self.camera.footprint_m(alt)
+        level = max(0, round(math.log2(max(self.camera.gsd_m(alt) / min(om.gsd_x_m, om.gsd_y_m), 1e-12))))
+        pad = 1.25 * footprint_radius_m(fw, fh) + sc.flight.margin_m + (8 << level) * max(om.gsd_x_m, om.gsd_y_m)
+        window = window_for_box(om, track.bounds_m(), pad)
+        if window == self._window_px and self._renderer is not None:
+            return
+        w, h = window[2], window[3]
+        check_memory(f"{sc.id}: the episode's window of map '{om.name}'", w, h, 12 * w * h,
+                     "Shorten the flight (flight.duration_s, flight.speed_mps) or lower flight.altitude_m")
+        self._window_px = window
+        self._build_renderer()
 
     def __getstate__(self) -> dict:
         state = self.__dict__.copy()
@@ -245,6 +272,8 @@ class AerialLocEnv(gym.Env):
                                  "configure the scenario with gym.make overrides instead")
         sc, rng = self.scenario, self.np_random
         self._track = sample_track(sc.flight, self.region, rng)
+        if self.world.windowed:
+            self._read_window()
         on = sc.odometry
         self._meas: Measurements = measure(
             self._track, rng, speed_std_mps=on.speed_std_mps, yaw_rate_std_radps=on.yaw_rate_std_radps,

@@ -288,17 +288,23 @@ class CameraRenderer:
     optionally ``nodata`` (H, W) bool (the ``Orthomap`` contract). The map pyramid is built lazily, once per
     level. ``noise_seed`` seeds the first noise bank; call ``reset(rng)`` at each episode to redraw it.
     ``rgba``: keep a private RGBA copy of the map for faster warps (default: maps up to 32 Mpx).
+    ``frame`` and ``origin_px``: ``orthomap`` is the window of a larger map read by window (``frame``, its geometry:
+    gsd, size) whose pixel (0, 0) lies at ``origin_px`` of ``frame``; poses are in ``frame``'s world, and every
+    affine is shifted by the origin (an integer translation) before it reaches the window's pixels.
     Not thread-safe (reused scratch buffers, lazily built pyramid): one renderer per thread or process.
     """
 
     def __init__(self, orthomap: Any, camera: CameraModel | None = None, photometry: Photometry | None = None,
                  *, strict: bool = True, noise_seed: int | np.random.Generator = 0,
-                 rgba: bool | None = None, perspective: PerspectiveConfig | None = None) -> None:
+                 rgba: bool | None = None, perspective: PerspectiveConfig | None = None, frame: Any = None,
+                 origin_px: tuple[int, int] = (0, 0)) -> None:
         rgb = orthomap.rgb
         if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
             raise ConfigError(f"CameraRenderer: map '{getattr(orthomap, 'name', 'map')}' rgb must be (H, W, 3) "
                               f"uint8, got shape {rgb.shape} dtype {rgb.dtype}")
         self.orthomap = orthomap
+        self.frame = orthomap if frame is None else frame
+        self._origin = (int(origin_px[0]), int(origin_px[1])) if any(origin_px) else None
         self.camera = camera or CameraModel()
         self.photometry = photometry or Photometry()
         self.strict = strict
@@ -398,10 +404,17 @@ class CameraRenderer:
         camera = camera or self.camera
         pose = _pose_tuple(pose)
         held_camera, held_map, held_alt, terms = self._affine_terms_of
-        if held_camera is not camera or held_map is not self.orthomap or held_alt != pose[3]:
-            terms = camera.affine_terms(self.orthomap, pose[3])
-            self._affine_terms_of = (camera, self.orthomap, pose[3], terms)
-        return camera.project_pose(self.orthomap, pose, terms)
+        if held_camera is not camera or held_map is not self.frame or held_alt != pose[3]:
+            terms = camera.affine_terms(self.frame, pose[3])
+            self._affine_terms_of = (camera, self.frame, pose[3], terms)
+        affine = camera.project_pose(self.frame, pose, terms)
+        return affine if self._origin is None else self._to_window(affine)
+
+    def _to_window(self, affine: np.ndarray) -> np.ndarray:
+        """An affine to ``frame``'s pixels made one to the window's (its origin subtracted)."""
+        affine[0, 2] -= self._origin[0]
+        affine[1, 2] -= self._origin[1]
+        return affine
 
     def _hom_corners(self, camera: CameraModel) -> np.ndarray:
         """The image corners (3, 4) in homogeneous coordinates (``apply_affine``'s ``hom``), kept per camera."""
@@ -462,12 +475,19 @@ class CameraRenderer:
         om = self.orthomap
         width_m, height_m = om.rgb.shape[1] * om.gsd_x_m, om.rgb.shape[0] * om.gsd_y_m
         what = "leaves the map" if status == "outside" else "touches no-data pixels of the map"
+        bounds = f"map bounds x in [0, {width_m:.1f}] m, y in [0, {height_m:.1f}] m"
+        if self._origin is not None:   # a window of a map read by window
+            om = self.frame
+            x0 = self._origin[0] * om.gsd_x_m
+            y0 = (om.height_px - self._origin[1]) * om.gsd_y_m - height_m
+            what = what.replace("the map", "the window read of the map")
+            bounds = f"window bounds x in [{x0:.1f}, {x0 + width_m:.1f}] m, y in [{y0:.1f}, {y0 + height_m:.1f}] m"
         radius = 0.5 * math.hypot(*camera.footprint_m(pose[3]))
         raise FootprintError(
             f"camera footprint {what} '{getattr(om, 'name', 'map')}': pose x_m={pose[0]:.2f}, y_m={pose[1]:.2f}, "
             f"yaw_rad={pose[2]:.4f}, altitude_m={pose[3]:.2f}; footprint x in [{corners[:, 0].min():.1f}, "
             f"{corners[:, 0].max():.1f}] m, y in [{corners[:, 1].min():.1f}, {corners[:, 1].max():.1f}] m; "
-            f"map bounds x in [0, {width_m:.1f}] m, y in [0, {height_m:.1f}] m. Keep poses at least "
+            f"{bounds}. Keep poses at least "
             f"{radius:.1f} m (half the footprint diagonal) inside valid map data, lower the altitude, or render "
             "with strict=False to get a frame flagged invalid")
 
@@ -503,13 +523,15 @@ class CameraRenderer:
         return self._warp(affine, level, camera)
 
     def warp_map(self, image_to_map: np.ndarray, size: tuple[int, int]) -> np.ndarray:
-        """Any view of the map: ``image_to_map`` (2, 3) maps output pixels to map pixels (level 0); the
-        pyramid level is chosen as for camera frames (no aliasing). Returns RGB uint8 ``(size[1], size[0], 3)``,
-        black outside the map (no footprint checks: for overviews and debugging views)."""
+        """Any view of the map: ``image_to_map`` (2, 3) maps output pixels to map pixels (level 0, of ``frame``);
+        the pyramid level is chosen as for camera frames (no aliasing). Returns RGB uint8 ``(size[1], size[0], 3)``,
+        black outside the map or the window (no footprint checks: for overviews and debugging views)."""
         affine = np.asarray(image_to_map, dtype=np.float64)
         if affine.shape != (2, 3) or not np.isfinite(affine).all():
             raise ConfigError(f"warp_map: image_to_map must be a finite 2x3 affine, got shape {affine.shape}")
         w, h = int(size[0]), int(size[1])
+        if self._origin is not None:
+            affine = self._to_window(affine.copy())
         return self._warp_level(affine, self.pyramid_level(affine), w, h)
 
     def _warp(self, affine: np.ndarray, level: int, camera: CameraModel) -> np.ndarray:

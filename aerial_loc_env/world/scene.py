@@ -50,6 +50,9 @@ class MapConfig:
     gsd_m: float | None = None          # metres per pixel, for files without a georeference; (0, 1000]
     crs: str | None = None
     use_dsm: bool = True   # cast shadows from the map's height model (when it has one)
+    # how a map file is read: "window" (opened, each episode's window read at reset: a COG or tiled GeoTIFF),
+    # "whole" (loaded), "auto" (by window when it is such a file of at least raster.WINDOW_MIN_BYTES of RGB)
+    read: str = field(default="auto", metadata=rng(choices=("auto", "window", "whole")))
     path_a: str | None = None           # pair: epoch A, the map database
     path_b: str | None = None           # pair: epoch B, the ground the camera sees
     gsd_b_m: float | None = None        # pair: B's metres per pixel when it has no georeference and differs
@@ -65,6 +68,8 @@ class MapConfig:
                 check_value(name, getattr(self, name), rng(0.0, 1000.0, lo_open=True), where)
         if self.kind == "city" and self.path:
             raise ConfigError(f"{where}: map.path is only used with map.kind = 'file'")
+        if self.kind == "city" and self.read != "auto":
+            raise ConfigError(f"{where}: map.read is only used with map.kind = 'file' (the city is always in memory)")
         pair_fields = [n for n in ("path_a", "path_b", "gsd_b_m", "max_shift_m", "correct_shift")
                        if getattr(self, n) is not None]
         if self.kind != "pair" and pair_fields:
@@ -105,7 +110,7 @@ class WorldSpec:
             return _key("pair", files, cfg.gsd_m, cfg.gsd_b_m, cfg.crs, cfg.max_shift_m, bool(cfg.correct_shift))
         path = self.map_path()
         stat = path.stat() if path.is_file() else _folder_stat(path)
-        return _key("file", str(path.resolve()), stat, cfg.gsd_m, cfg.crs)
+        return _key("file", str(path.resolve()), stat, cfg.gsd_m, cfg.crs, cfg.read)
 
     def map_path(self) -> Path:
         """The map file of a ``kind = "file"`` map, checked to exist."""
@@ -158,9 +163,19 @@ class World:
         """Where a vehicle whose footprint needs ``clearance_m`` of valid ground around it may fly."""
         from aerial_loc_env.world.maps.region import FlyableRegion
 
-        return _cached(("region", self.key, round(float(clearance_m), 3)),
-                       lambda: FlyableRegion(self.ground.width_m, self.ground.height_m, clearance_m,
-                                             nodata=self.ground.nodata, name=name))
+        def make() -> FlyableRegion:
+            g = self.ground
+            # a map read by window gives its no-data as a coarse grid of "any no-data" blocks (conservative)
+            nodata = g.validity_blocks() if self.windowed else g.nodata
+            return FlyableRegion(g.width_m, g.height_m, clearance_m, nodata=nodata, name=name)
+
+        return _cached(("region", self.key, round(float(clearance_m), 3)), make)
+
+    @property
+    def windowed(self) -> bool:
+        """Whether the maps are read by window (``world.maps.raster.RasterMap``): the env reads each episode's
+        window at reset."""
+        return hasattr(self.ground, "validity_blocks")
 
 
 #: the per-process cache of worlds and their parts, keyed by content (``_key``)
@@ -204,14 +219,22 @@ def _load_surveyed(spec: WorldSpec) -> Orthomap:
         from aerial_loc_env.world.city import default_city
 
         return default_city(spec.city)
-    from aerial_loc_env.world.maps.io import load_orthomap
+    from aerial_loc_env.world.maps.io import open_map
 
     kwargs: dict[str, Any] = {}
     if spec.map.gsd_m is not None:
         kwargs["gsd_m"] = spec.map.gsd_m
     if spec.map.crs is not None:
         kwargs["crs"] = spec.map.crs
-    return load_orthomap(spec.map_path(), **kwargs)
+    return open_map(spec.map_path(), read=spec.map.read, **kwargs)
+
+
+def _refuse_windowed(spec: WorldSpec, surveyed: Any, section: str, fields: str) -> None:
+    """A map read by window has no whole image to change: an epoch or an acquisition model on it is refused."""
+    if hasattr(surveyed, "validity_blocks"):
+        raise ConfigError(f"{spec.where}: [{section}] ({fields}) changes the whole map, but map '{surveyed.name}' "
+                          f"({surveyed.width_px} x {surveyed.height_px} px) is read by window; turn [{section}] off, "
+                          "or load a map that fits in memory whole (map.read = 'whole')")
 
 
 def _epoch(spec: WorldSpec, surveyed: Orthomap) -> Orthomap:
@@ -220,6 +243,7 @@ def _epoch(spec: WorldSpec, surveyed: Orthomap) -> Orthomap:
     if spec.map.kind == "pair":
         return _pair(spec).ground
     if spec.epoch.is_identity:
+    _refuse_windowed(spec, surveyed, "epoch", "epoch B of the ground")
         return surveyed
     from aerial_loc_env.world.city import epochs
 
@@ -255,6 +279,7 @@ def _database(spec: WorldSpec, surveyed: Orthomap) -> Orthomap:
     from aerial_loc_env.world.maps import acquisition as acq
 
     if acq.database_is_identity(spec.shadows, spec.database):
+    _refuse_windowed(spec, surveyed, "database", "shadows.database_sun_deg or the acquisition model")
         return surveyed
     if spec.map.kind == "city":
         return acq.database_city(spec.city, spec.shadows, spec.database)

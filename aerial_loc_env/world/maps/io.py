@@ -22,6 +22,7 @@ import os
 import re
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -36,6 +37,15 @@ from aerial_loc_env.world.maps.geo import (
     regional_crs_covering,
 )
 from aerial_loc_env.world.maps.orthomap import Orthomap
+from aerial_loc_env.world.maps.raster import (
+    READ_MODES,
+    WHOLE_LOAD_FACTOR,
+    WINDOW_MIN_BYTES,
+    RasterMap,
+    _pages,
+    check_memory,
+    tiff_layout,
+)
 
 SUPPORTED = "unsigned 8-bit or 16-bit rasters with 1 (grey), 3 (RGB) or 4 (RGBA) channels"
 _TIFF_SUFFIXES = (".tif", ".tiff")
@@ -52,6 +62,7 @@ class _Raster:
     data: np.ndarray                      # (H, W, C) C in {1, 3, 4}, uint8 or uint16
     geotiff: dict | None = None           # tifffile's geotiff_metadata
     gdal_nodata: float | None = None
+    mask_nodata: np.ndarray | None = None  # (H, W) bool from the file's internal (GDAL) mask, True = no-data
 
 
 # --- public entry point ---------------------------------------------------------------------------------
@@ -82,6 +93,7 @@ def load_orthomap(path: str | os.PathLike, *, gsd_m: float | tuple[float, float]
         return Orthomap.load_bundle(path, mmap=mmap)
     if not path.is_file():
         raise MapError(f"{path}: no such map file or bundle directory")
+    check_whole_load(path)
     raster = _read_raster(path)
     data = raster.data
     h, w, c = data.shape
@@ -90,22 +102,8 @@ def load_orthomap(path: str | os.PathLike, *, gsd_m: float | tuple[float, float]
     if mask is not None and mask.all():
         raise MapError(f"{path}: every pixel is no-data (nodata={nodata!r}); nothing to fly over")
 
-    georef, how = _georeference(path, raster, crs, world_file)
-    if georef is None:
-        if gsd_m is None:
-            raise MapError(f"{path}: no georeference (no GeoTIFF tags, no world file beside it) and no gsd_m; "
-                           "pass gsd_m=<ground metres per pixel>, or world_file=... with crs=...")
-        gx, gy = _gsd_pair(path, gsd_m)
-        georef = LocalTangentGeoref.centered(*origin_latlon_deg, w, h, gx, gy)
-        how = f"no georeference, gsd {gx:g} x {gy:g} m, nominal origin {origin_latlon_deg}"
-    else:
-        gx_a, gy_a = check_plausible_pixel(path, georef, how, w, h)
-        if gsd_m is not None:
-            gx, gy = _gsd_pair(path, gsd_m)
-            if abs(gx / gx_a - 1) > 0.01 or abs(gy / gy_a - 1) > 0.01:
-                raise MapError(f"{path}: gsd_m={gsd_m} disagrees with the georeference ({gx_a:.6g} x {gy_a:.6g} "
-                               "ground m/px at the centre); drop gsd_m or fix the georeference")
-        gx, gy = gx_a, gy_a
+    georef, gx, gy, how = _scale(path, _georeference(path, raster.geotiff, crs, world_file), w, h, gsd_m,
+                                 origin_latlon_deg)
 
     dsm_arr = None
     if dsm is not None:
@@ -119,6 +117,115 @@ def load_orthomap(path: str | os.PathLike, *, gsd_m: float | tuple[float, float]
                         name=name or path.stem, source=source)
     except MapError as exc:
         raise MapError(f"{path}: {exc}") from exc
+
+
+def _scale(path: Path, found: tuple[Georeference | None, str], w: int, h: int, gsd_m, origin_latlon_deg
+           ) -> tuple[Georeference, float, float, str]:
+    """(georeference, ground metres per pixel x and y, how it was found): the file's, checked to be plausible and
+    to agree with ``gsd_m``, or a nominal local tangent plane at ``gsd_m``."""
+    georef, how = found
+    if georef is None:
+        if gsd_m is None:
+            raise MapError(f"{path}: no georeference (no GeoTIFF tags, no world file beside it) and no gsd_m; "
+                           "pass gsd_m=<ground metres per pixel>, or world_file=... with crs=...")
+        gx, gy = _gsd_pair(path, gsd_m)
+        georef = LocalTangentGeoref.centered(*origin_latlon_deg, w, h, gx, gy)
+        return georef, gx, gy, f"no georeference, gsd {gx:g} x {gy:g} m, nominal origin {origin_latlon_deg}"
+    gx_a, gy_a = check_plausible_pixel(path, georef, how, w, h)
+    if gsd_m is not None:
+        gx, gy = _gsd_pair(path, gsd_m)
+        if abs(gx / gx_a - 1) > 0.01 or abs(gy / gy_a - 1) > 0.01:
+            raise MapError(f"{path}: gsd_m={gsd_m} disagrees with the georeference ({gx_a:.6g} x {gy_a:.6g} "
+                           "ground m/px at the centre); drop gsd_m or fix the georeference")
+    return georef, gx_a, gy_a, how
+
+
+# --- opened by window or loaded whole ----------------------------------------------------------------------
+
+def open_map(path: str | os.PathLike, *, read: str = "auto", gsd_m: float | tuple[float, float] | None = None,
+             crs: str | int | None = None, world_file: str | os.PathLike | None = None, name: str | None = None,
+             nodata: str | float | None = "auto", origin_latlon_deg: tuple[float, float] = (0.0, 0.0),
+             **whole_only: Any) -> Orthomap | RasterMap:
+    """A map file opened by window (``RasterMap``) or loaded whole (``Orthomap``, as ``load_orthomap``).
+
+    read: "window" opens a TIFF whose tiles or strips can be read by window (a COG, any tiled GeoTIFF, a striped
+        8-bit one); "whole" loads the map (refused before decoding when it would not fit in memory); "auto" opens
+        such a TIFF by window when its RGB layer takes at least ``raster.WINDOW_MIN_BYTES`` decoded, else loads
+        it whole. Bundles are always loaded (memory-mapped). The other arguments are ``load_orthomap``'s
+        (``dsm``, ``classes``, ``nodata_black_max`` and ``mmap`` only for maps loaded whole).
+    """
+    if read not in READ_MODES:
+        raise MapError(f"{path}: read={read!r}; use one of {', '.join(READ_MODES)}")
+    path = Path(path)
+    layout = tiff_layout(path) if path.is_file() else None
+    problem = None if layout is None else layout.window_problem()
+    windowed = read == "window" or (read == "auto" and layout is not None and problem is None
+                                    and layout.rgb_bytes >= WINDOW_MIN_BYTES)
+    if not windowed:
+        return load_orthomap(path, gsd_m=gsd_m, crs=crs, world_file=world_file, name=name, nodata=nodata,
+                             origin_latlon_deg=origin_latlon_deg, **whole_only)
+    if layout is None:
+        raise MapError(f"{path}: read='window' needs a TIFF file (a COG or a tiled GeoTIFF); convert the map with "
+                       f"`aerial-loc cog {path} OUT.tif`, or load it whole (read='whole')")
+    if problem is not None:
+        raise MapError(f"{path}: cannot be read by window: {problem}; convert it with `aerial-loc cog {path} "
+                       "OUT.tif` (tiled, with overviews), or load it whole (read='whole')")
+    if whole_only:
+        raise MapError(f"{path}: {', '.join(sorted(whole_only))} apply to maps loaded whole; this one is read by "
+                       "window (read='whole' loads it whole)")
+    import tifffile
+
+    try:
+        with tifffile.TiffFile(path) as tif:
+            geotiff = tif.geotiff_metadata or None
+    except Exception as exc:   # tifffile raises many types on corrupt files
+        raise MapError(f"{path}: unreadable TIFF: {exc}") from exc
+    georef, gx, gy, how = _scale(path, _georeference(path, geotiff, crs, world_file), layout.width_px,
+                                 layout.height_px, gsd_m, origin_latlon_deg)
+    if isinstance(nodata, (int, float)) and not isinstance(nodata, bool) and not math.isfinite(nodata) or \
+            not isinstance(nodata, (int, float, str, type(None))) or isinstance(nodata, bool):
+        raise MapError(f"{path}: nodata={nodata!r}; use 'auto', None or a pixel value")
+    if isinstance(nodata, str) and nodata not in ("auto", "border_black"):
+        raise MapError(f"{path}: nodata={nodata!r}; use 'auto', 'border_black', None or a pixel value")
+    return RasterMap(path, georef, gx, gy, name=name or path.stem, nodata=nodata,
+                     source=f"{path} [{how}] [read by window]")
+
+
+def check_whole_load(path: Path) -> None:
+    """Refuse, before decoding, an image whose whole load would not fit in the memory available (see
+    ``raster.check_memory``): the message names its size and the way out (a COG read by window)."""
+    size = _decoded_size(path)
+    if size is None:
+        return
+    w, h, nbytes = size
+    layout = tiff_layout(path)
+    if layout is not None and layout.window_problem() is None:
+        fix = ("It can be read by window instead: open it with read='auto' or read='window' (gym.make(id, "
+               "path=..., read='window')).")
+    else:
+        fix = (f"Convert it to a COG, which is read by window: `aerial-loc cog {path} {path.with_suffix('')}"
+               ".cog.tif` (world.maps.write_cog), then fly over the COG.")
+    check_memory(f"{path}: the image", w, h, int(WHOLE_LOAD_FACTOR * max(nbytes, 3 * w * h)), fix)
+
+
+def _decoded_size(path: Path) -> tuple[int, int, int] | None:
+    """(width, height, decoded bytes) from the file's header (TIFF, PNG, JPEG), or None when it says nothing."""
+    layout = tiff_layout(path)
+    if layout is not None:
+        return layout.width_px, layout.height_px, \
+            layout.width_px * layout.height_px * layout.channels * layout.dtype.itemsize
+    with open(path, "rb") as fh:
+        head = np.frombuffer(fh.read(65536), dtype=np.uint8)
+    found = re.match(r" \((\d+) x (\d+) = ", _image_size(path, head))
+    if not found:
+        return None
+    w, h = int(found.group(1)), int(found.group(2))
+    bits = 1
+    if bytes(head[:8]) == b"\x89PNG\r\n\x1a\n" and head.size >= 26:   # bit depth and colour type: channels
+        bits = (2 if head[24] == 16 else 1) * {0: 1, 2: 3, 3: 3, 4: 2, 6: 4}.get(int(head[25]), 4)
+    else:
+        bits = 3
+    return w, h, w * h * bits
 
 
 # --- rasters ---------------------------------------------------------------------------------------------
@@ -186,6 +293,8 @@ def _read_tiff(path: Path) -> _Raster:
                 img = np.moveaxis(img, 0, -1)
             geo = tif.geotiff_metadata
             tag = page.tags.get(_GDAL_NODATA_TAG)
+            mask_page = _pages(tif)["mask"]
+            mask_nodata = None if mask_page is None else ~np.asarray(tif.pages[mask_page].asarray(), dtype=bool)
     except MapError:
         raise
     except Exception as exc:   # tifffile raises many types on corrupt files
@@ -196,7 +305,9 @@ def _read_tiff(path: Path) -> _Raster:
             gdal_nodata = float(str(tag.value).strip().strip("\x00"))
         except ValueError as exc:
             raise MapError(f"{path}: unparsable GDAL_NODATA tag {tag.value!r}") from exc
-    return _Raster(_check_raster(path, img), geo or None, gdal_nodata)
+    if mask_nodata is not None and mask_nodata.ndim == 3:
+        mask_nodata = mask_nodata[..., 0]
+    return _Raster(_check_raster(path, img), geo or None, gdal_nodata, mask_nodata)
 
 
 def _check_raster(path: Path, img: np.ndarray) -> np.ndarray:
@@ -222,7 +333,9 @@ def _nodata_mask(path: Path, raster: _Raster, nodata: str | float | None, black_
     if isinstance(nodata, str):
         if nodata not in ("auto", "border_black"):
             raise MapError(f"{path}: nodata={nodata!r}; use 'auto', 'border_black', None or a pixel value")
-        if nodata == "auto" and raster.gdal_nodata is not None:
+        if nodata == "auto" and raster.mask_nodata is not None:
+            mask = raster.mask_nodata
+        elif nodata == "auto" and raster.gdal_nodata is not None:
             mask = (colour == raster.gdal_nodata).all(axis=-1)
         elif nodata == "auto" and data.shape[2] == 4:
             mask = data[..., 3] == 0
@@ -264,12 +377,12 @@ def _to_rgb8(data: np.ndarray, mask: np.ndarray | None) -> tuple[np.ndarray, str
 
 # --- georeference ----------------------------------------------------------------------------------------
 
-def _georeference(path: Path, raster: _Raster, crs: str | int | None,
+def _georeference(path: Path, geotiff: dict | None, crs: str | int | None,
                   world_file: str | os.PathLike | None) -> tuple[Georeference | None, str]:
     if world_file is not None:
         return _from_world_file(path, Path(world_file), crs)
-    if raster.geotiff is not None:
-        found = _from_geotiff(path, raster.geotiff, crs)
+    if geotiff is not None:
+        found = _from_geotiff(path, geotiff, crs)
         if found is not None:
             return found
     for cand in _world_file_candidates(path):

@@ -1,0 +1,199 @@
+"""City-scale maps read by window: ``gym.make`` + first reset (time and the process's peak RSS) and the env step on
+a synthetic 40000 x 40000 px COG (10 km at 0.25 m), beside the step on the embedded city's map.
+
+The COG is generated here, tile band by tile band (so generating it stays within memory too), and kept in the
+cache folder (``paths.cache_dir("bench")``, named by its size and generator version) for later runs; delete that
+folder to reclaim its disk. ``gym.make`` + reset runs in a fresh interpreter per call, so its peak RSS is the
+whole cost of opening the map (imports included), not the benchmark process's: each call prints that process's
+times and peak RSS on a line above its row (the row's CPU column is the waiting benchmark process's own).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from aerial_loc_env.perf import Benchmark
+
+#: bumped when the synthetic map's pixels change (the cached COG's name carries it)
+SYNTHETIC_VERSION = 1
+_GSD_M = 0.25
+
+
+@dataclass(frozen=True)
+class SyntheticMap:
+    """A textured test map of ``size_px`` squared, generated per window (any window, any order, same pixels):
+    value noise at 2 m and 16 m cells from a hash of the lattice coordinates, and a no-data wedge in the north-west
+    corner. North-up in EPSG:3857 near Zurich."""
+
+    size_px: int
+    gsd_m: float = _GSD_M
+
+    @property
+    def width_px(self) -> int:
+        return self.size_px
+
+    @property
+    def height_px(self) -> int:
+        return self.size_px
+
+    @property
+    def name(self) -> str:
+        return f"synthetic-{self.size_px}"
+
+    @property
+    def georef(self):
+        from aerial_loc_env.world.maps.geo import AffineGeoref
+
+        scale = 1.0 / math.cos(math.radians(47.37))     # web mercator metres per ground metre there
+        return AffineGeoref.north_up("EPSG:3857", 950_000.0, 6_000_000.0, self.gsd_m * scale, self.gsd_m * scale)
+
+    def read(self, u0_px: int, v0_px: int, width_px: int, height_px: int) -> tuple[np.ndarray, np.ndarray | None]:
+        rgb = np.zeros((height_px, width_px, 3), np.float32)
+        for cell_px, weight in ((8, 0.55), (64, 0.45)):
+            rgb += weight * _value_noise(u0_px, v0_px, width_px, height_px, cell_px)
+        out = np.clip(rgb, 0, 255).astype(np.uint8)
+        vv, uu = np.mgrid[v0_px:v0_px + height_px, u0_px:u0_px + width_px]
+        nodata = (uu + vv) < self.size_px // 8
+        out[nodata] = 0
+        return out, (nodata if nodata.any() else None)
+
+
+def _hash_rgb(i: np.ndarray, j: np.ndarray) -> np.ndarray:
+    """A deterministic colour (3 channels in 20..235) per integer lattice point."""
+    h = (i.astype(np.uint64) * np.uint64(0x9E3779B1) ^ j.astype(np.uint64) * np.uint64(0x85EBCA77)) & np.uint64(
+        0xFFFFFFFF)
+    out = []
+    for salt in (0x27D4EB2F, 0x165667B1, 0xC2B2AE3D):
+        x = (h ^ np.uint64(salt)) * np.uint64(0x2C1B3C6D) & np.uint64(0xFFFFFFFF)
+        x ^= x >> np.uint64(15)
+        x = x * np.uint64(0x297A2D39) & np.uint64(0xFFFFFFFF)
+        x ^= x >> np.uint64(13)
+        out.append(20.0 + (x & np.uint64(0xFF)).astype(np.float32) * (215.0 / 255.0))
+    return np.stack(out, axis=-1)
+
+
+def _value_noise(u0: int, v0: int, w: int, h: int, cell: int) -> np.ndarray:
+    """Bilinear value noise over lattice points every ``cell`` px, at the window's pixels (seamless across windows)."""
+    i0, j0 = v0 // cell - 1, u0 // cell - 1
+    i1, j1 = (v0 + h) // cell + 2, (u0 + w) // cell + 2
+    ii, jj = np.mgrid[i0:i1, j0:j1]
+    lattice = _hash_rgb(ii, jj)
+    a = np.array([[1.0 / cell, 0.0, u0 / cell - j0], [0.0, 1.0 / cell, v0 / cell - i0]])
+    return cv2.warpAffine(lattice, a, (w, h), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                          borderMode=cv2.BORDER_REPLICATE)
+
+
+def synthetic_cog(size_px: int, folder: Path | None = None) -> Path:
+    """The synthetic COG of ``size_px`` squared, generated on first use into the cache folder (or ``folder``)."""
+    from aerial_loc_env.paths import cache_dir
+    from aerial_loc_env.world.maps.cog import write_cog
+
+    folder = folder or cache_dir("bench")
+    path = folder / f"synthetic-{size_px}px-v{SYNTHETIC_VERSION}.cog.tif"
+    if not path.is_file():
+        folder.mkdir(parents=True, exist_ok=True)
+        write_cog(SyntheticMap(size_px), path)
+    return path
+
+
+_OPEN_SCRIPT = """
+import json, resource, sys, time
+t0 = time.perf_counter()
+import gymnasium as gym
+import aerial_loc_env.env  # noqa: F401
+t1 = time.perf_counter()
+env = gym.make("AerialLoc/RealMap-v1", path=sys.argv[1])
+t2 = time.perf_counter()
+env.reset(seed=0)
+t3 = time.perf_counter()
+rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+print(json.dumps({"import_s": t1 - t0, "make_s": t2 - t1, "reset_s": t3 - t2, "peak_rss_bytes": rss}))
+"""
+
+
+def open_in_fresh_process(path: Path) -> dict:
+    """``gym.make("AerialLoc/RealMap-v1", path=path)`` + ``reset`` in a fresh interpreter: its times and peak RSS."""
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+    done = subprocess.run([sys.executable, "-c", _OPEN_SCRIPT, str(path)], capture_output=True, text=True, env=env,
+                          timeout=1800)
+    if done.returncode != 0:
+        raise RuntimeError(f"opening {path} failed:\n{done.stderr[-4000:]}")
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def _make_reset(size_px: int) -> Callable[[], Callable[[], object]]:
+    def setup() -> Callable[[], object]:
+        path = synthetic_cog(size_px)
+        gb = path.stat().st_size / 1e9
+
+        def run() -> object:
+            t0 = time.perf_counter()
+            r = open_in_fresh_process(path)
+            print(f"    {path.name} ({gb:.2f} GB on disk): gym.make {r['make_s']:.2f} s + reset {r['reset_s']:.2f} s "
+                  f"(imports {r['import_s']:.2f} s, wall {time.perf_counter() - t0:.2f} s), peak RSS "
+                  f"{r['peak_rss_bytes'] / 1e9:.2f} GB", flush=True)
+            return r
+
+        return run
+
+    return setup
+
+
+def _episode(path_of: Callable[[], Path]) -> Callable[[], Callable[[], object]]:
+    def setup() -> Callable[[], object]:
+        import aerial_loc_env.env  # noqa: F401  (registers the scenarios)
+        from aerial_loc_env.env import AerialLocEnv
+
+        env = AerialLocEnv("AerialLoc/RealMap-v1", path=str(path_of()))
+        action = np.zeros(2, np.float32)
+        seeds = iter(range(10**9))
+
+        def episode() -> int:
+            env.reset(seed=next(seeds))
+            n = 0
+            while True:
+                _, _, term, trunc, _ = env.step(action)
+                n += 1
+                if term or trunc:
+                    return n
+
+        return episode
+
+    return setup
+
+
+def _city_bundle() -> Path:
+    from aerial_loc_env.world.city import CityConfig, default_city
+
+    path = default_city(CityConfig()).bundle_path
+    assert path is not None
+    return path
+
+
+def _steps() -> int:
+    from aerial_loc_env.env.scenarios import load_scenario
+
+    return load_scenario("AerialLoc/RealMap-v1", {"map": {"path": "x"}}).flight.steps
+
+
+BENCHMARKS = [
+    Benchmark(name="bigmap: RealMap gym.make + reset, 40000^2 px COG (fresh process, RSS printed)",
+              setup=_make_reset(40000), unit="open", repeats=3),
+    Benchmark(name="bigmap: RealMap gym.make + reset, 12000^2 px COG (fresh process, RSS printed)",
+              setup=_make_reset(12000), unit="open", repeats=3),
+    Benchmark(name="bigmap: RealMap episode on the 40000^2 px COG (per step)",
+              setup=_episode(lambda: synthetic_cog(40000)), unit="step", repeats=5, per_call_items=_steps()),
+    Benchmark(name="bigmap: RealMap episode on the embedded 1.2 x 1.4 km city (per step)",
+              setup=_episode(_city_bundle), unit="step", repeats=5, per_call_items=_steps()),
+]
