@@ -6,6 +6,7 @@ by window, and writes it band of tiles by band of tiles: a map larger than memor
 whole in memory. The pixels go through GDAL's COG driver (``rasterio``, the ``geo`` extra): a temporary tiled
 GeoTIFF beside ``out`` is written first, then copied into the COG layout with the overviews, then moved onto
 ``out`` (an existing ``out`` is replaced only with ``overwrite=True``; on any failure nothing is left behind).
+The temporary files take about 1.6 times the map's decoded RGB on the disk of ``out`` while it is written.
 The no-data the loader found (the GDAL nodata value, alpha, a mask, black border wedges) becomes the COG's mask,
 so the COG read by window has the same no-data as the source read whole.
 """
