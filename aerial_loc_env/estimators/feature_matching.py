@@ -3,8 +3,9 @@ with a RANSAC similarity transform.
 
 Each step: dead-reckon (the floor's integrator), take the database window around the prediction at the working
 resolution (``WindowMatchingAgent``), resize the camera image to the same ground resolution with the measured
-altitude (no rotation: the descriptors are rotation-invariant), detect and describe keypoints on both, match
-them (brute force, Lowe's ratio test) and fit a 4-degree-of-freedom similarity (rotation, uniform scale,
+altitude (no rotation: the descriptors are rotation-invariant; both enlarged alike when the camera image would
+span fewer than ``UPSAMPLE_PX_ACROSS`` pixels, a map coarse for the footprint), detect and describe keypoints on
+both, match them (brute force, Lowe's ratio test) and fit a 4-degree-of-freedom similarity (rotation, uniform scale,
 translation) with ``cv2.estimateAffinePartial2D`` (RANSAC). The fit is accepted when it has ``min_inliers``
 inliers, a scale within ``max_scale_error`` of 1 (both images are at the same ground resolution) and a rotation
 within ``max_rotation_error_deg`` of the one the measured heading implies (``CameraModel.scale_rotation``);
@@ -78,15 +79,35 @@ class FeatureMatchingAgent(WindowMatchingAgent):
         img = np.clip(gray, 0, 255).astype(np.uint8)
         return self.detector.detectAndCompute(img, None)
 
+    #: the working images are enlarged (camera and map window alike) until the camera's spans this many pixels
+    #: across its short side, when a map coarse for the footprint leaves fewer (RealMap's 25 m footprint over a
+    #: 0.3 m map: 83 px, where ORB's 31-pixel patches and 8-level pyramid find almost no keypoints); never beyond
+    #: the camera's own pixels, and not for less than MIN_UPSAMPLING (the paper's geometry: 200 px, no change)
+    UPSAMPLE_PX_ACROSS = 200
+    MIN_UPSAMPLING = 1.25
+
+    def upsampling(self, size: tuple[int, int], camera_gsd_m: float) -> float:
+        """The factor the working images of a frame are enlarged by (1: none; see ``UPSAMPLE_PX_ACROSS``)."""
+        up = min(self.UPSAMPLE_PX_ACROSS / min(size), min(self.level_gsd) / camera_gsd_m)
+        return up if up >= self.MIN_UPSAMPLING else 1.0
+
     def match(self, obs: Observation, pred: Estimate, window: Window) -> Fix | str:
         p: FeatureMatchingParams = self.params
         cam = self.camera
         gsd_u = cam.gsd_m(obs.altitude_m)
         fx, fy = gsd_u / self.level_gsd[0], gsd_u * cam.pixel_aspect / self.level_gsd[1]
         size = (max(8, int(round(cam.width_px * fx))), max(8, int(round(cam.height_px * fy))))
+        up = self.upsampling(size, gsd_u)
+        map_image, threshold, to_level = window.image, p.ransac_threshold_px, (1.0, 1.0)
+        if up > 1.0:   # both images at the same finer sampling; fits mapped back to working-level pixels
+            size = (int(round(size[0] * up)), int(round(size[1] * up)))
+            h, w = window.image.shape
+            enlarged = (int(round(w * up)), int(round(h * up)))
+            map_image = cv2.resize(window.image, enlarged, interpolation=cv2.INTER_LINEAR)
+            to_level, threshold = (w / enlarged[0], h / enlarged[1]), p.ransac_threshold_px * up
         small = cv2.resize(to_gray(obs.image), size, interpolation=cv2.INTER_AREA)
         kc, dc = self._features(small)
-        kw, dw = self._features(window.image)
+        kw, dw = self._features(map_image)
         if dc is None or dw is None or len(kc) < 2 or len(kw) < 2:
             return "no match: too few keypoints"
         pairs = self.matcher.knnMatch(dc, dw, k=2)
@@ -96,8 +117,7 @@ class FeatureMatchingAgent(WindowMatchingAgent):
         src = np.float32([kc[m.queryIdx].pt for m in good])
         dst = np.float32([kw[m.trainIdx].pt for m in good])
         # OpenCV's RANSAC seeds its own generator identically on every call: deterministic
-        model, inliers = cv2.estimateAffinePartial2D(src, dst, method=cv2.RANSAC,
-                                                     ransacReprojThreshold=p.ransac_threshold_px)
+        model, inliers = cv2.estimateAffinePartial2D(src, dst, method=cv2.RANSAC, ransacReprojThreshold=threshold)
         if model is None:
             return "no match: RANSAC found no similarity"
         n_in = int(inliers.sum())
@@ -107,6 +127,8 @@ class FeatureMatchingAgent(WindowMatchingAgent):
         expected = math.atan2(r[1, 0], r[0, 0])
         rot_err = abs(math.degrees(math.atan2(math.sin(rot - expected), math.cos(rot - expected))))
         extras = {"inliers": n_in, "matches": len(good), "scale": scale, "rotation_error_deg": rot_err}
+        if up > 1.0:
+            extras["upsampling"] = up
         if n_in < p.min_inliers:
             return f"no match: {n_in} RANSAC inliers < min_inliers {p.min_inliers}"
         if abs(scale - 1.0) > p.max_scale_error:
@@ -117,5 +139,7 @@ class FeatureMatchingAgent(WindowMatchingAgent):
         centre = np.array([(cu + 0.5) * size[0] / cam.width_px - 0.5,
                            (cv + 0.5) * size[1] / cam.height_px - 0.5, 1.0])
         u, v = model @ centre
+        if up > 1.0:
+            u, v = (u + 0.5) * to_level[0] - 0.5, (v + 0.5) * to_level[1] - 0.5
         x, y = self.level_point_to_world(window.u0 + u, window.v0 + v)
         return Fix(x, y, extras)
