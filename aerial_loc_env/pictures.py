@@ -11,7 +11,8 @@ Writes, into ``--out``:
 - ``contact_sheet.png``: all the pairs stacked;
 - with ``--realism``, ``gap_<level>.png``: the map database at the true pose | the camera frame, for each kind
   of realistic map-camera gap alone (epoch change, relief displacement over tall buildings, the map's own sun,
-  the map's own sensor) and all together (``AerialLoc/RealisticPaper-v1``).
+  the map's own sensor) and all together (``AerialLoc/RealisticPaper-v1``); with ``--map``, the kinds that apply
+  to that map (its acquisition by another sensor, the realistic camera, both), flown over it.
 """
 
 from __future__ import annotations
@@ -47,7 +48,8 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument("--frames", type=int, default=4, help="number of camera frames along the track (1-12)")
     ap.add_argument("--realism", action="store_true",
                     help="also write gap_<level>.png: map patch | camera frame for each kind of realistic gap "
-                         "(epoch change, relief, the map's own sun, the map's sensor, all of them)")
+                         "(epoch change, relief, the map's own sun, the map's sensor, all of them); with --map, "
+                         "the kinds that apply to that map, flown over it (RealMap-v1 at --altitude)")
     return ap
 
 
@@ -59,7 +61,8 @@ def main(argv: list[str] | None = None) -> int:
         written = write_pictures(Path(args.out), map_path=args.map, seed=args.seed, altitude_m=args.altitude,
                                  n_frames=args.frames, map_crs=args.crs, map_gsd_m=args.gsd)
         if args.realism:
-            written += write_realism_pictures(Path(args.out), seed=args.seed)
+            written += write_realism_pictures(Path(args.out), seed=args.seed, map_path=args.map, map_crs=args.crs,
+                                              map_gsd_m=args.gsd, altitude_m=args.altitude)
     except AerialLocError as exc:
         print(f"aerial-loc pictures: {exc}", file=sys.stderr)
         return 2
@@ -266,10 +269,53 @@ def realism_levels() -> list[tuple[str, str, str, dict, str]]:
     ]
 
 
-def write_realism_pictures(out: Path, *, seed: int = 0, levels: list | None = None) -> list[Path]:
-    """``gap_<level>.png``: map patch at the true pose | camera frame, one per realism level, labelled."""
+def map_realism_levels(map_path: str, *, crs: str | None = None, gsd_m: float | None = None,
+                       altitude_m: float = 200.0) -> tuple[list[tuple[str, str, str, dict, str]], list[str]]:
+    """The realism levels that apply to a user's map, flown over it (``AerialLoc/RealMap-v1`` with the pictures'
+    600 x 400 camera at ``altitude_m``, clouds off unless all is on), and the levels left out with why: the epoch
+    change needs the city's land cover and height model, relief and the map's own sun a height model, building
+    lean in the acquisition too (it is left out of the acquisition on a map without one)."""
+    from aerial_loc_env.env import load_scenario
+
+    orthomap = _load_map(map_path, crs=crs, gsd_m=gsd_m)
+    real = load_scenario("AerialLoc/RealisticPaper-v1").to_dict()
+    has_dsm = orthomap.dsm_m is not None
+    base: dict = {"map": {"kind": "file", "path": str(map_path), **({"crs": crs} if crs else {}),
+                          **({"gsd_m": gsd_m} if gsd_m is not None else {})},
+                  "flight.altitude_m": float(altitude_m), "camera": {"width_px": 600, "height_px": 400}}
+    quiet = {"shadows.cloud_cover": 0.0}
+    database = dict(real["database"]) if has_dsm else {**real["database"], "lean_deg": 0.0}
+    camera = {name: real[name] for name in ("gimbal", "altimeter", "exposure", "haze", "photometry")}
+    name = orthomap.name
+    levels = [
+        ("acquisition", f"{name}: map acquired by another sensor (GSD, blur, JPEG, colour, haze, georeference bias"
+                        f"{', lean' if has_dsm else ''}) | camera", "AerialLoc/RealMap-v1",
+         {**base, **quiet, "database": database}, "middle"),
+        ("camera", f"{name}: map | realistic camera (gimbal 0.3 deg, heading 1 deg, baro 2 m, auto-exposure, haze, "
+                   "photometry)", "AerialLoc/RealMap-v1", {**base, **quiet, **camera}, "middle"),
+        ("realistic", f"{name}: everything that applies: another sensor's map | realistic camera, cloud shadows",
+         "AerialLoc/RealMap-v1", {**base, "database": database, **camera}, "middle"),
+    ]
+    left_out = ["epoch (needs the procedural city's land cover and height model)"]
+    if has_dsm:
+        levels.insert(2, ("relief", f"{name}: relief only: affine map patch | perspective camera",
+                          "AerialLoc/RealMap-v1", {**base, **quiet, "perspective": {"enabled": True}}, "relief"))
+    else:
+        left_out += ["relief and database_sun (need a height model; the map has none)"]
+    return levels, left_out
+
+
+def write_realism_pictures(out: Path, *, seed: int = 0, levels: list | None = None, map_path: str | None = None,
+                           map_crs: str | None = None, map_gsd_m: float | None = None,
+                           altitude_m: float = 200.0) -> list[Path]:
+    """``gap_<level>.png``: map patch at the true pose | camera frame, one per realism level, labelled: the
+    procedural city's levels (``realism_levels``), or with ``map_path`` those that apply to that map
+    (``map_realism_levels``; the others are named on stderr)."""
     from aerial_loc_env.env import AerialLocEnv, load_scenario
 
+    if levels is None and map_path is not None:
+        levels, left_out = map_realism_levels(map_path, crs=map_crs, gsd_m=map_gsd_m, altitude_m=altitude_m)
+        print(f"aerial-loc pictures --realism: on {map_path}, left out: {'; '.join(left_out)}", file=sys.stderr)
     written = []
     for stem, title, sid, overrides, choice in (realism_levels() if levels is None else levels):
         env = AerialLocEnv(load_scenario(sid, overrides))

@@ -19,3 +19,27 @@ def test_pictures_take_crs_and_gsd(manila, tmp_path):
     rc = main(["--out", str(tmp_path / "b"), "--map", str(png), "--crs", "EPSG:3395", "--altitude", "20",
                "--frames", "1"])
     assert rc == 0 and (tmp_path / "b" / "overview.png").is_file()
+
+
+def test_realism_pictures_fly_over_the_given_map(tmp_path, capsys):
+    """``--realism --map FILE`` used to ignore the map and draw the procedural city: it now flies that map, with the
+    kinds of gap that apply to it (no height model, no land cover: acquisition, camera, both) and names the others."""
+    import cv2
+    import numpy as np
+
+    from aerial_loc_env.config import build_config
+    from aerial_loc_env.pictures import main
+    from aerial_loc_env.world.city import CityConfig, default_city
+
+    city = default_city(build_config(CityConfig, {"seed": 5, "width_m": 400.0, "height_m": 400.0, "gsd_m": 0.5}))
+    png = tmp_path / "plain.png"
+    cv2.imwrite(str(png), np.ascontiguousarray(np.asarray(city.rgb)[..., ::-1]))
+    rc = main(["--out", str(tmp_path / "out"), "--map", str(png), "--gsd", "0.5", "--altitude", "120", "--frames",
+               "1", "--realism"])
+    out, err = capsys.readouterr()
+    assert rc == 0, err
+    gaps = sorted(p.name for p in (tmp_path / "out").glob("gap_*.png"))
+    assert gaps == ["gap_acquisition.png", "gap_camera.png", "gap_realistic.png"]
+    assert "left out: epoch (needs the procedural city's land cover" in err and "relief and database_sun" in err
+    picture = cv2.imread(str(tmp_path / "out" / "gap_camera.png"))
+    assert picture.shape[1] == 2 * 600 + 6
