@@ -6,11 +6,15 @@ as real acquisitions do. This module measures that difference with five statisti
 - a scenario (``scenario_gap``): the env's camera frame against the database patch rendered at the frame's
   *true* pose (the estimators' map, ``briefing.orthomap``), at every ``stride``-th frame of several seeds;
 - a pair of co-registered real images of the same ground at two dates (``pair_gap``): the later epoch plays the
-  camera, the earlier the database, tiled into camera-sized windows.
+  camera, the earlier the database, tiled into camera-sized windows. The two go onto one grid first
+  (``world.maps.pairs.load_pair``: each through its own georeference, square pixels, at the pair's own sampling;
+  a stated sampling only for images without a georeference), and their residual misregistration is measured and
+  reported (refused beyond ``max_shift_m``).
 
-Both go through the same per-window function (``window_stats``) at one **analysis ground sampling**
+Both go through the same per-window function (``window_stats``) at an **analysis ground sampling**
 (``GapConfig.gsd_m``, default 0.5 m/px, the coarsest of the usual sources: the LEVIR-CD pairs' sampling; camera
-frames and database patches are box-filtered down to it, never up) over a **window** the size of the camera
+frames, database patches and pairs are box-filtered down to it, never up: a source coarser than it is analysed at
+its own, and the report says which) over a **window** the size of the camera
 footprint (scenarios: the camera's footprint at the true altitude; pairs: ``GapConfig.window_m``, default
 150 m x 100 m, the paper's 600 x 400 camera at 200 m). The "database" window carries a margin of
 ``search_m`` on every side for the search statistics. All statistics are on luma (ITU-R 601).
@@ -68,6 +72,7 @@ from aerial_loc_env.config import build_config, rng
 from aerial_loc_env.errors import ConfigError, MapError
 from aerial_loc_env.estimators.feature_matching import make_detector
 from aerial_loc_env.estimators.patches import to_gray
+from aerial_loc_env.world.maps.pairs import DEFAULT_MAX_SHIFT_M
 
 #: the statistics of one window, in table order
 STATS = ("ncc", "bit_agreement", "psr", "peak_margin", "orb_inlier_ratio", "template_within")
@@ -295,42 +300,63 @@ def pair_windows(earlier: np.ndarray, later: np.ndarray, cfg: GapConfig, src_gsd
     if nx < 1 or ny < 1:
         raise ConfigError(f"gap: the pair covers {W * gsd:.0f} x {H * gsd:.0f} m, too small for one "
                           f"{cfg.window_m[0]:g} x {cfg.window_m[1]:g} m window plus the +-{cfg.search_m:g} m "
-                          "search; use a smaller window_m")
+                          f"search; use a smaller window (aerial-loc gap --window-m W H, at most "
+                          f"{max(0.0, W * gsd - 2 * cfg.search_m):.0f} x {max(0.0, H * gsd - 2 * cfg.search_m):.0f} m "
+                          "here; GapConfig.window_m in Python)")
     x0, y0 = (W - nx * w) // 2, (H - ny * h) // 2
     return [(b[y:y + h, x:x + w], a[y - m:y + h + m, x - m:x + w + m])
             for y in range(y0, y0 + ny * h, h) for x in range(x0, x0 + nx * w, w)]
 
 
-def pair_gap(earlier: str | Path, later: str | Path, cfg: GapConfig | None = None, *,
-             gsd_m: float | None = None) -> list[dict[str, float]]:
-    """The statistics of every window of a co-registered real pair given by path (``gsd_m`` for images
-    without a georeference). Windows touching no-data in either image are left out."""
-    from aerial_loc_env.world.maps.io import load_orthomap
+@dataclass(frozen=True)
+class PairGap:
+    """The statistics of a real pair's windows and how they were measured."""
+
+    windows: list[dict[str, float]]
+    gsd_m: float                 # the analysis sampling (the coarser of GapConfig.gsd_m and the pair's grid)
+    pair_gsd_m: float            # the pair's common grid (world.maps.pairs: square pixels, georeferences honoured)
+    registration: str            # the residual misregistration measured on it
+
+
+def measure_pair(earlier: str | Path, later: str | Path, cfg: GapConfig | None = None, *,
+                 gsd_m: float | None = None, max_shift_m: float | None = DEFAULT_MAX_SHIFT_M) -> PairGap:
+    """The statistics of every window of a co-registered real pair given by path. The two images go onto one
+    grid first (``world.maps.pairs.load_pair``: each through its own georeference, square pixels at the finer
+    sampling, never compared pixel for pixel), each pair at its own sampling; ``gsd_m`` is only for images
+    without a georeference. A residual misregistration beyond ``max_shift_m`` is refused (None: measured only).
+    Windows touching no-data in either image are left out."""
+    from aerial_loc_env.world.maps.pairs import load_pair
 
     cfg = cfg or GapConfig()
-    kw = {} if gsd_m is None else {"gsd_m": gsd_m}
-    maps = [load_orthomap(p, mmap=False, **kw) for p in (earlier, later)]
-    src = math.sqrt(maps[0].gsd_x_m * maps[0].gsd_y_m)
+    a, b = Path(earlier), Path(later)
+    pair = load_pair(a, b, gsd_m=gsd_m, max_shift_m=max_shift_m, where=f"gap: pair {a} / {b}")
+    src = pair.grid.gsd_m
     # no-data rides along as a fourth channel (255 = valid), so it is tiled exactly like the pixels
     imgs = [np.dstack([om.rgb, np.where(om.nodata, 0, 255).astype(np.uint8) if om.nodata is not None
-                       else np.full(om.rgb.shape[:2], 255, np.uint8)]) for om in maps]
+                       else np.full(om.rgb.shape[:2], 255, np.uint8)]) for om in (pair.surveyed, pair.ground)]
     valid = [(c[..., :3], d[..., :3]) for c, d in pair_windows(imgs[0], imgs[1], cfg, src)
              if c[..., 3].min() == 255 and d[..., 3].min() == 255]
     if not valid:
         raise MapError(f"gap: every window of {earlier} / {later} touches no-data")
-    return [window_stats(c, d, cfg, max(cfg.gsd_m, src)) for c, d in valid]
+    gsd = max(cfg.gsd_m, src)
+    return PairGap([window_stats(c, d, cfg, gsd) for c, d in valid], gsd, src, pair.registration.describe())
+
+
+def pair_gap(earlier: str | Path, later: str | Path, cfg: GapConfig | None = None, *,
+             gsd_m: float | None = None, max_shift_m: float | None = DEFAULT_MAX_SHIFT_M) -> list[dict[str, float]]:
+    """The statistics of every window of a co-registered real pair (``measure_pair``'s windows)."""
+    return measure_pair(earlier, later, cfg, gsd_m=gsd_m, max_shift_m=max_shift_m).windows
 
 
 def pairs_in(folder: str | Path) -> list[tuple[Path, Path]]:
-    """The pairs of a folder laid out as ``A/<name>`` (earlier) and ``B/<name>`` (later), sorted by name."""
-    root = Path(folder)
-    a, b = root / "A", root / "B"
-    if not a.is_dir() or not b.is_dir():
-        raise ConfigError(f"gap: {root} must hold A/ (earlier epoch) and B/ (later epoch) image folders")
-    out = [(p, b / p.name) for p in sorted(a.iterdir()) if p.is_file() and (b / p.name).is_file()]
-    if not out:
-        raise ConfigError(f"gap: no image in {a} has a namesake in {b}")
-    return out
+    """The pairs of a folder laid out as ``A/<name>`` (earlier) and ``B/<name>`` (later), sorted by name
+    (``world.maps.pairs.pairs_in``)."""
+    from aerial_loc_env.world.maps.pairs import pairs_in as found
+
+    try:
+        return found(folder)
+    except MapError as exc:
+        raise ConfigError(f"gap: {exc}") from None
 
 
 # ------------------------------------------------------------------------------------------ scenarios
@@ -426,12 +452,21 @@ def _parser() -> argparse.ArgumentParser:
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("scenarios", nargs="*", metavar="SCENARIO",
                     help="scenario ids (or short names) to measure: camera frame vs database at the true pose")
-    ap.add_argument("--pair", nargs=2, action="append", default=[], metavar=("EARLIER", "LATER"),
-                    help="a co-registered real pair by path (repeatable)")
-    ap.add_argument("--pairs-dir", action="append", default=[], metavar="DIR",
-                    help="a folder of pairs laid out as DIR/A/<name> (earlier) and DIR/B/<name> (later)")
+    ap.add_argument("--pair", nargs="+", action="append", default=[], metavar="PATH",
+                    help="a co-registered real pair by path: EARLIER LATER [GSD] (repeatable; GSD: ground metres "
+                         "per pixel of its images if they have no georeference)")
+    ap.add_argument("--pairs-dir", nargs="+", action="append", default=[], metavar="DIR",
+                    help="a folder of pairs laid out as DIR/A/<name> (earlier) and DIR/B/<name> (later): DIR [GSD] "
+                         "(repeatable; GSD as for --pair)")
     ap.add_argument("--pair-gsd", type=float, metavar="M",
-                    help="ground metres per pixel of pair images without a georeference (LEVIR-CD: 0.5)")
+                    help="ground metres per pixel of pair images without a georeference and without their own GSD "
+                         "after --pair/--pairs-dir (LEVIR-CD: 0.5); images with a georeference (GeoTIFF tags, "
+                         "world file + .prj) are always read at their own")
+    ap.add_argument("--window-m", type=float, nargs=2, metavar=("W", "H"), default=None,
+                    help="pairs: window width and height in metres (default 150 100, the paper's footprint)")
+    ap.add_argument("--max-shift-m", type=float, default=DEFAULT_MAX_SHIFT_M, metavar="M",
+                    help="refuse a pair whose residual misregistration (measured at load) exceeds this, metres "
+                         f"(default {DEFAULT_MAX_SHIFT_M:g}; 0: measure and report only)")
     ap.add_argument("--seeds", type=int, default=5, help="episodes per scenario (seeds 0..N-1; default 5)")
     ap.add_argument("--stride", type=int, default=20, help="measure every N-th frame (default 20)")
     ap.add_argument("--frames-per-seed", type=int, metavar="N",
@@ -457,42 +492,97 @@ def _overrides(items: Sequence[str]) -> dict[str, Any]:
     return out
 
 
+def _gsd_arg(value: str, what: str) -> float:
+    try:
+        out = float(value)
+    except ValueError:
+        out = float("nan")
+    if not (math.isfinite(out) and out > 0):
+        raise ConfigError(f"gap: {what}: {value!r} is not a ground sampling in metres per pixel (> 0)")
+    return out
+
+
+def _pair_sources(args: argparse.Namespace) -> list[tuple[Path, Path, float | None]]:
+    """(earlier, later, GSD for images without a georeference) of every --pair and --pairs-dir."""
+    out: list[tuple[Path, Path, float | None]] = []
+    for item in args.pair:
+        if len(item) not in (2, 3):
+            raise ConfigError(f"gap: --pair {' '.join(item)}: give EARLIER LATER [GSD] (two image paths, then "
+                              "optionally their ground metres per pixel)")
+        gsd = _gsd_arg(item[2], f"--pair {item[0]} {item[1]} GSD") if len(item) == 3 else args.pair_gsd
+        out.append((Path(item[0]), Path(item[1]), gsd))
+    for item in args.pairs_dir:
+        if len(item) not in (1, 2):
+            raise ConfigError(f"gap: --pairs-dir {' '.join(item)}: give DIR [GSD]")
+        gsd = _gsd_arg(item[1], f"--pairs-dir {item[0]} GSD") if len(item) == 2 else args.pair_gsd
+        out += [(a, b, gsd) for a, b in pairs_in(item[0])]
+    return out
+
+
+def scenario_gsd_m(scenario: str, overrides: Mapping[str, Any], cfg: GapConfig) -> float:
+    """The analysis sampling of a scenario's frames at its nominal altitude (``_frame_stats``: never finer than
+    the camera's pixels)."""
+    from aerial_loc_env.env import load_scenario
+
+    sc = load_scenario(scenario, dict(overrides))
+    cam = sc.camera
+    w, h = sc.observation.width_px or cam.width_px, sc.observation.height_px or cam.height_px
+    cam = cam if (w, h) == (cam.width_px, cam.height_px) else cam.resized(w, h)
+    return max(cfg.gsd_m, float(cam.gsd_m(sc.flight.altitude_m)))
+
+
+def sampling_note(gsds: Mapping[str, float]) -> str:
+    """'at 0.5 m/px' when every source was analysed at one sampling, else each source's."""
+    values = sorted({round(g, 3) for g in gsds.values()})
+    if len(values) <= 1:
+        return f"at {values[0] if values else 0.5:g} m/px"
+    return "at each source's sampling (" + ", ".join(f"{k} {g:.3g}" for k, g in gsds.items()) + " m/px)"
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = _parser()
     args = ap.parse_args(argv)
-    pairs = [(Path(a), Path(b)) for a, b in args.pair]
-    for folder in args.pairs_dir:
-        pairs += pairs_in(folder)
+    if args.json and args.json != "-" and Path(args.json).exists():    # before any measuring
+        raise ConfigError(f"gap: --json {args.json} exists; give a new path (results are never overwritten)")
+    pairs = _pair_sources(args)
     if not args.scenarios and not pairs:
         ap.error("give at least one SCENARIO, --pair or --pairs-dir "
-                 "(e.g. aerial-loc gap AerialLoc/PaperShadows-v1 --pairs-dir ../shared/data/pairs/levir-cd "
-                 "--pair-gsd 0.5)")
+                 "(e.g. aerial-loc gap AerialLoc/PaperShadows-v1 --pairs-dir ../shared/data/pairs/levir-cd 0.5)")
     if args.seeds < 1:
         ap.error("--seeds must be >= 1")
-    cfg = gap_config(gsd_m=args.gsd)
+    extra = {} if args.window_m is None else {"window_m": tuple(args.window_m)}
+    cfg = gap_config(gsd_m=args.gsd, **extra)
+    max_shift = args.max_shift_m if args.max_shift_m > 0 else None
     result: dict[str, Any] = {"config": asdict(cfg), "pairs": {}, "scenarios": {}}
     rows: list[tuple[str, Mapping]] = []
-    for a, b in pairs:
-        windows = pair_gap(a, b, cfg, gsd_m=args.pair_gsd)
+    gsds: dict[str, float] = {}
+    for a, b, pair_gsd in pairs:
+        measured = measure_pair(a, b, cfg, gsd_m=pair_gsd, max_shift_m=max_shift)
         label = f"{a.parent.parent.name}/{a.name}" if a.parent.name == "A" else f"{a.name} -> {b.name}"
-        summary = summarize(windows)
-        result["pairs"][label] = {"earlier": str(a), "later": str(b), "summary": summary, "windows": windows}
+        summary = summarize(measured.windows)
+        result["pairs"][label] = {"earlier": str(a), "later": str(b), "summary": summary, "windows": measured.windows,
+                                  "analysis_gsd_m": measured.gsd_m, "pair_gsd_m": measured.pair_gsd_m,
+                                  "registration": measured.registration}
         rows.append((label, summary))
+        gsds[label] = measured.gsd_m
     real = spread(s["summary"] for s in result["pairs"].values()) if pairs else None
     overrides = _overrides(args.set)
     for sid in args.scenarios:
         windows = scenario_gap(sid, overrides, seeds=range(args.seeds), stride=args.stride, cfg=cfg,
                                frames_per_seed=args.frames_per_seed)
         summary = summarize(windows)
+        gsds[sid] = scenario_gsd_m(sid, overrides, cfg)
         result["scenarios"][sid] = {"overrides": overrides, "seeds": args.seeds, "stride": args.stride,
                                     "frames_per_seed": args.frames_per_seed, "summary": summary,
-                                    "windows": windows}
+                                    "windows": windows, "analysis_gsd_m": gsds[sid]}
         rows.append((sid, summary))
     if real is not None:
         result["real_spread"] = {s: list(v) for s, v in real.items()}
     print(gap_table(rows, real, unmarked=result["pairs"]))
-    print(f"\nmedian (p25-p75) over windows at {cfg.gsd_m:g} m/px, +-{cfg.search_m:g} m search; "
+    print(f"\nmedian (p25-p75) over windows {sampling_note(gsds)}, +-{cfg.search_m:g} m search; "
           "template <= 2 m: fraction of windows" + ("; * = inside the real pairs' spread" if real else ""))
+    for label, info in result["pairs"].items():
+        print(f"{label}: {info['registration']}")
     if args.json:
         text = json.dumps(result, indent=1, sort_keys=True)
         if args.json == "-":
