@@ -11,6 +11,7 @@ from aerial_loc_env.errors import AerialLocError
 COMMANDS: dict[str, tuple[str, str]] = {
     "bench": ("aerial_loc_env.benchmark.cli", "run an experiment grid (default: compare the main agents)"),
     "gap": ("aerial_loc_env.benchmark.gap", "appearance-gap statistics: scenarios and real image pairs"),
+    "fidelity": ("aerial_loc_env.benchmark.fidelity", "do simulated presets rank agents as real image pairs do?"),
     "pictures": ("aerial_loc_env.pictures", "write a map overview and camera frames with/without shadows"),
     "train": ("aerial_loc_env.learning.cli", "train a learned policy from a recipe in agents/"),
     "mavlink": ("aerial_loc_env.mavlink.cli", "stream an agent's estimates to a flight controller"),

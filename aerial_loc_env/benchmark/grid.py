@@ -21,6 +21,10 @@ An experiment spec::
     id = "AerialLoc/PaperShadows-v1"
     overrides = {"flight.duration_s" = 30}   # gym.make overrides
 
+    [[scenarios]]
+    pairs = "../shared/data/pairs/levir-cd"  # a folder of real two-epoch pairs (A/, B/): one AerialLoc/RealPair-v1
+    gsd_m = 0.5                              # scenario per pair, its flight fitted to it (pair_scenarios.py)
+
 Parameter keys may be dotted (``measurement_params.n_pairs``): they address nested tables of the spec and are
 stored nested, so the dotted and the nested spelling name the same trial.
 
@@ -268,6 +272,11 @@ def grid_from_dict(data: Mapping[str, Any], where: str = "experiment", base_dir:
     scenarios = []
     for i, s in enumerate(scenario_items):
         s = {"id": s} if isinstance(s, str) else dict(s)
+        if "pairs" in s:      # a folder of real two-epoch pairs: one RealPair scenario per pair
+            from aerial_loc_env.benchmark.pair_scenarios import expand_pairs_entry
+
+            scenarios += [ScenarioEntry(**e) for e in expand_pairs_entry(s, f"{where}: scenarios[{i}]", base_dir)]
+            continue
         if not isinstance(s.get("id"), str) or set(s) - {"id", "overrides", "label"}:
             raise ConfigError(f"{where}: scenarios[{i}] needs 'id' and may have 'overrides', 'label'")
         overrides = s.get("overrides") or {}
