@@ -5,6 +5,7 @@ from __future__ import annotations
 import io
 import math
 import socket
+import tempfile
 import threading
 import time
 from collections.abc import Callable
@@ -12,6 +13,16 @@ from pathlib import Path
 
 import pytest
 from shared_helpers import REAL_TILES, REPO_ROOT, SHARED_DATA
+
+
+@pytest.fixture()
+def cache_homes(tmp_path, monkeypatch) -> tuple[Path, Path]:
+    """XDG_CACHE_HOME and the system's temporary folder, both inside the test's folder: (cache, tmp)."""
+    cache, tmp = tmp_path / "cache", tmp_path / "tmp"
+    tmp.mkdir()
+    monkeypatch.setenv("XDG_CACHE_HOME", str(cache))
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp))
+    return cache, tmp
 
 
 @pytest.fixture(scope="session")

@@ -17,21 +17,12 @@ from aerial_loc_env.errors import ConfigError
 from aerial_loc_env.paths import CacheLocationWarning, cache_dir, temporary_cache_dir
 
 
-@pytest.fixture()
-def homes(tmp_path, monkeypatch):
-    cache, tmp = tmp_path / "cache", tmp_path / "tmp"
-    tmp.mkdir()
-    monkeypatch.setenv("XDG_CACHE_HOME", str(cache))
-    monkeypatch.setattr(tempfile, "tempdir", str(tmp))
-    return cache, tmp
-
-
 def _own_root(tmp: Path) -> Path:
     return tmp / f"aerial_loc_env-cache-{os.getuid()}"
 
 
-def test_a_usable_cache_folder_is_used_silently(homes):
-    cache, _ = homes
+def test_a_usable_cache_folder_is_used_silently(cache_homes):
+    cache, _ = cache_homes
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         assert cache_dir("maps") == cache / "aerial_loc_env" / "maps"
@@ -67,8 +58,8 @@ def _make_unwritable(cache: Path, monkeypatch) -> str:
 
 
 @pytest.mark.parametrize("damage", ["file", "dangling", "unwritable"])
-def test_an_unusable_cache_folder_falls_back_to_a_temporary_one_with_one_warning(homes, monkeypatch, damage):
-    cache, tmp = homes
+def test_an_unusable_cache_folder_falls_back_to_a_temporary_one_with_one_warning(cache_homes, monkeypatch, damage):
+    cache, tmp = cache_homes
     problem = {"file": lambda: _make_file(cache), "dangling": lambda: _make_dangling(cache),
                "unwritable": lambda: _make_unwritable(cache, monkeypatch)}[damage]()
     with pytest.warns(CacheLocationWarning) as record:
@@ -85,8 +76,8 @@ def test_an_unusable_cache_folder_falls_back_to_a_temporary_one_with_one_warning
 
 
 @pytest.mark.parametrize("planted", ["open_to_all", "a_link"])
-def test_a_temporary_root_that_others_could_write_is_never_used(homes, planted):
-    _, tmp = homes
+def test_a_temporary_root_that_others_could_write_is_never_used(cache_homes, planted):
+    _, tmp = cache_homes
     root = _own_root(tmp)
     if planted == "open_to_all":
         root.mkdir()

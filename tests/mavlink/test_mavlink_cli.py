@@ -51,6 +51,7 @@ def test_scenario_agent_stream_lands_on_the_map(run_mavlink_cli):
     assert np.allclose(north, dlat_m, atol=0.02 * max(1.0, float(np.abs(north).max())) + 1.0)
 
 
+@pytest.mark.slow
 def test_follow_renders_at_the_simulators_truth_and_localizes():
     """A fake SITL streams SIM_STATE: on the ground at the map centre, then climbing and flying east, then down
     at 10 m. The bridge sends the take-off pad while the camera sees nothing, then the agent's estimates from

@@ -196,6 +196,7 @@ def _kept_pace(s: dict, speedup: float) -> None:
     assert s["camera_frames"] and s["vision_fix_s"] / s["camera_frames"] <= 0.25 + 0.05, s["frame_interval_s"]
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(600)
 def test_copter_mission_on_the_vision_fix(mission_sitl):
     """ArduCopter, GPS_INPUT (GPS1_TYPE 14), default arming checks, SITL at COPTER_SPEEDUP: the EKF takes the fix,
@@ -330,6 +331,7 @@ def _plane_loop_and_landing(r: dict, s: dict) -> None:
     assert td["ekf_error_m"] < 3 * td["ekf_sigma_m"] and abs(td["cross_m"]) < 3 * td["ekf_sigma_m"], td
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(600)
 def test_plane_mission_on_the_vision_fix(mission_sitl):
     """ArduPlane, GPS_INPUT as GPS1, plane.parm's airframe (22 m/s cruise), the paper city at 200 m: arms in AUTO

@@ -26,16 +26,6 @@ def fresh():
     return _digest(generate_city(small_city_config(0)))
 
 
-@pytest.fixture()
-def homes(tmp_path, monkeypatch):
-    """XDG_CACHE_HOME and the system's temporary folder, both inside the test's folder."""
-    cache, tmp = tmp_path / "cache", tmp_path / "tmp"
-    tmp.mkdir()
-    monkeypatch.setenv("XDG_CACHE_HOME", str(cache))
-    monkeypatch.setattr(tempfile, "tempdir", str(tmp))
-    return cache, tmp
-
-
 def _digest(om) -> str:
     h = hashlib.sha256()
     for name in ("rgb", "dsm_m", "classes", "nodata"):
@@ -58,7 +48,7 @@ def _quietly():
     return ctx
 
 
-def test_an_entry_that_is_a_dangling_link_is_replaced_with_a_warning(homes, fresh):
+def test_an_entry_that_is_a_dangling_link_is_replaced_with_a_warning(cache_homes, fresh):
     cfg = small_city_config(0)
     path = city_cache_path(cfg)
     gone = path.parent / "elsewhere" / "gone.alm"
@@ -106,8 +96,8 @@ def read_only(monkeypatch):
         f.chmod(0o755)
 
 
-def test_a_cache_folder_that_cannot_be_written_falls_back_to_a_temporary_one(homes, read_only, fresh):
-    cache, tmp = homes
+def test_a_cache_folder_that_cannot_be_written_falls_back_to_a_temporary_one(cache_homes, read_only, fresh):
+    cache, tmp = cache_homes
     maps = cache / "aerial_loc_env" / "maps"
     read_only(maps)
     with pytest.warns(CacheLocationWarning) as record:
@@ -127,8 +117,8 @@ def test_a_cache_folder_that_cannot_be_written_falls_back_to_a_temporary_one(hom
     assert again.bundle_path == om.bundle_path and isinstance(again.rgb, np.memmap)
 
 
-def test_xdg_cache_home_a_file_falls_back_to_a_temporary_one(homes, fresh):
-    cache, tmp = homes
+def test_xdg_cache_home_a_file_falls_back_to_a_temporary_one(cache_homes, fresh):
+    cache, tmp = cache_homes
     cache.write_text("not a folder")
     with pytest.warns(CacheLocationWarning) as record:
         om = default_city(small_city_config(0))
@@ -142,10 +132,10 @@ def test_xdg_cache_home_a_file_falls_back_to_a_temporary_one(homes, fresh):
 
 
 @pytest.mark.parametrize("full", ["cache", "cache_and_tmp"])
-def test_a_full_disk_while_writing_leaves_no_half_entry(homes, fresh, monkeypatch, full):
+def test_a_full_disk_while_writing_leaves_no_half_entry(cache_homes, fresh, monkeypatch, full):
     """np.save writes part of a layer, then the disk is full: no entry is left that a later call could use, the
     map is right anyway (from the temporary folder, else from memory), and once there is room it is cached."""
-    cache, tmp = homes
+    cache, tmp = cache_homes
     cfg = small_city_config(0)
     path = city_cache_path(cfg)
     real_save = np.save
@@ -189,7 +179,7 @@ def test_a_full_disk_while_writing_leaves_no_half_entry(homes, fresh, monkeypatc
 
 @pytest.mark.parametrize("how", ["in_place", "new_file"])
 @pytest.mark.parametrize("layer", ["rgb", "dsm_m", "classes"])
-def test_a_layer_changed_at_the_same_size_is_rebuilt_with_a_warning(homes, fresh, layer, how):
+def test_a_layer_changed_at_the_same_size_is_rebuilt_with_a_warning(cache_homes, fresh, layer, how):
     cfg = small_city_config(0)
     path = city_cache_path(cfg)
     default_city(cfg)
@@ -213,7 +203,7 @@ def test_a_layer_changed_at_the_same_size_is_rebuilt_with_a_warning(homes, fresh
     assert sorted(p.name for p in path.parent.iterdir()) == [path.name]
 
 
-def test_an_entry_written_before_checksums_gains_them_and_is_checked_from_then_on(homes, fresh):
+def test_an_entry_written_before_checksums_gains_them_and_is_checked_from_then_on(cache_homes, fresh):
     cfg = small_city_config(0)
     path = city_cache_path(cfg)
     default_city(cfg)
