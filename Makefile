@@ -27,7 +27,7 @@ test: venv
 
 # The developer's loop: the suite without the tests marked slow (statistical, training, long flights).
 test-fast: venv
-	$(PY) -m pytest -q -m "not slow"
+	$(PY) -m pytest -q -m "not slow" -n 2
 
 # Speed benchmarks on one core (BLAS/OpenMP pinned before numpy loads).
 bench: venv
