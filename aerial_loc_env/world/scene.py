@@ -120,7 +120,6 @@ class WorldSpec:
                            f"{path.resolve()}); give an existing PNG/TIFF/GeoTIFF file or bundle folder")
         return path
 
-
     def pair_paths(self) -> tuple[Path, Path]:
         """The two images of a ``kind = "pair"`` map (A, B), checked to exist."""
         out = []
@@ -243,8 +242,8 @@ def _epoch(spec: WorldSpec, surveyed: Orthomap) -> Orthomap:
     if spec.map.kind == "pair":
         return _pair(spec).ground
     if spec.epoch.is_identity:
-    _refuse_windowed(spec, surveyed, "epoch", "epoch B of the ground")
         return surveyed
+    _refuse_windowed(spec, surveyed, "epoch", "epoch B of the ground")
     from aerial_loc_env.world.city import epochs
 
     if spec.map.kind == "city":
@@ -279,8 +278,8 @@ def _database(spec: WorldSpec, surveyed: Orthomap) -> Orthomap:
     from aerial_loc_env.world.maps import acquisition as acq
 
     if acq.database_is_identity(spec.shadows, spec.database):
-    _refuse_windowed(spec, surveyed, "database", "shadows.database_sun_deg or the acquisition model")
         return surveyed
+    _refuse_windowed(spec, surveyed, "database", "shadows.database_sun_deg or the acquisition model")
     if spec.map.kind == "city":
         return acq.database_city(spec.city, spec.shadows, spec.database)
     return acq.acquire_map(surveyed, spec.shadows, spec.database)
