@@ -56,6 +56,8 @@ from aerial_loc_env.paths import spec_dir
 from aerial_loc_env.world.scene import MapConfig
 
 ENTRY_POINT = "aerial_loc_env.env.aerial_loc_env:AerialLocEnv"
+#: ``gym.make_vec``'s vector_entry_point mode (its default for these ids): ``env/vector.py``
+VECTOR_ENTRY_POINT = "aerial_loc_env.env.vector:AerialLocVectorEnv"
 NAMESPACE = "AerialLoc"
 
 
@@ -380,8 +382,8 @@ def register_all() -> list[str]:
     broken = [b.id for b in broken_specs() if b.id and b.id.startswith(f"{NAMESPACE}/") and b.id not in specs()]
     for sid in list(specs()) + broken:
         if sid not in gym.registry:
-            gym.register(id=sid, entry_point=ENTRY_POINT, kwargs={"scenario": sid},
-                         disable_env_checker=False)
+            gym.register(id=sid, entry_point=ENTRY_POINT, vector_entry_point=VECTOR_ENTRY_POINT,
+                         kwargs={"scenario": sid}, disable_env_checker=False)
         if sid in specs():
             ids.append(sid)
     return ids

@@ -1,0 +1,575 @@
+"""Vectorized ``AerialLocEnv``: N sub-envs stepped in lockstep, spread over this process and worker processes.
+
+``gym.make_vec("AerialLoc/<Name>-v<N>", num_envs=N)`` (``vectorization_mode="vector_entry_point"``, the default
+for these ids) builds an ``AerialLocVectorEnv``. Gymnasium's ``"sync"`` and ``"async"`` modes work too; this one
+is faster on several cores (README, "Vectorized environments").
+
+Why processes and not threads: the compiled kernels release the GIL, but a small scenario's step is mostly Python
+bookkeeping (the pose, the photometry draws, the observation and info dicts) that holds it, so sub-envs stepped
+in threads of one process take turns. ``EnvShards`` splits the N sub-envs into one contiguous block per process:
+the calling process steps the last block itself while each worker steps its own, so the caller's core works
+instead of waiting, and each worker gets one message per step for its whole block (not one per sub-env).
+Observations travel through shared memory; rewards, flags and infos as one small pickle per worker and step.
+Sub-envs in one process share one ``World`` (``world.scene``); workers open the same map files (the procedural
+city's disk cache is memory-mapped, so its pages are shared), and each sub-env is built in its worker from the
+scenario id and overrides: nothing map-sized is pickled.
+
+Results are those of ``SyncVectorEnv`` over the same sub-envs, bit for bit: ``reset(seed=s)`` seeds sub-env
+``i`` with ``s + i``; the autoreset modes (``metadata["autoreset_mode"]``, next-step by default, same-step,
+disabled with ``reset(options={"reset_mask": ...})``) and the info dict (one array per key with its ``_key``
+mask) are Gymnasium's. ``EnvShards`` also serves ``learning.vec_env`` (stable-baselines3's VecEnv API).
+"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import os
+import pickle
+import traceback
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+from gymnasium.vector import AutoresetMode, VectorEnv
+from gymnasium.vector.utils import CloudpickleWrapper, batch_space, create_shared_memory, iterate
+from gymnasium.vector.utils import read_from_shared_memory as _views_of
+
+from aerial_loc_env.errors import AerialLocError, ConfigError
+
+#: how often (seconds) a wait on a worker checks that the worker is still alive
+_POLL_S = 1.0
+
+
+def usable_cores() -> int:
+    """The cores this process may run on (its affinity where the OS reports it)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # pragma: no cover - not on Linux
+        return max(1, os.cpu_count() or 1)
+
+
+def check_count(name: str, value: Any, where: str, example: str) -> int:
+    """``value`` as a positive int, or a ConfigError naming ``name``, the value and an example."""
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+        raise ConfigError(f"{where}: {name}={value!r} must be a positive integer ({example})")
+    return int(value)
+
+
+# ------------------------------------------------------------------------------------ what a sub-env does
+def _put(space: spaces.Space, views: Any, slot: int, value: Any) -> None:
+    """Write one sub-env's observation into slot ``slot`` of the batched shared-memory views."""
+    if isinstance(space, spaces.Dict):
+        for key, sub in space.spaces.items():
+            _put(sub, views[key], slot, value[key])
+    elif isinstance(space, spaces.Tuple):
+        for sub, view, item in zip(space.spaces, views, value, strict=True):
+            _put(sub, view, slot, item)
+    else:
+        views[slot] = value
+
+
+def _op_reset(env: gym.Env, put: Callable[[Any], None], seed: int | None, options: dict | None) -> dict:
+    obs, info = env.reset(seed=seed, options=options)
+    put(obs)
+    return info
+
+
+def _op_step(env: gym.Env, put: Callable[[Any], None], action: Any) -> tuple:
+    obs, reward, terminated, truncated, info = env.step(action)
+    put(obs)
+    return reward, terminated, truncated, info
+
+
+def _op_step_same(env: gym.Env, put: Callable[[Any], None], action: Any) -> tuple:
+    """Gymnasium's same-step autoreset: a finished episode's last observation and info go in the info."""
+    obs, reward, terminated, truncated, info = env.step(action)
+    final = None
+    if terminated or truncated:
+        final = {"final_obs": obs, "final_info": info}
+        obs, info = env.reset()
+    put(obs)
+    return reward, terminated, truncated, info, final
+
+
+def _op_call(env: gym.Env, put: Callable[[Any], None], name: str, args: tuple, kwargs: dict) -> Any:
+    attr = env.get_wrapper_attr(name)
+    return attr(*args, **kwargs) if callable(attr) else attr
+
+
+def _op_set_attr(env: gym.Env, put: Callable[[Any], None], name: str, value: Any) -> None:
+    env.set_wrapper_attr(name, value)
+
+
+def _op_none(env: gym.Env, put: Callable[[Any], None]) -> None:
+    return None
+
+
+def _op_apply(env: gym.Env, put: Callable[[Any], None], fn: Callable[..., Any], *args: Any) -> Any:
+    """``fn(env, put, *args)``: another API's step (``learning.vec_env``); ``fn`` is a module-level function."""
+    return fn(env, put, *args)
+
+
+_OPS: dict[str, Callable[..., Any]] = {"reset": _op_reset, "step": _op_step, "step_same": _op_step_same,
+                                       "call": _op_call, "set_attr": _op_set_attr, "none": _op_none,
+                                       "apply": _op_apply}
+
+
+def _run_block(envs: Sequence[gym.Env], slots: Sequence[int], space: spaces.Space, views: Any,
+               commands: Sequence[tuple]) -> list:
+    out = []
+    for env, slot, (op, *args) in zip(envs, slots, commands, strict=True):
+        out.append(_OPS[op](env, lambda obs, slot=slot: _put(space, views, slot, obs), *args))
+    return out
+
+
+class _RemoteError:
+    """An exception raised in a worker, carried back with its traceback text (the exception itself when it
+    pickles, as AerialLocError and the builtin errors do)."""
+
+    def __init__(self, exc: BaseException, slot: int | None) -> None:
+        self.text = "".join(traceback.format_exception(exc))
+        self.slot = slot
+        try:
+            self.exc: BaseException | None = pickle.loads(pickle.dumps(exc))
+        except Exception:
+            self.exc = None
+
+    def raise_it(self, worker: int) -> None:
+        where = f"vector env worker {worker}" + (f", sub-env {self.slot}" if self.slot is not None else "")
+        if self.exc is not None:
+            self.exc.add_note(f"(raised in {where}; its traceback:\n{self.text.rstrip()})")
+            raise self.exc
+        raise AerialLocError(f"{where} failed:\n{self.text.rstrip()}")
+
+
+def _send(conn: Any, message: Any) -> None:
+    """One message as plain pickle bytes (the messages hold no process handles: multiprocessing's own pickler,
+    which can carry those, costs more per step)."""
+    conn.send_bytes(pickle.dumps(message, protocol=pickle.HIGHEST_PROTOCOL))
+
+
+def _worker(conn: Any, parent_conn: Any, fns: CloudpickleWrapper, slots: list[int], shm: Any,
+            num_envs: int, forked: bool) -> None:
+    """A worker process: build the block's sub-envs, then run each step's commands until told to stop."""
+    parent_conn.close()
+    envs: list[gym.Env] = []
+    try:
+        if not forked:   # the processes already spread over the cores (in a forked child this call hangs)
+            import cv2
+
+            cv2.setNumThreads(1)
+        envs = [fn() for fn in fns.fn]
+        space = envs[0].observation_space
+        views = _views_of(space, shm, num_envs)
+        _send(conn, ("ok", (space, envs[0].action_space)))
+    except BaseException as exc:  # noqa: BLE001 - reported to the caller, which raises it
+        _send(conn, ("error", _RemoteError(exc, slots[len(envs)] if len(envs) < len(slots) else None)))
+        return
+    try:
+        while True:
+            commands = pickle.loads(conn.recv_bytes())
+            if commands is None:
+                break
+            try:
+                _send(conn, ("ok", _run_block(envs, slots, space, views, commands)))
+            except Exception as exc:  # noqa: BLE001 - reported to the caller, which raises it
+                _send(conn, ("error", _RemoteError(exc, None)))
+    except (EOFError, KeyboardInterrupt):
+        pass
+    finally:
+        for env in envs:
+            env.close()
+        conn.close()
+
+
+def _start_method(requested: str | None, where: str) -> str:
+    """``requested``, or multiprocessing's default (as Gymnasium's async mode: fork on Linux before Python 3.14,
+    so workers inherit the loaded maps and compiled kernels and start at once)."""
+    if requested is None:
+        return mp.get_start_method()
+    if requested not in mp.get_all_start_methods():
+        raise ConfigError(f"{where}: start_method={requested!r} is not available here; use one of "
+                          f"{mp.get_all_start_methods()} (or None for the default, {mp.get_start_method()!r})")
+    return requested
+
+
+class EnvShards:
+    """The sub-envs of ``env_fns`` spread over ``processes`` processes (this one included) in contiguous blocks,
+    run in lockstep by ``run``. The observations of all sub-envs sit in shared memory (``views``, batched as
+    the observation space); ``run`` returns what each sub-env's command returned, in sub-env order.
+
+    The block of this process is the last one and is built first, so that a bad configuration is reported here
+    before any worker starts."""
+
+    def __init__(self, env_fns: Sequence[Callable[[], gym.Env]], processes: int | None = None, *,
+                 start_method: str | None = None, where: str = "vector env") -> None:
+        self.num_envs = len(env_fns)
+        if self.num_envs < 1:
+            raise ConfigError(f"{where}: no sub-envs to run (num_envs must be a positive integer)")
+        if processes is None:
+            processes = usable_cores()
+        processes = min(check_count("processes", processes, where, "1 runs every sub-env in this process"),
+                        self.num_envs)
+        blocks = [b.tolist() for b in np.array_split(np.arange(self.num_envs), processes)]
+        self.local_slots: list[int] = blocks[-1]
+        self.local_envs: list[gym.Env] = [env_fns[i]() for i in self.local_slots]
+        self.observation_space = self.local_envs[0].observation_space
+        self.action_space = self.local_envs[0].action_space
+        self._where = where
+        self._conns: list[Any] = []
+        self._procs: list[Any] = []
+        self._blocks = blocks[:-1]
+        self.closed = False
+        self._broken: str | None = None      # why the vector env cannot go on (a worker died)
+        self.start_method = _start_method(start_method, where)
+        ctx = mp.get_context(self.start_method)
+        self._starting = True
+        self._shm = create_shared_memory(self.observation_space, self.num_envs, ctx=ctx)
+        self.views = _views_of(self.observation_space, self._shm, self.num_envs)
+        try:
+            for slots in self._blocks:
+                conn, child = ctx.Pipe()
+                fns = CloudpickleWrapper([env_fns[i] for i in slots])
+                proc = ctx.Process(target=_worker, args=(child, conn, fns, slots, self._shm, self.num_envs,
+                                                                self.start_method == "fork"),
+                                   daemon=True, name=f"aerial-loc vector worker {len(self._procs)}")
+                proc.start()
+                child.close()
+                self._conns.append(conn)
+                self._procs.append(proc)
+            for k in range(len(self._procs)):
+                obs_space, act_space = self._receive(k)
+                if obs_space != self.observation_space or act_space != self.action_space:
+                    raise ConfigError(f"{where}: the sub-envs of worker {k} have other spaces than the first "
+                                      f"ones (observation {obs_space} vs {self.observation_space}); every "
+                                      "sub-env must have the same spaces")
+            self._starting = False
+        except BaseException:
+            self.close()
+            raise
+
+    @property
+    def processes(self) -> int:
+        """How many processes step the sub-envs (this one included)."""
+        return len(self._procs) + 1
+
+    def put(self, slot: int, obs: Any) -> None:
+        """Write sub-env ``slot``'s observation into the shared batch."""
+        _put(self.observation_space, self.views, slot, obs)
+
+    def run(self, commands: Sequence[tuple]) -> list:
+        """One command per sub-env (``(op, *args)``, ops in ``_OPS``); the workers run theirs while this process
+        runs its own block; returns the results in sub-env order. Every worker answers before an error is raised,
+        so the next call starts clean."""
+        if self.closed:
+            raise AerialLocError(f"{self._where}: the vector env is closed")
+        if len(commands) != self.num_envs:
+            raise AerialLocError(f"{self._where}: {len(commands)} commands for {self.num_envs} sub-envs")
+        if self._broken is not None:
+            raise AerialLocError(self._broken)
+        for k, (conn, slots) in enumerate(zip(self._conns, self._blocks, strict=True)):
+            try:
+                _send(conn, [commands[i] for i in slots])
+            except OSError:          # a worker that died since the last call
+                self._procs[k].join(timeout=_POLL_S)
+                self._broken = self._death(k)
+                raise AerialLocError(self._broken) from None
+        error: BaseException | None = None
+        try:
+            local = _run_block(self.local_envs, self.local_slots, self.observation_space, self.views,
+                               [commands[i] for i in self.local_slots])
+        except Exception as exc:  # noqa: BLE001 - raised once the workers have answered
+            error, local = exc, []
+        results: list = [None] * self.num_envs
+        remote_error: tuple[int, _RemoteError] | None = None
+        for k, slots in enumerate(self._blocks):
+            status, payload = self._receive_raw(k)
+            if status == "error":
+                remote_error = remote_error or (k, payload)
+                continue
+            for i, res in zip(slots, payload, strict=True):
+                results[i] = res
+        if remote_error is not None:
+            remote_error[1].raise_it(remote_error[0])
+        if error is not None:
+            raise error
+        for i, res in zip(self.local_slots, local, strict=True):
+            results[i] = res
+        return results
+
+    def _receive_raw(self, k: int) -> tuple[str, Any]:
+        conn, proc = self._conns[k], self._procs[k]
+        try:
+            while not conn.poll(_POLL_S):
+                if not proc.is_alive():
+                    raise EOFError
+            return pickle.loads(conn.recv_bytes())
+        except EOFError:
+            proc.join(timeout=_POLL_S)
+            self._broken = self._death(k)
+            raise AerialLocError(self._broken) from None
+
+    def _death(self, k: int) -> str:
+        proc = self._procs[k]
+        what = f"{self._where}: worker process {k} (pid {proc.pid}) exited with code {proc.exitcode}"
+        if not self._starting:
+            return f"{what} (killed, or out of memory?); close this vector env and make a new one"
+        if self.start_method != "fork":
+            return (f"{what} while starting. With start_method {self.start_method!r} each worker imports the "
+                    "main script again: put the script's code under `if __name__ == '__main__':` (Python's "
+                    "multiprocessing guide, 'Safe importing of main module'), or use start_method='fork'; "
+                    "the worker's own error is printed above")
+        return f"{what} while starting; its error is printed above"
+
+    def _receive(self, k: int) -> Any:
+        status, payload = self._receive_raw(k)
+        if status == "error":
+            payload.raise_it(k)
+        return payload
+
+    def close(self) -> None:
+        """Close the sub-envs here and in the workers, and stop the workers (idempotent)."""
+        if self.closed:
+            return
+        self.closed = True
+        for conn in self._conns:
+            try:
+                _send(conn, None)
+            except (OSError, ValueError):
+                pass
+        for proc in self._procs:
+            proc.join(timeout=5.0)
+            if proc.is_alive():
+                proc.terminate()
+                proc.join(timeout=1.0)
+        for conn in self._conns:
+            conn.close()
+        for env in getattr(self, "local_envs", []):
+            env.close()
+
+
+def batch_infos(num_envs: int, infos: Sequence[dict | None]) -> dict[str, Any] | None:
+    """The sub-envs' infos (None: no info) as Gymnasium's ``VectorEnv._add_info`` batches them one after the
+    other (one array per key, its dtype from the first sub-env that has the key, and the ``_key`` mask), in one
+    pass per key. None where a value is a dict or a key starts with '_' (``_add_info``'s own path applies)."""
+    present = [(i, info) for i, info in enumerate(infos) if info]
+    order: dict[str, None] = {}
+    for _, info in present:
+        order.update(dict.fromkeys(info))
+    out: dict[str, Any] = {}
+    for key in order:
+        pairs = [(i, info[key]) for i, info in present if key in info]
+        first = pairs[0][1]
+        kind = type(first)
+        if key.startswith("_") or key == "final_obs":
+            return None
+        if kind in (int, float, bool) or issubclass(kind, np.number):
+            array = np.zeros(num_envs, dtype=kind)
+        elif isinstance(first, np.ndarray):
+            array = np.zeros((num_envs, *first.shape), dtype=first.dtype)
+        else:
+            array = np.full(num_envs, None, dtype=object)
+        mask = np.zeros(num_envs, dtype=np.bool_)
+        for i, value in pairs:
+            if isinstance(value, dict):
+                return None
+            array[i] = value
+            mask[i] = True
+        out[key] = array
+        out[f"_{key}"] = mask
+    return out
+
+
+def _copy(value: Any) -> Any:
+    if isinstance(value, dict):
+        return {k: _copy(v) for k, v in value.items()}
+    if isinstance(value, tuple):
+        return tuple(_copy(v) for v in value)
+    return np.array(value, copy=True)
+
+
+class _MakeEnv:
+    """Builds one sub-env from the scenario id and overrides (pickled to workers: no maps inside); a registered
+    id through ``gym.make`` (unwrapped), so that the sub-env has its spec as a single env has."""
+
+    def __init__(self, scenario: Any, render_mode: str | None, overrides: dict) -> None:
+        self.scenario, self.render_mode, self.overrides = scenario, render_mode, overrides
+
+    def __call__(self) -> gym.Env:
+        from aerial_loc_env.env.aerial_loc_env import AerialLocEnv
+
+        if isinstance(self.scenario, str) and self.scenario in gym.registry:
+            return gym.make(self.scenario, render_mode=self.render_mode, **self.overrides).unwrapped
+        return AerialLocEnv(self.scenario, render_mode=self.render_mode, **self.overrides)
+
+
+class AerialLocVectorEnv(VectorEnv):
+    """``num_envs`` ``AerialLocEnv`` of one scenario as a Gymnasium ``VectorEnv`` (see the module doc).
+
+    ``gym.make_vec(id, num_envs=N, **overrides)`` or ``AerialLocVectorEnv(N, scenario, **overrides)``; keyword
+    options: ``processes`` (how many processes step the sub-envs, this one included; default: one per usable
+    core, at most ``num_envs``; 1 keeps them all here), ``autoreset_mode`` (Gymnasium's ``AutoresetMode`` or its
+    value, default next-step), ``copy`` (False returns views of the shared batch, overwritten by the next call),
+    ``start_method`` (multiprocessing's; default its default, as Gymnasium's async mode).
+    """
+
+    def __init__(self, num_envs: int = 1, scenario: Any = "AerialLoc/Small-v1", render_mode: str | None = None, *,
+                 processes: int | None = None, autoreset_mode: str | AutoresetMode = AutoresetMode.NEXT_STEP,
+                 copy: bool = True, start_method: str | None = None, **overrides: Any) -> None:
+        name = getattr(scenario, "id", scenario)
+        where = f"make_vec({name!r})"
+        num_envs = check_count("num_envs", num_envs, where, "the number of sub-envs, e.g. num_envs=4")
+        try:
+            self.autoreset_mode = AutoresetMode(autoreset_mode)
+        except ValueError:
+            raise ConfigError(f"{where}: autoreset_mode={autoreset_mode!r} is not one of "
+                              f"{[m.value for m in AutoresetMode]}") from None
+        self.num_envs = num_envs
+        self.copy = bool(copy)
+        self.env_fns = [_MakeEnv(scenario, render_mode, dict(overrides)) for _ in range(num_envs)]
+        self._shards = EnvShards(self.env_fns, processes, start_method=start_method, where=where)
+        first = self._shards.local_envs[0]
+        self.metadata = {**first.metadata, "autoreset_mode": self.autoreset_mode}
+        self.render_mode = first.render_mode
+        self.single_observation_space = first.observation_space
+        self.single_action_space = first.action_space
+        self.observation_space = batch_space(self.single_observation_space, num_envs)
+        self.action_space = batch_space(self.single_action_space, num_envs)
+        self._rewards = np.zeros((num_envs,), dtype=np.float64)
+        self._terminations = np.zeros((num_envs,), dtype=np.bool_)
+        self._truncations = np.zeros((num_envs,), dtype=np.bool_)
+        self._autoreset_envs = np.zeros((num_envs,), dtype=np.bool_)
+
+    @property
+    def processes(self) -> int:
+        """How many processes step the sub-envs (this one included)."""
+        return self._shards.processes
+
+    @property
+    def local_envs(self) -> list[gym.Env]:
+        """The sub-envs that live in this process (the last block of sub-envs)."""
+        return self._shards.local_envs
+
+    def _observations(self) -> Any:
+        return _copy(self._shards.views) if self.copy else self._shards.views
+
+    def reset(self, *, seed: int | list[int | None] | None = None,
+              options: dict[str, Any] | None = None) -> tuple[Any, dict[str, Any]]:
+        """Reset the sub-envs (all, or those of ``options["reset_mask"]``); ``seed``: None, an int ``s`` (sub-env
+        ``i`` gets ``s + i``) or one seed per sub-env."""
+        n = self.num_envs
+        if seed is None:
+            seeds: list = [None] * n
+        elif isinstance(seed, (int, np.integer)) and not isinstance(seed, bool):
+            seeds = [seed + i for i in range(n)]
+        else:
+            seeds = list(seed)
+            if len(seeds) != n:
+                raise ValueError(f"If seeds are passed as a list the length must match num_envs={n} but got "
+                                 f"length={len(seeds)}.")
+        options = dict(options) if options is not None else None
+        mask = np.ones(n, dtype=np.bool_)
+        if options is not None and "reset_mask" in options:
+            mask = options.pop("reset_mask")
+            if not isinstance(mask, np.ndarray) or mask.shape != (n,) or mask.dtype != np.bool_ or not mask.any():
+                raise ValueError(f"`options['reset_mask']` must be a numpy bool array of shape ({n},) with at "
+                                 f"least one True value, got {mask!r}")
+        results = self._shards.run([("reset", seeds[i], options) if mask[i] else ("none",) for i in range(n)])
+        self._terminations[mask] = False
+        self._truncations[mask] = False
+        self._autoreset_envs[mask] = False
+        return self._observations(), self._infos([results[i] if mask[i] else None for i in range(n)])
+
+    def _infos(self, infos: Sequence[dict | None]) -> dict[str, Any]:
+        batched = batch_infos(self.num_envs, infos)
+        if batched is None:
+            batched = {}
+            for i, info in enumerate(infos):
+                if info is not None:
+                    batched = self._add_info(batched, info, i)
+        return batched
+
+    def step(self, actions: Any) -> tuple[Any, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
+        """Step every sub-env with its row of ``actions``; finished sub-envs reset as ``autoreset_mode`` says."""
+        rows = list(iterate(self.action_space, actions))
+        if len(rows) != self.num_envs:
+            raise AerialLocError(f"step: {len(rows)} actions for {self.num_envs} sub-envs; pass one action per "
+                                 f"sub-env (shape {self.action_space.shape})")
+        mode = self.autoreset_mode
+        if mode == AutoresetMode.NEXT_STEP:
+            commands = [("reset", None, None) if self._autoreset_envs[i] else ("step", rows[i])
+                        for i in range(self.num_envs)]
+        elif mode == AutoresetMode.DISABLED:
+            if self._autoreset_envs.any():
+                raise AerialLocError(f"step: sub-envs {np.flatnonzero(self._autoreset_envs).tolist()} finished "
+                                     "their episodes; with autoreset_mode DISABLED reset them first "
+                                     "(reset(options={'reset_mask': terminations | truncations}))")
+            commands = [("step", row) for row in rows]
+        else:
+            commands = [("step_same", row) for row in rows]
+        results = self._shards.run(commands)
+        step_infos: list[dict] = []
+        finals: list[dict | None] = []
+        for i, res in enumerate(results):
+            if commands[i][0] == "reset":
+                self._rewards[i], self._terminations[i], self._truncations[i] = 0.0, False, False
+                step_infos.append(res)
+            elif mode == AutoresetMode.SAME_STEP:
+                self._rewards[i], self._terminations[i], self._truncations[i], info, final = res
+                step_infos.append(info)
+                finals.append(final)
+            else:
+                self._rewards[i], self._terminations[i], self._truncations[i], info = res
+                step_infos.append(info)
+        if any(f is not None for f in finals):   # Gymnasium's order: a sub-env's final info, then its info
+            infos: dict[str, Any] = {}
+            for i, info in enumerate(step_infos):
+                if finals[i] is not None:
+                    infos = self._add_info(infos, finals[i], i)
+                infos = self._add_info(infos, info, i)
+        else:
+            infos = self._infos(step_infos)
+        self._autoreset_envs = np.logical_or(self._terminations, self._truncations)
+        return (self._observations(), np.copy(self._rewards), np.copy(self._terminations),
+                np.copy(self._truncations), infos)
+
+    def render(self) -> tuple[Any, ...]:
+        """The sub-envs' frames (``render_mode="rgb_array"``), in sub-env order."""
+        return self.call("render")
+
+    def call(self, name: str, *args: Any, **kwargs: Any) -> tuple[Any, ...]:
+        """Call method ``name`` of every sub-env (or read attribute ``name``); results in sub-env order."""
+        return tuple(self._shards.run([("call", name, args, kwargs)] * self.num_envs))
+
+    def get_attr(self, name: str) -> tuple[Any, ...]:
+        """Attribute ``name`` of every sub-env."""
+        return self.call(name)
+
+    def set_attr(self, name: str, values: Any) -> None:
+        """Set attribute ``name`` of every sub-env: one value for all, or a list/tuple of one per sub-env."""
+        if not isinstance(values, (list, tuple)):
+            values = [values] * self.num_envs
+        if len(values) != self.num_envs:
+            raise ValueError("Values must be a list or tuple with length equal to the number of environments. "
+                             f"Got `{len(values)}` values for {self.num_envs} environments.")
+        self._shards.run([("set_attr", name, v) for v in values])
+
+    @property
+    def np_random_seed(self) -> tuple[int, ...]:
+        """The sub-envs' seeds."""
+        return self.get_attr("np_random_seed")
+
+    @property
+    def np_random(self) -> tuple[np.random.Generator, ...]:
+        """The sub-envs' random generators (copies, for those in workers)."""
+        return self.get_attr("np_random")
+
+    def close_extras(self, **kwargs: Any) -> None:
+        if hasattr(self, "_shards"):
+            self._shards.close()
+
+    def __del__(self) -> None:
+        if not getattr(self, "closed", True) and hasattr(self, "_shards"):
+            self._shards.close()

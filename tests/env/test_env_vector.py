@@ -1,0 +1,219 @@
+"""The vectorized env (``env/vector.py``): ``gym.make_vec`` in the sync, async and vector_entry_point modes steps
+and resets; the vector_entry_point env equals SyncVectorEnv bit for bit for the same seeds across episode ends
+(every autoreset mode), with its sub-envs in a worker process and in this one; the env checkers pass on a sub-env
+and Gymnasium's tools for vector envs on the vector env; bad arguments, a bad action in a worker and a dead worker
+are clear errors."""
+
+from __future__ import annotations
+
+import os
+import signal
+import warnings
+
+import cloudpickle
+import gymnasium as gym
+import numpy as np
+import pytest
+from gymnasium.utils.env_checker import check_env, data_equivalence
+from gymnasium.utils.env_match import check_environments_match
+from gymnasium.utils.passive_env_checker import check_obs
+from gymnasium.vector import AutoresetMode
+
+import aerial_loc_env  # noqa: F401  (registers the scenarios)
+from aerial_loc_env.env import InvalidActionError
+from aerial_loc_env.env.vector import AerialLocVectorEnv, batch_infos
+from aerial_loc_env.errors import AerialLocError, ConfigError
+
+SID = "AerialLoc/Small-v1"
+SHORT = {"duration_s": 2.0}   # 8 steps per episode: an episode boundary within a few steps
+STEPS = 19                    # two episode ends and their autoresets
+
+
+def _actions(num_envs: int, steps: int, seed: int = 3) -> list[np.ndarray]:
+    rng = np.random.default_rng(seed)
+    return [rng.uniform(-1.0, 1.0, (num_envs, 2)).astype(np.float32) for _ in range(steps)]
+
+
+def _assert_same_run(a: gym.vector.VectorEnv, b: gym.vector.VectorEnv, seed: int, steps: int = STEPS) -> int:
+    """Reset both with ``seed`` and step them with the same actions: every output equal, bit for bit. Returns how
+    many episode ends were crossed."""
+    out_a, out_b = a.reset(seed=seed), b.reset(seed=seed)
+    assert all(data_equivalence(x, y) for x, y in zip(out_a, out_b, strict=True))
+    ends = 0
+    for k, actions in enumerate(_actions(a.num_envs, steps)):
+        out_a, out_b = a.step(actions), b.step(actions)
+        for name, x, y in zip(("obs", "reward", "terminated", "truncated", "info"), out_a, out_b, strict=True):
+            assert data_equivalence(x, y), f"step {k}: {name} differs"
+        ends += int(np.count_nonzero(out_a[2] | out_a[3]))
+    return ends
+
+
+@pytest.mark.parametrize("mode", ["sync", "async", "vector_entry_point"])
+def test_make_vec_steps_and_resets_in_every_mode(mode: str) -> None:
+    envs = gym.make_vec(SID, num_envs=2, vectorization_mode=mode, **SHORT)
+    try:
+        obs, _info = envs.reset(seed=0)
+        assert envs.observation_space.contains(obs) and obs["image"].shape == (2, 64, 64, 3)
+        ends = 0
+        for actions in _actions(2, 10):
+            obs, reward, terminated, truncated, _info = envs.step(actions)
+            assert envs.observation_space.contains(obs) and reward.shape == (2,) and np.all(reward <= 0.0)
+            ends += int(np.count_nonzero(terminated | truncated))
+        assert ends == 2                      # both flew their 8 steps, then autoreset
+        assert envs.metadata["autoreset_mode"] == AutoresetMode.NEXT_STEP
+    finally:
+        envs.close()
+
+
+def test_vector_entry_point_is_the_default_mode_and_spreads_over_processes() -> None:
+    envs = gym.make_vec(SID, num_envs=3, processes=2, **SHORT)
+    try:
+        assert isinstance(envs.unwrapped, AerialLocVectorEnv)
+        assert envs.unwrapped.processes == 2 and len(envs.unwrapped.local_envs) == 1
+        assert envs.spec.kwargs["vectorization_mode"] == "vector_entry_point"
+    finally:
+        envs.close()
+
+
+@pytest.mark.parametrize("processes", [1, 2])
+def test_vector_entry_point_equals_sync_bit_for_bit_across_episode_ends(processes: int) -> None:
+    ours = gym.make_vec(SID, num_envs=3, vectorization_mode="vector_entry_point", processes=processes, **SHORT)
+    sync = gym.make_vec(SID, num_envs=3, vectorization_mode="sync", **SHORT)
+    try:
+        assert ours.unwrapped.processes == processes
+        assert _assert_same_run(ours, sync, seed=11) == 6
+        assert _assert_same_run(ours, sync, seed=[5, 3, 9], steps=4) == 0     # a seed per sub-env, and again
+    finally:
+        ours.close()
+        sync.close()
+
+
+def test_same_step_autoreset_equals_sync_with_final_obs_and_info() -> None:
+    ours = gym.make_vec(SID, num_envs=2, autoreset_mode="SameStep", processes=2, **SHORT)
+    sync = gym.make_vec(SID, num_envs=2, vectorization_mode="sync",
+                        vector_kwargs={"autoreset_mode": AutoresetMode.SAME_STEP}, **SHORT)
+    try:
+        assert ours.metadata["autoreset_mode"] == AutoresetMode.SAME_STEP
+        assert _assert_same_run(ours, sync, seed=4, steps=9) == 2
+        _obs, _r, _term, trunc, info = ours.step(_actions(2, 1)[0])
+        assert not trunc.any() and "final_obs" not in info
+    finally:
+        ours.close()
+        sync.close()
+
+
+def test_disabled_autoreset_resets_by_mask_as_sync() -> None:
+    ours = gym.make_vec(SID, num_envs=2, autoreset_mode=AutoresetMode.DISABLED, processes=2, **SHORT)
+    sync = gym.make_vec(SID, num_envs=2, vectorization_mode="sync",
+                        vector_kwargs={"autoreset_mode": AutoresetMode.DISABLED}, **SHORT)
+    try:
+        for envs in (ours, sync):
+            envs.reset(seed=[1, 2])
+        for actions in _actions(2, 8):
+            out_a, out_b = ours.step(actions), sync.step(actions)
+            assert all(data_equivalence(x, y) for x, y in zip(out_a, out_b, strict=True))
+        assert out_a[3].all()
+        with pytest.raises(AerialLocError, match="DISABLED.*reset_mask"):
+            ours.step(actions)
+        mask = np.array([False, True])
+        assert all(data_equivalence(x, y) for x, y in zip(ours.reset(options={"reset_mask": mask}),
+                                                          sync.reset(options={"reset_mask": mask}), strict=True))
+    finally:
+        ours.close()
+        sync.close()
+
+
+def test_checkers_pass_on_a_sub_env_and_gymnasiums_vector_tools_on_the_vector_env() -> None:
+    sb3_checker = pytest.importorskip("stable_baselines3.common.env_checker")
+    envs = gym.make_vec(SID, num_envs=2, processes=2, **SHORT)
+    try:
+        sub = envs.unwrapped.local_envs[0]
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            check_env(sub)
+            sb3_checker.check_env(sub, warn=True)
+            obs, _ = envs.reset(seed=0)
+            check_obs(obs, envs.observation_space, "reset")
+            obs, *_ = envs.step(envs.action_space.sample())
+            check_obs(obs, envs.observation_space, "step")
+        assert [str(w.message) for w in caught] == []
+    finally:
+        envs.close()
+    # Gymnasium's check that two envs match (for vector envs it compares the flags of one sub-env)
+    one, sync = gym.make_vec(SID, num_envs=1, **SHORT), gym.make_vec(SID, num_envs=1, vectorization_mode="sync",
+                                                                     **SHORT)
+    try:
+        check_environments_match(one, sync, num_steps=12, seed=2)
+    finally:
+        one.close()
+        sync.close()
+
+
+def test_infos_batch_as_gymnasium_does() -> None:
+    sync = gym.vector.SyncVectorEnv([lambda: gym.make(SID, **SHORT)] * 3)
+    cases = [
+        [{"a": 1.5, "b": np.arange(2)}, None, {"b": np.ones(2, np.float32), "c": "x"}],
+        [{"n": 1}, {"n": 2.7}, {"flag": True, "n": np.float32(3.0)}],
+        [{"obj": (1, 2)}, {"obj": None}, {}],
+    ]
+    for infos in cases:
+        expected: dict = {}
+        for i, info in enumerate(infos):
+            if info is not None:
+                expected = sync._add_info(expected, info, i)
+        batched = batch_infos(3, infos)
+        assert data_equivalence(batched, expected) and list(batched) == list(expected)
+    assert batch_infos(3, [{"nested": {"x": 1}}, None, None]) is None     # left to _add_info
+    sync.close()
+
+
+def test_sub_env_factories_pickle_without_maps() -> None:
+    envs = gym.make_vec(SID, num_envs=2, processes=1, **SHORT)
+    try:
+        assert len(cloudpickle.dumps(envs.unwrapped.env_fns[0])) < 4096
+    finally:
+        envs.close()
+
+
+@pytest.mark.parametrize("num_envs", [0, -1, "a", 2.5, True])
+def test_bad_num_envs_is_a_clear_error(num_envs) -> None:
+    with pytest.raises(ConfigError, match=r"num_envs=.* must be a positive integer"):
+        gym.make_vec(SID, num_envs=num_envs)
+
+
+@pytest.mark.parametrize("kwargs, words", [
+    ({"processes": 0}, "processes=0 must be a positive integer"),
+    ({"autoreset_mode": "sometimes"}, "autoreset_mode='sometimes' is not one of"),
+    ({"start_method": "teleport"}, "start_method='teleport' is not available"),
+    ({"altitude_m": -5.0}, "altitude_m"),
+])
+def test_bad_options_are_clear_errors_before_any_worker_starts(kwargs: dict, words: str) -> None:
+    with pytest.raises(ConfigError, match=words):
+        gym.make_vec(SID, num_envs=2, **kwargs)
+
+
+def test_a_bad_action_in_a_worker_raises_the_sub_envs_error_and_the_env_goes_on() -> None:
+    envs = gym.make_vec(SID, num_envs=2, processes=2, **SHORT)
+    try:
+        envs.reset(seed=0)
+        with pytest.raises(InvalidActionError, match="NaN"):
+            envs.step(np.array([[np.nan, 0.0], [0.0, 0.0]], np.float32))      # sub-env 0 lives in the worker
+        with pytest.raises(AerialLocError, match="3 actions for 2 sub-envs"):
+            envs.step(np.zeros((3, 2), np.float32))
+        envs.reset(seed=0)
+        envs.step(np.zeros((2, 2), np.float32))
+    finally:
+        envs.close()
+
+
+def test_a_dead_worker_is_a_clear_error() -> None:
+    envs = gym.make_vec(SID, num_envs=2, processes=2, **SHORT)
+    try:
+        envs.reset(seed=0)
+        worker = envs.unwrapped._shards._procs[0]
+        os.kill(worker.pid, signal.SIGKILL)
+        worker.join(timeout=10)
+        with pytest.raises(AerialLocError, match=r"worker process 0 .* exited with code -9 \(killed"):
+            envs.step(np.zeros((2, 2), np.float32))
+    finally:
+        envs.close()
