@@ -13,6 +13,7 @@ naming the spec file and table::
     observation = "local_registration" # or "map_memorization"
     total_timesteps = 200000
     n_envs = 2
+    vectorization = "vector"           # or "subproc", "dummy" (see VECTORIZATIONS)
     [train.observation_params]
     image_px = 64
     [train.reward]                     # local_registration only
@@ -38,6 +39,12 @@ from aerial_loc_env.errors import ConfigError, require_extra
 ALGOS = ("PPO", "SAC")
 OBSERVATIONS = ("local_registration", "map_memorization")
 REWARDS = ("improvement", "error")
+#: how the training envs are stepped: ``vector`` (``learning.vec_env.ShardVecEnv``: one process per core, the
+#: learner's included), ``subproc`` (SB3's SubprocVecEnv: one process per env), ``dummy`` (SB3's DummyVecEnv: all
+#: in the learner's process). ``vector`` and ``subproc`` give the same model for the same seed; ``dummy`` may differ
+#: in the last bits (its rewards are float32).
+VECTORIZATIONS = ("vector", "subproc", "dummy")
+DEFAULT_VECTORIZATION = "vector"
 #: SB3 constructor arguments the recipe sets through its own fields, never through [train.hyperparameters]
 _RESERVED = {"self", "policy", "env", "policy_kwargs", "seed", "device", "tensorboard_log", "verbose",
              "_init_setup_model"}
@@ -101,7 +108,9 @@ class Recipe:
     max_wall_s: float = field(default=0.0, metadata=rng(0.0, 10**7, doc=(
         "stop training after this wall time (seconds; 0 = no limit): a budget that holds on any machine")))
     n_envs: int = field(default=2, metadata=rng(1, 256))
-    subproc: bool = True
+    vectorization: str | None = field(default=None, metadata=rng(choices=VECTORIZATIONS, doc=(
+        "how the n_envs envs are stepped (VECTORIZATIONS); unset: from subproc, else DEFAULT_VECTORIZATION")))
+    subproc: bool | None = None      # the older spelling: true = "subproc", false = "dummy"
     seed: int = field(default=0, metadata=rng(0, 2**31 - 1))
     eval_freq: int = field(default=10_000, metadata=rng(1, 10**9, doc="timesteps between evaluations"))
     eval_episodes: int = field(default=4, metadata=rng(1, 1000))
@@ -111,7 +120,21 @@ class Recipe:
     torch_threads: int = field(default=1, metadata=rng(0, 256, doc=(
         "torch intra-op threads of the learner (0 = torch's default); 1 beats 2 by 2.5x on 2 busy cores")))
 
+    @property
+    def vec_env(self) -> str:
+        """The vectorization in effect (``vectorization``, else the older ``subproc``, else the default)."""
+        if self.vectorization is not None:
+            return self.vectorization
+        if self.subproc is not None:
+            return "subproc" if self.subproc and self.n_envs > 1 else "dummy"
+        return DEFAULT_VECTORIZATION
+
     def validate(self, where: str) -> None:
+        if self.subproc is not None and self.vectorization is not None \
+                and self.vectorization != ("subproc" if self.subproc else "dummy"):
+            raise ConfigError(f"{where}: 'subproc' = {str(self.subproc).lower()} and 'vectorization' = "
+                              f"{self.vectorization!r} disagree; subproc is the older spelling of vectorization = "
+                              "'subproc' (true) or 'dummy' (false): keep only vectorization")
         if self.eval_seed < self.seed + self.n_envs:
             raise ConfigError(f"{where}: field 'eval_seed' = {self.eval_seed} overlaps the training seeds "
                               f"[{self.seed}, {self.seed + self.n_envs}); evaluation needs held-out seeds")

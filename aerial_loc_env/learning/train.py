@@ -63,13 +63,16 @@ def make_env(recipe: Recipe, *, training: bool = True, monitor_file: str | None 
 
 
 def _vec_env(recipe: Recipe, out: Path | None) -> Any:
+    """The recipe's training envs, seeded ``seed, seed + 1, ...``, stepped as ``recipe.vec_env`` says
+    (``recipes.VECTORIZATIONS``)."""
     vec = require_extra("stable_baselines3.common.vec_env", "rl", "Training")
     if out is not None:
         (out / "monitor").mkdir(parents=True, exist_ok=True)
+    kind = recipe.vec_env
 
     def factory(rank: int):
         def make() -> gym.Env:
-            if recipe.subproc and recipe.n_envs > 1:  # a worker process: one thread, the cores are shared
+            if kind == "subproc":  # a worker process: one thread, the cores are shared
                 import cv2
 
                 cv2.setNumThreads(1)
@@ -78,7 +81,12 @@ def _vec_env(recipe: Recipe, out: Path | None) -> Any:
         return make
 
     fns = [factory(i) for i in range(recipe.n_envs)]
-    env = (vec.SubprocVecEnv(fns) if recipe.subproc and recipe.n_envs > 1 else vec.DummyVecEnv(fns))
+    if kind == "vector":
+        from aerial_loc_env.learning.vec_env import ShardVecEnv
+
+        env = ShardVecEnv(fns)
+    else:
+        env = vec.SubprocVecEnv(fns) if kind == "subproc" else vec.DummyVecEnv(fns)
     env.seed(recipe.seed)
     return env
 
