@@ -12,7 +12,9 @@ $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(PIP) install -q --upgrade pip
 	$(PIP) install -q "$(TORCH)"
-	$(PIP) install -q -e ".[test,rl,mavlink,plots,ray]"
+	# cv2 comes from opencv-contrib-python-headless; the plain package writes the same files: never both
+	$(PIP) uninstall -q -y opencv-python-headless opencv-python
+	$(PIP) install -q -e ".[test,rl,data,mavlink,plots,ray]"
 	touch $@
 
 venv: $(VENV)/.installed

@@ -14,6 +14,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "fidelity": ("aerial_loc_env.benchmark.fidelity", "do simulated presets rank agents as real image pairs do?"),
     "pictures": ("aerial_loc_env.pictures", "write a map overview and camera frames with/without shadows"),
     "train": ("aerial_loc_env.learning.cli", "train a learned policy from a recipe in agents/"),
+    "dataset": ("aerial_loc_env.learning.minari_export", "export recorded episodes as a Minari dataset"),
     "mavlink": ("aerial_loc_env.mavlink.cli", "stream an agent's estimates to a flight controller"),
     "sitl": ("aerial_loc_env.sitl.cli", "fly an ArduPilot SITL mission on the vision fix"),
     "perf": ("aerial_loc_env.perf.__main__", "speed benchmarks on one core"),
