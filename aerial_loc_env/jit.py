@@ -6,10 +6,21 @@
   code-generation hint (512-bit vectors where the CPU has them); hints never change results.
 - ``mul255``, ``quantize``: OpenCV's rounded uint8 multiply by a/255 and its float-to-level quantization,
   reproduced bit for bit (the shading and the frame pass both use them).
+- ``bilinear_rgba8``, ``bilinear_f32x8``: the bilinear chain on 8 pixels or points at once, each neighbour pair
+  one 64-bit load, written in LLVM's target-independent vector operations (fast with AVX2, AVX-512 or NEON alike);
+  ``index32``: a flat index in 32-bit arithmetic.
 - ``gather_pairs16``, ``gather_f32x16`` (AVX-512 gathers, ``FAST_GATHER``) and ``lut_rgba16`` (VBMI byte
   permutes, ``FAST_LUT``): CPU instructions LLVM does not choose by itself, compiled only where the host has them
-  and they pay, with a portable scalar form elsewhere that gives the same values. All follow numba's target:
+  and they pay, with a portable form elsewhere that gives the same values. All follow numba's target:
   with ``NUMBA_CPU_NAME`` set (a portable cache) the portable code.
+
+Fast without AVX-512 (AVX2 x86-64, and other vector units): a loop LLVM vectorizes with AVX-512 can stay scalar or
+slow without it where it converts an int64 to float (the loop counter: convert it through int32), multiplies
+int64 lanes (numba widens int32 products: ``index32``, or unsigned 32 x 32 -> 64-bit products), loads under a
+condition (load unconditionally, then select), or stores back a selected value it loaded (``a[i] = max(a[i], t)``
+becomes a masked store, slow on AMD: write to another row). ``sysinfo.isa()`` says which code numba compiles for;
+``NUMBA_CPU_NAME=znver3 NUMBA_CPU_FEATURES=`` (an empty list: the named CPU's own features) compiles for an AVX2
+machine on any x86-64 host (``NUMBA_CPU_NAME`` alone keeps the host's features, AVX-512 included).
 
 Every compiled module is named ``<module>_kernels.py`` and sits beside the module it serves.
 
@@ -331,6 +342,135 @@ def gather_f32x16(typingctx, table, idx, x, out):
         return context.get_dummy_value()
 
     return sig, codegen
+
+
+#: pixels per ``bilinear_rgba8`` call
+BILINEAR_PIXELS = 8
+
+
+@intrinsic
+def bilinear_rgba8(typingctx, flat, idx, stride, fa, fb, out, x):
+    """The bilinear samples of the 8 pixels from ``x``: pixel ``x + i`` has its top-left neighbour at
+    ``flat[idx[x + i]]`` (``flat`` uint32 RGBA pixels, memory order), the top-right one after it and the bottom pair
+    ``stride`` pixels further, its weights ``fa[x + i]``, ``fb[x + i]`` (float32); each channel's value is the fma
+    chain ``v0 = fma(a, p01 - p00, p00)``, ``v1 = fma(a, p11 - p10, p10)``, ``fma(b, v1 - v0, v0)`` rounded half to
+    even, written to ``out[4 (x + i) + c]`` (uint8). Arrays 1-D C-contiguous (``idx`` uint32, every index +
+    ``stride`` + 1 inside ``flat``).
+
+    Why: the same arithmetic as a loop over the pixels (``render_kernels._blend_row``), but each neighbour pair is
+    one 64-bit load (two loads a pixel, not four, and no neighbour rows stored and read back) and the chain runs on
+    the 32 channels as one vector, each pixel's weights spread to its four channels by a shuffle. Written in LLVM's
+    target-independent vector operations: the target's widest registers do it (two 256-bit halves with AVX2, one
+    512-bit register with AVX-512, NEON's 128-bit ones), where a loop over the pixels needs AVX-512's byte
+    permutes to vectorize well; no instruction that some x86-64 lacks."""
+    if not (isinstance(x, types.Integer) and isinstance(stride, types.Integer)
+            and all(isinstance(a, types.Array) and a.ndim == 1 and a.layout == "C" for a in (flat, idx, fa, fb, out))
+            and flat.dtype == types.uint32 and idx.dtype == types.uint32 and out.dtype == types.uint8
+            and fa.dtype == types.float32 and fb.dtype == types.float32):
+        return None
+    sig = types.void(flat, idx, stride, fa, fb, out, x)
+
+    def codegen(context, builder, signature, args):
+        flat_p, idx_p, fa_p, fb_p, out_p = (context.make_array(signature.args[i])(context, builder, args[i]).data
+                                            for i in (0, 1, 3, 4, 5))
+        p, n = BILINEAR_PIXELS, 4 * BILINEAR_PIXELS
+        i8, i32, i64, f32 = ir.IntType(8), ir.IntType(32), ir.IntType(64), ir.FloatType()
+        xi = context.cast(builder, args[6], signature.args[6], types.intp)
+        below = builder.zext(context.cast(builder, args[2], signature.args[2], types.uint32), i64)
+        pairs = [ir.Constant(ir.VectorType(i64, p), None), ir.Constant(ir.VectorType(i64, p), None)]
+        for i in range(p):      # the neighbour pairs: (p00, p01) and (p10, p11), one 64-bit load each
+            k = builder.zext(builder.load(builder.gep(idx_p, [builder.add(xi, ir.Constant(xi.type, i))])), i64)
+            for row, at in enumerate((k, builder.add(k, below))):
+                word = builder.load(builder.bitcast(builder.gep(flat_p, [at]), i64.as_pointer()), align=4)
+                pairs[row] = builder.insert_element(pairs[row], word, ir.Constant(i32, i))
+        vb8, vf = ir.VectorType(i8, 2 * n), ir.VectorType(f32, n)
+        # a pair's bytes in memory order (a bitcast is a store and a load): its first pixel is bytes 0..3
+        left = ir.Constant(ir.VectorType(i32, n), [8 * (j // 4) + j % 4 for j in range(n)])
+        right = ir.Constant(ir.VectorType(i32, n), [8 * (j // 4) + 4 + j % 4 for j in range(n)])
+        top, bottom = (builder.bitcast(pair, vb8) for pair in pairs)
+        p00, p01, p10, p11 = (builder.uitofp(builder.shuffle_vector(row, ir.Constant(vb8, None), lane), vf)
+                              for row, lane in ((top, left), (top, right), (bottom, left), (bottom, right)))
+        wv, spread = ir.VectorType(f32, p), ir.Constant(ir.VectorType(i32, n), [j // 4 for j in range(n)])
+        a, b = (builder.shuffle_vector(builder.load(builder.bitcast(builder.gep(w, [xi]), wv.as_pointer()), align=4),
+                                       ir.Constant(wv, None), spread) for w in (fa_p, fb_p))
+        fma = cgutils.get_or_insert_function(builder.module, ir.FunctionType(vf, [vf, vf, vf]), f"llvm.fma.v{n}f32")
+        rint = cgutils.get_or_insert_function(builder.module, ir.FunctionType(vf, [vf]), f"llvm.rint.v{n}f32")
+        v0 = builder.call(fma, [a, builder.fsub(p01, p00), p00])
+        v1 = builder.call(fma, [a, builder.fsub(p11, p10), p10])
+        value = builder.call(rint, [builder.call(fma, [b, builder.fsub(v1, v0), v0])])
+        vb = ir.VectorType(i8, n)
+        dest = builder.gep(out_p, [builder.mul(xi, ir.Constant(xi.type, 4))])
+        builder.store(builder.trunc(builder.fptosi(value, ir.VectorType(i32, n)), vb),
+                      builder.bitcast(dest, vb.as_pointer()), align=1)
+        return context.get_dummy_value()
+
+    return sig, codegen
+
+
+#: points per ``bilinear_f32x8`` call
+BILINEAR_LANES = 8
+
+
+@intrinsic
+def bilinear_f32x8(typingctx, plane, idx, below, fa, fb, out, j):
+    """The bilinear samples of the 8 points from ``j``: point ``j + i`` has its top-left neighbour at
+    ``plane[idx[j + i]]`` (``plane`` float32, one channel's pixels), the top-right one after it and the bottom pair
+    ``below`` further, its weights ``fa[j + i]``, ``fb[j + i]``; ``out[j + i]`` = the fma chain
+    ``v0 = fma(a, p01 - p00, p00)``, ``v1 = fma(a, p11 - p10, p10)``, ``fma(b, v1 - v0, v0)`` (float32, unrounded).
+    Arrays 1-D C-contiguous (``idx`` uint32, every index + ``below`` + 1 inside ``plane``).
+
+    Why: as ``bilinear_rgba8``: each neighbour pair one 64-bit load (two loads a point, not four) and the chain on
+    8 points at once in LLVM's target-independent vector operations. LLVM vectorizes the loop form only with
+    AVX-512's gathers (four per 16 points); without them it stays scalar."""
+    if not (isinstance(j, types.Integer) and isinstance(below, types.Integer)
+            and all(isinstance(a, types.Array) and a.ndim == 1 and a.layout == "C"
+                    for a in (plane, idx, fa, fb, out))
+            and idx.dtype == types.uint32
+            and all(a.dtype == types.float32 for a in (plane, fa, fb, out))):
+        return None
+    sig = types.void(plane, idx, below, fa, fb, out, j)
+
+    def codegen(context, builder, signature, args):
+        plane_p, idx_p, fa_p, fb_p, out_p = (context.make_array(signature.args[i])(context, builder, args[i]).data
+                                             for i in (0, 1, 3, 4, 5))
+        n = BILINEAR_LANES
+        i32, i64, f32 = ir.IntType(32), ir.IntType(64), ir.FloatType()
+        ji = context.cast(builder, args[6], signature.args[6], types.intp)
+        step = builder.zext(context.cast(builder, args[2], signature.args[2], types.uint32), i64)
+        pairs = [ir.Constant(ir.VectorType(i64, n), None), ir.Constant(ir.VectorType(i64, n), None)]
+        for i in range(n):      # the neighbour pairs: (p00, p01) and (p10, p11), one 64-bit load each
+            k = builder.zext(builder.load(builder.gep(idx_p, [builder.add(ji, ir.Constant(ji.type, i))])), i64)
+            for row, at in enumerate((k, builder.add(k, step))):
+                word = builder.load(builder.bitcast(builder.gep(plane_p, [at]), i64.as_pointer()), align=4)
+                pairs[row] = builder.insert_element(pairs[row], word, ir.Constant(i32, i))
+        v2n, vf = ir.VectorType(f32, 2 * n), ir.VectorType(f32, n)
+        even = ir.Constant(ir.VectorType(i32, n), [2 * i for i in range(n)])      # memory order: first of a pair
+        odd = ir.Constant(ir.VectorType(i32, n), [2 * i + 1 for i in range(n)])
+        top, bottom = (builder.bitcast(pair, v2n) for pair in pairs)
+        p00, p01, p10, p11 = (builder.shuffle_vector(row, ir.Constant(v2n, None), lane)
+                              for row, lane in ((top, even), (top, odd), (bottom, even), (bottom, odd)))
+        a, b = (builder.load(builder.bitcast(builder.gep(w, [ji]), vf.as_pointer()), align=4) for w in (fa_p, fb_p))
+        fma = cgutils.get_or_insert_function(builder.module, ir.FunctionType(vf, [vf, vf, vf]), f"llvm.fma.v{n}f32")
+        v0 = builder.call(fma, [a, builder.fsub(p01, p00), p00])
+        v1 = builder.call(fma, [a, builder.fsub(p11, p10), p10])
+        value = builder.call(fma, [b, builder.fsub(v1, v0), v0])
+        builder.store(value, builder.bitcast(builder.gep(out_p, [ji]), vf.as_pointer()), align=4)
+        return context.get_dummy_value()
+
+    return sig, codegen
+
+
+@intrinsic
+def index32(typingctx, row, stride, col):
+    """int32 ``row * stride + col`` in 32-bit arithmetic (numba widens int32 products to int64: a 64-bit vector
+    multiply, which AVX2 lacks and emulates); the caller keeps it below 2**31."""
+    if not all(t == types.int32 for t in (row, stride, col)):
+        return None
+
+    def codegen(context, builder, signature, args):
+        return builder.add(builder.mul(args[0], args[1], flags=["nsw"]), args[2], flags=["nsw"])
+
+    return types.int32(types.int32, types.int32, types.int32), codegen
 
 
 #: whether ``lut_rgba16`` uses AVX-512 VBMI's byte permutes on this host (Ice Lake and later Intel cores, AMD Zen 4

@@ -1,4 +1,5 @@
-"""What machine a figure was measured on (benchmarks, reports, training logs)."""
+"""What machine a figure was measured on (benchmarks, reports, training logs), and which instructions the compiled
+kernels use there."""
 
 from __future__ import annotations
 
@@ -20,3 +21,37 @@ def machine() -> str:
     except OSError:
         pass
     return f"{cpu}, {os.cpu_count()} cores, Python {platform.python_version()}, numpy {np.__version__}"
+
+
+#: LLVM feature -> the name a reader knows, widest first; the first two decide the vector width
+_VECTOR_FEATURES = (("avx512f", "AVX-512"), ("avx2", "AVX2"), ("sse4.2", "SSE4.2"), ("neon", "NEON"),
+                    ("sve", "SVE"), ("avx512vbmi", "VBMI"), ("fma", "FMA"))
+
+
+def vector_isa(features: str) -> str:
+    """The vector instruction sets named in an LLVM feature list (``+avx2,-avx512f,...``): e.g.
+    ``"AVX-512 AVX2 SSE4.2 VBMI FMA"``, or ``"baseline"`` where none is."""
+    have = {f[1:] for f in features.split(",") if f.startswith("+")}
+    return " ".join(name for key, name in _VECTOR_FEATURES if key in have) or "baseline"
+
+
+def isa() -> str:
+    """The code numba compiles the kernels for: LLVM's CPU name, its vector instructions and which of the
+    kernels' CPU-specific paths run (``jit.FAST_GATHER``, ``jit.FAST_LUT``); set by ``NUMBA_CPU_NAME`` /
+    ``NUMBA_CPU_FEATURES`` where given (``NUMBA_CPU_NAME=znver3 NUMBA_CPU_FEATURES=``: an AVX2 machine's code on
+    any x86-64 host). Imports numba (seconds on a cold start): for benchmark headers, not for every report."""
+    from llvmlite import binding as llvm
+    from numba.core import config
+
+    from aerial_loc_env import jit
+
+    host = llvm.get_host_cpu_name()
+    cpu = config.CPU_NAME or host
+    if config.CPU_FEATURES is None:
+        features = f"{vector_isa(llvm.get_host_cpu_features().flatten())} (the host's)"
+    elif config.CPU_FEATURES == "":
+        features = f"{cpu}'s own (NUMBA_CPU_FEATURES empty)"
+    else:
+        features = f"{vector_isa(config.CPU_FEATURES)} (NUMBA_CPU_FEATURES)"
+    target = cpu if cpu == host else f"{cpu} (NUMBA_CPU_NAME; host {host})"
+    return f"{target}, {features}; FAST_GATHER {jit.FAST_GATHER}, FAST_LUT {jit.FAST_LUT}"

@@ -20,11 +20,16 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from aerial_loc_env.jit import BILINEAR_LANES as _LANES
 from aerial_loc_env.jit import JIT as _JIT
+from aerial_loc_env.jit import bilinear_f32x8 as _bilinear_f32x8
 from aerial_loc_env.jit import fma32 as _fma32
+from aerial_loc_env.jit import index32 as _index32
 
 #: what ``scan`` does with each particle's samples
 SAMPLE, MOMENTS, HISTOGRAM, BRIEF = 0, 1, 2, 3
+#: copies of a particle's joint histogram, counted in turn and summed (integers: the same counts)
+_HIST_COPIES = 4
 
 
 @njit(**_JIT)
@@ -35,12 +40,12 @@ def scan(planes, e, cols, rows, active, nch, mode, ref, shift, ref_bins, bins, s
     The level is ``planes`` (C, h, w) float32; particle n's view is channels 0 .. nch - 1 at the reduced-grid
     points (``cols[r, b]``, ``rows[r, b]``) (R, B) under its affine ``e[n]`` (N, 2, 3) float32, the coordinates
     ``e00 col + (e01 row + e02)`` in float32 as ``PatchSampler`` always made them, the value ``cv2.remap``'s
-    (see the module's docstring). A block (one row of B points) whose neighbours are all inside the level takes
-    the fast path: one vectorized loop for the coordinates (truncation is the floor there; the bounds are checked
-    on the floats), then one for the loads and the fma chain (faster than the loads and the fma chain in two
-    loops, and than one loop doing all with a branch per point). Other blocks, and particles not
-    ``active`` in SAMPLE mode (footprints far off the level or not finite, never truncated unclamped), go point
-    by point with the border.
+    (see the module's docstring). A particle's R B coordinates are one vectorized loop (truncation is the floor
+    where a point is inside; the bounds are checked on the floats, the flat indices in 32-bit arithmetic); when
+    every point's neighbours are inside the level (the usual case) each channel is one pass of
+    ``jit.bilinear_f32x8`` (two 64-bit loads a point, the fma chain on 8 points at once), else the rows whose points
+    are all inside take that pass and the others, and particles not ``active`` in SAMPLE mode (footprints far off
+    the level or not finite, never truncated unclamped), go point by point with the border.
 
     ``mode`` (inactive particles are skipped, except in SAMPLE mode):
 
@@ -49,76 +54,94 @@ def scan(planes, e, cols, rows, active, nch, mode, ref, shift, ref_bins, bins, s
       and ``ref`` (R, B) the camera's values, float64 (one accumulator per lane of a block: the loop vectorizes
       and the order is fixed); NaN where a sample is NaN (no-data). SSD's and NCC's statistics;
     - HISTOGRAM: the joint histogram of channel 0 quantized (``min(max(p scale, 0), bins - 1)`` truncated, as
-      ``dense.quantize``) against ``ref_bins`` (R, B) in integer counts, through the ``c log c`` table ``nlogn``:
-      ``stats[n, :2] = (sum over the joint cells, sum over the samples' marginal)``; NaN on a NaN sample;
+      ``dense.quantize``) against ``ref_bins`` (R, B) in integer counts (kept in ``_HIST_COPIES`` copies that
+      take the samples in turn, so that repeated cells do not wait on each other's increments), through the
+      ``c log c`` table ``nlogn``: ``stats[n, :2] = (sum over the joint cells, sum over the samples' marginal)``;
+      NaN on a NaN sample;
     - BRIEF: ``stats[n, 0]`` = how many of the tests (T, 3) = (first point, second point, channel) (points as
       flat indices r B + b) disagree with ``cam_bits`` (T,) (a test's bit: first > second); -1 on a NaN sample.
 
-    In numba a helper that takes arrays costs a call's argument handling, and a view made per row (``a[r]``)
-    reference counting per sample, so the sampling is written out here once for every mode with plain 2-D/3-D
-    indexing, and the general path runs after the fast loop, not inside it.
+    A NaN sample is found by an OR over the samples (a vectorized loop), not by a float sum (a chain of dependent
+    additions). In numba a view made per row (``a[r]``) costs reference counting per sample, so rows are offsets
+    into flat arrays, and the general path runs after the fast pass, not inside it.
     """
     lh, lw = planes.shape[1], planes.shape[2]
     nr, nb = cols.shape
+    npt = nr * nb
     flat = planes.reshape(planes.shape[0], lh * lw)
-    view = np.empty((nch, nr, nb), np.float32)
-    fa = np.empty(nb, np.float32)
-    fb = np.empty(nb, np.float32)
-    idx = np.empty(nb, np.uint32)
+    cols_f, rows_f = cols.reshape(npt), rows.reshape(npt)
+    view = np.empty((nch, npt), np.float32)
+    fa = np.empty(npt, np.float32)
+    fb = np.empty(npt, np.float32)
+    idx = np.empty(npt, np.uint32)
+    off = np.empty(npt, np.uint8)
     slow = np.empty(nr, np.bool_)
     acc = np.zeros((4, nb))
-    cell = np.empty(nb, np.int32)
-    hist = np.zeros(max(bins * bins, 1), np.int32)
+    cell = np.empty(npt, np.int32)
+    ref_f = ref.reshape(ref.size)
+    ref_bins_f = ref_bins.reshape(ref_bins.size)
+    n_cells = max(bins * bins, 1)
+    hist = np.zeros((_HIST_COPIES, n_cells), np.int32)
     top = np.float32(bins - 1)
+    n_tests = tests.shape[0] if mode == BRIEF else 0
+    first = np.empty(n_tests, np.uint32)         # each test's two samples in the flat view (channel-major)
+    second = np.empty(n_tests, np.uint32)
+    for t in range(n_tests):
+        first[t] = np.uint32(tests[t, 2] * npt + tests[t, 0])
+        second[t] = np.uint32(tests[t, 2] * npt + tests[t, 1])
+    want = cam_bits[:n_tests]
     w, below = np.int32(lw), np.uint32(lw)
     umax, vmax = np.float32(lw - 1), np.float32(lh - 1)
     for n in range(e.shape[0]):
         if not active[n] and mode != SAMPLE:
             continue
-        out = samples[n] if mode == SAMPLE else view
+        out = samples[n].reshape(nch, npt) if mode == SAMPLE else view
         e00, e01, e02 = e[n, 0, 0], e[n, 0, 1], e[n, 0, 2]
         e10, e11, e12 = e[n, 1, 0], e[n, 1, 1], e[n, 1, 2]
-        n_slow = 0
-        for r in range(nr):
-            outside = np.int32(0)
-            for j in range(nb):
-                u = e00 * cols[r, j] + (e01 * rows[r, j] + e02)
-                v = e10 * cols[r, j] + (e11 * rows[r, j] + e12)
-                iu = np.int32(u)
-                iv = np.int32(v)
-                fa[j] = u - np.float32(iu)
-                fb[j] = v - np.float32(iv)
-                idx[j] = np.uint32(iv * w + iu)
-                outside |= np.int32((u < 0) | (v < 0) | (u >= umax) | (v >= vmax))
-            slow[r] = outside != 0 or not active[n]
-            if slow[r]:
-                n_slow += 1
-                continue
+        outside = np.int32(0)
+        for i in range(npt):
+            u = e00 * cols_f[i] + (e01 * rows_f[i] + e02)
+            v = e10 * cols_f[i] + (e11 * rows_f[i] + e12)
+            iu = np.int32(u)
+            iv = np.int32(v)
+            fa[i] = u - np.float32(iu)
+            fb[i] = v - np.float32(iv)
+            idx[i] = np.uint32(_index32(iv, w, iu))
+            out_i = np.int32((u < 0) | (v < 0) | (u >= umax) | (v >= vmax))
+            off[i] = np.uint8(out_i)
+            outside |= out_i
+        if outside == 0 and active[n]:      # every point inside (the usual case): one pass per channel
             for ch in range(nch):
+                _sample(flat[ch], idx, below, fa, fb, out[ch], 0, npt)
+        else:                               # rows with a point outside take the general path, after the others
+            n_slow = 0
+            for r in range(nr):
+                o = r * nb
+                row_out = np.uint8(0)
                 for j in range(nb):
-                    k = idx[j]
-                    p00 = flat[ch, k]
-                    p01 = flat[ch, k + np.uint32(1)]
-                    p10 = flat[ch, k + below]
-                    p11 = flat[ch, k + below + np.uint32(1)]
-                    a = fa[j]
-                    v0 = _fma32(a, p01 - p00, p00)
-                    v1 = _fma32(a, p11 - p10, p10)
-                    out[ch, r, j] = _fma32(fb[j], v1 - v0, v0)
-        for r in range(nr if n_slow else 0):         # the general path, after the fast loop (kept out of it)
-            if slow[r]:
-                for ch in range(nch):
-                    fill = np.float32(np.nan) if ch == 0 else np.float32(0.0)
-                    for j in range(nb):
-                        out[ch, r, j] = _bilinear(planes[ch], e00 * cols[r, j] + (e01 * rows[r, j] + e02),
-                                                  e10 * cols[r, j] + (e11 * rows[r, j] + e12), fill)
+                    row_out |= off[o + j]
+                slow[r] = row_out != 0 or not active[n]
+                if slow[r]:
+                    n_slow += 1
+                else:
+                    for ch in range(nch):
+                        _sample(flat[ch], idx, below, fa, fb, out[ch], o, o + nb)
+            for r in range(nr if n_slow else 0):
+                if slow[r]:
+                    o = r * nb
+                    for ch in range(nch):
+                        fill = np.float32(np.nan) if ch == 0 else np.float32(0.0)
+                        for j in range(nb):
+                            out[ch, o + j] = _bilinear(planes[ch], e00 * cols[r, j] + (e01 * rows[r, j] + e02),
+                                                       e10 * cols[r, j] + (e11 * rows[r, j] + e12), fill)
         if mode == MOMENTS:
             acc[:] = 0.0
             a1, a2, ad, ar = acc[0], acc[1], acc[2], acc[3]
             for r in range(nr):
+                o = r * nb
                 for j in range(nb):
-                    p = np.float64(view[0, r, j])
-                    rv = np.float64(ref[r, j])
+                    p = np.float64(view[0, o + j])
+                    rv = np.float64(ref_f[o + j])
                     d = p - shift
                     a1[j] += d
                     a2[j] += d * d
@@ -128,40 +151,66 @@ def scan(planes, e, cols, rows, active, nch, mode, ref, shift, ref_bins, bins, s
                 stats[n, q] = acc[q].sum()
         elif mode == HISTOGRAM:
             hist[:] = 0
-            nan = np.float32(0.0)
-            for r in range(nr):
-                for j in range(nb):
-                    p = view[0, r, j]
-                    nan += p - p                            # NaN once any sample is NaN
-                    t = p * scale
-                    t = t if t > 0 else np.float32(0.0)     # (NaN -> 0: a defined cell; the particle is dropped)
-                    t = t if t < top else top
-                    cell[j] = np.int32(t) * bins + ref_bins[r, j]
-                for j in range(nb):
-                    hist[cell[j]] += 1
+            nan = False
+            v0 = view[0]
+            for i in range(npt):
+                p = v0[i]
+                z = p - p
+                nan |= z != z                           # a NaN sample
+                t = p * scale
+                t = t if t > 0 else np.float32(0.0)     # (NaN -> 0: a defined cell; the particle is dropped)
+                t = t if t < top else top
+                cell[i] = np.int32(t) * bins + ref_bins_f[i]
+            body = npt - npt % _HIST_COPIES
+            for i in range(0, body, _HIST_COPIES):      # the counts in several copies: no chain of increments
+                for c in range(_HIST_COPIES):           # of one cell waits on the last
+                    hist[c, cell[i + c]] += 1
+            for i in range(body, npt):
+                hist[0, cell[i]] += 1
             sj = 0.0
             sp = 0.0
             for i in range(bins):
                 row_count = 0
                 for j in range(bins):
-                    k = hist[i * bins + j]
+                    k = 0
+                    for c in range(_HIST_COPIES):
+                        k += hist[c, i * bins + j]
                     row_count += k
                     sj += nlogn[k]
                 sp += nlogn[row_count]
-            stats[n, 0] = sj if nan == 0.0 else np.nan
-            stats[n, 1] = sp if nan == 0.0 else np.nan
+            stats[n, 0] = np.nan if nan else sj
+            stats[n, 1] = np.nan if nan else sp
         elif mode == BRIEF:
-            flat_view = view.reshape(nch, nr * nb)
-            nan = np.float32(0.0)
-            for ch in range(nch):
-                for j in range(nr * nb):
-                    nan += flat_view[ch, j] - flat_view[ch, j]
+            values = view.reshape(nch * npt)
+            nan = False
+            for j in range(nch * npt):
+                z = values[j] - values[j]
+                nan |= z != z                           # a NaN (or infinite) sample
             disagree = 0
-            for t in range(tests.shape[0]):
-                ch = tests[t, 2]
-                bit = flat_view[ch, tests[t, 0]] > flat_view[ch, tests[t, 1]]
-                disagree += np.int64(bit != cam_bits[t])
-            stats[n, 0] = disagree if nan == 0.0 else -1
+            for t in range(n_tests):
+                bit = values[first[t]] > values[second[t]]
+                disagree += np.int64(bit != want[t])
+            stats[n, 0] = -1 if nan else disagree
+
+
+@njit(inline="always", **_JIT)
+def _sample(plane, idx, below, fa, fb, dst, start, end):
+    """``dst[start:end]``: the points' bilinear samples of one channel ``plane`` (their neighbours all inside):
+    ``jit.bilinear_f32x8`` 8 points at a time, the scalar chain for the rest (the same floats)."""
+    j = start
+    while j + _LANES <= end:
+        _bilinear_f32x8(plane, idx, below, fa, fb, dst, j)
+        j += _LANES
+    for i in range(j, end):
+        k = idx[i]
+        p00 = plane[k]
+        p01 = plane[k + np.uint32(1)]
+        p10 = plane[k + below]
+        p11 = plane[k + below + np.uint32(1)]
+        a = fa[i]
+        v0 = _fma32(a, p01 - p00, p00)
+        v1 = _fma32(a, p11 - p10, p10)
+        dst[i] = _fma32(fb[i], v1 - v0, v0)
 
 
 @njit(**_JIT)

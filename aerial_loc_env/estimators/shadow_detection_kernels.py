@@ -84,23 +84,29 @@ def _pad(buf, h, w, rad, stride, value):
 def _index8(small, lum8, c3_table, mode, c3):
     """``clip(index * 255, 0, 255)`` truncated to uint8, the index in float32 as ``shadow_index`` writes it:
     ``0.5 (c3 + 1 - lum / 255)`` (mode 0), ``c3`` (1) or ``1 - lum / 255`` (2); ``c3`` (h, w) receives the
-    colour invariant (modes 0 and 1) from ``c3_table``."""
+    colour invariant (modes 0 and 1) from ``c3_table``. A row's table lookups in one loop, its arithmetic in
+    another, one per mode: that one vectorizes (with the lookups or the mode's branches in it, the whole row stayed
+    scalar)."""
     h, w = lum8.shape
     out = np.empty((h, w), np.uint8)
     one, half, k255, zero = np.float32(1.0), np.float32(0.5), np.float32(255.0), np.float32(0.0)
     for y in range(h):
+        s_row, l_row, o_row = small[y], lum8[y], out[y]
+        if mode == 2:
+            for x in range(w):
+                t = one - np.float32(l_row[x]) / k255
+                o_row[x] = np.uint8(min(max(t * k255, zero), k255))
+            continue
+        c_row = c3[y]
         for x in range(w):
-            lum = np.float32(lum8[y, x]) / k255
-            if mode != 2:
-                c3[y, x] = c3_table[small[y, x, 2], max(small[y, x, 0], small[y, x, 1])]
-            if mode == 0:
-                t = half * ((c3[y, x] + one) - lum)
-            elif mode == 1:
-                t = c3[y, x]
-            else:
-                t = one - lum
-            t = min(max(t * k255, zero), k255)
-            out[y, x] = np.uint8(t)
+            c_row[x] = c3_table[s_row[x, 2], max(s_row[x, 0], s_row[x, 1])]
+        if mode == 0:
+            for x in range(w):
+                t = half * ((c_row[x] + one) - np.float32(l_row[x]) / k255)
+                o_row[x] = np.uint8(min(max(t * k255, zero), k255))
+        else:
+            for x in range(w):
+                o_row[x] = np.uint8(min(max(c_row[x] * k255, zero), k255))
     return out
 
 

@@ -107,14 +107,14 @@ def _probe_row(q: np.ndarray, c0: np.float32, c1: np.float32, c2: np.float32, v0
     and in the scalar tail ``t`` (``y M1`` etc.; then M2, M5, M8): the vector body's ``fma(M0, x, .)`` for x <
     ``body``, the compiled tail's ``fma(x, M0, y M1) + M2`` after it (two vectorized loops)."""
     for x in range(body):
-        xf = _F32(x)
+        xf = _F32(np.int32(x))
         sx, sy = _fma(c0, xf, v0), _fma(c1, xf, v1)
         if perspective:
             w = _fma(c2, xf, v2)
             sx, sy = sx / w, sy / w
         q[x] = _window_index(_round_px(sx), _round_px(sy), rows, cols, stride)
     for x in range(body, q.size):
-        xf = _F32(x)
+        xf = _F32(np.int32(x))
         sx, sy = _fma(xf, c0, t0) + m2, _fma(xf, c1, t1) + m5
         if perspective:
             w = _fma(xf, c2, t2) + m8
@@ -148,9 +148,9 @@ def _march_kernel(perspective: bool):
         ``ground`` (C-contiguous, of one shape) are read in ``window`` (row0, col0, rows, cols), zero outside."""
         _wide()
         hc, wc = z0.shape
-        nr, nc = window[2], window[3]
-        stride = pooled.shape[1]
-        base = window[0] * stride + window[1]
+        nr, nc = np.int32(window[2]), np.int32(window[3])
+        stride = np.int32(pooled.shape[1])
+        base = window[0] * np.int64(stride) + window[1]
         pool, reach = pooled.reshape(-1), ground.reshape(-1)
         body = (wc // _LANES) * _LANES
         steps = thresholds.size
@@ -159,6 +159,8 @@ def _march_kernel(perspective: bool):
         tm = np.empty((steps + 1, 12), np.float32)     # each warp's terms on the row (_row_terms)
         q = np.empty((steps + 1, wc), np.int32)        # each probe's pixel on the row
         val = np.empty((steps + 1, wc), np.float32)    # and the height read there
+        zeros = np.zeros(wc, np.float32)
+        acc = np.empty((2, wc), np.float32)            # the running maxima, from one row into the other
         for y in range(hc):
             _row_terms(tm, probes, y)
             for i in range(steps + 1):
@@ -171,11 +173,16 @@ def _march_kernel(perspective: bool):
             r_row, hit_row, q0, v0 = relief[y], hit_flat[o:o + wc], q[0], val[0]
             for x in range(wc):
                 r_row[x] = np.uint8((q0[x] >= 0) & (v0[x] > _F32(0.0)))
-                hit_row[x] = _F32(0.0)
+            src = zeros
             for i in range(1, steps + 1):  # the first hit from the top: the highest level hit (levels decrease)
                 level, threshold, qi, vi = levels[i - 1], thresholds[i - 1], q[i], val[i]
+                dst = hit_row if i == steps else acc[i % 2]
                 for x in range(wc):
-                    hit_row[x] = max(hit_row[x], level * _F32((qi[x] >= 0) & (vi[x] > threshold)))
+                    dst[x] = max(src[x], level * _F32((qi[x] >= 0) & (vi[x] > threshold)))
+                src = dst
+            if steps == 0:
+                for x in range(wc):
+                    hit_row[x] = _F32(0.0)
         count = 0
         across = np.empty((3, wc), np.float32)     # the rows' maxima over x - 1..x + 1, cycled
         for y in range(-2, hc):
@@ -290,7 +297,7 @@ def _maps_kernel(tilted: bool, replicate: bool):
                 du_row, dv_row = band_du[o:o + w], band_dv[o:o + w]
                 gx_row, gy_row = out_x[y], out_y[y]
                 for x in range(w):
-                    u = _F32(x) - cu
+                    u = _F32(np.int32(x)) - cu
                     if tilted:
                         den = _fma(u, t20, _fma(v, t21, t22))
                         ru = _fma(u, t00, _fma(v, t01, t02)) / den
@@ -338,7 +345,7 @@ def _maps_kernel(tilted: bool, replicate: bool):
                                 bdu[m] = band_du[o + x]
                                 bdv[m] = band_dv[o + x]
                             else:
-                                u = _F32(x) - cu
+                                u = _F32(np.int32(x)) - cu
                                 bdu[m] = l00 * u + l01 * v
                                 bdv[m] = l10 * u + l11 * v
                             bk[m] = k0
@@ -348,7 +355,8 @@ def _maps_kernel(tilted: bool, replicate: bool):
                                                         replicate)
             _gather(heights, cols, pix_x, pix_y, got, m, not replicate)
             for j in range(m):      # z2 = h(m(z1)) (the same point where z1 = z0, e.g. open ground)
-                z1 = min(got[j] if ins[j] else zero, cap)
+                g, inside = got[j], ins[j]
+                z1 = min(g if inside else zero, cap)
                 bz[j] = z1
                 k1 = one - z1 / big_h
                 bk1[j] = k1
@@ -356,22 +364,21 @@ def _maps_kernel(tilted: bool, replicate: bool):
                                                         replicate)
             _gather(heights, cols, pix_x, pix_y, got, m, not replicate)
             for j in range(m):      # not settled on a surface after one step: one more (z3)
-                k1 = bk1[j]
-                z1 = bz[j]
-                same = k1 == bk[j]
-                z2 = z1 if same else min(got[j] if ins[j] else zero, cap)
+                k1, k0, z1, g, inside = bk1[j], bk[j], bz[j], got[j], ins[j]
+                same = k1 == k0
+                z2 = z1 if same else min(g if inside else zero, cap)
                 bz2[j] = z2
-                bk[j] = bk[j] if same else k1
+                bk[j] = k1      # (= k0 where same: a k is 1 - z / H, never -0.0)
                 k2 = one - z2 / big_h
                 bk1[j] = k2
                 pix_x[j], pix_y[j], ins[j] = _dsm_index(bdu[j], bdv[j], k2, nx, ny, rows, cols, c0, r0, c1, r1,
                                                         replicate)
             _gather(heights, cols, pix_x, pix_y, got, m, not replicate)
             for j in range(m):      # settled (or a wall: below) at the last step's point
-                z1, z2 = bz[j], bz2[j]
-                z3 = min(got[j] if ins[j] else zero, cap)
+                z1, z2, g, inside, k1, k0 = bz[j], bz2[j], got[j], ins[j], bk1[j], bk[j]
+                z3 = min(g if inside else zero, cap)
                 again = abs(z2 - z1) > tol
-                scale = bk1[j] if again else bk[j]
+                scale = k1 if again else k0
                 bz[j] = bdu[j] * scale + ox
                 bz2[j] = bdv[j] * scale + oy
                 wall[j] = np.int32(again & (abs(z3 - z2) > tol))  # still jumping: the ray entered through a wall

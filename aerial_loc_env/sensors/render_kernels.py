@@ -38,14 +38,18 @@ the tone lookups of RGBA rows as VBMI byte permutes (``FAST_LUT``). The first ca
 
 from __future__ import annotations
 
+import sys
+
 import numba as nb
 import numpy as np
 
+from aerial_loc_env.jit import BILINEAR_PIXELS as _BILINEAR_PIXELS
 from aerial_loc_env.jit import FAST_GATHER as _FAST_GATHER
 from aerial_loc_env.jit import FAST_LUT as _FAST_LUT
 from aerial_loc_env.jit import GATHER_LANES as _GATHER_LANES
 from aerial_loc_env.jit import JIT as _JIT
 from aerial_loc_env.jit import LUT_PIXELS as _LUT_PIXELS
+from aerial_loc_env.jit import bilinear_rgba8 as _bilinear_rgba8
 from aerial_loc_env.jit import fma32 as _fma32
 from aerial_loc_env.jit import gather_pairs16 as _gather_pairs16
 from aerial_loc_env.jit import lut_rgba16 as _lut_rgba16
@@ -60,6 +64,8 @@ OCC_NONE, OCC_ALPHA, OCC_FLOAT = 0, 1, 2
 SIGMA_F32, SIGMA_F64, NOISE_OFF = 0, 1, 2
 
 _NOISE_SCALE = np.float32(2.0 ** -19)  # 2**-(sigma bits 8 + noise bank bits 11)
+_LITTLE_ENDIAN = sys.byteorder == "little"
+_BYTE, _SHIFT8, _SHIFT16 = np.uint32(255), np.uint32(8), np.uint32(16)
 _INV255 = np.float32(1.0 / 255.0)
 #: the sensor stage prefetches the noise bank's row this many rows ahead: the bank (2 MB at 600 x 400) is read at a
 #: new offset each frame, from L3, in row segments the hardware prefetchers pick up late (further ahead gains
@@ -136,13 +142,22 @@ def _scene_row(s, o, m, f, cn, w_px, occ_mode, l0, l1, l2, s0, s1, s2, lit_same,
             start = w_px - w_px % _LUT_PIXELS
             for x in range(0, start, _LUT_PIXELS):
                 count += _lut_rgba16(s, x, tabs, o, m)
-        for x in range(start, w_px):
+        for x in range(start, w_px):    # (vectorized: the alphas apart from the lookups)
             a = s[cn * x + 3]
             m[x] = a
             count += np.int32(a > 127)
-            o[3 * x] = l0[s[cn * x]]
-            o[3 * x + 1] = l1[s[cn * x + 1]]
-            o[3 * x + 2] = l2[s[cn * x + 2]]
+        if cn == 4 and _LITTLE_ENDIAN:  # a pixel one 32-bit load, its channels its bytes from the lowest
+            px = s.view(np.uint32)
+            for x in range(start, w_px):
+                p = px[x]
+                o[3 * x] = l0[p & _BYTE]
+                o[3 * x + 1] = l1[(p >> _SHIFT8) & _BYTE]
+                o[3 * x + 2] = l2[(p >> _SHIFT16) & _BYTE]
+        else:
+            for x in range(start, w_px):
+                o[3 * x] = l0[s[cn * x]]
+                o[3 * x + 1] = l1[s[cn * x + 1]]
+                o[3 * x + 2] = l2[s[cn * x + 2]]
     else:
         for x in range(w_px):
             o[3 * x] = l0[s[cn * x]]
@@ -277,22 +292,22 @@ def warp_finish(box, m, lut, out, alpha, sensor, vig, bank, dy, dx3, sigma_mode,
     for y in range(h_px):
         yf = np.float32(y)
         bu, bv = m1 * yf + m2, m4 * yf + m5
-        for x in range(w_px):
-            fu[x] = _fma32(m0, np.float32(x), bu)
-            fv[x] = _fma32(m3, np.float32(x), bv)
+        for x in range(w_px):       # (x through int32: a vector conversion without AVX-512, the same float)
+            fu[x] = _fma32(m0, np.float32(np.int32(x)), bu)
+            fv[x] = _fma32(m3, np.float32(np.int32(x)), bv)
         pu, pv = m1 * yf, m4 * yf
         for x in range(x_tail, w_px):
-            fu[x] = _fma32(m0, np.float32(x), pu) + m2
-            fv[x] = _fma32(m3, np.float32(x), pv) + m5
+            fu[x] = _fma32(m0, np.float32(np.int32(x)), pu) + m2
+            fv[x] = _fma32(m3, np.float32(np.int32(x)), pv) + m5
         if _weights_row(fu, fv, fa, fb, idx, stride, umax, vmax) == 0:
             for x in range(0, w_px, 4):     # the box's rows that row y + 8 will read (frames start cold there)
                 k = np.int64(idx[x]) + ahead
                 _prefetch(flat, k)
                 _prefetch(flat, k + bw)
-            _gather_row(flat, idx, stride, q00, q01, q10, q11)
+            _sample_row(flat, idx, stride, fa, fb, rgba, q00, q01, q10, q11, c00, c01, c10, c11)
         else:
             _border_row(box, fu, fv, fa, fb, q00, q01, q10, q11)
-        _blend_row(c00, c01, c10, c11, fa, fb, rgba)
+            _blend_row(c00, c01, c10, c11, fa, fb, rgba, 0)
         count += _scene_row(rgba, o, alpha[y], no_occ, 4, w_px, OCC_ALPHA, l0, l1, l2, l0, l1, l2, False, tabs)
         _sensor_row(o, out[w3 * y:w3 * (y + 1)], y, h_px, sensor, vig, bank, dy, dx3, sigma_mode, a32, b32, a64, b64)
     return count
@@ -321,17 +336,20 @@ def remap_finish(box, map_x, map_y, shade_px, shade_gain, lut, out, alpha, senso
         fu, fv = map_x[y], map_y[y]
         if y + _BOX_AHEAD_ROWS < h_px:     # the box's lines that a later row will read, every 4th pixel's
             pu, pv = map_x[y + _BOX_AHEAD_ROWS], map_y[y + _BOX_AHEAD_ROWS]
-            for x in range(0, w_px, 4):
+            for x in range(0, w_px, 8):
                 u, v = pu[x], pv[x]
-                if u >= 0 and v >= 0 and u < umax and v < vmax:
-                    k = np.int64(v) * np.int64(stride) + np.int64(u)
-                    _prefetch(flat, k)
-                    _prefetch(flat, k + np.int64(stride))
+                u = u if u > np.float32(0.0) else np.float32(0.0)     # (NaN -> 0)
+                v = v if v > np.float32(0.0) else np.float32(0.0)
+                u = u if u < umax else umax
+                v = v if v < vmax else vmax
+                k = np.int64(np.int32(v)) * np.int64(stride) + np.int64(np.int32(u))
+                _prefetch(flat, k)
+                _prefetch(flat, k + np.int64(stride))
         if _weights_row(fu, fv, fa, fb, idx, stride, umax, vmax) == 0:
-            _gather_row(flat, idx, stride, q00, q01, q10, q11)
+            _sample_row(flat, idx, stride, fa, fb, rgba, q00, q01, q10, q11, c00, c01, c10, c11)
         else:
             _border_row(box, fu, fv, fa, fb, q00, q01, q10, q11)
-        _blend_row(c00, c01, c10, c11, fa, fb, rgba)
+            _blend_row(c00, c01, c10, c11, fa, fb, rgba, 0)
         row_px = np.int64(y) * w_px
         for t in range(first[y], first[y + 1]):
             p, g = 4 * (px[t] - row_px), gains[t]
@@ -428,14 +446,31 @@ def _weights_row(fu, fv, fa, fb, idx, stride, umax, vmax):
 
 
 @nb.njit(inline="always", **_JIT)
-def _gather_row(flat, idx, stride, q00, q01, q10, q11):
-    """The four neighbours (uint32 RGBA pixels) of each point of a row inside the box (``jit.gather_pairs16``
-    where the hardware gather pays)."""
-    n, one = idx.shape[0], np.uint32(1)
+def _sample_row(flat, idx, stride, fa, fb, rgba, q00, q01, q10, q11, c00, c01, c10, c11):
+    """The bilinear samples of a row inside the box into ``rgba``: 8 pixels a call of ``jit.bilinear_rgba8`` (two
+    64-bit loads a pixel, the chain in vector registers of any width), the row's last ``W mod 8`` pixels by
+    ``_gather_row`` and ``_blend_row``; where AVX-512 gathers pay (``FAST_GATHER``), the whole row by those two
+    (``jit.gather_pairs16``). The same bytes either way."""
+    n = idx.shape[0]
     body = 0
+    if not _FAST_GATHER:
+        body = n - n % _BILINEAR_PIXELS
+        for x in range(0, body, _BILINEAR_PIXELS):
+            _bilinear_rgba8(flat, idx, stride, fa, fb, rgba, x)
+    if body < n:
+        _gather_row(flat, idx, stride, q00, q01, q10, q11, body)
+        _blend_row(c00, c01, c10, c11, fa, fb, rgba, body)
+
+
+@nb.njit(inline="always", **_JIT)
+def _gather_row(flat, idx, stride, q00, q01, q10, q11, start):
+    """The four neighbours (uint32 RGBA pixels) of each point of a row inside the box from point ``start`` on
+    (``jit.gather_pairs16`` where the hardware gather pays)."""
+    n, one = idx.shape[0], np.uint32(1)
+    body = start
     if _FAST_GATHER:    # each neighbour pair (x, x + 1) as one 64-bit load, 16 points at a time
-        body = n - n % _GATHER_LANES
-        for x in range(0, body, _GATHER_LANES):
+        body = n - (n - start) % _GATHER_LANES
+        for x in range(start, body, _GATHER_LANES):
             _gather_pairs16(flat, idx, x, 0, q00, q01)
             _gather_pairs16(flat, idx, x, stride, q10, q11)
     for x in range(body, n):   # (elsewhere: one pass, four loads a point)
@@ -447,11 +482,12 @@ def _gather_row(flat, idx, stride, q00, q01, q10, q11):
 
 
 @nb.njit(inline="always", **_JIT)
-def _blend_row(c00, c01, c10, c11, fa, fb, rgba):
-    """The bilinear value of each channel (the neighbours' bytes ``c..``, each pixel's weights ``fa``/``fb``): the fma
-    chain of ``estimators.patches_kernels``, rounded half to even. A pixel's four channels in the inner loop: LLVM
-    broadcasts the weights in registers instead of storing them spread to the four channels and loading them back."""
-    for x in range(fa.shape[0]):
+def _blend_row(c00, c01, c10, c11, fa, fb, rgba, start):
+    """The bilinear value of each channel (the neighbours' bytes ``c..``, each pixel's weights ``fa``/``fb``) from
+    pixel ``start`` on: the fma chain of ``estimators.patches_kernels``, rounded half to even. A pixel's four
+    channels in the inner loop: LLVM broadcasts the weights in registers instead of storing them spread to the four
+    channels and loading them back."""
+    for x in range(start, fa.shape[0]):
         a, b = fa[x], fb[x]
         for c in range(4):
             j = 4 * x + c

@@ -235,3 +235,49 @@ def test_camera_pairs_kernel_reads_the_pixels_and_the_mask_as_numpy_does(with_ma
         np.testing.assert_array_equal(vals, img[v, u].astype(np.float32))
         np.testing.assert_array_equal(uv, np.column_stack([u, v]).astype(float))
         np.testing.assert_array_equal(in_mask, mask.at(u, v) if with_mask else np.zeros(500, bool))
+
+
+def test_bilinear_f32x8_equals_the_scalar_chain():
+    """``jit.bilinear_f32x8`` (the kernel's samples, 8 points a call, each neighbour pair one 64-bit load) gives the
+    floats of the point-by-point chain at aligned and unaligned offsets, the plane's first and last pairs included,
+    and copies non-finite neighbours' results as the chain makes them."""
+    import numba
+
+    from aerial_loc_env import jit
+    from aerial_loc_env.estimators import patches_kernels
+
+    @numba.njit
+    def vector(plane, idx, below, fa, fb, out, starts):
+        for j in starts:
+            jit.bilinear_f32x8(plane, idx, below, fa, fb, out, j)
+
+    rng = np.random.default_rng(21)
+    below, n = 53, 48
+    plane = (rng.random(53 * 40, dtype=np.float32) * 255).astype(np.float32)
+    plane[[7, 8]] = np.nan, np.inf
+    idx = rng.integers(0, plane.size - below - 1, n).astype(np.uint32)
+    idx[:3] = 0, plane.size - below - 2, 7
+    fa, fb = rng.random(n, dtype=np.float32), rng.random(n, dtype=np.float32)
+    starts = np.array([0, 8, 16, 24, 32, 40, 5], np.int64)
+    out_v, out_s = np.zeros(n, np.float32), np.zeros(n, np.float32)
+    vector(plane, idx, np.uint32(below), fa, fb, out_v, starts)
+    patches_kernels._sample(plane, idx, np.uint32(below), fa, fb, out_s, 0, 5)    # the scalar tail: 5 < 8
+    patches_kernels._sample(plane, idx, np.uint32(below), fa, fb, out_s, 5, n)    # 8 at a time from 5, then 3
+    np.testing.assert_array_equal(out_v, out_s)
+    assert np.isnan(out_v[2]) and np.isfinite(out_v[3:]).all()
+
+
+def test_index32_wraps_in_32_bits():
+    """``jit.index32``: ``row * stride + col`` in int32 (the kernels' flat indices; a product beyond int32 wraps, as
+    the uint32 index it becomes reads it)."""
+    import numba
+
+    from aerial_loc_env import jit
+
+    @numba.njit
+    def index(r, s, c):
+        return jit.index32(r, s, c)
+
+    assert index(np.int32(3), np.int32(1000), np.int32(7)) == 3007
+    assert index(np.int32(-2), np.int32(5), np.int32(1)) == -9
+    assert index(np.int32(70000), np.int32(70000), np.int32(0)) == np.int32(np.int64(70000 * 70000) - 2 ** 32)

@@ -596,3 +596,89 @@ def test_lut_rgba16_matches_the_scalar_lookups():
     rgba = src.reshape(w, 4)
     np.testing.assert_array_equal(out_p.reshape(w, 3), tabs.reshape(3, 256)[np.arange(3), rgba[:, :3]])
     np.testing.assert_array_equal(alpha_p, rgba[:, 3])
+
+
+def test_bilinear_rgba8_equals_the_per_pixel_blend():
+    """``jit.bilinear_rgba8`` (the box-sampling passes' samples, 8 pixels a call) writes the bytes of the loop it
+    replaced (``_gather_row`` and ``_blend_row``: four neighbour loads and the fma chain per channel), at aligned
+    and unaligned pixel offsets, with weights at 0, just below 1 and halfway between levels (rounding ties)."""
+    from aerial_loc_env import jit
+
+    @numba.njit
+    def vector(flat, idx, stride, fa, fb, out, starts):
+        for x in starts:
+            jit.bilinear_rgba8(flat, idx, stride, fa, fb, out, x)
+
+    @numba.njit
+    def scalar(flat, idx, stride, fa, fb, out, starts, q):
+        q00, q01, q10, q11 = q[0], q[1], q[2], q[3]
+        for x in starts:
+            fk._gather_row(flat, idx[:x + 8], stride, q00, q01, q10, q11, x)
+            fk._blend_row(q00.view(np.uint8), q01.view(np.uint8), q10.view(np.uint8), q11.view(np.uint8),
+                          fa[:x + 8], fb[:x + 8], out, x)
+
+    rng = np.random.default_rng(12)
+    stride, n = 97, 64
+    flat = rng.integers(0, 2 ** 32, 97 * 60, dtype=np.uint32)
+    idx = rng.integers(0, flat.size - stride - 1, n).astype(np.uint32)
+    idx[:3] = 0, flat.size - stride - 2, 5
+    fa = rng.random(n, dtype=np.float32)
+    fb = rng.random(n, dtype=np.float32)
+    fa[:4], fb[:4] = (0.0, np.nextafter(np.float32(1), np.float32(0)), 0.5, 0.25), (0.5, 0.0, 0.5, 0.75)
+    starts = np.array([0, 8, 16, 24, 32, 40, 48, 56, 3, 51], np.int64)
+    out_v, out_s = np.zeros(4 * n, np.uint8), np.zeros(4 * n, np.uint8)
+    vector(flat, idx, np.uint32(stride), fa, fb, out_v, starts)
+    scalar(flat, idx, np.uint32(stride), fa, fb, out_s, starts, np.zeros((4, n), np.uint32))
+    np.testing.assert_array_equal(out_v, out_s)
+
+
+_AVX2_RUN = """
+import hashlib, sys
+import numpy as np
+from aerial_loc_env import jit
+from aerial_loc_env.sensors import render_kernels as fk
+print(jit.FAST_LUT, jit.FAST_GATHER)
+rng = np.random.default_rng(4)
+w = 45
+src = rng.integers(0, 256, 4 * w, dtype=np.uint8)
+tabs = rng.integers(0, 256, 768, dtype=np.uint8)
+o, m = np.zeros(3 * w, np.uint8), np.zeros(w, np.uint8)
+count = fk._scene_row(src, o, m, np.zeros(1, np.float32), 4, w, fk.OCC_ALPHA, tabs[:256], tabs[256:512], tabs[512:],
+                      tabs[:256], tabs[256:512], tabs[512:], False, tabs)
+print(count, hashlib.sha1(o.tobytes() + m.tobytes()).hexdigest())
+"""
+
+
+def test_the_kernels_compiled_for_an_avx2_cpu_give_the_same_bytes(tmp_path):
+    """Compiled for an AVX2 CPU without AVX-512 (``NUMBA_CPU_NAME=znver3`` with its own features, on any x86-64
+    host; elsewhere for LLVM's generic CPU), the tone lookups take the portable path (``FAST_LUT`` off: scalar
+    lookups of whole 32-bit pixels) and give the bytes of this process's path (the byte permutes where the host
+    has VBMI)."""
+    import hashlib
+    import os
+    import platform
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    env = {k: v for k, v in os.environ.items() if not k.startswith("NUMBA_")}
+    x86 = platform.machine().lower() in ("x86_64", "amd64")
+    env.update(NUMBA_CACHE_DIR=str(tmp_path / "numba"), NUMBA_CPU_FEATURES="",
+               NUMBA_CPU_NAME="znver3" if x86 else "generic")
+    repo = Path(__file__).resolve().parents[2]
+    r = subprocess.run([sys.executable, "-c", _AVX2_RUN], env=env, cwd=repo, capture_output=True, text=True,
+                       timeout=600)
+    assert r.returncode == 0, r.stderr
+    flags, result = r.stdout.splitlines()
+    assert flags == "False False"
+    rng = np.random.default_rng(4)
+    w = 45
+    src = rng.integers(0, 256, 4 * w, dtype=np.uint8)
+    tabs = rng.integers(0, 256, 768, dtype=np.uint8)
+    o, m = np.zeros(3 * w, np.uint8), np.zeros(w, np.uint8)
+    count = fk._scene_row(src, o, m, np.zeros(1, np.float32), 4, w, fk.OCC_ALPHA, tabs[:256], tabs[256:512],
+                          tabs[512:], tabs[:256], tabs[256:512], tabs[512:], False, tabs)
+    assert result == f"{count} {hashlib.sha1(o.tobytes() + m.tobytes()).hexdigest()}"
+    rgba = src.reshape(w, 4)
+    np.testing.assert_array_equal(o.reshape(w, 3), tabs.reshape(3, 256)[np.arange(3), rgba[:, :3]])
+    assert count == np.count_nonzero(rgba[:, 3] > 127)

@@ -85,21 +85,25 @@ def brief_pattern(grid_w: int, grid_h: int, kx: int, ky: int, tests: int,
     return p1[:, 1] * grid_w + p1[:, 0], p2[:, 1] * grid_w + p2[:, 0]
 
 
-def lab_channels(rgb: np.ndarray, channels: str) -> np.ndarray:
-    """The selected CIELab channels (H, W, c) float32 of an RGB uint8 image (OpenCV 8-bit Lab coding)."""
+def _lab(rgb: np.ndarray) -> np.ndarray:
+    """OpenCV's 8-bit CIELab (H, W, 3) uint8 of an RGB uint8 image."""
     arr = np.asarray(rgb)
     if arr.ndim != 3 or arr.shape[2] != 3 or arr.dtype != np.uint8:
         raise ConfigError(f"abBRIEF: expected an (H, W, 3) uint8 RGB image, got {arr.shape} {arr.dtype}")
-    lab = cv2.cvtColor(np.ascontiguousarray(arr), cv2.COLOR_RGB2Lab)
-    return lab[..., list(_CHANNELS[channels])].astype(np.float32)
+    return cv2.cvtColor(np.ascontiguousarray(arr), cv2.COLOR_RGB2Lab)
+
+
+def lab_channels(rgb: np.ndarray, channels: str) -> np.ndarray:
+    """The selected CIELab channels (H, W, c) float32 of an RGB uint8 image (OpenCV 8-bit Lab coding)."""
+    return _lab(rgb)[..., list(_CHANNELS[channels])].astype(np.float32)
 
 
 def reduced_lab(rgb: np.ndarray, channels: str, width_px: int, height_px: int) -> np.ndarray:
     """``reduce_image(lab_channels(rgb, channels), width_px, height_px)`` as (h, w, c), the same floats faster:
     all three Lab planes are box-filtered together (OpenCV's area resize has a fast 3-channel path, not a
-    2-channel one; each channel is filtered alike either way), then the selected ones are kept."""
-    lab = lab_channels(rgb, "Lab")
-    return np.ascontiguousarray(reduce_image(lab, width_px, height_px)[..., list(_CHANNELS[channels])])
+    2-channel one; each channel is filtered alike either way), straight from the converted frame (no copy of
+    it that selects channels), then the selected ones are kept."""
+    return np.ascontiguousarray(reduce_image(_lab(rgb), width_px, height_px)[..., list(_CHANNELS[channels])])
 
 
 class PreparedBrief(NamedTuple):
