@@ -1,6 +1,12 @@
 """Practitioners' baseline: local features (ORB, AKAZE or SIFT) matched against the map around the estimate,
 with a RANSAC similarity transform.
 
+The keypoints' descriptor is the detector's own, or with ``descriptor`` one of the trained descriptors that
+``opencv-contrib-python-headless`` compiles in (``DESCRIPTORS``: BEBLID and TEBLID, boosted binary descriptors
+learned on image patches; VGG, a learned float descriptor; BoostDesc's BinBoost), computed on the detector's
+keypoints with the sampling window their authors give for that detector (``DESCRIPTOR_SCALES``). Their weights
+are part of the OpenCV library: nothing is downloaded.
+
 Each step: dead-reckon (the floor's integrator), take the database window around the prediction at the working
 resolution (``WindowMatchingAgent``), resize the camera image to the same ground resolution with the measured
 altitude (no rotation: the descriptors are rotation-invariant; both enlarged alike when the camera image would
@@ -28,11 +34,23 @@ from aerial_loc_env.estimators.protocol import Estimate, Observation
 from aerial_loc_env.estimators.template_matching import Fix, Window, WindowMatchingAgent, WindowMatchingParams
 
 DETECTORS = ("orb", "akaze", "sift")
+#: trained descriptors of OpenCV's contrib module xfeatures2d -> (factory name, norm to match them with)
+DESCRIPTORS = {"beblid": ("BEBLID_create", cv2.NORM_HAMMING), "teblid": ("TEBLID_create", cv2.NORM_HAMMING),
+               "vgg": ("VGG_create", cv2.NORM_L2), "boostdesc": ("BoostDesc_create", cv2.NORM_HAMMING)}
+#: each descriptor's sampling window for each detector's keypoints (``scale_factor``; OpenCV's documentation)
+DESCRIPTOR_SCALES = {
+    "beblid": {"orb": 1.0, "sift": 6.75, "akaze": 5.0},
+    "teblid": {"orb": 1.0, "sift": 6.75, "akaze": 5.0},
+    "vgg": {"orb": 0.75, "sift": 6.75, "akaze": 5.0},
+    "boostdesc": {"orb": 0.75, "sift": 6.75, "akaze": 5.0},
+}
 
 
 @dataclass(frozen=True)
 class FeatureMatchingParams(WindowMatchingParams):
     detector: str = field(default="orb", metadata=rng(choices=DETECTORS))
+    # None: the detector's own descriptor; else a trained one computed on the detector's keypoints
+    descriptor: str | None = field(default=None, metadata=rng(choices=tuple(DESCRIPTORS)))
     max_features: int = field(default=2000, metadata=rng(10, 100000, doc="ORB/SIFT keypoint cap per image"))
     ratio: float = field(default=0.8, metadata=rng(0.0, 1.0, lo_open=True, doc="Lowe's ratio test"))
     ransac_threshold_px: float = field(default=3.0, metadata=rng(0.1, 100.0))
@@ -58,8 +76,23 @@ def make_detector(name: str, max_features: int):
     raise ConfigError(f"feature matching: unknown detector {name!r}; use one of {DETECTORS}")
 
 
+def make_descriptor(name: str, detector: str):
+    """A trained descriptor extractor for ``detector``'s keypoints and the norm to match it with."""
+    if name not in DESCRIPTORS:
+        raise ConfigError(f"feature matching: unknown descriptor {name!r}; use one of {', '.join(DESCRIPTORS)} "
+                          "(or leave descriptor unset for the detector's own)")
+    factory, norm = DESCRIPTORS[name]
+    create = getattr(getattr(cv2, "xfeatures2d", None), factory, None)
+    if create is None:
+        raise ConfigError(f"feature matching: descriptor {name!r} needs OpenCV's contrib module (cv2.xfeatures2d."
+                          f"{factory}), which this OpenCV ({cv2.__version__}) lacks; install "
+                          "opencv-contrib-python-headless in place of opencv-python-headless (same version)")
+    return create(scale_factor=DESCRIPTOR_SCALES[name][detector]), norm
+
+
 class FeatureMatchingAgent(WindowMatchingAgent):
-    """ORB/AKAZE/SIFT matches between the camera image and the map window, RANSAC similarity."""
+    """ORB/AKAZE/SIFT keypoints (their own or a trained descriptor) matched between the camera image and the map
+    window, RANSAC similarity."""
 
     Params = FeatureMatchingParams
     #: ``work_gsd_m = None``: this many pixels across the footprint's short side (the paper's 100 m footprint
@@ -73,11 +106,16 @@ class FeatureMatchingAgent(WindowMatchingAgent):
     def __init__(self, params: FeatureMatchingParams | None = None) -> None:
         super().__init__(params)
         self.detector, norm = make_detector(self.params.detector, self.params.max_features)
+        self.extractor = None
+        if self.params.descriptor is not None:
+            self.extractor, norm = make_descriptor(self.params.descriptor, self.params.detector)
         self.matcher = cv2.BFMatcher(norm)
 
     def _features(self, gray: np.ndarray):
         img = np.clip(gray, 0, 255).astype(np.uint8)
-        return self.detector.detectAndCompute(img, None)
+        if self.extractor is None:
+            return self.detector.detectAndCompute(img, None)
+        return self.extractor.compute(img, self.detector.detect(img, None))
 
     #: the working images are enlarged (camera and map window alike) until the camera's spans this many pixels
     #: across its short side, when a map coarse for the footprint leaves fewer (RealMap's 25 m footprint over a
