@@ -153,7 +153,8 @@ def test_bad_sampler_arguments_are_clear_errors():
 
 # ------------------------------------------------------------------------------------------- torch
 def test_torch_dataset_is_index_to_seed_and_batches():
-    torch = pytest.importorskip("torch")
+    import torch
+
     from aerial_loc_env.learning.torch_dataset import SimulatedPairs
 
     kwargs = {k: v for k, v in SMALL.items()}
@@ -169,3 +170,15 @@ def test_torch_dataset_is_index_to_seed_and_batches():
     assert batch["map_crops"].shape == (2, 3, 3, 64, 96) and len(batch["meta"]) == 2
     with pytest.raises(IndexError):
         ds[4]
+
+
+def test_torch_dataset_without_torch_names_the_extra(monkeypatch):
+    import importlib
+    import sys
+
+    from aerial_loc_env.errors import MissingExtraError
+
+    monkeypatch.setitem(sys.modules, "torch", None)      # as if torch were not installed
+    monkeypatch.delitem(sys.modules, "aerial_loc_env.learning.torch_dataset", raising=False)
+    with pytest.raises(MissingExtraError, match=r"PyTorch dataset.*pip install 'aerial-loc-env\[rl\]'"):
+        importlib.import_module("aerial_loc_env.learning.torch_dataset")

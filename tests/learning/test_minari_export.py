@@ -6,13 +6,12 @@ from __future__ import annotations
 
 import json
 
+import minari
 import numpy as np
 import pytest
 
 from aerial_loc_env.errors import ConfigError
 from aerial_loc_env.learning.minari_export import INFO_KEYS, check_dataset_id, default_dataset_id, export_episodes, main
-
-minari = pytest.importorskip("minari")
 
 SHORT = {"flight.duration_s": 3.0}     # Small-v1: 12 steps of 64 x 64 frames
 
@@ -98,3 +97,14 @@ def test_cli_export_and_its_errors(tmp_path, capsys):
                 "--out", str(tmp_path)]) == 2
     assert "--episodes 0 must be a positive integer" in capsys.readouterr().err
     assert not (tmp_path / "aerial-loc" / "small-dead-reckoning-v1").exists()
+
+
+def test_without_minari_the_error_names_the_extra(monkeypatch, tmp_path):
+    import sys
+
+    from aerial_loc_env.errors import MissingExtraError
+
+    monkeypatch.setitem(sys.modules, "minari", None)     # as if minari were not installed
+    with pytest.raises(MissingExtraError, match=r"Minari dataset.*pip install 'aerial-loc-env\[data\]'"):
+        export_episodes("AerialLoc/Small-v1", "dead-reckoning", 1, root=tmp_path)
+    assert not any(tmp_path.iterdir())
