@@ -25,6 +25,7 @@ from __future__ import annotations
 import multiprocessing as mp
 import os
 import pickle
+import time
 import traceback
 from collections.abc import Callable, Sequence
 from typing import Any
@@ -144,16 +145,75 @@ class _RemoteError:
         raise AerialLocError(f"{where} failed:\n{self.text.rstrip()}")
 
 
-def _send(conn: Any, message: Any) -> None:
-    """One message as plain pickle bytes (the messages hold no process handles: multiprocessing's own pickler,
-    which can carry those, costs more per step)."""
-    conn.send_bytes(pickle.dumps(message, protocol=pickle.HIGHEST_PROTOCOL))
+#: how long (seconds) a process spins on a message's semaphore before it sleeps: in lockstep the answer comes
+#: within about one block's step, and waking a sleeping process costs more (a system call and, in a VM, an
+#: interrupt between cores); only where every process has a core of its own
+_SPIN_S = 0.002
+#: bytes of shared buffer per direction and worker; a longer message (a big final observation, rendered frames)
+#: goes through the pipe
+_CAPACITY = 1 << 18
+_IN_PIPE = 0xFFFFFFFF
 
 
-def _worker(conn: Any, parent_conn: Any, fns: CloudpickleWrapper, slots: list[int], shm: Any,
-            num_envs: int, forked: bool) -> None:
+class _Channel:
+    """The messages between the caller and one worker, both ways: a message is pickled into a shared buffer (or
+    the pipe, when it does not fit) and announced by a semaphore, on which the receiver spins for ``spin_s``
+    before it sleeps. Requests and answers alternate, so each direction holds at most one message."""
+
+    def __init__(self, ctx: Any, spin_s: float) -> None:
+        self.sems = (ctx.Semaphore(0), ctx.Semaphore(0))            # to the worker, to the caller
+        self.bufs = (ctx.RawArray("B", _CAPACITY), ctx.RawArray("B", _CAPACITY))
+        self.pipe = ctx.Pipe()                                        # (the caller's end, the worker's end)
+        self.spin_s = spin_s
+        self._views: tuple | None = None
+
+    def __getstate__(self) -> dict:
+        return {**self.__dict__, "_views": None}
+
+    def _buf(self, k: int) -> memoryview:
+        if self._views is None:
+            self._views = tuple(memoryview(b).cast("B") for b in self.bufs)
+        return self._views[k]
+
+    def send(self, to_worker: bool, message: Any) -> None:
+        data = pickle.dumps(message, protocol=pickle.HIGHEST_PROTOCOL)
+        k = 0 if to_worker else 1
+        buf = self._buf(k)
+        if len(data) + 4 <= len(buf):
+            buf[4:4 + len(data)] = data
+            buf[:4] = len(data).to_bytes(4, "little")
+            self.sems[k].release()
+        else:        # announced first: the receiver drains the pipe while this writes
+            buf[:4] = _IN_PIPE.to_bytes(4, "little")
+            self.sems[k].release()
+            self.pipe[k].send_bytes(data)
+
+    def receive(self, in_worker: bool, alive: Callable[[], bool]) -> Any:
+        """The next message; EOFError when ``alive()`` turns false while waiting."""
+        k = 0 if in_worker else 1
+        sem = self.sems[k]
+        if not sem.acquire(False):
+            end = time.perf_counter() + self.spin_s
+            while not sem.acquire(False):
+                if time.perf_counter() >= end:
+                    while not sem.acquire(timeout=_POLL_S):
+                        if not alive():
+                            raise EOFError
+                    break
+        buf = self._buf(k)
+        size = int.from_bytes(buf[:4], "little")
+        return pickle.loads(self.pipe[1 - k].recv_bytes() if size == _IN_PIPE else bytes(buf[4:4 + size]))
+
+    def close(self) -> None:
+        for conn in self.pipe:
+            conn.close()
+
+
+def _worker(channel: _Channel, fns: CloudpickleWrapper, slots: list[int], shm: Any, num_envs: int,
+            forked: bool) -> None:
     """A worker process: build the block's sub-envs, then run each step's commands until told to stop."""
-    parent_conn.close()
+    parent = mp.parent_process()
+    alive = parent.is_alive if parent is not None else (lambda: True)
     envs: list[gym.Env] = []
     try:
         if not forked:   # the processes already spread over the cores (in a forked child this call hangs)
@@ -163,25 +223,24 @@ def _worker(conn: Any, parent_conn: Any, fns: CloudpickleWrapper, slots: list[in
         envs = [fn() for fn in fns.fn]
         space = envs[0].observation_space
         views = _views_of(space, shm, num_envs)
-        _send(conn, ("ok", (space, envs[0].action_space)))
+        channel.send(False, ("ok", (space, envs[0].action_space)))
     except BaseException as exc:  # noqa: BLE001 - reported to the caller, which raises it
-        _send(conn, ("error", _RemoteError(exc, slots[len(envs)] if len(envs) < len(slots) else None)))
+        channel.send(False, ("error", _RemoteError(exc, slots[len(envs)] if len(envs) < len(slots) else None)))
         return
     try:
         while True:
-            commands = pickle.loads(conn.recv_bytes())
+            commands = channel.receive(True, alive)
             if commands is None:
                 break
             try:
-                _send(conn, ("ok", _run_block(envs, slots, space, views, commands)))
+                channel.send(False, ("ok", _run_block(envs, slots, space, views, commands)))
             except Exception as exc:  # noqa: BLE001 - reported to the caller, which raises it
-                _send(conn, ("error", _RemoteError(exc, None)))
-    except (EOFError, KeyboardInterrupt):
+                channel.send(False, ("error", _RemoteError(exc, None)))
+    except (EOFError, OSError, KeyboardInterrupt):
         pass
     finally:
         for env in envs:
             env.close()
-        conn.close()
 
 
 def _start_method(requested: str | None, where: str) -> str:
@@ -218,7 +277,7 @@ class EnvShards:
         self.observation_space = self.local_envs[0].observation_space
         self.action_space = self.local_envs[0].action_space
         self._where = where
-        self._conns: list[Any] = []
+        self._channels: list[_Channel] = []
         self._procs: list[Any] = []
         self._blocks = blocks[:-1]
         self.closed = False
@@ -228,16 +287,16 @@ class EnvShards:
         self._starting = True
         self._shm = create_shared_memory(self.observation_space, self.num_envs, ctx=ctx)
         self.views = _views_of(self.observation_space, self._shm, self.num_envs)
+        spin_s = _SPIN_S if processes <= usable_cores() else 0.0
         try:
             for slots in self._blocks:
-                conn, child = ctx.Pipe()
+                channel = _Channel(ctx, spin_s)
                 fns = CloudpickleWrapper([env_fns[i] for i in slots])
-                proc = ctx.Process(target=_worker, args=(child, conn, fns, slots, self._shm, self.num_envs,
-                                                                self.start_method == "fork"),
+                proc = ctx.Process(target=_worker, args=(channel, fns, slots, self._shm, self.num_envs,
+                                                         self.start_method == "fork"),
                                    daemon=True, name=f"aerial-loc vector worker {len(self._procs)}")
+                self._channels.append(channel)
                 proc.start()
-                child.close()
-                self._conns.append(conn)
                 self._procs.append(proc)
             for k in range(len(self._procs)):
                 obs_space, act_space = self._receive(k)
@@ -269,10 +328,10 @@ class EnvShards:
             raise AerialLocError(f"{self._where}: {len(commands)} commands for {self.num_envs} sub-envs")
         if self._broken is not None:
             raise AerialLocError(self._broken)
-        for k, (conn, slots) in enumerate(zip(self._conns, self._blocks, strict=True)):
+        for k, (channel, slots) in enumerate(zip(self._channels, self._blocks, strict=True)):
             try:
-                _send(conn, [commands[i] for i in slots])
-            except OSError:          # a worker that died since the last call
+                channel.send(True, [commands[i] for i in slots])
+            except OSError:          # a worker that died since the last call (a long message's pipe)
                 self._procs[k].join(timeout=_POLL_S)
                 self._broken = self._death(k)
                 raise AerialLocError(self._broken) from None
@@ -300,13 +359,10 @@ class EnvShards:
         return results
 
     def _receive_raw(self, k: int) -> tuple[str, Any]:
-        conn, proc = self._conns[k], self._procs[k]
+        proc = self._procs[k]
         try:
-            while not conn.poll(_POLL_S):
-                if not proc.is_alive():
-                    raise EOFError
-            return pickle.loads(conn.recv_bytes())
-        except EOFError:
+            return self._channels[k].receive(False, proc.is_alive)
+        except (EOFError, OSError):
             proc.join(timeout=_POLL_S)
             self._broken = self._death(k)
             raise AerialLocError(self._broken) from None
@@ -334,18 +390,19 @@ class EnvShards:
         if self.closed:
             return
         self.closed = True
-        for conn in self._conns:
-            try:
-                _send(conn, None)
-            except (OSError, ValueError):
-                pass
+        for channel, proc in zip(self._channels, self._procs, strict=False):
+            if proc.is_alive():
+                try:
+                    channel.send(True, None)
+                except (OSError, ValueError):
+                    pass
         for proc in self._procs:
             proc.join(timeout=5.0)
             if proc.is_alive():
                 proc.terminate()
                 proc.join(timeout=1.0)
-        for conn in self._conns:
-            conn.close()
+        for channel in self._channels:
+            channel.close()
         for env in getattr(self, "local_envs", []):
             env.close()
 
