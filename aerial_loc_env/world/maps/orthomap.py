@@ -46,8 +46,60 @@ _LAYERS: dict[str, tuple[np.dtype, tuple[int, ...]]] = {
 }
 
 
+class MapGeometry:
+    """A map's frames (docs/ARCHITECTURE.md): the world frame in metres from the map's south-west outer corner,
+    pixels with centres at integers, lat/lon through the georeference. Shared by maps held in memory
+    (``Orthomap``) and maps read by window (``raster.RasterMap``); a subclass provides ``width_px``,
+    ``height_px``, ``gsd_x_m``, ``gsd_y_m``, ``georef`` and ``name``."""
+
+    @property
+    def width_m(self) -> float:
+        return self.width_px * self.gsd_x_m
+
+    @property
+    def height_m(self) -> float:
+        return self.height_px * self.gsd_y_m
+
+    # --- frames -----------------------------------------------------------------------------------------------
+
+    def pixel_to_world(self, u, v) -> tuple[np.ndarray, np.ndarray]:
+        """Map pixel (u, v) (centres at integers) -> world (x_m, y_m)."""
+        u, v = np.broadcast_arrays(np.asarray(u, dtype=np.float64), np.asarray(v, dtype=np.float64))
+        return (u + 0.5) * self.gsd_x_m, (self.height_px - 0.5 - v) * self.gsd_y_m
+
+    def world_to_pixel(self, x_m, y_m) -> tuple[np.ndarray, np.ndarray]:
+        """World (x_m, y_m) -> map pixel (u, v)."""
+        x, y = np.broadcast_arrays(np.asarray(x_m, dtype=np.float64), np.asarray(y_m, dtype=np.float64))
+        return x / self.gsd_x_m - 0.5, self.height_px - 0.5 - y / self.gsd_y_m
+
+    def world_to_latlon(self, x_m, y_m) -> tuple[np.ndarray, np.ndarray]:
+        """World metres -> WGS84 (lat_deg, lon_deg), through the georeference."""
+        return self.georef.pixel_to_latlon(*self.world_to_pixel(x_m, y_m))
+
+    def latlon_to_world(self, lat_deg, lon_deg) -> tuple[np.ndarray, np.ndarray]:
+        """WGS84 (lat_deg, lon_deg) -> world metres, through the georeference."""
+        return self.pixel_to_world(*self.georef.latlon_to_pixel(lat_deg, lon_deg))
+
+    def contains_world(self, x_m, y_m, margin_m: float = 0.0) -> np.ndarray:
+        """True where (x_m, y_m) lies inside the map extent shrunk by ``margin_m`` on every side."""
+        x, y = np.asarray(x_m, dtype=np.float64), np.asarray(y_m, dtype=np.float64)
+        return ((x >= margin_m) & (x <= self.width_m - margin_m)
+                & (y >= margin_m) & (y <= self.height_m - margin_m))
+
+    def check_fits(self, footprint_w_m: float, footprint_h_m: float, where: str) -> None:
+        """Raise MapError if one camera footprint (its axis-aligned extent on the ground) exceeds the map.
+
+        Pass the footprint's rotated bounding box (e.g. its diagonal on both axes) when the yaw is free.
+        """
+        if footprint_w_m > self.width_m or footprint_h_m > self.height_m:
+            raise MapError(
+                f"{where}: map '{self.name}' is {self.width_m:.1f} x {self.height_m:.1f} m, smaller than one "
+                f"camera footprint of {footprint_w_m:.1f} x {footprint_h_m:.1f} m; use a larger map, a lower "
+                f"altitude or a narrower field of view")
+
+
 @dataclass(frozen=True, eq=False)
-class Orthomap:
+class Orthomap(MapGeometry):
     """A georeferenced orthomap with optional DSM, no-data and land-cover layers (all (H, W) aligned)."""
 
     rgb: np.ndarray
@@ -110,34 +162,6 @@ class Orthomap:
     def height_px(self) -> int:
         return int(self.rgb.shape[0])
 
-    @property
-    def width_m(self) -> float:
-        return self.width_px * self.gsd_x_m
-
-    @property
-    def height_m(self) -> float:
-        return self.height_px * self.gsd_y_m
-
-    # --- frames -----------------------------------------------------------------------------------------------
-
-    def pixel_to_world(self, u, v) -> tuple[np.ndarray, np.ndarray]:
-        """Map pixel (u, v) (centres at integers) -> world (x_m, y_m)."""
-        u, v = np.broadcast_arrays(np.asarray(u, dtype=np.float64), np.asarray(v, dtype=np.float64))
-        return (u + 0.5) * self.gsd_x_m, (self.height_px - 0.5 - v) * self.gsd_y_m
-
-    def world_to_pixel(self, x_m, y_m) -> tuple[np.ndarray, np.ndarray]:
-        """World (x_m, y_m) -> map pixel (u, v)."""
-        x, y = np.broadcast_arrays(np.asarray(x_m, dtype=np.float64), np.asarray(y_m, dtype=np.float64))
-        return x / self.gsd_x_m - 0.5, self.height_px - 0.5 - y / self.gsd_y_m
-
-    def world_to_latlon(self, x_m, y_m) -> tuple[np.ndarray, np.ndarray]:
-        """World metres -> WGS84 (lat_deg, lon_deg), through the georeference."""
-        return self.georef.pixel_to_latlon(*self.world_to_pixel(x_m, y_m))
-
-    def latlon_to_world(self, lat_deg, lon_deg) -> tuple[np.ndarray, np.ndarray]:
-        """WGS84 (lat_deg, lon_deg) -> world metres, through the georeference."""
-        return self.pixel_to_world(*self.georef.latlon_to_pixel(lat_deg, lon_deg))
-
     def valid_mask(self) -> np.ndarray:
         """(H, W) bool, True where the map has data (a fresh array; all True without a no-data layer)."""
         if self.nodata is None:
@@ -146,23 +170,6 @@ class Orthomap:
 
     def nodata_fraction(self) -> float:
         return 0.0 if self.nodata is None else float(np.count_nonzero(self.nodata)) / self.nodata.size
-
-    def contains_world(self, x_m, y_m, margin_m: float = 0.0) -> np.ndarray:
-        """True where (x_m, y_m) lies inside the map extent shrunk by ``margin_m`` on every side."""
-        x, y = np.asarray(x_m, dtype=np.float64), np.asarray(y_m, dtype=np.float64)
-        return ((x >= margin_m) & (x <= self.width_m - margin_m)
-                & (y >= margin_m) & (y <= self.height_m - margin_m))
-
-    def check_fits(self, footprint_w_m: float, footprint_h_m: float, where: str) -> None:
-        """Raise MapError if one camera footprint (its axis-aligned extent on the ground) exceeds the map.
-
-        Pass the footprint's rotated bounding box (e.g. its diagonal on both axes) when the yaw is free.
-        """
-        if footprint_w_m > self.width_m or footprint_h_m > self.height_m:
-            raise MapError(
-                f"{where}: map '{self.name}' is {self.width_m:.1f} x {self.height_m:.1f} m, smaller than one "
-                f"camera footprint of {footprint_w_m:.1f} x {footprint_h_m:.1f} m; use a larger map, a lower "
-                f"altitude or a narrower field of view")
 
     def crop(self, u0_px: int, v0_px: int, width_px: int, height_px: int, *, name: str | None = None) -> Orthomap:
         """The sub-map of pixels [v0, v0 + height) x [u0, u0 + width), with its georeference (views, no copy)."""

@@ -32,6 +32,7 @@ from typing import Any
 import numpy as np
 
 from aerial_loc_env.errors import MapError
+from aerial_loc_env.world.maps.orthomap import MapGeometry
 
 #: files whose decoded RGB layer is at least this large are opened by window when ``read = "auto"``
 WINDOW_MIN_BYTES = 256 << 20
@@ -220,7 +221,7 @@ class TileReader:
         return -(-self.height_px // self.seg_h), self.cols
 
 
-class RasterMap:
+class RasterMap(MapGeometry):
     """A map file opened, not loaded (see the module docstring). Made by ``world.maps.io.open_map``.
 
     Geometry and frames are the ``Orthomap`` ones (``MapFrame``); ``dsm_m`` and ``classes`` are None (a windowed
@@ -304,7 +305,7 @@ class RasterMap:
                 f"gsd_x_m={self.gsd_x_m:.6g}, gsd_y_m={self.gsd_y_m:.6g}, georef={self.georef!r}, "
                 f"source={self.source!r})")
 
-    # --- geometry (as Orthomap's) --------------------------------------------------------------------------
+    # --- size (the frames come from MapGeometry) --------------------------------------------------------------------------
     @property
     def width_px(self) -> int:
         return self._width
@@ -314,46 +315,12 @@ class RasterMap:
         return self._height
 
     @property
-    def width_m(self) -> float:
-        return self.width_px * self.gsd_x_m
-
-    @property
-    def height_m(self) -> float:
-        return self.height_px * self.gsd_y_m
-
-    @property
     def n_overviews(self) -> int:
         return len(self._pages["levels"]) - 1
 
     @property
     def bundle_path(self) -> None:
         return None
-
-    def pixel_to_world(self, u, v):
-        from aerial_loc_env.world.maps.orthomap import Orthomap
-
-        return Orthomap.pixel_to_world(self, u, v)
-
-    def world_to_pixel(self, x_m, y_m):
-        from aerial_loc_env.world.maps.orthomap import Orthomap
-
-        return Orthomap.world_to_pixel(self, x_m, y_m)
-
-    def world_to_latlon(self, x_m, y_m):
-        return self.georef.pixel_to_latlon(*self.world_to_pixel(x_m, y_m))
-
-    def latlon_to_world(self, lat_deg, lon_deg):
-        return self.pixel_to_world(*self.georef.latlon_to_pixel(lat_deg, lon_deg))
-
-    def contains_world(self, x_m, y_m, margin_m: float = 0.0):
-        from aerial_loc_env.world.maps.orthomap import Orthomap
-
-        return Orthomap.contains_world(self, x_m, y_m, margin_m)
-
-    def check_fits(self, footprint_w_m: float, footprint_h_m: float, where: str) -> None:
-        from aerial_loc_env.world.maps.orthomap import Orthomap
-
-        Orthomap.check_fits(self, footprint_w_m, footprint_h_m, where)
 
     # --- the whole layers: refused ---------------------------------------------------------------------------
     def _whole(self, layer: str) -> MapError:
