@@ -26,8 +26,9 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from aerial_loc_env.errors import ConfigError
+from aerial_loc_env.errors import ConfigError, MapError
 from aerial_loc_env.estimators import patches_kernels as kernels
+from aerial_loc_env.estimators.database import DatabaseWindow
 from aerial_loc_env.estimators.patches_kernels import BRIEF, HISTOGRAM, MOMENTS, SAMPLE
 
 __all__ = ["BRIEF", "HISTOGRAM", "MOMENTS", "SAMPLE", "PatchGeometry", "PatchSampler", "reduce_image", "to_gray"]
@@ -77,14 +78,22 @@ class PatchSampler:
     ``image`` is the database layer to sample: (H, W) or (H, W, C<=4), any dtype, already in the model's
     representation (gray, CIELab a/b, edge orientation ...); ``nodata`` (H, W) bool marks pixels to treat as
     missing. ``downsample`` (default: automatic) is the map-pixel size of one sample of the stored level.
+
+    ``orthomap`` may be a window of a map read by window (``database.DatabaseWindow``): ``image`` and ``nodata``
+    are then the window's, and the level keeps the whole map's level grid (a ``SparseLayer`` filled over the
+    window, equal there to the whole map's level bit for bit); a particle whose footprint leaves the filled part
+    is an error (the estimator reads a new window before).
     """
 
     def __init__(self, orthomap, camera, geometry: PatchGeometry, image: np.ndarray, altitude_m: float, *,
                  nodata: np.ndarray | None = None, downsample: float | None = None) -> None:
         img = np.asarray(image)
-        if img.shape[:2] != (orthomap.height_px, orthomap.width_px):
+        window = orthomap.box if isinstance(orthomap, DatabaseWindow) else None
+        expected = (orthomap.height_px, orthomap.width_px) if window is None else \
+            (window[3] - window[1], window[2] - window[0])
+        if img.shape[:2] != expected:
             raise ConfigError(f"PatchSampler: database layer shape {img.shape[:2]} differs from the map's "
-                              f"({orthomap.height_px}, {orthomap.width_px})")
+                              f"{'window ' if window else ''}{expected}")
         if img.ndim == 3 and img.shape[2] > 4:
             raise ConfigError(f"PatchSampler: at most 4 channels can be sampled at once, got {img.shape[2]}")
         self.orthomap = orthomap
@@ -94,21 +103,25 @@ class PatchSampler:
             # map pixels per patch sample at the nominal altitude (the box filter of reduce_image on the camera)
             step_m = camera.gsd_m(altitude_m) * camera.width_px / geometry.width_px
             downsample = max(1.0, step_m / max(orthomap.gsd_x_m, orthomap.gsd_y_m))
-        level = img.astype(np.float32)
-        h, w = img.shape[:2]
+        h, w = orthomap.height_px, orthomap.width_px
         lw, lh = max(2, int(round(w / downsample))), max(2, int(round(h / downsample)))
-        if (lw, lh) != (w, h):
-            level = cv2.resize(level, (lw, lh), interpolation=cv2.INTER_AREA)
-        if nodata is not None and np.any(nodata):
-            # INTER_AREA does not propagate NaN: mark every level pixel that averages any no-data pixel
-            bad = np.asarray(nodata, dtype=np.float32)
+        self.filled: tuple[int, int, int, int] | None = None     # a window's level pixels; None: all of them
+        if window is not None:
+            self._window_level(orthomap, img, nodata, (lw, lh))
+        else:
+            level = img.astype(np.float32)
             if (lw, lh) != (w, h):
-                bad = cv2.resize(bad, (lw, lh), interpolation=cv2.INTER_AREA)
-            level[bad > 0] = np.nan                 # (all channels; level is a copy of the layer)
-        self.level = np.ascontiguousarray(level)
-        self.has_nan = bool(np.isnan(self.level).any())
-        # the kernel reads channel planes (C, h, w): each channel's neighbours are adjacent floats
-        self.planes = np.ascontiguousarray(np.moveaxis(self.level.reshape(lh, lw, -1), 2, 0))
+                level = cv2.resize(level, (lw, lh), interpolation=cv2.INTER_AREA)
+            if nodata is not None and np.any(nodata):
+                # INTER_AREA does not propagate NaN: mark every level pixel that averages any no-data pixel
+                bad = np.asarray(nodata, dtype=np.float32)
+                if (lw, lh) != (w, h):
+                    bad = cv2.resize(bad, (lw, lh), interpolation=cv2.INTER_AREA)
+                level[bad > 0] = np.nan                 # (all channels; level is a copy of the layer)
+            self.level = np.ascontiguousarray(level)
+            self.has_nan = bool(np.isnan(self.level).any())
+            # the kernel reads channel planes (C, h, w): each channel's neighbours are adjacent floats
+            self.planes = np.ascontiguousarray(np.moveaxis(self.level.reshape(lh, lw, -1), 2, 0))
         self.level_size = (lw, lh)
         # full map pixel -> level pixel (pixel centres at integers on both)
         fx, fy = w / lw, h / lh
@@ -126,6 +139,39 @@ class PatchSampler:
         gh, gw = geometry.height_px, geometry.width_px
         self.grid_points = (np.ascontiguousarray(np.broadcast_to(self._cols, (gh, gw))),
                             np.ascontiguousarray(np.broadcast_to(self._rows[:, None], (gh, gw))))
+
+    def _window_level(self, window: DatabaseWindow, img: np.ndarray, nodata: np.ndarray | None,
+                      size: tuple[int, int]) -> None:
+        """The level of a window of a map read by window, on the whole map's level grid (see the class)."""
+        lw, lh = size
+        if lw * lh >= 2 ** 32:
+            raise MapError(f"PatchSampler: the level of map '{window.name}' ({lw} x {lh} samples) exceeds the "
+                           "kernel's 32-bit sample index; downsample it more (a coarser patch grid) or use a smaller "
+                           "map")
+        # NaN where the level averages no-data, as the whole map's; has_nan as there, whatever this window holds
+        layer = window.level(img.astype(np.float32, copy=False), size, np.float32, planar=True, nan_on_nodata=True,
+                             key=("PatchSampler", size, img.shape[2:]))
+        self.has_nan = window.has_nodata
+        self.planes = layer.array
+        self.level = self.planes[0] if img.ndim == 2 else np.moveaxis(self.planes, 0, 2)
+        self.filled = layer.box
+
+    def _check_filled(self, cu: np.ndarray, cv: np.ndarray, active: np.ndarray) -> None:
+        """A window's level: every active particle's footprint (its corners, a bilinear neighbour beyond) must lie
+        in the filled part, or where the whole map's level holds nothing either (off the level)."""
+        if self.filled is None or not active.any():
+            return
+        u0, v0, u1, v1 = self.filled
+        lw, lh = self.level_size
+        cu, cv = cu[active], cv[active]
+        lo_u, hi_u = np.floor(cu.min(1)), np.floor(cu.max(1)) + 1
+        lo_v, hi_v = np.floor(cv.min(1)), np.floor(cv.max(1)) + 1
+        ok = (((lo_u >= u0) | (u0 == 0)) & ((hi_u < u1) | (u1 == lw)) & ((lo_v >= v0) | (v0 == 0))
+              & ((hi_v < v1) | (v1 == lh)))
+        if not ok.all():
+            raise MapError(f"PatchSampler: {int((~ok).sum())} particle footprint(s) leave the database window read "
+                           f"of map '{self.orthomap.name}' (level pixels {self.filled}); the estimator must read a "
+                           "window covering every pose it scores")
 
     @property
     def channels(self) -> int:
@@ -171,6 +217,7 @@ class PatchSampler:
         cu, cv = self._corners(e)
         near = np.isfinite(cu).all(1) & np.isfinite(cv).all(1) & (np.abs(cu) < _NEAR_PX).all(1) \
             & (np.abs(cv) < _NEAR_PX).all(1)
+        self._check_filled(cu, cv, near)
         out = np.empty((n, self.channels) + cols.shape, np.float32)
         self._scan(e, cols, rows, near, self.channels, SAMPLE, samples=out)
         valid = self._footprint_valid(e)
@@ -189,6 +236,8 @@ class PatchSampler:
         self._check_score_inputs(cols, rows, mode, channels, **inputs)
         e = self.grid_to_level(states, altitude_m).astype(np.float32)
         valid = self._footprint_valid(e)
+        if self.filled is not None:
+            self._check_filled(*self._corners(e), valid)
         stats = np.zeros((e.shape[0], 4))
         self._scan(e, cols, rows, valid, channels, mode, stats=stats, **inputs)
         return stats, valid

@@ -35,6 +35,7 @@ import numpy as np
 
 from aerial_loc_env.config import rng
 from aerial_loc_env.errors import ConfigError
+from aerial_loc_env.estimators.database import DatabaseWindow
 from aerial_loc_env.estimators.shadow_detection_kernels import (
     _index8,
     _open_close,
@@ -341,6 +342,10 @@ class MapRatioDetectorConfig:
     close_px: int = field(default=1, metadata=rng(0, 50))
 
 
+def _luma(rgb: np.ndarray) -> np.ndarray:
+    return cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2GRAY)
+
+
 class MapRatioShadowDetector:
     """Shadows as the regions where the camera is darker than the shadow-free database at the estimated pose.
 
@@ -366,6 +371,12 @@ class MapRatioShadowDetector:
         # map pixels per reduced camera pixel at the nominal altitude: downsample the database by that much
         f = max(1.0, cam.gsd_m(briefing.altitude_m) / self.config.scale / min(m.gsd_x_m, m.gsd_y_m))
         self.factor = f
+        if isinstance(m, DatabaseWindow):   # a window of a map read by window: the whole map's level grid, filled there
+            size = (max(1, round(m.width_px / f)), max(1, round(m.height_px / f))) if f > 1.0 else \
+                (m.width_px, m.height_px)
+            self._lum = m.level_of(_luma, size, np.uint8, key="MapRatioShadowDetector").array
+            self._sx, self._sy = size[0] / m.width_px, size[1] / m.height_px
+            return
         rgb = np.asarray(m.rgb)
         if f > 1.0:
             size = (max(1, round(rgb.shape[1] / f)), max(1, round(rgb.shape[0] / f)))

@@ -14,6 +14,11 @@ reason in ``extras["reason"]``.
 
 ``WindowMatchingAgent`` (the window, the fix/fallback logic and the frame conversions) is shared with the
 feature-matching baseline (``feature_matching.py``).
+
+On a map read by window (``estimators/database.py``) the working level is made for the map window around the
+search window only, on the whole map's level grid (the same values as the whole map's level there), and made
+again for a new map window when the search window nears its edge; the global search (a uniform prior) is refused
+there.
 """
 
 from __future__ import annotations
@@ -28,6 +33,7 @@ import numpy as np
 
 from aerial_loc_env.config import rng
 from aerial_loc_env.errors import ConfigError
+from aerial_loc_env.estimators.database import DatabaseWindow, WindowPolicy, read_by_window, refuse_global_search
 from aerial_loc_env.estimators.dead_reckoning import DeadReckoningAgent
 from aerial_loc_env.estimators.patches import to_gray
 from aerial_loc_env.estimators.protocol import Agent, Estimate, Observation, default_altitude_range_m, parse_observation
@@ -79,17 +85,24 @@ class WindowMatchingAgent(Agent):
     def reset(self, briefing: Briefing, *, seed: int | None = None) -> Estimate:
         m = briefing.orthomap
         self.briefing, self.orthomap, self.camera = briefing, m, briefing.camera
-        gray = to_gray(np.asarray(m.rgb))
         self.work_gsd_m = self.params.work_gsd_m or self.auto_work_gsd_m(briefing)
         self.altitude_range = self.altitude_range_m(briefing)
         f = self.work_gsd_m / min(m.gsd_x_m, m.gsd_y_m)
         lw, lh = max(2, int(round(m.width_px / f))), max(2, int(round(m.height_px / f)))
-        self.level = cv2.resize(gray, (lw, lh), interpolation=cv2.INTER_AREA) if f != 1 else gray
-        if m.nodata is not None and np.any(m.nodata):
-            bad = cv2.resize(np.asarray(m.nodata, np.float32), (lw, lh), interpolation=cv2.INTER_AREA) > 0
-            self.level_nodata: np.ndarray | None = bad
+        self.level_nodata: np.ndarray | None = None
+        self._policy: WindowPolicy | None = None
+        self._window: DatabaseWindow | None = None
+        if read_by_window(m):   # the level is made window by window (_cover)
+            if briefing.prior.kind != "gaussian" and self.params.global_search:
+                refuse_global_search(m, type(self).__name__, f"global_search with a {briefing.prior.kind} prior")
+            self._policy = WindowPolicy(m, lambda alt: self.footprint_half_diagonal_m(alt))
+            self.level = np.zeros((lh, lw), np.float32)   # (replaced by the first window's)
         else:
-            self.level_nodata = None
+            gray = to_gray(np.asarray(m.rgb))
+            self.level = cv2.resize(gray, (lw, lh), interpolation=cv2.INTER_AREA) if f != 1 else gray
+            if m.nodata is not None and np.any(m.nodata):
+                bad = cv2.resize(np.asarray(m.nodata, np.float32), (lw, lh), interpolation=cv2.INTER_AREA) > 0
+                self.level_nodata = bad
         sx, sy = m.width_px / lw, m.height_px / lh
         to_level = np.array([[1 / sx, 0, 0.5 / sx - 0.5], [0, 1 / sy, 0.5 / sy - 0.5], [0, 0, 1.0]])
         self.map_to_level = to_level                                # (3, 3) map pixel -> level pixel
@@ -190,6 +203,16 @@ class WindowMatchingAgent(Agent):
     def window(self, center_xy_m: tuple[float, float], radius_m: float, obs: Observation) -> Window | None:
         """The working-level crop covering the footprint around ``center`` plus ``radius_m``, clipped to the
         map; None when nothing of it is on the map."""
+        box = self._window_box(center_xy_m, radius_m, obs)
+        if box is None:
+            return None
+        self._cover(box, obs.altitude_m)
+        u0, v0, u1, v1 = box
+        return Window(self.level[v0:v1, u0:u1], u0, v0)
+
+    def _window_box(self, center_xy_m: tuple[float, float], radius_m: float,
+                    obs: Observation) -> tuple[int, int, int, int] | None:
+        """``window``'s level pixels (u0, v0, u1, v1), or None."""
         half_m = radius_m + self.footprint_half_diagonal_m(obs.altitude_m)
         cu, cv = apply_affine(self.world_to_level[:2], np.array([center_xy_m]))[0]
         hu, hv = half_m / self.level_gsd[0], half_m / self.level_gsd[1]
@@ -198,7 +221,26 @@ class WindowMatchingAgent(Agent):
         v0, v1 = max(0, int(math.floor(cv - hv))), min(lh, int(math.ceil(cv + hv)) + 1)
         if u1 - u0 < 2 or v1 - v0 < 2:
             return None
-        return Window(self.level[v0:v1, u0:u1], u0, v0)
+        return u0, v0, u1, v1
+
+    def _cover(self, box: tuple[int, int, int, int], altitude_m: float) -> None:
+        """A map read by window: make the working level's pixels ``box`` (and the no-data flags there) from a map
+        window around them, read again when they near its edge."""
+        if self._policy is None:
+            return
+        m = self.orthomap
+        sx, sy = m.width_px / self.level.shape[1], m.height_px / self.level.shape[0]
+        kx, ky = int(math.ceil(sx)) + 1, int(math.ceil(sy)) + 1          # a level pixel's source, and one more
+        need = (max(0, int(math.floor(box[0] * sx)) - kx), max(0, int(math.floor(box[1] * sy)) - ky),
+                min(m.width_px, int(math.ceil(box[2] * sx)) + kx), min(m.height_px, int(math.ceil(box[3] * sy)) + ky))
+        read = self._policy.update_box(need, altitude_m)
+        if read is None:
+            return
+        self._window = window = DatabaseWindow(m, read, where=type(self).__name__, previous=self._window)
+        size = (self.level.shape[1], self.level.shape[0])
+        self.level = window.level_of(to_gray, size, np.float32, key="level").array
+        flags = window.level_nodata(size, key="level_nodata")
+        self.level_nodata = None if flags is None else flags.array
 
     def level_point_to_world(self, u: float, v: float) -> tuple[float, float]:
         x, y = apply_affine(self.level_to_world, np.array([[u, v]]))[0]

@@ -30,6 +30,7 @@ import numpy as np
 
 from aerial_loc_env.env import world_to_action
 from aerial_loc_env.errors import ConfigError
+from aerial_loc_env.estimators.database import database_renderer
 from aerial_loc_env.estimators.dead_reckoning import DeadReckoningAgent
 from aerial_loc_env.estimators.protocol import parse_observation
 from aerial_loc_env.learning.recipes import ObservationParams, RewardParams
@@ -77,7 +78,7 @@ class LocalRegistration:
                               "gaussian prior (episode.start = 'tracking'); use map_memorization for "
                               "global localization")
         self.briefing = briefing
-        self._renderer = CameraRenderer(briefing.orthomap, briefing.camera, strict=False)
+        self._renderer = database_renderer(briefing.orthomap, briefing.camera, strict=False)   # (or by window)
         self._dr.reset(briefing)
         if start_xy_m is not None:
             self._dr.anchor(start_xy_m)

@@ -8,6 +8,12 @@ collapse. Everything is vectorized over particles.
 Initialisation: from the briefing's Gaussian prior (tracking), or uniform over the valid map (global
 localization: points where the whole camera footprint, whatever the yaw, lies on valid map).
 
+A map read by window (a city-scale COG, ``estimators/database.py``): the measurement model is reset with the
+window around the particles (``DatabaseWindow``) and again, with the random generator as it was at the episode's
+reset (so the same per-episode draws), whenever the cloud nears that window's edge; the estimates are those on the
+map loaded whole. Global localization there is refused (it searches the whole map), and injected particles are
+drawn in the current window (there is no whole map to draw them from).
+
 Recovery (augmented MCL, Thrun et al., Probabilistic Robotics 8.3.5): running averages of the mean
 likelihood, ``w_slow`` and ``w_fast`` (rates ``alpha_slow < alpha_fast``), kept in the log domain; when the
 recent likelihood falls below the long-term one, a fraction ``max(floor, 1 - w_fast / w_slow)`` (capped) of the
@@ -17,6 +23,8 @@ also recovers from a wrong prior when the filter never saw a good likelihood to 
 
 from __future__ import annotations
 
+import copy
+import dataclasses
 import math
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
@@ -24,8 +32,9 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from aerial_loc_env.config import rng
-from aerial_loc_env.errors import ConfigError
+from aerial_loc_env.errors import ConfigError, MapError
 from aerial_loc_env.estimators import protocol
+from aerial_loc_env.estimators.database import DatabaseWindow, WindowPolicy, read_by_window, refuse_global_search
 from aerial_loc_env.estimators.mcl import resampling
 from aerial_loc_env.estimators.mcl.measurement import MeasurementModel
 from aerial_loc_env.estimators.mcl.motion import OdometryMotionModel
@@ -66,12 +75,18 @@ class ValidRegion:
 
         m = briefing.orthomap
         radius = footprint_radius_m(*briefing.camera.footprint_m(briefing.altitude_m))
-        self.region = FlyableRegion(m.width_m, m.height_m, radius, nodata=m.nodata, name=m.name)
+        self.offset_m = np.zeros(2)
+        width_m, height_m, nodata = m.width_m, m.height_m, m.nodata
+        if isinstance(m, DatabaseWindow):   # the window's part of the map (its south-west corner at offset_m)
+            u0, v0, u1, v1 = m.box
+            width_m, height_m = (u1 - u0) * m.gsd_x_m, (v1 - v0) * m.gsd_y_m
+            self.offset_m = np.array([u0 * m.gsd_x_m, (m.height_px - v1) * m.gsd_y_m])
+        self.region = FlyableRegion(width_m, height_m, radius, nodata=nodata, name=m.name)
         if self.region.area_m2 <= 0:  # a map smaller than the footprint: any point of it
-            self.region = FlyableRegion(m.width_m, m.height_m, 0.0, nodata=m.nodata, name=m.name)
+            self.region = FlyableRegion(width_m, height_m, 0.0, nodata=nodata, name=m.name)
 
     def sample(self, n: int, rng: np.random.Generator) -> np.ndarray:
-        return self.region.sample(rng, n)
+        return self.region.sample(rng, n) + self.offset_m
 
 
 @dataclass
@@ -103,10 +118,16 @@ class ParticleFilter:
     def initialize(self, briefing: Briefing, rng: np.random.Generator) -> None:
         n = self.config.n_particles
         self.briefing, self.rng = briefing, rng
-        self.region = ValidRegion(briefing)
         prior = briefing.prior
+        tracking = self.config.init == "prior" and prior.kind == "gaussian"
+        self.policy: WindowPolicy | None = None
+        self._window: DatabaseWindow | None = None
+        if read_by_window(briefing.orthomap):
+            self._check_windowed(briefing, tracking)
+        else:
+            self.region = ValidRegion(briefing)
         self.states = np.zeros((n, 3))
-        if self.config.init == "prior" and prior.kind == "gaussian":
+        if tracking:
             self.states[:, :2] = np.asarray(prior.mean_xy_m) + rng.normal(0.0, prior.std_xy_m, (n, 2))
         else:
             self.states[:, :2] = self.region.sample(n, rng)
@@ -115,8 +136,40 @@ class ParticleFilter:
         self.W = np.full(n, 1.0 / n)
         self.log_w_slow = self.log_w_fast = None
         self.motion.reset()
-        self.measurement.reset(briefing, rng)
+        if self.policy is not None:
+            self._reset_rng = copy.deepcopy(rng)     # the per-episode draws, made again for every window
+            self._read_window(briefing.altitude_m, rng)
+        else:
+            self.measurement.reset(briefing, rng)
         self.t = 0
+
+    # ---------------------------------------------------------------- maps read by window
+    def _check_windowed(self, briefing: Briefing, tracking: bool) -> None:
+        from aerial_loc_env.sensors.flight import footprint_radius_m
+
+        m, where = briefing.orthomap, "MCL"
+        if not tracking:
+            why = "init = 'uniform'" if self.config.init == "uniform" else f"a {briefing.prior.kind} prior"
+            refuse_global_search(m, where, f"global localization ({why})")
+        if not _reads_windows(self.measurement):
+            raise MapError(f"{where}: measurement model {type(self.measurement).__name__} reads its whole database at "
+                           f"reset, but map '{m.name}' is read by window; give the model a class attribute "
+                           "reads_windows = True once its reset takes an estimators.database.DatabaseWindow (the "
+                           "window's pixels, the whole map's geometry), or load the map whole (map.read = 'whole')")
+        camera = briefing.camera
+        self.policy = WindowPolicy(m, lambda alt: footprint_radius_m(*camera.footprint_m(alt)))
+
+    def _read_window(self, altitude_m: float, rng: np.random.Generator | None = None) -> None:
+        """Reset the measurement model with a new window when the cloud nears the current one's edge (with
+        ``rng`` at the episode's reset, else with a copy of the generator as it was then)."""
+        box = self.policy.update(self.states[:, :2], altitude_m)
+        if box is None:
+            return
+        self._window = window = DatabaseWindow(self.briefing.orthomap, box, where="MCL",
+                                               previous=self._window)
+        briefing = dataclasses.replace(self.briefing, orthomap=window)
+        self.measurement.reset(briefing, rng if rng is not None else copy.deepcopy(self._reset_rng))
+        self.region = None                            # (made when particles are injected: _inject)
 
     # ---------------------------------------------------------------- one step
     def step(self, observation: Mapping[str, np.ndarray], info: Mapping[str, Any] | None = None) -> StepResult:
@@ -130,6 +183,8 @@ class ParticleFilter:
         else:
             self.motion.prev_yaw_rad = obs.yaw_rad
         self.t += 1
+        if self.policy is not None:
+            self._read_window(obs.altitude_m)
         prepared = self.measurement.prepare(observation, rng, info)
         ll = self.measurement.log_likelihood(prepared, self.states, obs.altitude_m)
         ll = ll + self.motion.compass_log_likelihood(self.states, obs.yaw_rad)
@@ -168,6 +223,8 @@ class ParticleFilter:
 
     def _inject(self, n: int, yaw_rad: float) -> None:
         idx = self.rng.choice(self.states.shape[0], size=n, replace=False)
+        if self.region is None:     # a map read by window: the current window's valid part
+            self.region = ValidRegion(dataclasses.replace(self.briefing, orthomap=self._window))
         self.states[idx, :2] = self.region.sample(n, self.rng)
         self.states[idx, 2] = self.motion.init_yaw(n, yaw_rad, self.rng)
 
@@ -175,6 +232,18 @@ class ParticleFilter:
     @property
     def xy(self) -> np.ndarray:
         return self.states[:, :2]
+
+
+def _reads_windows(model: MeasurementModel) -> bool:
+    """Whether ``model``'s reset takes a ``DatabaseWindow``: the built-in models (through ``PatchSampler`` or their
+    own window branch), or a model that says so (``reads_windows = True``)."""
+    from aerial_loc_env.estimators.mcl.abbrief import ABBriefModel
+    from aerial_loc_env.estimators.mcl.dense import DenseModel
+    from aerial_loc_env.estimators.mcl.edges import EdgeOrientationModel
+    from aerial_loc_env.estimators.mcl.intensity_pairs import IntensityPairsModel
+
+    builtin = (ABBriefModel, DenseModel, EdgeOrientationModel, IntensityPairsModel)
+    return bool(getattr(model, "reads_windows", False)) or isinstance(model, builtin)
 
 
 def _log_ema(log_avg: float, log_x: float, alpha: float) -> float:

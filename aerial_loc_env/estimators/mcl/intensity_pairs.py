@@ -72,6 +72,7 @@ import numpy as np
 
 from aerial_loc_env.config import build_config, rng
 from aerial_loc_env.errors import ConfigError
+from aerial_loc_env.estimators.database import DatabaseWindow
 from aerial_loc_env.estimators.mcl.intensity_pairs_kernels import camera_pairs, pair_agreements, pose_affines
 from aerial_loc_env.estimators.mcl.measurement import MeasurementModel, register_model
 from aerial_loc_env.estimators.protocol import parse_observation
@@ -268,6 +269,12 @@ class IntensityPairsModel(MeasurementModel):
         m = briefing.orthomap
         self.orthomap, self.camera = m, briefing.camera
         self._terms: tuple[float, tuple[float, ...]] | None = None
+        if isinstance(m, DatabaseWindow):   # a window of a map read by window: bytes at the whole map's indices
+            self._H, self._W = m.height_px, m.width_px
+            self._db, self._nodata = m.pixel_bytes(self.config.channels)
+            if self.config.detector == "map" and self.config.shadow != "ignore":
+                self.map_detector.reset(briefing)
+            return
         rgb = np.asarray(m.rgb)
         if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
             raise ConfigError(f"{m.name}: the database must be (H, W, 3) uint8 RGB, got {rgb.shape} {rgb.dtype}")

@@ -25,6 +25,7 @@ import json
 import math
 import os
 import threading
+from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -40,6 +41,10 @@ WINDOW_MIN_BYTES = 256 << 20
 SEGMENT_MAX_BYTES = 64 << 20
 #: the validity grid's block side, map pixels
 BLOCK_PX = 16
+#: decoded tiles (or strips) a map read by window keeps, most recently used first: consecutive windows (the
+#: env's, each estimator's, the next one along the flight) overlap, so most of a window's tiles were decoded for
+#: the one before
+TILE_CACHE_BYTES = 64 << 20
 #: what loading a map whole costs per decoded RGB byte, at its peak (the decoded file, the RGB layer, the no-data
 #: search, the renderer's RGBA copy): the loader and its renderer measure 3.7-4.2x on large maps
 WHOLE_LOAD_FACTOR = 4.5
@@ -171,12 +176,43 @@ def _pages(tif: Any) -> dict:
 
 # --- reading windows ----------------------------------------------------------------------------------------
 
-class TileReader:
-    """Windows of one page of a TIFF, decoded tile by tile (or strip by strip) with tifffile."""
+class TileCache:
+    """Decoded segments (tiles or strips) by key, least recently used dropped beyond ``max_bytes``; thread-safe."""
 
-    def __init__(self, tif: Any, index: int) -> None:
+    def __init__(self, max_bytes: int = TILE_CACHE_BYTES) -> None:
+        self.max_bytes, self.nbytes = int(max_bytes), 0
+        self._items: OrderedDict[Any, np.ndarray] = OrderedDict()
+        self._lock = threading.Lock()
+
+    def get(self, key: Any) -> np.ndarray | None:
+        with self._lock:
+            seg = self._items.get(key)
+            if seg is not None:
+                self._items.move_to_end(key)
+            return seg
+
+    def put(self, key: Any, seg: np.ndarray) -> None:
+        if seg.nbytes > self.max_bytes:
+            return
+        seg.flags.writeable = False
+        with self._lock:
+            if key in self._items:
+                return
+            self._items[key] = seg
+            self.nbytes += seg.nbytes
+            while self.nbytes > self.max_bytes:
+                _, old = self._items.popitem(last=False)
+                self.nbytes -= old.nbytes
+
+
+class TileReader:
+    """Windows of one page of a TIFF, decoded tile by tile (or strip by strip) with tifffile; decoded segments are
+    kept in ``cache`` (a ``TileCache``) under ``key`` + their index."""
+
+    def __init__(self, tif: Any, index: int, cache: TileCache | None = None, key: Any = None) -> None:
         page = tif.pages[index]
         self._tif, self._page, self._lock = tif, page, threading.Lock()
+        self._cache, self._key = cache, key
         self.width_px, self.height_px = int(page.imagewidth), int(page.imagelength)
         if page.is_tiled:
             self.seg_h, self.seg_w = int(page.tilelength), int(page.tilewidth)
@@ -210,12 +246,23 @@ class TileReader:
         for r in range(r0, r1 + 1):
             for c in range(c0, c1 + 1):
                 idx = r * self.cols + c
-                seg = self.decode(self.raw(idx), idx)
+                seg = self.segment(idx)
                 y0, x0 = r * self.seg_h, c * self.seg_w
                 ya, yb = max(v0, y0), min(v0 + h, y0 + self.seg_h)
                 xa, xb = max(u0, x0), min(u0 + w, x0 + self.seg_w)
                 out[ya - v0:yb - v0, xa - u0:xb - u0] = seg[ya - y0:yb - y0, xa - x0:xb - x0]
         return out
+
+    def segment(self, index: int) -> np.ndarray:
+        """The decoded segment ``index`` (from the cache when it is there)."""
+        if self._cache is None:
+            return self.decode(self.raw(index), index)
+        key = (self._key, index)
+        seg = self._cache.get(key)
+        if seg is None:
+            seg = self.decode(self.raw(index), index)
+            self._cache.put(key, seg)
+        return seg
 
     def segment_grid(self) -> tuple[int, int]:
         return -(-self.height_px // self.seg_h), self.cols
@@ -241,6 +288,7 @@ class RasterMap(MapGeometry):
         self._pid: int | None = None
         self._tif: Any = None
         self._readers: dict[Any, TileReader] = {}
+        self._tiles = TileCache()
         tif = self._file()
         page = tif.pages.first
         self._width, self._height = int(page.imagewidth), int(page.imagelength)
@@ -251,6 +299,7 @@ class RasterMap(MapGeometry):
         self._identity = (str(self.path), stat.st_size, stat.st_mtime_ns)
         self._pages = _pages(tif)
         self._nodata_source = self._pick_nodata_source()
+        self._validity: np.ndarray | None = None
 
     # --- the file ------------------------------------------------------------------------------------------
     def _file(self) -> Any:
@@ -261,14 +310,14 @@ class RasterMap(MapGeometry):
                 self._tif = tifffile.TiffFile(self.path)
             except Exception as exc:   # tifffile raises many types on corrupt files
                 raise MapError(f"{self.path}: unreadable TIFF: {exc}") from exc
-            self._pid, self._readers = os.getpid(), {}
+            self._pid, self._readers, self._tiles = os.getpid(), {}, TileCache()
         return self._tif
 
     def _reader(self, key: str, level: int = 0) -> TileReader:
         tif = self._file()
         if (key, level) not in self._readers:
             index = self._pages["levels"][level] if key == "image" else self._pages["level_masks"][level]
-            self._readers[(key, level)] = TileReader(tif, index)
+            self._readers[(key, level)] = TileReader(tif, index, self._tiles, (key, level))
         return self._readers[(key, level)]
 
     def _pick_nodata_source(self) -> str | None:
@@ -389,9 +438,11 @@ class RasterMap(MapGeometry):
         map declares no no-data. See the module docstring for how it is made and cached."""
         if self._nodata_source is None:
             return None
-        if self._nodata_source == "mask":
-            return self._blocks_from_mask()
-        return _cached_grid(self._identity, repr(self._nodata_rule), self._blocks_from_image)
+        if self._validity is None:   # kept: the env's flyable region and every estimator's reset ask for it
+            self._validity = self._blocks_from_mask() if self._nodata_source == "mask" else \
+                _cached_grid(self._identity, repr(self._nodata_rule), self._blocks_from_image)
+            self._validity.flags.writeable = False
+        return self._validity
 
     def _blocks_from_mask(self) -> np.ndarray:
         reader = self._reader("mask", 0)
