@@ -15,6 +15,10 @@ shared machine a long call is descheduled many times while a short floor call mo
 ratios of long benchmarks grow with the load; CPU times do not (the wall-clock median is reported beside them).
 Memory-bound work still slows when other processes share the caches: take figures from a quiet machine where
 possible, and always note the load (printed at the start and end). Targets are ratios (``target_ratio``).
+
+Work spread over several processes (vectorized envs, ``perf/vector.py``) is timed by the wall clock
+(``clock="wall"``: its workers' CPU time is not this process's) and compared with a ``baseline`` row of the same
+run (rate / the baseline's rate, against ``baseline_target``); those rows need the other cores idle.
 """
 
 from __future__ import annotations
@@ -43,6 +47,9 @@ class Benchmark:
     unit: str = "call"               # what one item is ("frame", "step", ...)
     repeats: int = 30
     per_call_items: int = 1          # e.g. steps per call, to report per-item figures and rates
+    clock: str = "cpu"               # "wall" where the work spreads over threads or processes (vectorized envs)
+    baseline: str | None = None      # a benchmark earlier in the run this one's rate is compared with
+    baseline_target: float | None = None  # the least rate / the baseline's rate (e.g. 1.5: 50 % faster)
 
 
 def single_core() -> None:
@@ -97,13 +104,17 @@ def measure(bench: Benchmark, floor_fn: Callable[[], object] | None = None) -> d
                 floor_fn()
             floors.append(float(np.median([_timed(floor_fn)[0] for _ in range(_FLOOR_CALLS_PER_CALL)])))
     arr = np.asarray(times) / bench.per_call_items       # (repeats, 2): CPU, wall
-    med = float(np.median(arr[:, 0]))
+    col = 1 if bench.clock == "wall" else 0               # wall: other processes' CPU is not this one's
+    med = float(np.median(arr[:, col]))
     floor_s = float(np.median(floors)) if floors else None
-    ratio = float(np.median(arr[:, 0] / np.maximum(floors, 1e-9))) if floors else None
+    ratio = float(np.median(arr[:, col] / np.maximum(floors, 1e-9))) if floors else None
     return {
         "name": bench.name,
+        "clock": bench.clock,
+        "baseline": bench.baseline,
+        "baseline_target": bench.baseline_target,
         "median_s": med,
-        "p95_s": float(np.percentile(arr[:, 0], 95)),
+        "p95_s": float(np.percentile(arr[:, col], 95)),
         "wall_median_s": float(np.median(arr[:, 1])),
         "rate_per_s": 1.0 / med if med > 0 else float("inf"),
         "unit": bench.unit,

@@ -24,12 +24,26 @@ def collect() -> list[Benchmark]:
     return out
 
 
+def with_baseline(r: dict, earlier: list[dict]) -> dict:
+    """``r`` with ``vs_baseline``: its rate over its baseline's (a row of ``earlier``; None without one)."""
+    base = next((x for x in earlier if x["name"] == r.get("baseline")), None)
+    r["vs_baseline"] = base["median_s"] / r["median_s"] if base and r["median_s"] > 0 else None
+    return r
+
+
 def _row(r: dict) -> str:
     ratio = "-" if r["ratio"] is None else f"{r['ratio']:.2f}x"
     tgt = "-" if r["target_ratio"] is None else f"<= {r['target_ratio']:g}x"
     ok = "-" if r["ok"] is None else ("yes" if r["ok"] else "NO")
-    return (f"{r['name']:66s} {ratio:>9s} {tgt:>10s} {ok:>3s}  {r['median_s'] * 1e3:10.3f} ms "
+    line = (f"{r['name']:66s} {ratio:>9s} {tgt:>10s} {ok:>3s}  {r['median_s'] * 1e3:10.3f} ms "
             f"{r['p95_s'] * 1e3:10.3f} ms {r['wall_median_s'] * 1e3:10.3f} ms {r['rate_per_s']:10.1f} /{r['unit']}")
+    if r.get("clock") == "wall":
+        line += " (wall)"
+    if r.get("vs_baseline") is not None:
+        line += f"  {r['vs_baseline']:.2f}x {r['baseline']}"
+        if r["baseline_target"] is not None:
+            line += f" (>= {r['baseline_target']:g}x: {'yes' if r['vs_baseline'] >= r['baseline_target'] else 'NO'})"
+    return line
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -50,7 +64,7 @@ def main(argv: list[str] | None = None) -> int:
           f"{'median wall':>13s} {'rate (CPU)':>12s}")
     rows = []
     for b in chosen:
-        r = measure(b, floor_fn)
+        r = with_baseline(measure(b, floor_fn), rows)
         rows.append(r)
         print(_row(r), flush=True)
     floors = [r["floor_s"] for r in rows if r["floor_s"]]

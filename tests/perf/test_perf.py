@@ -66,3 +66,23 @@ def test_ratio_pairs_each_call_with_the_floor_right_after_it(monkeypatch):
     r = measure(Benchmark("b", lambda: (lambda: None), repeats=5), lambda: None)
     assert r["ratio"] == pytest.approx(3.0)
     assert r["median_s"] / r["floor_s"] == pytest.approx(6.0)
+
+
+def test_wall_clock_rows_and_their_rate_over_a_baseline(monkeypatch):
+    """Work spread over processes is timed by the wall clock (its CPU time is elsewhere) and compared with the
+    baseline row of the same run: rate / the baseline's rate, judged against baseline_target."""
+    from aerial_loc_env.perf.__main__ import _row, with_baseline
+
+    monkeypatch.setattr(perf, "_timed", lambda fn: (fn(), (0.001, 0.004))[1])     # CPU 1 ms, wall 4 ms a call
+    one = measure(Benchmark("one", lambda: (lambda: None), repeats=3, per_call_items=2, clock="wall"))
+    assert one["median_s"] == pytest.approx(0.002) and one["clock"] == "wall"
+    monkeypatch.setattr(perf, "_timed", lambda fn: (fn(), (0.001, 0.005))[1])
+    rows = [with_baseline(one, [])]
+    for target, verdict in ((1.5, "yes"), (2.0, "NO")):
+        vec = measure(Benchmark("vec", lambda: (lambda: None), repeats=3, per_call_items=4, clock="wall",
+                                baseline="one", baseline_target=target))
+        r = with_baseline(vec, rows)
+        assert r["vs_baseline"] == pytest.approx(0.002 / 0.00125)            # 1.6x the baseline's rate
+        assert _row(r).endswith(f"(wall)  1.60x one (>= {target:g}x: {verdict})")
+    cpu = measure(Benchmark("cpu", lambda: (lambda: None), repeats=3))
+    assert cpu["median_s"] == pytest.approx(0.001) and with_baseline(cpu, rows)["vs_baseline"] is None
