@@ -7,8 +7,12 @@ are clear errors."""
 from __future__ import annotations
 
 import os
+import re
 import signal
+import subprocess
+import sys
 import warnings
+from pathlib import Path
 
 import cloudpickle
 import gymnasium as gym
@@ -217,3 +221,14 @@ def test_a_dead_worker_is_a_clear_error() -> None:
             envs.step(np.zeros((2, 2), np.float32))
     finally:
         envs.close()
+
+
+def test_the_readmes_example_runs_as_written(tmp_path: Path) -> None:
+    readme = (Path(__file__).resolve().parents[2] / "README.md").read_text(encoding="utf-8")
+    section = readme.split("### Vectorized environments\n", 1)[1].split("\n#", 1)[0]
+    code = re.findall(r"^```python\n(.*?)^```", section, flags=re.MULTILINE | re.DOTALL)
+    assert len(code) == 1 and "gym.make_vec(" in code[0]
+    (tmp_path / "example.py").write_text(code[0] + "print(type(envs).__name__, obs['image'].shape)\n")
+    done = subprocess.run([sys.executable, "example.py"], cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout == "AerialLocVectorEnv (4, 64, 64, 3)\n"
