@@ -8,7 +8,10 @@ layers the estimators build from a window keep the whole map's pixel indices (``
 whole map's or level's shape whose memory exists only where a window was written), so every coordinate, every
 compiled lookup and every downsampled level value is the one the same estimator computes on the file loaded whole
 (``levels.area_window`` makes a window of a level bit for bit): the estimates are the same, while the memory held
-is that of the windows (a few footprints), not of the map.
+is that of the windows (a few footprints), not of the map. Two views are made per window and may differ from the
+whole map's near a window's border: the edge model's feature map (Canny, probabilistic Hough lines: not pixelwise)
+and the learned agents' rendered views (``WindowedRenderer``: OpenCV's warp rounds its float32 coordinates at the
+window's magnitude, a level off on a few pixels of a view).
 
 A search over the whole map (a uniform prior, MCL ``init = "uniform"``, template matching's global search) would
 need the whole map: on a map read by window it is refused before the episode starts (``refuse_global_search``).

@@ -1,5 +1,6 @@
-"""City-scale maps read by window: ``gym.make`` + first reset (time and the process's peak RSS) and the env step on
-a synthetic 40000 x 40000 px COG (10 km at 0.25 m), beside the step on the embedded city's map.
+"""City-scale maps read by window: ``gym.make`` + first reset (time and the process's peak RSS, also with an MCL
+agent flying an episode), the env step and the MCL step (shadow-aware, N = 700: the agent reads its own windows of
+the map) on a synthetic 40000 x 40000 px COG (10 km at 0.25 m), beside the same steps on the embedded city's map.
 
 The COG is generated here, tile band by tile band (so generating it stays within memory too), and kept in the
 cache folder (``paths.cache_dir("bench")``, named by its size and generator version) for later runs; delete that
@@ -107,41 +108,60 @@ def synthetic_cog(size_px: int, folder: Path | None = None) -> Path:
     return path
 
 
+#: the agent the bigmap rows fly (the MCL step benchmark's: shadow-aware, N = 700)
+AGENT = "mcl-shadow-aware"
+
 _OPEN_SCRIPT = """
 import json, resource, sys, time
 t0 = time.perf_counter()
 import gymnasium as gym
+import numpy as np
 import aerial_loc_env.env  # noqa: F401
 t1 = time.perf_counter()
 env = gym.make("AerialLoc/RealMap-v1", path=sys.argv[1])
 t2 = time.perf_counter()
-env.reset(seed=0)
+obs, info = env.reset(seed=0)
 t3 = time.perf_counter()
-rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
-print(json.dumps({"import_s": t1 - t0, "make_s": t2 - t1, "reset_s": t3 - t2, "peak_rss_bytes": rss}))
+out = {"import_s": t1 - t0, "make_s": t2 - t1, "reset_s": t3 - t2}
+if len(sys.argv) > 2:  # an agent flies the episode: it reads its own windows of the map
+    from aerial_loc_env.estimators.registry import make_agent
+    agent = make_agent(sys.argv[2])
+    agent.reset(env.unwrapped.briefing, seed=0)
+    t4 = time.perf_counter()
+    out["agent_reset_s"], steps, done = t4 - t3, 0, False
+    while not done:
+        agent.step(obs)
+        obs, _, term, trunc, info = env.step(np.zeros(2, np.float32))
+        done, steps = term or trunc, steps + 1
+    out["episode_s"], out["steps"] = time.perf_counter() - t4, steps
+out["peak_rss_bytes"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+print(json.dumps(out))
 """
 
 
-def open_in_fresh_process(path: Path) -> dict:
-    """``gym.make("AerialLoc/RealMap-v1", path=path)`` + ``reset`` in a fresh interpreter: its times and peak RSS."""
+def open_in_fresh_process(path: Path, agent: str | None = None) -> dict:
+    """``gym.make("AerialLoc/RealMap-v1", path=path)`` + ``reset`` in a fresh interpreter (and, with ``agent``, that
+    agent's reset and one episode flown with it): its times and peak RSS."""
     env = {**os.environ, "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
-    done = subprocess.run([sys.executable, "-c", _OPEN_SCRIPT, str(path)], capture_output=True, text=True, env=env,
-                          timeout=1800)
+    done = subprocess.run([sys.executable, "-c", _OPEN_SCRIPT, str(path)] + ([agent] if agent else []),
+                          capture_output=True, text=True, env=env, timeout=1800)
     if done.returncode != 0:
         raise RuntimeError(f"opening {path} failed:\n{done.stderr[-4000:]}")
     return json.loads(done.stdout.strip().splitlines()[-1])
 
 
-def _make_reset(size_px: int) -> Callable[[], Callable[[], object]]:
+def _make_reset(size_px: int, agent: str | None = None) -> Callable[[], Callable[[], object]]:
     def setup() -> Callable[[], object]:
         path = synthetic_cog(size_px)
         gb = path.stat().st_size / 1e9
 
         def run() -> object:
             t0 = time.perf_counter()
-            r = open_in_fresh_process(path)
-            print(f"    {path.name} ({gb:.2f} GB on disk): gym.make {r['make_s']:.2f} s + reset {r['reset_s']:.2f} s "
-                  f"(imports {r['import_s']:.2f} s, wall {time.perf_counter() - t0:.2f} s), peak RSS "
+            r = open_in_fresh_process(path, agent)
+            flown = "" if agent is None else (f", {agent} reset {r['agent_reset_s']:.2f} s + {r['steps']} env and "
+                                              f"agent steps {r['episode_s']:.2f} s")
+            print(f"    {path.name} ({gb:.2f} GB on disk): gym.make {r['make_s']:.2f} s + reset {r['reset_s']:.2f} s"
+                  f"{flown} (imports {r['import_s']:.2f} s, wall {time.perf_counter() - t0:.2f} s), peak RSS "
                   f"{r['peak_rss_bytes'] / 1e9:.2f} GB", flush=True)
             return r
 
@@ -173,6 +193,40 @@ def _episode(path_of: Callable[[], Path]) -> Callable[[], Callable[[], object]]:
     return setup
 
 
+def _agent_steps(path_of: Callable[[], Path]) -> Callable[[], Callable[[], object]]:
+    """The agent's steps over recorded episodes (the env's frames rendered at setup), its reset (the first window
+    read) included: window reads are amortized over the episode as in flight."""
+    def setup() -> Callable[[], object]:
+        import aerial_loc_env.env  # noqa: F401  (registers the scenarios)
+        from aerial_loc_env.env import AerialLocEnv
+        from aerial_loc_env.estimators.registry import make_agent
+
+        env = AerialLocEnv("AerialLoc/RealMap-v1", path=str(path_of()))
+        episodes = []
+        for seed in range(3):
+            obs, _ = env.reset(seed=seed)
+            frames, done = [obs], False
+            while not done:
+                obs, _, term, trunc, _ = env.step(np.zeros(2, np.float32))
+                done = term or trunc
+                if not done:
+                    frames.append(obs)
+            episodes.append((env.briefing, frames))
+        agent = make_agent(AGENT)
+        turn = iter(range(10**9))
+
+        def episode() -> int:
+            briefing, frames = episodes[next(turn) % len(episodes)]
+            agent.reset(briefing, seed=0)
+            for obs in frames:
+                agent.step(obs)
+            return len(frames)
+
+        return episode
+
+    return setup
+
+
 def _city_bundle() -> Path:
     from aerial_loc_env.world.city import CityConfig, default_city
 
@@ -196,4 +250,10 @@ BENCHMARKS = [
               setup=_episode(lambda: synthetic_cog(40000)), unit="step", repeats=5, per_call_items=_steps()),
     Benchmark(name="bigmap: RealMap episode on the embedded 1.2 x 1.4 km city (per step)",
               setup=_episode(_city_bundle), unit="step", repeats=5, per_call_items=_steps()),
+    Benchmark(name=f"bigmap: RealMap gym.make + reset + a {AGENT} episode, 40000^2 px COG (fresh process, RSS "
+                   "printed)", setup=_make_reset(40000, AGENT), unit="open", repeats=3),
+    Benchmark(name="bigmap: MCL step shadow-aware N=700 on the 40000^2 px COG (windows read by the agent)",
+              setup=_agent_steps(lambda: synthetic_cog(40000)), unit="step", repeats=5, per_call_items=_steps()),
+    Benchmark(name="bigmap: MCL step shadow-aware N=700 on the embedded 1.2 x 1.4 km city",
+              setup=_agent_steps(_city_bundle), unit="step", repeats=5, per_call_items=_steps()),
 ]
