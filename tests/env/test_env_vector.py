@@ -171,8 +171,10 @@ def test_infos_batch_as_gymnasium_does() -> None:
     sync.close()
 
 
-def test_sub_env_factories_pickle_without_maps() -> None:
-    envs = gym.make_vec(SID, num_envs=2, processes=1, **SHORT)
+@pytest.mark.parametrize("mode", ["vector_entry_point", "async"])
+def test_sub_env_factories_pickle_without_maps(mode: str) -> None:
+    """What travels to a worker is the id and the overrides (a few KB), never a map."""
+    envs = gym.make_vec(SID, num_envs=2, vectorization_mode=mode, **SHORT)
     try:
         assert len(cloudpickle.dumps(envs.unwrapped.env_fns[0])) < 4096
     finally:
