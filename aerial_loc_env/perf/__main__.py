@@ -10,6 +10,7 @@ import pkgutil
 import sys
 
 from aerial_loc_env.perf import FLOOR_NAME, Benchmark, load, machine, measure, single_core
+from aerial_loc_env.sysinfo import isa
 
 
 def collect() -> list[Benchmark]:
@@ -58,6 +59,7 @@ def main(argv: list[str] | None = None) -> int:
     floor_fn = floor.setup()
     start_load = load()
     print(f"machine: {machine()} (one core: OMP_NUM_THREADS=1, cv2.setNumThreads(1)); {start_load} at start")
+    print(f"compiled kernels: {isa()}")
     print(f"ratio = median CPU time per item / median CPU time of the floor ('{FLOOR_NAME}': one bilinear warp "
           "of the frame from the map) timed interleaved with it")
     print(f"{'benchmark':66s} {'ratio':>9s} {'target':>10s} {'ok':>3s}  {'median CPU':>13s} {'p95 CPU':>13s} "
@@ -74,8 +76,8 @@ def main(argv: list[str] | None = None) -> int:
               f"{end_load} at the end")
     if args.json:
         with open(args.json, "w") as fh:
-            json.dump({"machine": machine(), "load_start": start_load, "load_end": end_load, "floor": FLOOR_NAME,
-                       "results": rows}, fh, indent=2)
+            json.dump({"machine": machine(), "isa": isa(), "load_start": start_load, "load_end": end_load,
+                       "floor": FLOOR_NAME, "results": rows}, fh, indent=2)
     return 0
 
 

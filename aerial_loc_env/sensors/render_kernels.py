@@ -29,10 +29,13 @@ keeps those passes as the reference and compares exactly); what each pass comput
 Loops run over 2-D row slices with explicit narrow casts so that LLVM vectorizes them, with 512-bit vectors
 preferred (``jit.wide_vectors``: LLVM's default on AVX-512 Intel cores mixes 256- and 512-bit loops in
 these two functions, which then slow down whenever other work ran before them; same bytes); single-threaded on
-purpose (benchmarks are per core; users parallelize over environments). Two steps use CPU instructions LLVM does
+purpose (benchmarks are per core; users parallelize over environments). The box's samples are taken 8 pixels at a
+time by ``jit.bilinear_rgba8`` (two 64-bit loads a pixel, the chain in whatever vector registers the CPU has:
+as fast with AVX2 as the loop form is only with AVX-512's byte permutes). Two steps use CPU instructions LLVM does
 not pick by itself, each only where the host has them and they pay, the same bytes either way
 (``jit``): the box's neighbour loads as AVX-512 gathers (``FAST_GATHER``: Sapphire Rapids and later) and
-the tone lookups of RGBA rows as VBMI byte permutes (``FAST_LUT``). The first call of a process compiles
+the tone lookups of RGBA rows as VBMI byte permutes (``FAST_LUT``; elsewhere scalar lookups of whole 32-bit
+pixels, the alphas in a vectorized loop of their own). The first call of a process compiles
 (seconds) unless numba's cache (``cache=True``, next to this file or in numba's user cache) already holds it.
 """
 
@@ -71,9 +74,10 @@ _INV255 = np.float32(1.0 / 255.0)
 #: new offset each frame, from L3, in row segments the hardware prefetchers pick up late (further ahead gains
 #: nothing more; docs/perf-log.md)
 _BANK_AHEAD_ROWS = 16
-#: ``remap_finish`` prefetches the box lines that the row this many rows down will read (every 4th pixel's two
-#: neighbour rows, from its maps): the box is out of cache after the step's other work (docs/perf-log.md)
+#: ``remap_finish`` prefetches the box lines that the row this many rows down will read (every ``_BOX_AHEAD_STEP``-th
+#: pixel's two neighbour rows, from its maps): the box is out of cache after the step's other work (docs/perf-log.md)
 _BOX_AHEAD_ROWS = 16
+_BOX_AHEAD_STEP = 8
 
 
 @nb.njit(inline="always", **_JIT)
@@ -270,9 +274,10 @@ def warp_finish(box, m, lut, out, alpha, sensor, vig, bank, dy, dx3, sigma_mode,
     the fma chain of ``estimators.patches_kernels`` on the four neighbours (the border's 0 outside), rounded half to
     even.
 
-    Loops (a row at a time): the source points, the weights per pixel and the neighbours' indices; the prefetches
-    and the four neighbours' gathers (one uint32 load each, or ``_gather_row``'s AVX-512 gathers); the blend over the
-    row's pixels, four channels each (``_blend_row``); then ``finish``'s tone lookups and sensor stage. A row whose
+    Loops (a row at a time): the source points, the weights per pixel and the neighbours' indices; the prefetches;
+    the samples (``_sample_row``: ``jit.bilinear_rgba8`` 8 pixels a call, or where AVX-512 gathers pay the four
+    neighbours' gathers then the blend over the row's pixels, ``_blend_row``); then ``finish``'s tone lookups and
+    sensor stage. A row whose
     neighbours are not all inside the box takes the general path (floor, border) in its coordinate and gather loops
     only. One pass is faster than ``cv2.warpAffine`` then ``finish`` (docs/perf-log.md).
     """
@@ -334,9 +339,9 @@ def remap_finish(box, map_x, map_y, shade_px, shade_gain, lut, out, alpha, senso
     count = 0
     for y in range(h_px):
         fu, fv = map_x[y], map_y[y]
-        if y + _BOX_AHEAD_ROWS < h_px:     # the box's lines that a later row will read, every 4th pixel's
-            pu, pv = map_x[y + _BOX_AHEAD_ROWS], map_y[y + _BOX_AHEAD_ROWS]
-            for x in range(0, w_px, 8):
+        if y + _BOX_AHEAD_ROWS < h_px:     # the box's lines that a later row will read (branch-free: a point
+            pu, pv = map_x[y + _BOX_AHEAD_ROWS], map_y[y + _BOX_AHEAD_ROWS]     # outside prefetches the edge)
+            for x in range(0, w_px, _BOX_AHEAD_STEP):
                 u, v = pu[x], pv[x]
                 u = u if u > np.float32(0.0) else np.float32(0.0)     # (NaN -> 0)
                 v = v if v > np.float32(0.0) else np.float32(0.0)

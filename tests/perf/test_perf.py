@@ -86,3 +86,21 @@ def test_wall_clock_rows_and_their_rate_over_a_baseline(monkeypatch):
         assert _row(r).endswith(f"(wall)  1.60x one (>= {target:g}x: {verdict})")
     cpu = measure(Benchmark("cpu", lambda: (lambda: None), repeats=3))
     assert cpu["median_s"] == pytest.approx(0.001) and with_baseline(cpu, rows)["vs_baseline"] is None
+
+
+def test_the_header_names_the_code_the_kernels_are_compiled_for(tmp_path):
+    """``make bench``'s header says which instructions the kernels use (``sysinfo.isa``: the target CPU, its vector
+    sets, the CPU-specific paths), and its JSON keeps it: AVX2 and AVX-512 figures are told apart."""
+    import json
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from aerial_loc_env.sysinfo import isa
+
+    out = tmp_path / "bench.json"
+    r = subprocess.run([sys.executable, "-m", "aerial_loc_env.perf", "no benchmark has this name", "--json", str(out)],
+                       cwd=Path(__file__).resolve().parents[2], capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.splitlines()[1] == f"compiled kernels: {isa()}"
+    assert json.loads(out.read_text())["isa"] == isa()
