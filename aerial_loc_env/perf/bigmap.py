@@ -6,7 +6,9 @@ The COG is generated here, tile band by tile band (so generating it stays within
 cache folder (``paths.cache_dir("bench")``, named by its size and generator version) for later runs; delete that
 folder to reclaim its disk. ``gym.make`` + reset runs in a fresh interpreter per call, so its peak RSS is the
 whole cost of opening the map (imports included), not the benchmark process's: each call prints that process's
-times and peak RSS on a line above its row (the row's CPU column is the waiting benchmark process's own).
+times and peak RSS on a line above its row (the row's CPU column is the waiting benchmark process's own). The peak
+is the interpreter's own high-water mark (``VmHWM``; ``getrusage``'s maximum also counts the benchmark process's
+memory, which a child started by ``subprocess`` shares until it executes the interpreter).
 """
 
 from __future__ import annotations
@@ -135,6 +137,11 @@ if len(sys.argv) > 2:  # an agent flies the episode: it reads its own windows of
         done, steps = term or trunc, steps + 1
     out["episode_s"], out["steps"] = time.perf_counter() - t4, steps
 out["peak_rss_bytes"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+try:  # this process's own peak (getrusage's counts the parent's memory too: the child shared it until exec)
+    with open("/proc/self/status") as fh:
+        out["peak_rss_bytes"] = next(int(l.split()[1]) * 1024 for l in fh if l.startswith("VmHWM:"))
+except (OSError, StopIteration):
+    pass
 print(json.dumps(out))
 """
 
