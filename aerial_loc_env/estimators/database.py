@@ -187,11 +187,12 @@ class DatabaseWindow:
         check_memory(f"{where}: the database window of map '{frame.name}'", w, h, 8 * w * h,
                      "Lower the altitude (a smaller footprint) or the prior's spread (episode.prior_std_m)")
         self.frame, self.box = frame, (int(u0), int(v0), int(u1), int(v1))
-        self.has_nodata = frame_has_nodata(frame)
+        same_map = previous is not None and previous.frame is frame
+        self.has_nodata = previous.has_nodata if same_map else frame_has_nodata(frame)
         self._pixels: tuple[np.ndarray, np.ndarray | None] | None = None     # read on first use
         # the layers made of the window before (same map): kept, and only their part outside it made again
         self._layers: dict[Any, SparseLayer] = {}
-        if previous is not None and previous.frame is frame:
+        if same_map:
             self._layers, previous._layers = previous._layers, {}
 
     def _carried(self, key: Any, shape: tuple[int, int, int | None], dtype: Any, planar: bool, box: Box,
@@ -383,10 +384,10 @@ class WindowPolicy:
     def update(self, xy_m: np.ndarray, altitude_m: float) -> Box | None:
         """The new window when the current one no longer covers the positions ``xy_m`` (N, 2) at ``altitude_m``,
         else None."""
-        xy = np.asarray(xy_m, dtype=np.float64).reshape(-1, 2)
-        lo, hi = xy.min(axis=0), xy.max(axis=0)
+        xy = np.asarray(xy_m, dtype=np.float64)
+        x, y = xy[..., 0], xy[..., 1]          # (per column: a reduction along axis 0 of (N, 2) is far slower)
         radius = (self.radius_m or self.footprint_m)(altitude_m)
-        need = world_box(self.frame, float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1]), radius)
+        need = world_box(self.frame, float(x.min()), float(y.min()), float(x.max()), float(y.max()), radius)
         return self.update_box(need, altitude_m)
 
     def update_box(self, need: Box, altitude_m: float) -> Box | None:
