@@ -354,7 +354,7 @@ class RasterMap(MapGeometry):
                 f"gsd_x_m={self.gsd_x_m:.6g}, gsd_y_m={self.gsd_y_m:.6g}, georef={self.georef!r}, "
                 f"source={self.source!r})")
 
-    # --- size (the frames come from MapGeometry) --------------------------------------------------------------------------
+    # --- size (the frames come from MapGeometry) ------------------------------------------------------------------
     @property
     def width_px(self) -> int:
         return self._width
