@@ -4,6 +4,7 @@ map, and ``fly_mission``, which checks its inputs, starts SITL, the monitor and 
 
 from __future__ import annotations
 
+import gc
 import math
 import os
 import threading
@@ -288,6 +289,12 @@ def fly_mission(scenario: str, agent: str, *, ground_amsl_m: float, vehicle: str
                 raise AerialLocError(f"the bridge ended before the flight did (exit code {result.get('rc')})")
 
         bridge = threading.Thread(target=run_bridge, name="sitl-bridge", daemon=True)
+        # The fix must reach the autopilot every period (ArduPilot calls a GPS silent for 245 ms unhealthy): the
+        # objects the process made before the flight are frozen out of the collector's full passes, which would
+        # otherwise walk them all while holding the GIL and stall the bridge (a long-lived process, such as a
+        # test run or a notebook, can hold millions)
+        gc.collect()
+        gc.freeze()
         bridge.start()
         monitor = Monitor(sitl.monitor_port, watchdog)
         try:
@@ -325,6 +332,7 @@ def fly_mission(scenario: str, agent: str, *, ground_amsl_m: float, vehicle: str
             bridge.join(10)
             monitor.stop()
             sitl.stop()
+            gc.unfreeze()
         if sitl.dataflash_log is None:
             raise AerialLocError(f"SITL wrote no dataflash log (LOG_DISARMED 1); its output: "
                                  f"{(sitl.workdir / 'sitl.log').read_text(errors='replace')[-800:]}")
