@@ -289,7 +289,7 @@ def fly_mission(scenario: str, agent: str, *, ground_amsl_m: float, vehicle: str
                 raise AerialLocError(f"the bridge ended before the flight did (exit code {result.get('rc')})")
 
         bridge = threading.Thread(target=run_bridge, name="sitl-bridge", daemon=True)
-        # The fix must reach the autopilot every period (ArduPilot calls a GPS silent for 245 ms unhealthy): the
+        # The fix must reach the autopilot every period (ArduPilot calls a GPS silent for 0.245 s unhealthy): the
         # objects the process made before the flight are frozen out of the collector's full passes, which would
         # otherwise walk them all while holding the GIL and stall the bridge (a long-lived process, such as a
         # test run or a notebook, can hold millions)
