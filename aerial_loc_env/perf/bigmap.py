@@ -178,24 +178,11 @@ def _make_reset(size_px: int, agent: str | None = None) -> Callable[[], Callable
 
 
 def _episode(path_of: Callable[[], Path]) -> Callable[[], Callable[[], object]]:
+    """perf.env's episode timer on RealMap-v1 over the map ``path_of()`` gives (made when the row runs)."""
     def setup() -> Callable[[], object]:
-        import aerial_loc_env.env  # noqa: F401  (registers the scenarios)
-        from aerial_loc_env.env import AerialLocEnv
+        from aerial_loc_env.perf.env import _episode_setup
 
-        env = AerialLocEnv("AerialLoc/RealMap-v1", path=str(path_of()))
-        action = np.zeros(2, np.float32)
-        seeds = iter(range(10**9))
-
-        def episode() -> int:
-            env.reset(seed=next(seeds))
-            n = 0
-            while True:
-                _, _, term, trunc, _ = env.step(action)
-                n += 1
-                if term or trunc:
-                    return n
-
-        return episode
+        return _episode_setup("AerialLoc/RealMap-v1", path=str(path_of()))()
 
     return setup
 
