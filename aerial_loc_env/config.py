@@ -7,12 +7,13 @@ rejects values outside it with a message naming the field, where it came from, a
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 import numbers
 import sys
 import types
 import typing
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from typing import Any, TypeVar
 
 from aerial_loc_env.errors import ConfigError
@@ -156,4 +157,19 @@ def config_to_dict(obj: Any) -> dict:
         elif isinstance(v, tuple):
             v = list(v)
         out[f.name] = v
+    return out
+
+
+def parse_assignments(items: Sequence[str], *, where: str, example: str) -> dict[str, Any]:
+    """Command-line ``KEY=VALUE`` overrides as a dict: each value read as JSON where it parses (numbers, lists,
+    booleans), else kept as the string. ``where`` names the option in the error, ``example`` shows one."""
+    out: dict[str, Any] = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            raise ConfigError(f"{where} {item!r} must look like KEY=VALUE (e.g. {example})")
+        try:
+            out[key] = json.loads(value)
+        except json.JSONDecodeError:
+            out[key] = value
     return out

@@ -1,12 +1,15 @@
-"""The typed configs (``config.build_config``): NumPy scalars are numbers of the field's type."""
+"""The typed configs (``config.build_config``): NumPy scalars are numbers of the field's type; command-line
+``KEY=VALUE`` overrides (``config.parse_assignments``)."""
 
 from __future__ import annotations
 
 import gymnasium as gym
 import numpy as np
+import pytest
 
 import aerial_loc_env  # noqa: F401  (registers the scenarios)
 from aerial_loc_env.config import build_config
+from aerial_loc_env.errors import ConfigError
 from aerial_loc_env.sensors.flight import FlightConfig
 
 
@@ -17,3 +20,14 @@ def test_numpy_scalars_are_numbers():
     env = gym.make("AerialLoc/Small-v1", altitude_m=np.float32(110.0))
     assert env.unwrapped.scenario.flight.altitude_m == 110.0
     env.close()
+
+
+def test_command_line_assignments_are_read_as_json_where_they_parse():
+    from aerial_loc_env.config import parse_assignments
+
+    got = parse_assignments(["flight.altitude_m=150", "map.path=tile.tif", "shadows.database_sun_deg=[150, 50]",
+                             "observation.info_shadow_mask=true"], where="gap: --set", example="a=1")
+    assert got == {"flight.altitude_m": 150, "map.path": "tile.tif", "shadows.database_sun_deg": [150, 50],
+                   "observation.info_shadow_mask": True}
+    with pytest.raises(ConfigError, match=r"gap: --set 'altitude' must look like KEY=VALUE \(e.g. a=1\)"):
+        parse_assignments(["altitude"], where="gap: --set", example="a=1")

@@ -68,7 +68,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from aerial_loc_env.config import build_config, rng
+from aerial_loc_env.config import build_config, parse_assignments, rng
 from aerial_loc_env.errors import ConfigError, MapError
 from aerial_loc_env.estimators.feature_matching import make_detector
 from aerial_loc_env.estimators.patches import to_gray
@@ -480,16 +480,7 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def _overrides(items: Sequence[str]) -> dict[str, Any]:
-    out = {}
-    for item in items:
-        key, sep, value = item.partition("=")
-        if not sep or not key:
-            raise ConfigError(f"gap: --set {item!r} must look like KEY=VALUE (e.g. flight.altitude_m=150)")
-        try:
-            out[key] = json.loads(value)
-        except json.JSONDecodeError:
-            out[key] = value
-    return out
+    return parse_assignments(items, where="gap: --set", example="flight.altitude_m=150")
 
 
 def _gsd_arg(value: str, what: str) -> float:

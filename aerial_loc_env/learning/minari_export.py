@@ -36,6 +36,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
+from aerial_loc_env.config import parse_assignments
 from aerial_loc_env.errors import ConfigError, require_extra
 
 DATASET_NAMESPACE = "aerial-loc"
@@ -202,16 +203,7 @@ def export_episodes(env_id: str, agent: str, n_episodes: int, *, dataset_id: str
 
 # ----------------------------------------------------------------------------------------------- CLI
 def _set_items(items: Sequence[str]) -> dict[str, Any]:
-    out: dict[str, Any] = {}
-    for item in items:
-        key, sep, value = item.partition("=")
-        if not sep or not key:
-            raise ConfigError(f"dataset export: --set {item!r} must look like KEY=VALUE (e.g. flight.duration_s=20)")
-        try:
-            out[key] = json.loads(value)
-        except json.JSONDecodeError:
-            out[key] = value
-    return out
+    return parse_assignments(items, where="dataset export: --set", example="flight.duration_s=20")
 
 
 def main(argv: list[str] | None = None) -> int:
