@@ -456,12 +456,14 @@ def _sample_row(flat, idx, stride, fa, fb, rgba, q00, q01, q10, q11, c00, c01, c
     64-bit loads a pixel, the chain in vector registers of any width), the row's last ``W mod 8`` pixels by
     ``_gather_row`` and ``_blend_row``; where AVX-512 gathers pay (``FAST_GATHER``), the whole row by those two
     (``jit.gather_pairs16``). The same bytes either way."""
+    if _FAST_GATHER:
+        _gather_row(flat, idx, stride, q00, q01, q10, q11, 0)
+        _blend_row(c00, c01, c10, c11, fa, fb, rgba, 0)
+        return
     n = idx.shape[0]
-    body = 0
-    if not _FAST_GATHER:
-        body = n - n % _BILINEAR_PIXELS
-        for x in range(0, body, _BILINEAR_PIXELS):
-            _bilinear_rgba8(flat, idx, stride, fa, fb, rgba, x)
+    body = n - n % _BILINEAR_PIXELS
+    for x in range(0, body, _BILINEAR_PIXELS):
+        _bilinear_rgba8(flat, idx, stride, fa, fb, rgba, x)
     if body < n:
         _gather_row(flat, idx, stride, q00, q01, q10, q11, body)
         _blend_row(c00, c01, c10, c11, fa, fb, rgba, body)
