@@ -23,3 +23,19 @@ def crop_png(om, folder: Path, size: int = 512) -> tuple[Path, float, float]:
     cv2.imwrite(str(png), np.ascontiguousarray(np.asarray(om.rgb)[v0:v0 + size, u0:u0 + size, ::-1]))
     lat, lon = om.georef.pixel_to_latlon(u0 + (size - 1) / 2.0, v0 + (size - 1) / 2.0)
     return png, float(np.ravel(lat)[0]), float(np.ravel(lon)[0])
+
+
+def check_env_silently(sid: str, **kwargs) -> None:
+    """Gymnasium's and SB3's env checkers on ``gym.make(sid, **kwargs)``, failing on any warning either gives."""
+    import warnings
+
+    import gymnasium as gym
+    import pytest
+    from gymnasium.utils.env_checker import check_env
+
+    sb3_checker = pytest.importorskip("stable_baselines3.common.env_checker")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        check_env(gym.make(sid, render_mode="rgb_array", **kwargs).unwrapped)
+        sb3_checker.check_env(gym.make(sid, **kwargs).unwrapped, warn=True)
+    assert [str(w.message) for w in caught] == []

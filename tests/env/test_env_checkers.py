@@ -7,13 +7,11 @@ overridden: the checkers see the scenarios exactly as users get them.
 from __future__ import annotations
 
 import pickle
-import warnings
 
 import gymnasium as gym
 import numpy as np
 import pytest
-from gymnasium.utils.env_checker import check_env
-from shared_helpers import REAL_TILES, SHARED_DATA
+from shared_helpers import REAL_TILES, SHARED_DATA, check_env_silently
 
 import aerial_loc_env  # noqa: F401  (registers the scenarios)
 from aerial_loc_env.env.scenarios import specs
@@ -23,23 +21,14 @@ USER_MAPS = ("AerialLoc/RealMap-v1", "AerialLoc/RealPair-v1")
 IDS = [sid for sid in specs() if sid not in USER_MAPS]
 
 
-def _check_silently(sid: str, **kwargs) -> None:
-    sb3_checker = pytest.importorskip("stable_baselines3.common.env_checker")
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        check_env(gym.make(sid, render_mode="rgb_array", **kwargs).unwrapped)
-        sb3_checker.check_env(gym.make(sid, **kwargs).unwrapped, warn=True)
-    assert [str(w.message) for w in caught] == []
-
-
 @pytest.mark.parametrize("sid", IDS)
 def test_checkers_pass_without_warnings(sid):
-    _check_silently(sid)
+    check_env_silently(sid)
 
 
 @pytest.mark.parametrize("tile", REAL_TILES)
 def test_real_map_checkers_pass_on_the_shared_tiles(shared_data, tile):
-    _check_silently("AerialLoc/RealMap-v1", path=str(shared_data / tile))
+    check_env_silently("AerialLoc/RealMap-v1", path=str(shared_data / tile))
 
 
 @pytest.mark.parametrize("tile", REAL_TILES)

@@ -3,13 +3,10 @@ Gymnasium's and SB3's env checkers, deterministic for a seed, and clear errors f
 
 from __future__ import annotations
 
-import warnings
-
 import gymnasium as gym
 import numpy as np
 import pytest
-from gymnasium.utils.env_checker import check_env
-from shared_helpers import SHARED_DATA
+from shared_helpers import SHARED_DATA, check_env_silently
 from synthetic_pairs import write_pair
 
 import aerial_loc_env  # noqa: F401  (registers the scenarios)
@@ -26,17 +23,8 @@ def synthetic(tmp_path_factory):
     return {"path_a": str(a), "path_b": str(b)}
 
 
-def _checked(**kwargs) -> None:
-    sb3_checker = pytest.importorskip("stable_baselines3.common.env_checker")
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        check_env(gym.make(SID, render_mode="rgb_array", **kwargs).unwrapped)
-        sb3_checker.check_env(gym.make(SID, **kwargs).unwrapped, warn=True)
-    assert [str(w.message) for w in caught] == []
-
-
 def test_checkers_pass_on_a_synthetic_pair(synthetic):
-    _checked(duration_s=2.0, **synthetic)
+    check_env_silently(SID, duration_s=2.0, **synthetic)
 
 
 def test_the_map_is_epoch_a_and_the_camera_flies_over_epoch_b(synthetic):
@@ -102,4 +90,5 @@ def test_a_missing_image_a_misregistered_pair_and_an_epoch_are_refused(tmp_path,
 def test_a_real_levir_pair_passes_the_checkers(name):
     if not (LEVIR / "A" / name).is_file():
         pytest.skip(f"real image pairs not available: {LEVIR} (../shared/data/pairs, beside the project)")
-    _checked(path_a=str(LEVIR / "A" / name), path_b=str(LEVIR / "B" / name), map={"gsd_m": 0.5}, duration_s=2.0)
+    check_env_silently(SID, path_a=str(LEVIR / "A" / name), path_b=str(LEVIR / "B" / name), map={"gsd_m": 0.5},
+                       duration_s=2.0)
