@@ -89,18 +89,33 @@ class EmbeddingRecipe:
                         self.gsd_m)
 
 
-def read_recipe(path: str | Path, **overrides: Any) -> EmbeddingRecipe:
-    """The ``[train]`` table of an agent spec (a path, or a name in the package's ``agents/``), with overrides."""
+def recipe_path(name: str | Path) -> Path:
+    """The spec file of a recipe: a TOML path, or a name in the package's ``agents/``."""
     from aerial_loc_env.paths import spec_dir
 
-    p = Path(path)
+    p = Path(name)
     if not p.suffix:
-        p = spec_dir("agents") / f"{path}.toml"
+        p = spec_dir("agents") / f"{name}.toml"
     if not p.is_file():
-        raise ConfigError(f"embedding recipe: '{path}' is neither a TOML file nor a spec in agents/ ({p})")
+        raise ConfigError(f"embedding recipe: '{name}' is neither a TOML file nor a spec in agents/ ({p})")
+    return p
+
+
+def is_embedding_recipe(name: str | Path) -> bool:
+    """Whether the spec's ``[train]`` table is an encoder recipe (``kind = "embedding"``), not an SB3 one."""
+    try:
+        table = read_toml(recipe_path(name), "recipe").get("train")
+    except ConfigError:
+        return False
+    return isinstance(table, dict) and table.get("kind") == "embedding"
+
+
+def read_recipe(name: str | Path, **overrides: Any) -> EmbeddingRecipe:
+    """The ``[train]`` table of an agent spec (a path, or a name in the package's ``agents/``), with overrides."""
+    p = recipe_path(name)
     table = read_toml(p, "recipe").get("train")
-    if not isinstance(table, dict):
-        raise ConfigError(f"embedding recipe: {p} has no [train] table")
+    if not isinstance(table, dict) or table.get("kind") != "embedding":
+        raise ConfigError(f"embedding recipe: {p} has no [train] table with kind = \"embedding\"")
     table = {**{k: v for k, v in table.items() if k != "kind"}, **overrides}
     return build_config(EmbeddingRecipe, table, where=f"{p} [train]")
 
@@ -215,10 +230,10 @@ def losses(th, net, fb, mb, recipe: EmbeddingRecipe, log_tau, g_torch) -> tuple[
     m = em.flatten(2).transpose(1, 2)
     p = h * w
     q = th.randperm(p, generator=g_torch)[:min(recipe.query_cells, p)]
-    tau = recipe.cell_temperature
+    inv_tau = 1.0 / recipe.cell_temperature
     target = q.expand(b, -1).reshape(-1)
-    l_fm = fn.cross_entropy((f[:, q] @ m.transpose(1, 2) / tau).reshape(-1, p), target)
-    l_mf = fn.cross_entropy((m[:, q] @ f.transpose(1, 2) / tau).reshape(-1, p), target)
+    l_fm = fn.cross_entropy(th.bmm(f[:, q] * inv_tau, m.transpose(1, 2)).reshape(-1, p), target)
+    l_mf = fn.cross_entropy(th.bmm(m[:, q] * inv_tau, f.transpose(1, 2)).reshape(-1, p), target)
     cells = 0.5 * (l_fm + l_mf)
     margin = (h // 4, w // 4)
     s = offset_scores(th, ef, em, margin)

@@ -327,8 +327,8 @@ class LearnedConfig:
 
     weights: str = DEFAULT_WEIGHTS
     temperature: float = field(default=0.0, metadata=rng(0.0, 100.0, doc="0: the calibrated one"))
-    temper: float = field(default=1.0, metadata=rng(0.0, 1.0, lo_open=True,
-                                                     doc="multiplies the log-likelihood (frames overlap)"))
+    temper: float = field(default=1.0, metadata=rng(0.0, 100.0, lo_open=True,
+                                                     doc="multiplies the log-likelihood"))
 
 
 class FramePrepared(NamedTuple):
