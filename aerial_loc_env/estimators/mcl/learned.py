@@ -47,9 +47,8 @@ from aerial_loc_env.estimators.database import DatabaseWindow
 from aerial_loc_env.estimators.mcl.measurement import MeasurementModel, register_model
 from aerial_loc_env.estimators.patches import to_gray
 from aerial_loc_env.estimators.protocol import parse_observation
+from aerial_loc_env.paths import find_model_file
 
-#: the package folder: shipped weights are named relative to it
-PACKAGE_DIR = Path(__file__).resolve().parents[2]
 DEFAULT_WEIGHTS = "models/mcl-learned/weights.npz"
 #: the weights file's format version (``meta["format"]``)
 WEIGHTS_FORMAT = 1
@@ -138,15 +137,9 @@ _WEIGHTS: dict[str, Weights] = {}
 
 def resolve_weights(path: str) -> Path:
     """The weights file: absolute, else under the package folder, else under the current directory."""
-    p = Path(path).expanduser()
-    candidates = [p] if p.is_absolute() else [PACKAGE_DIR / p, Path.cwd() / p]
-    for c in candidates:
-        if c.is_file():
-            return c
-    raise ConfigError(f"mcl-learned: weights file '{path}' does not exist (looked at "
-                      f"{', '.join(str(c) for c in candidates)}); give measurement_params.weights the .npz that "
-                      "`python -m aerial_loc_env.learning.embedding` wrote, or leave it at the shipped "
-                      f"'{DEFAULT_WEIGHTS}'")
+    return find_model_file(path, "mcl-learned: weights file", "give measurement_params.weights the .npz that "
+                           "`aerial-loc train mcl-learned --out W.npz` wrote, or leave it at the shipped "
+                           f"'{DEFAULT_WEIGHTS}'")
 
 
 def load_weights(path: str) -> Weights:
