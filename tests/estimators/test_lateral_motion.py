@@ -12,11 +12,11 @@ import pytest
 
 import aerial_loc_env  # noqa: F401
 from aerial_loc_env.env.briefing import OdometryNoise, Prior
+from aerial_loc_env.errors import ConfigError
 from aerial_loc_env.estimators.dead_reckoning import DeadReckoningAgent
 from aerial_loc_env.estimators.episode import EpisodeDriver
 from aerial_loc_env.estimators.mcl.motion import OdometryMotionModel
 from aerial_loc_env.estimators.protocol import Observation, parse_observation
-from aerial_loc_env.errors import ConfigError
 
 DT = 0.25
 HEADING = 0.3                 # rad, held
