@@ -6,6 +6,7 @@ Observation Space, Rewards, Starting State, Episode End, Arguments, Version Hist
 
 from __future__ import annotations
 
+import copy
 import math
 from collections.abc import Mapping
 from typing import Any
@@ -17,7 +18,7 @@ from gymnasium import spaces
 
 from aerial_loc_env.env.briefing import Briefing, Prior
 from aerial_loc_env.env.scenarios import Scenario, build_scenario, check_relief, load_scenario
-from aerial_loc_env.errors import AerialLocError, ConfigError
+from aerial_loc_env.errors import AerialLocError, ConfigError, MapError
 from aerial_loc_env.sensors.camera import CameraModel, Pose, SceneExposure, apply_affine, world_to_map_affine
 from aerial_loc_env.sensors.flight import (
     Measurements,
@@ -129,13 +130,15 @@ class AerialLocEnv(gym.Env):
     ## Starting State
 
     ``reset(seed=...)`` draws everything from ``self.np_random``: with ``[wind]`` on, the wind first (the mean
-    and the gusts, ``world.wind``; off, it draws nothing); the track (start uniformly over the flyable region,
-    the part of the map whose footprint clearance ``flight.margin_m`` stays on valid data; waypoint legs at the
-    airspeed ``flight.speed_mps`` and ``flight.altitude_m``, the course held through the wind), the odometry
-    noise (the lateral speed's from a generator seeded by the episode's draws, ``lateral_rng``), the sun and the shadow
-    strength, the clouds, and the renderer's noise; then the prior and, when their sections are on, the gimbal
-    jitter, the heading offset and the altimeter's bias and drift (off, they draw nothing). The prior: with
-    ``episode.start = "tracking"`` a Gaussian whose mean is drawn ``episode.prior_std_m`` (1-sigma per axis)
+    and the gusts, ``world.wind``) from a child of its seed sequence (``wind_rng``; off, nothing is drawn), and
+    a windy episode is the calm episode of its seed plus the wind (``_fly_track``); the track (start uniformly
+    over the flyable region, the part of the map whose footprint clearance ``flight.margin_m`` stays on valid
+    data; waypoint legs at the airspeed ``flight.speed_mps`` and ``flight.altitude_m``, the course held through
+    the wind), the odometry noise (the lateral speed's from a generator seeded by the episode's draws,
+    ``lateral_rng``), the sun and the shadow strength, the clouds, and the renderer's noise; then the prior and,
+    when their sections are on, the gimbal jitter, the heading offset and the altimeter's bias and drift (off,
+    they draw nothing). The prior: with ``episode.start = "tracking"`` a Gaussian whose mean is drawn
+    ``episode.prior_std_m`` (1-sigma per axis)
     around the true start; with ``"global"`` uniform over the map. Same seed, same episode, bit for bit.
 
     ## Episode End
@@ -181,7 +184,8 @@ class AerialLocEnv(gym.Env):
       lateral_speed_mps]`` (the body-frame ground velocity; the lateral speed appended, so indices 0 and 1 keep
       their meaning) with the noise ``odometry.lateral_std_mps``, and the ``[wind]`` section (off in every v1
       spec) in which the vehicle crabs. Without wind the frames, tracks, priors and the other measurements are
-      those of v1 for the same seed (the lateral noise comes from a stream of its own); agents' estimates change
+      those of v1 for the same seed (the lateral noise comes from a stream of its own, as the wind does: a windy
+      episode has the start, sun, prior and noise of the calm one of its seed); agents' estimates change
       as their motion models now use (and draw noise for) the lateral term. ``AerialLoc/Crosswind-v2`` (new):
       RealisticPaper in 3-8 m/s of wind with gusts. ``gym.make`` of a v1 id names the v2 id.
     """
@@ -287,9 +291,7 @@ class AerialLocEnv(gym.Env):
             raise AerialLocError(f"{self.scenario.id}: reset options {sorted(options)} are not supported; "
                                  "configure the scenario with gym.make overrides instead")
         sc, rng = self.scenario, self.np_random
-        # the wind first (the track flies through it); calm air draws nothing
-        self.wind = sc.wind.draw(rng, np.arange(sc.flight.steps + 1) * sc.flight.dt_s)
-        self._track = sample_track(sc.flight, self.region, rng, None if self.wind.calm else self.wind)
+        self._track = self._fly_track(rng)
         if self.world.windowed:
             self._read_window()
         on = sc.odometry
@@ -322,6 +324,34 @@ class AerialLocEnv(gym.Env):
         self._overlay = {}
         obs, info = self._observe(0)
         return obs, info
+
+    def _fly_track(self, rng: np.random.Generator) -> Track:
+        """The episode's track, through the episode's wind (``self.wind``, drawn here; calm air draws nothing).
+
+        A windy episode is the calm episode of its seed plus the wind: the wind comes from a generator of its own
+        (``wind_rng``), the track flies from a copy of ``rng``'s state (the same start, first waypoint and noise
+        banks as the calm track), and ``rng`` then draws what the calm track drew, so the sun, the clouds, the
+        prior's offset and the frames' noise that follow are the calm episode's."""
+        sc = self.scenario
+        t_s = np.arange(sc.flight.steps + 1) * sc.flight.dt_s
+        self.wind = sc.wind.draw(self.wind_rng() if sc.wind.enabled else rng, t_s)
+        if self.wind.calm:
+            return sample_track(sc.flight, self.region, rng)
+        track = sample_track(sc.flight, self.region, copy.deepcopy(rng), self.wind)
+        try:
+            sample_track(sc.flight, self.region, rng)          # the calm track's draws
+        except MapError:
+            pass                                               # no calm track there: its draws are spent anyway
+        return track
+
+    def wind_rng(self) -> np.random.Generator:
+        """The episode's generator of the wind: a child of ``np_random``'s seed sequence (spawning draws nothing
+        from ``np_random``; ``reset(seed=s)`` gives the same child again, a reset without a seed the next one)."""
+        bits = self.np_random.bit_generator
+        try:
+            return np.random.default_rng(bits.seed_seq.spawn(1)[0])
+        except (AttributeError, TypeError, ValueError):    # a generator set by hand without a seed sequence
+            return np.random.default_rng(int(self.np_random.integers(0, 2**63 - 1)))
 
     def lateral_rng(self) -> np.random.Generator:
         """The episode's generator of the lateral odometry noise: seeded from the episode's draws (the renderer's

@@ -362,3 +362,28 @@ def test_realmap_clouds_cover_the_flown_window_not_the_whole_map(tmp_path):
         assert ny * c.cell_m >= min(1000.0, y1 - y0 + pad) + abs(vy) * t_end - c.cell_m
         assert nx * ny * c.cell_m ** 2 < 0.8 * 1000.0 ** 2          # not the whole map
     env.close()
+
+
+def test_wind_comes_from_its_own_stream_and_the_vehicle_crabs():
+    """The same seed with and without wind: the same start, sun and prior (the wind's generator is a child of the
+    seed's sequence), the wind in info, the lateral odometry carrying the crosswind; reset(seed) repeats the wind,
+    a reset without a seed draws another."""
+    calm = make(duration_s=5.0)
+    windy = make(duration_s=5.0, wind={"speed_range_mps": [6.0, 6.0], "gust_std_mps": 0.5})
+    _, info_c = calm.reset(seed=4)
+    _, info_w = windy.reset(seed=4)
+    np.testing.assert_array_equal(info_c["true_pose"][[0, 1, 3]], info_w["true_pose"][[0, 1, 3]])  # the start
+    assert info_c["true_pose"][2] != info_w["true_pose"][2]         # its heading: crabbed into the wind
+    assert info_c["prior"] == info_w["prior"] and info_c["sun_azimuth_deg"] == info_w["sun_azimuth_deg"]
+    assert "wind_en_mps" not in info_c and math.hypot(*info_w["wind_en_mps"]) > 3.0
+    first = windy.wind
+    windy.reset(seed=4)
+    assert np.array_equal(windy.wind.east_mps, first.east_mps)
+    windy.reset()
+    assert not np.array_equal(windy.wind.east_mps, first.east_mps)
+    windy.reset(seed=4)
+    t = windy._track
+    lateral = np.array([windy.step(np.zeros(2, np.float32))[0]["odometry"][2] for _ in range(len(t) - 1)])
+    assert np.all(t.lateral_mps[1:] != 0.0)                      # the wind is never exactly along the heading
+    noise = windy.briefing.odometry_noise.lateral_std_mps
+    assert abs(np.mean(lateral - t.lateral_mps[1:])) < 4 * noise / math.sqrt(len(lateral))
