@@ -12,7 +12,8 @@ Writes, into ``--out``:
 - with ``--realism``, ``gap_<level>.png``: the map database at the true pose | the camera frame, for each kind
   of realistic map-camera gap alone (epoch change, relief displacement over tall buildings, the map's own sun,
   the map's own sensor) and all together (``AerialLoc/RealisticPaper-v2``); with ``--map``, the kinds that apply
-  to that map (its acquisition by another sensor, the realistic camera, both), flown over it.
+  to that map (its acquisition by another sensor, the realistic camera, both), flown over it; with ``--pair``
+  also ``gap_real_pair.png``, a real two-epoch pair in the same layout (what the simulated gap should look like).
 """
 
 from __future__ import annotations
@@ -50,6 +51,10 @@ def _parser() -> argparse.ArgumentParser:
                     help="also write gap_<level>.png: map patch | camera frame for each kind of realistic gap "
                          "(epoch change, relief, the map's own sun, the map's sensor, all of them); with --map, "
                          "the kinds that apply to that map, flown over it (RealMap-v2 at --altitude)")
+    ap.add_argument("--pair", nargs=2, metavar=("EARLIER", "LATER"),
+                    help="--realism: also gap_real_pair.png, a real two-epoch pair flown as RealPair-v2 (map = "
+                         "EARLIER, camera over LATER) in the same layout, to set beside the simulated gap")
+    ap.add_argument("--pair-gsd", type=float, help="--pair: ground metres per pixel of images without georeference")
     return ap
 
 
@@ -58,11 +63,16 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if (args.crs or args.gsd is not None) and not args.map:
             raise ConfigError("pictures: --crs and --gsd describe the file given with --map; give --map too")
+        if (args.pair or args.pair_gsd is not None) and not args.realism:
+            raise ConfigError("pictures: --pair and --pair-gsd add a picture to --realism; give --realism too")
+        if args.pair_gsd is not None and not args.pair:
+            raise ConfigError("pictures: --pair-gsd describes the images given with --pair; give --pair too")
         written = write_pictures(Path(args.out), map_path=args.map, seed=args.seed, altitude_m=args.altitude,
                                  n_frames=args.frames, map_crs=args.crs, map_gsd_m=args.gsd)
         if args.realism:
             written += write_realism_pictures(Path(args.out), seed=args.seed, map_path=args.map, map_crs=args.crs,
-                                              map_gsd_m=args.gsd, altitude_m=args.altitude)
+                                              map_gsd_m=args.gsd, altitude_m=args.altitude,
+                                              pair=None if not args.pair else (*args.pair, args.pair_gsd))
     except AerialLocError as exc:
         print(f"aerial-loc pictures: {exc}", file=sys.stderr)
         return 2
@@ -305,19 +315,34 @@ def map_realism_levels(map_path: str, *, crs: str | None = None, gsd_m: float | 
     return levels, left_out
 
 
+def pair_level(path_a: str, path_b: str, gsd_m: float | None = None) -> tuple[str, str, str, dict, str]:
+    """The realism level of a real two-epoch pair: ``AerialLoc/RealPair-v2`` over it (map = the earlier image,
+    camera over the later one), to be seen beside the simulated levels in the same layout."""
+    pair = {"path_a": str(path_a), "path_b": str(path_b), **({"gsd_m": gsd_m} if gsd_m is not None else {})}
+    a, b = (f"{Path(p).parent.name}/{Path(p).name}" for p in (path_a, path_b))
+    return ("real_pair", f"a real two-epoch pair: map = {a} (earlier) | camera over {b} (later), RealPair-v2",
+            "AerialLoc/RealPair-v2", {"map": pair}, "middle")
+
+
 def write_realism_pictures(out: Path, *, seed: int = 0, levels: list | None = None, map_path: str | None = None,
                            map_crs: str | None = None, map_gsd_m: float | None = None,
-                           altitude_m: float = 200.0) -> list[Path]:
+                           altitude_m: float = 200.0,
+                           pair: tuple[str, str, float | None] | None = None) -> list[Path]:
     """``gap_<level>.png``: map patch at the true pose | camera frame, one per realism level, labelled: the
     procedural city's levels (``realism_levels``), or with ``map_path`` those that apply to that map
-    (``map_realism_levels``; the others are named on stderr)."""
+    (``map_realism_levels``; the others are named on stderr); with ``pair`` (earlier, later, GSD or None) also
+    ``gap_real_pair.png`` (``pair_level``)."""
     from aerial_loc_env.env import AerialLocEnv, load_scenario
 
     if levels is None and map_path is not None:
         levels, left_out = map_realism_levels(map_path, crs=map_crs, gsd_m=map_gsd_m, altitude_m=altitude_m)
         print(f"aerial-loc pictures --realism: on {map_path}, left out: {'; '.join(left_out)}", file=sys.stderr)
+    levels = realism_levels() if levels is None else list(levels)
+    Path(out).mkdir(parents=True, exist_ok=True)
+    if pair is not None:
+        levels.append(pair_level(*pair))
     written = []
-    for stem, title, sid, overrides, choice in (realism_levels() if levels is None else levels):
+    for stem, title, sid, overrides, choice in levels:
         env = AerialLocEnv(load_scenario(sid, overrides))
         try:
             obs, info = env.reset(seed=seed)

@@ -48,6 +48,7 @@ from aerial_loc_env.benchmark.pair_scenarios import (
     pair_sources,
     sim_overrides,
 )
+from aerial_loc_env.benchmark.report import BOOTSTRAP_RESAMPLES, two_stage_resample
 from aerial_loc_env.errors import ConfigError, MapError
 
 #: the agents of issue 24's table: (spec, label)
@@ -56,7 +57,6 @@ DEFAULT_AGENTS = (("mcl-mi", "MCL MI"), ("mcl-ncc", "MCL NCC"), ("template-ncc",
                   ("mcl-shadow-aware", "MCL shadow-aware"), ("mcl-ssd", "MCL SSD"),
                   ("mcl-restoration", "MCL restoration"), ("features-orb", "ORB + RANSAC"))
 DEFAULT_SIMS = ("AerialLoc/RealisticPaper-v2",)
-BOOTSTRAP_RESAMPLES = 2000
 TARGET_TAU = 0.8
 TARGET_RATIO = (0.67, 1.5)
 
@@ -95,8 +95,7 @@ def bootstrap_ratio(sim: Sequence[float], real_by_pair: Sequence[Sequence[float]
     ratios = np.empty(resamples)
     for k in range(resamples):
         s = sim_arr[gen.integers(0, sim_arr.size, sim_arr.size)]
-        chosen = [groups[i] for i in gen.integers(0, len(groups), len(groups))]
-        r = np.concatenate([g[gen.integers(0, g.size, g.size)] for g in chosen])
+        r = two_stage_resample(groups, gen)
         ratios[k] = np.median(s) / max(float(np.median(r)), 1e-9)
     lo, hi = np.percentile(ratios, [2.5, 97.5])
     return float(lo), float(hi)

@@ -47,9 +47,10 @@ from aerial_loc_env.errors import ConfigError
 
 EXPERIMENT_DIR = Path(__file__).resolve().parent / "experiments"
 PLOTS = ("error_vs_time", "track", "likelihood", "shadow_pairs")  # plus "rmse_vs_<param>"
-#: the report sections an experiment may ask for (``paper = [...]``): the paper's tables, and "comparison" (every
-#: agent on every scenario side by side); report.PAPER_SECTIONS builds each
-PAPER_SECTION_NAMES = ("table5", "table9", "sweeps", "global", "comparison")
+#: the report sections an experiment may ask for (``paper = [...]``): the paper's tables, "comparison" (every
+#: agent on every scenario side by side) and "intervals" (every figure with its bootstrap interval, per scenario
+#: group); report.PAPER_SECTIONS builds each
+PAPER_SECTION_NAMES = ("table5", "table9", "sweeps", "global", "comparison", "intervals")
 
 
 def nest_params(params: Mapping[str, Any]) -> dict[str, Any]:

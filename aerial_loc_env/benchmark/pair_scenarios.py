@@ -120,12 +120,11 @@ def expand_pairs_entry(item: Mapping[str, Any], where: str, base_dir: Path | Non
     folder = Path(item["pairs"]).expanduser()
     if base_dir is not None and not folder.is_absolute():
         folder = base_dir / folder
+    prefix = f"{item['label']}: " if item.get("label") else ""
     try:
-        sources = pair_sources(folder, gsd)
+        return pair_entries(pair_sources(folder, gsd), None, overrides, prefix)
     except MapError as exc:
         raise ConfigError(f"{where}: {exc}") from None
-    prefix = f"{item['label']}: " if item.get("label") else ""
-    return pair_entries(sources, None, overrides, prefix)
 
 
 def sim_overrides(flight: Mapping[str, float]) -> dict[str, Any]:

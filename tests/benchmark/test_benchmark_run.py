@@ -241,3 +241,21 @@ def test_bench_refuses_unusable_map_before_running(tmp_path, capsys):
     err = capsys.readouterr().err
     assert rc != 0 and "nowhere.tif" in err and "Traceback" not in err, err
     assert not (tmp_path / "out" / "trials.jsonl").exists()
+
+
+def test_track_plot_on_a_map_read_by_window(tmp_path):
+    """The track picture on a map read by window draws the map from the file's tiles (never its whole layer,
+    which a RasterMap refuses to load): the map under the track is there, not a blank canvas."""
+    from aerial_loc_env.benchmark import plots
+    from aerial_loc_env.benchmark.grid import AgentEntry, ScenarioEntry
+    from aerial_loc_env.perf.bigmap import SyntheticMap
+    from aerial_loc_env.world.maps.cog import write_cog
+
+    cog = write_cog(SyntheticMap(1600), tmp_path / "synthetic.cog.tif")
+    scen = ScenarioEntry("AerialLoc/RealMap-v2", {"map.path": str(cog), "map.read": "window",
+                                                  "flight.duration_s": 3.0}, "windowed")
+    png = plots.track_plot(scen, 0, AgentEntry("dead-reckoning"), tmp_path / "track.png", max_px=300)
+    import cv2
+
+    image = cv2.imread(str(png))
+    assert image is not None and image.std() > 10.0
