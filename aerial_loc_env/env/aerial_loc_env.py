@@ -138,8 +138,8 @@ class AerialLocEnv(gym.Env):
     ``lateral_rng``), the sun and the shadow strength, the clouds, and the renderer's noise; then the prior and,
     when their sections are on, the gimbal jitter, the heading offset and the altimeter's bias and drift (off,
     they draw nothing). The prior: with ``episode.start = "tracking"`` a Gaussian whose mean is drawn
-    ``episode.prior_std_m`` (1-sigma per axis)
-    around the true start; with ``"global"`` uniform over the map. Same seed, same episode, bit for bit.
+    ``episode.prior_std_m`` (1-sigma per axis) around the true start; with ``"global"`` uniform over the map.
+    Same seed, same episode, bit for bit.
 
     ## Episode End
 
