@@ -59,7 +59,7 @@ def test_a_real_pair_picture_in_the_same_layout_as_the_simulated_gap(tmp_path, c
     assert main(["--out", str(tmp_path / "x"), "--realism", "--pair-gsd", "0.5"]) == 2
     assert "give --pair too" in capsys.readouterr().err
     (path,) = write_realism_pictures(tmp_path / "out", levels=[], pair=(str(a), str(b), 0.5))
-    assert path.name == "gap_real_pair.png" and pair_level(str(a), str(b))[2] == "AerialLoc/RealPair-v1"
+    assert path.name == "gap_real_pair.png" and pair_level(str(a), str(b))[2] == "AerialLoc/RealPair-v2"
     picture = cv2.imread(str(path))
     assert picture.shape[1] == 2 * 600 + 6
     half = picture.shape[1] // 2

@@ -19,8 +19,8 @@ from aerial_loc_env.errors import ConfigError
 
 
 def test_a_single_name_is_one_entry_not_its_letters() -> None:
-    g = make_grid("one", "dead-reckoning", "AerialLoc/Small-v1", seeds=1)
-    assert [a.name for a in g.agents] == ["dead-reckoning"] and [s.id for s in g.scenarios] == ["AerialLoc/Small-v1"]
+    g = make_grid("one", "dead-reckoning", "AerialLoc/Small-v2", seeds=1)
+    assert [a.name for a in g.agents] == ["dead-reckoning"] and [s.id for s in g.scenarios] == ["AerialLoc/Small-v2"]
     g = grid_from_dict({"agents": {"name": "mcl-ssd", "params": {"n_particles": 50}}, "scenarios": {"id": "S"},
                         "seeds": 1, "plots": "track", "paper": "table5"})
     assert [a.name for a in g.agents] == ["mcl-ssd"] and g.agents[0].params == {"n_particles": 50}
@@ -37,7 +37,7 @@ def test_a_value_that_is_no_list_is_refused_naming_the_key(key: str, value: obje
 
 
 def _grid(**kw) -> dict:
-    return {"name": "t", "agents": ["dead-reckoning"], "scenarios": ["AerialLoc/Small-v1"], "seeds": 1, **kw}
+    return {"name": "t", "agents": ["dead-reckoning"], "scenarios": ["AerialLoc/Small-v2"], "seeds": 1, **kw}
 
 
 def test_non_utf8_experiment_is_a_clear_error(tmp_path):
@@ -66,8 +66,8 @@ def test_experiment_values_that_are_not_numbers(kw, words):
 def test_relative_map_path_resolves_against_the_experiment_file(tmp_path, monkeypatch):
     (tmp_path / "maps").mkdir()
     exp = tmp_path / "exp.toml"
-    exp.write_text('name = "m"\nagents = ["dead-reckoning"]\nseeds = 1\n[[scenarios]]\nid = "AerialLoc/RealMap-v1"\n'
-                   'overrides = {"map.path" = "maps/tile.tif"}\n[[scenarios]]\nid = "AerialLoc/RealMap-v1"\n'
+    exp.write_text('name = "m"\nagents = ["dead-reckoning"]\nseeds = 1\n[[scenarios]]\nid = "AerialLoc/RealMap-v2"\n'
+                   'overrides = {"map.path" = "maps/tile.tif"}\n[[scenarios]]\nid = "AerialLoc/RealMap-v2"\n'
                    'label = "b"\noverrides = {map = {path = "maps/other.tif"}}\n')
     monkeypatch.chdir(REPO_ROOT)
     grid = load_grid(exp)
