@@ -329,8 +329,11 @@ def train_embedding(recipe: EmbeddingRecipe, out: str | Path | None = None, *, o
 
 
 def _pairs(spec: PairSpec, workers: int, cache_dir: str | Path | None) -> PairSet:
+    """The pairs of ``spec`` as the cache stores them (float16 luma), drawn or read from ``cache_dir``: a run with
+    a cache and one without train on the same numbers."""
     if cache_dir is None:
-        return make_pairs(spec, workers)
+        p = make_pairs(spec, workers)
+        return PairSet(*(a.astype(np.float16).astype(np.float32) for a in (p.frames, p.maps)), p.sizes, p.worlds)
     key = f"{spec.split}_{spec.n}_{spec.n_worlds}_{spec.seed}_{spec.city_size_m:g}_{spec.altitude_m[0]:g}-" \
           f"{spec.altitude_m[1]:g}_{spec.gsd_m:g}.npz"
     p = Path(cache_dir) / key
