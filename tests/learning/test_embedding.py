@@ -82,6 +82,7 @@ def test_existing_weights_are_never_overwritten(tmp_path) -> None:
 
 def test_the_shipped_recipe_parses_and_bad_keys_are_refused(tmp_path) -> None:
     r = emb.read_recipe("mcl-learned")
+    assert emb.is_embedding_recipe("mcl-learned") and not emb.is_embedding_recipe("ppo-local-registration")
     assert r.channels[-1] == learned.load_weights(learned.DEFAULT_WEIGHTS).encoder.channels
     assert emb.read_recipe("mcl-learned", steps=5).steps == 5
     bad = tmp_path / "bad.toml"
