@@ -102,9 +102,8 @@ def test_recipe_round_trips_through_its_dict() -> None:
 
 def test_shipped_recipes_are_valid() -> None:
     from aerial_loc_env.estimators.registry import list_specs
-    from aerial_loc_env.learning.train import recipe_of
-
     from aerial_loc_env.learning.embedding import read_recipe
+    from aerial_loc_env.learning.train import recipe_of
 
     specs = [s for s in list_specs() if "train" in s.extra]
     assert {s.name for s in specs} >= {"ppo-local-registration", "mcl-learned"}
