@@ -50,6 +50,7 @@ class PoseFix:
     up_m: float
     vel_enu_mps: tuple[float, float, float] = (0.0, 0.0, 0.0)
     vel_up_valid: bool = False                  # vel_enu_mps[2] measured? (else GPS_INPUT flags it ignored)
+    vel_horiz_valid: bool = True                # vel_enu_mps[:2] known? (else flagged ignored, speed_std_mps huge)
     yaw_rad: float | None = None                # ENU yaw, CCW from east (None: the estimator has none)
     cov_en_m2: tuple[float, float, float] = (1.0, 0.0, 1.0)
     v_std_m: float = 1.0

@@ -106,11 +106,17 @@ def heartbeat() -> mavlink2.MAVLink_heartbeat_message:
 
 def gps_input(fix: PoseFix, quality: FixQuality, unix_s: float, *, gps_id: int = 0,
               send_yaw: bool = False) -> mavlink2.MAVLink_gps_input_message:
-    """GPS_INPUT for ArduPilot's MAVLink GPS driver: horizontal velocity always filled; the vertical speed is
-    flagged as ignored unless the fix measured it (``vel_up_valid``): a vd of 0 sent as measured makes an EKF
-    fusing GPS vertical velocity (``EK3_SRC1_VELZ 3``) lag every climb."""
+    """GPS_INPUT for ArduPilot's MAVLink GPS driver, stamped ``unix_s``: the fix's capture time (the frame's), not
+    the send time (the sender resends a fix between frames with its own stamp). ArduPilot reads only the GPS week
+    time (``time_usec`` is not used), corrects it for transport jitter and fuses the fix that much in the past,
+    minus ``GPSn_DELAY_MS``. Ignore flags say what the fix does not carry: the vertical speed unless measured
+    (``vel_up_valid``: a vd of 0 sent as measured makes an EKF fusing GPS vertical velocity lag every climb),
+    the horizontal velocity while the bridge has none (``vel_horiz_valid``; its speed accuracy is then sent as
+    huge, since ArduPilot keeps the last velocity and accuracy of a field flagged ignored)."""
     week, week_ms = gps_week_ms(unix_s)
     ignore = 0 if fix.vel_up_valid else mavlink2.GPS_INPUT_IGNORE_FLAG_VEL_VERT
+    if not fix.vel_horiz_valid:
+        ignore |= mavlink2.GPS_INPUT_IGNORE_FLAG_VEL_HORIZ | mavlink2.GPS_INPUT_IGNORE_FLAG_VEL_VERT
     vn, ve, vd = enu_to_ned(*fix.vel_enu_mps)
     yaw_cdeg = heading_to_cdeg(yaw_enu_to_heading(fix.yaw_rad)) if send_yaw and fix.yaw_rad is not None else 0
     return mavlink2.MAVLink_gps_input_message(

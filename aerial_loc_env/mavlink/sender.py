@@ -27,7 +27,8 @@ from aerial_loc_env.mavlink.timebase import MonotonicClock, Schedule, SimClock, 
 
 ARDUPILOT_GPS_TIMEOUT_S = 0.245   # AP_GPS marks a MAVLink GPS unhealthy after gaps longer than this
 MIN_GPS_INPUT_RATE_HZ = 5.0
-MIN_HEX_KEY_LOOKALIKE = 32        # an all-hex passphrase this long is a mistyped 64-digit key, not a passphrase
+MIN_HEX_KEY_LOOKALIKE = 32
+MAX_CAPTURE_AGE_S = 2.0           # a fix's own time further back than this is not a capture time on the clock        # an all-hex passphrase this long is a mistyped 64-digit key, not a passphrase
 
 
 @dataclass(frozen=True)
@@ -225,6 +226,8 @@ class MavlinkSender:
         self._origin_now = False
         self._sim_time_mono_s: float | None = None
         self._skipped = 0
+        self._latency_seq: int | None = None
+        self._latencies_s: collections.deque[float] = collections.deque(maxlen=10_000)
         self.error: BaseException | None = None
 
     # -- lifecycle -------------------------------------------------------------------------------------------
@@ -346,10 +349,14 @@ class MavlinkSender:
         with self._lock:
             self._item, self._age_s, self._quality = item, age, quality
             self._lock.notify_all()
-        unix_s = self.clock.unix_s(now)
-        usec = int(unix_s * 1e6)
         cfg = self.config
         fix = item.fix
+        unix_s = self.capture_unix_s(item, now)
+        usec = int(unix_s * 1e6)
+        with self._lock:
+            if self._latency_seq != item.seq:        # the first send of each fix: capture to wire, clock seconds
+                self._latency_seq = item.seq
+                self._latencies_s.append(self.clock.unix_s(now) - unix_s)
         for kind in cfg.messages:
             if kind == "gps_input":
                 self._send(kind, msgs.gps_input(fix, quality, unix_s, gps_id=cfg.gps_id,
@@ -358,6 +365,28 @@ class MavlinkSender:
                 self._send(kind, msgs.vision_position_estimate(fix, quality, usec, item.reset_counter))
             elif kind == "odometry":
                 self._send(kind, msgs.odometry(fix, quality, usec, item.reset_counter, cfg.odometry_frames))
+
+    def capture_unix_s(self, item: SlotItem, now: float) -> float:
+        """The message stamp of the fix in ``item``: when its frame was captured, on the clock the messages run
+        on. Following a simulator whose clock is known, the fix's own time (the truth sample's, SITL's boot
+        seconds); otherwise (or when that time is not on the simulator's clock) when it was published. Never
+        later than now, never earlier than its publication minus ``MAX_CAPTURE_AGE_S``."""
+        now_unix = self.clock.unix_s(now)
+        if isinstance(self.clock, MonotonicClock):    # the wall clock: exact, and the same on every resend
+            published = self.clock.unix_s(item.received_mono_s)
+        else:
+            published = now_unix - max(0.0, now - item.received_mono_s) * self.config.sim_speedup
+        if self.following and isinstance(self.clock, SimClock) and self.clock.synced:
+            frame = self.clock.unix_of_sim_s(item.fix.time_s)
+            if published - MAX_CAPTURE_AGE_S <= frame <= now_unix:
+                return frame
+        return min(published, now_unix)
+
+    def latencies_s(self) -> tuple[float, ...]:
+        """Capture-to-send latency of each fix's first send (the clock's seconds: the simulator's when
+        following), the last ``maxlen`` of them."""
+        with self._lock:
+            return tuple(self._latencies_s)
 
     def _send(self, kind: str, message) -> None:
         signing = self._mav.signing
