@@ -27,8 +27,8 @@ from aerial_loc_env.mavlink.timebase import MonotonicClock, Schedule, SimClock, 
 
 ARDUPILOT_GPS_TIMEOUT_S = 0.245   # AP_GPS marks a MAVLink GPS unhealthy after gaps longer than this
 MIN_GPS_INPUT_RATE_HZ = 5.0
-MIN_HEX_KEY_LOOKALIKE = 32
-MAX_CAPTURE_AGE_S = 2.0           # a fix's own time further back than this is not a capture time on the clock        # an all-hex passphrase this long is a mistyped 64-digit key, not a passphrase
+MIN_HEX_KEY_LOOKALIKE = 32        # an all-hex passphrase this long is a mistyped 64-digit key, not a passphrase
+MAX_CAPTURE_AGE_S = 2.0           # a fix's own time further back than this is not a capture time on the clock
 
 
 @dataclass(frozen=True)
