@@ -13,7 +13,15 @@ from pathlib import Path
 
 from aerial_loc_env.errors import AerialLocError, ConfigError
 from aerial_loc_env.mavlink.cli import GROUND_AMSL_RANGE_M, SIM_SPEEDUP_RANGE, check_ground_amsl_m, check_sim_speedup
-from aerial_loc_env.sitl.missions import MISSIONS, check_scenario, check_wind, fly_mission, mission_spec
+from aerial_loc_env.sitl.missions import (
+    MISSIONS,
+    VISION_CUT_POINTS,
+    check_scenario,
+    check_vision_cut,
+    check_wind,
+    fly_mission,
+    mission_spec,
+)
 from aerial_loc_env.sitl.process import DEFAULT_SITL_DIR, VEHICLES, find_sitl
 from aerial_loc_env.sitl.report import check_out_dir, summary, write_outputs
 
@@ -41,6 +49,10 @@ def build_parser() -> argparse.ArgumentParser:
                     "keep pace")
     ap.add_argument("--wind", default=None, metavar="SPEED,FROM_DEG",
                     help="SITL's wind: speed m/s and the direction it blows from, degrees (e.g. 5,270); default none")
+    ap.add_argument("--vision-cut", default=None, metavar="AT,SECONDS",
+                    help=f"withhold the vision fix from the autopilot for SECONDS (SITL's) from AT: "
+                         f"{' or '.join(VISION_CUT_POINTS)} (a few seconds into the loop's first leg; the final) or "
+                         "a mission item's number, e.g. loop,20; default none")
     ap.add_argument("--out", default="sitl-run", help="a new folder (or one without a previous run's files) for "
                     "errors.csv, messages.txt, summary.json and track.png; nothing is overwritten")
     return ap
@@ -61,12 +73,28 @@ def parse_wind(text: str | None) -> tuple[float, float] | None:
                           f"the wind blows from in degrees, e.g. 5,270") from None
 
 
+def parse_vision_cut(text: str | None) -> tuple[str | int, float] | None:
+    """``--vision-cut AT,SECONDS`` as a checked pair, None without the option."""
+    if text is None:
+        return None
+    parts = text.split(",")
+    try:
+        cut = (parts[0].strip(), float(parts[1])) if len(parts) == 2 else None
+    except ValueError:
+        cut = None
+    if cut is None:
+        raise ConfigError(f"--vision-cut {text!r}: give AT,SECONDS with AT one of {', '.join(VISION_CUT_POINTS)} "
+                          "or a mission item's number, e.g. loop,20")
+    return check_vision_cut(cut)
+
+
 def check_options(args: argparse.Namespace) -> str:
     """Every option checked before anything long starts; returns the scenario id to fly."""
     mission_spec(args.vehicle, args.mission)
     check_sim_speedup(args.speedup, "--speedup")
     check_ground_amsl_m(args.ground_amsl_m)
     parse_wind(args.wind)
+    parse_vision_cut(args.vision_cut)
     check_out_dir(Path(args.out))
     find_sitl(args.vehicle, args.sitl_bin)
     return check_scenario(args.scenario or DEFAULT_SCENARIOS[args.vehicle])
@@ -77,7 +105,7 @@ def main(argv: list[str] | None = None) -> int:
     scenario = check_options(args)
     record = fly_mission(scenario, args.agent, ground_amsl_m=args.ground_amsl_m, vehicle=args.vehicle,
                          mission=args.mission, speedup=args.speedup, sitl_dir=args.sitl_bin, log=sys.stdout,
-                         wind=parse_wind(args.wind))
+                         wind=parse_wind(args.wind), vision_cut=parse_vision_cut(args.vision_cut))
     paths = write_outputs(record, Path(args.out))
     print(json.dumps(summary(record), indent=1))
     print("wrote " + ", ".join(str(p) for p in paths))
