@@ -57,6 +57,8 @@ class PoseFix:
     yaw_std_rad: float | None = None
     speed_std_mps: float = 1.0
     status: str = "ok"
+    withheld: bool = False                      # cut from the position feed (GPS_INPUT, VISION, ODOMETRY): no fix
+    #                                             there; a low-rate external position estimate may still carry it
 
     def __post_init__(self) -> None:
         if self.status not in STATUSES:
@@ -129,7 +131,7 @@ class FixQuality:
 
 def assess(fix: PoseFix | None, age_s: float, policy: FixPolicy) -> FixQuality:
     """Quality of ``fix`` held ``age_s``: fresh/ok -> 3D fix; stale/degraded -> inflated; lost -> none."""
-    if fix is None or fix.status == "lost" or age_s > policy.lost_after_s:
+    if fix is None or fix.status == "lost" or fix.withheld or age_s > policy.lost_after_s:
         return FixQuality(False, FIX_NONE, 0, LOST_H_ACC_M, LOST_H_ACC_M, 99.0, 99.99, 99.99, math.inf, -1)
     factor = 1.0 if fix.status == "ok" else policy.degraded_factor
     growth_m = policy.stale_growth_mps * max(0.0, age_s - policy.stale_after_s)

@@ -55,6 +55,7 @@ class SenderConfig:
     # age and the truth's times run on the simulator's clock (SYSTEM_TIME), see timebase.SimClock
     sim_speedup: float = field(default=1.0, metadata=rng(0.1, 20.0))
     allow_slow_gps: bool = False                                      # permit GPS_INPUT below 5 Hz (replay)
+    external_position_hz: float = field(default=1.0, metadata=rng(0.01, 50.0))  # the low-rate global fix
 
     def validate(self, where: str) -> None:
         bad = [m for m in self.messages if m not in msgs.MESSAGE_KINDS]
@@ -227,6 +228,8 @@ class MavlinkSender:
         self._sim_time_mono_s: float | None = None
         self._skipped = 0
         self._latency_seq: int | None = None
+        self._acks: collections.Counter[int] = collections.Counter()
+        self._extpos: Schedule | None = None
         self._latencies_s: collections.deque[float] = collections.deque(maxlen=10_000)
         self.error: BaseException | None = None
 
@@ -306,6 +309,7 @@ class MavlinkSender:
         origin_early = Schedule(1.0 / min(1.0, cfg.origin_period_s), t0) if self.origin is not None else None
         origin = Schedule(1.0 / cfg.origin_period_s, t0) if self.origin is not None else None
         request = Schedule(0.5, t0) if cfg.request_vehicle_hz > 0 else None
+        self._extpos = Schedule(cfg.external_position_hz, t0) if "external_position" in cfg.messages else None
         while not self._stop.is_set():
             now = time.monotonic()
             if beat.due(now):
@@ -329,7 +333,10 @@ class MavlinkSender:
                 with self._lock:
                     self._skipped = main.skipped
             self._receive()
-            schedules = [s for s in (main, beat, request) if s is not None]
+            if self._extpos is not None and self._extpos.due(now):
+                self._external_position(now)
+                self._extpos.advance(now)
+            schedules = [s for s in (main, beat, request, self._extpos) if s is not None]
             if origin is not None:
                 schedules.append(origin if self.autopilot_sysid is not None else origin_early)
             wait = min(s.deadline_s for s in schedules) - time.monotonic()
@@ -365,6 +372,28 @@ class MavlinkSender:
                 self._send(kind, msgs.vision_position_estimate(fix, quality, usec, item.reset_counter))
             elif kind == "odometry":
                 self._send(kind, msgs.odometry(fix, quality, usec, item.reset_counter, cfg.odometry_frames))
+
+    def _external_position(self, now: float) -> None:
+        """MAV_CMD_EXTERNAL_POSITION_ESTIMATE of the latest fix, withheld from the position feed or not (it is the
+        low-rate fix for an autopilot dead reckoning), if it is usable: sent time on the message clock since
+        this sender started, processing time = capture to send."""
+        item = self.slot.get()
+        if item is None:
+            return
+        fix = dataclasses.replace(item.fix, withheld=False)
+        age = (now - item.received_mono_s) * (self.config.sim_speedup if self.following else 1.0)
+        quality = assess(fix, age, self.policy)
+        if not quality.usable:
+            return
+        sent = self.clock.unix_s(now)
+        target = self.config.target_system or (self.autopilot_sysid or 1)
+        self._send("external_position", msgs.external_position_estimate(
+            fix, quality, sent - self.clock.anchor_unix_s, sent - self.capture_unix_s(item, now), target, 1))
+
+    def acks(self) -> dict[int, int]:
+        """COMMAND_ACK results received for MAV_CMD_EXTERNAL_POSITION_ESTIMATE: result -> count."""
+        with self._lock:
+            return dict(self._acks)
 
     def capture_unix_s(self, item: SlotItem, now: float) -> float:
         """The message stamp of the fix in ``item``: when its frame was captured, on the clock the messages run
@@ -436,11 +465,14 @@ class MavlinkSender:
             elif name == "SYSTEM_TIME" and self.following and m.get_srcComponent() == 1:
                 self.clock.observe(m.time_boot_ms / 1000.0, now)     # the simulator's clock
                 self._sim_time_mono_s = now
+            elif name == "COMMAND_ACK" and m.command == mavlink2.MAV_CMD_EXTERNAL_POSITION_ESTIMATE:
+                with self._lock:
+                    self._acks[int(m.result)] += 1
             elif name == "SIM_STATE":
                 state = vehicle_state(m, now)
                 if state is not None:
                     if self.following and self.clock.synced:
-                        state = dataclasses.replace(state, sim_time_s=self.clock.sim_s(now))
+                        state = dataclasses.replace(state, sim_time_s=self.clock.sim_at_s(now))
                     with self._lock:
                         self._vehicle = state
 

@@ -53,6 +53,8 @@ def build_parser() -> argparse.ArgumentParser:
                     help=f"withhold the vision fix from the autopilot for SECONDS (SITL's) from AT: "
                          f"{' or '.join(VISION_CUT_POINTS)} (a few seconds into the loop's first leg; the final) or "
                          "a mission item's number, e.g. loop,20; default none")
+    ap.add_argument("--external-position", action="store_true",
+                    help="also send MAV_CMD_EXTERNAL_POSITION_ESTIMATE at 1 Hz (SITL's), also through a vision cut")
     ap.add_argument("--out", default="sitl-run", help="a new folder (or one without a previous run's files) for "
                     "errors.csv, messages.txt, summary.json and track.png; nothing is overwritten")
     return ap
@@ -105,7 +107,8 @@ def main(argv: list[str] | None = None) -> int:
     scenario = check_options(args)
     record = fly_mission(scenario, args.agent, ground_amsl_m=args.ground_amsl_m, vehicle=args.vehicle,
                          mission=args.mission, speedup=args.speedup, sitl_dir=args.sitl_bin, log=sys.stdout,
-                         wind=parse_wind(args.wind), vision_cut=parse_vision_cut(args.vision_cut))
+                         wind=parse_wind(args.wind), vision_cut=parse_vision_cut(args.vision_cut),
+                         external_position=args.external_position)
     paths = write_outputs(record, Path(args.out))
     print(json.dumps(summary(record), indent=1))
     print("wrote " + ", ".join(str(p) for p in paths))

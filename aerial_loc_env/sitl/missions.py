@@ -257,7 +257,8 @@ def mission_items(vehicle: str, database: Any, lat0: float, lon0: float, leg_m: 
 def fly_mission(scenario: str, agent: str, *, ground_amsl_m: float, vehicle: str = "copter",
                 mission: str = "gps-input", leg_m: float = 80.0, altitude_m: float | None = None,
                 speedup: float = 1.0, sitl_dir=None, seed: int = 0, timeout_s: float = 300.0, log=None,
-                wind: tuple[float, float] | None = None, vision_cut: tuple[str | int, float] | None = None) -> dict:
+                wind: tuple[float, float] | None = None, vision_cut: tuple[str | int, float] | None = None,
+                external_position: bool = False) -> dict:
     """ArduPilot SITL on the vision fix, the camera following SITL's truth. Copter (``MISSIONS``: GPS_INPUT,
     ExternalNav, or SITL's GPS then denied): arm in AUTO on the pad fix, take off, a leg east and back, RTL and
     land. Plane (``PLANE_MISSIONS``: GPS_INPUT, or SITL's GPS then denied): arm in AUTO (on the pad fix, or on
@@ -269,6 +270,8 @@ def fly_mission(scenario: str, agent: str, *, ground_amsl_m: float, vehicle: str
     SITL's wind (speed m/s, direction it blows from, degrees; SIM_WIND_SPD / SIM_WIND_DIR), none by default.
     ``vision_cut`` (where, seconds; ``check_vision_cut``): the fix is withheld from the autopilot for that long
     from that point (the agent keeps its frames), and the record holds the autopilot's reaction from its log.
+    ``external_position``: the bridge also sends MAV_CMD_EXTERNAL_POSITION_ESTIMATE at 1 Hz (SITL's), through a
+    cut too (the low-rate global fix for an autopilot dead reckoning); the record holds the autopilot's answers.
 
     Every input is checked before SITL starts; a death of SITL or of the bridge during the flight is an error
     at once, naming it."""
@@ -325,7 +328,8 @@ def fly_mission(scenario: str, agent: str, *, ground_amsl_m: float, vehicle: str
         args = mav_cli.build_parser().parse_args([
             "--scenario", scenario, "--agent", agent, "--follow", "--seed", str(seed),
             "--ground-amsl-m", str(ground_amsl_m), "--connect", f"udpin:127.0.0.1:{sitl.bridge_port}",
-            "--message", spec.message, "--rate-hz", str(10.0 * speedup), "--sim-speedup", str(speedup),
+            "--message", spec.message + (",external_position" if external_position else ""),
+            "--external-position-hz", str(speedup), "--rate-hz", str(10.0 * speedup), "--sim-speedup", str(speedup),
             "--gps-id", str(spec.gps_id),
             *(["--pad-radius-m", "5"] if vehicle == "plane" else []),
             *([] if log is not None else ["--quiet"])])
@@ -436,6 +440,10 @@ def fly_mission(scenario: str, agent: str, *, ground_amsl_m: float, vehicle: str
               "gps_deltas_ms": [(t, d) for t, d in gps if t_fix <= t <= t_end],
               # the fixes' capture-to-send latency (each fix's first send), SITL seconds
               "fix_latency_s": list(result["sender"].latencies_s()) if "sender" in result else [],
+              # MAV_CMD_EXTERNAL_POSITION_ESTIMATE: how many sent, and the autopilot's COMMAND_ACK results
+              "external_position": ({"sent": result["sender"].stats().sent.get("external_position", 0),
+                                     "acks": result["sender"].acks()} if external_position and "sender" in result
+                                    else None),
               "steps": flight(mapped(steps)),
               "ground_amsl_m": ground_amsl_m, "camera_min_alt_m": camera_min_alt_m, "speedup": speedup,
               # SITL seconds per real second from the fix to the end: SITL keeps its --speedup or falls behind

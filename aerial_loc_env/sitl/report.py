@@ -268,6 +268,8 @@ def summary(record: dict) -> dict:
     if lat.size:
         out["fix_latency_ms"] = {"min": float(lat.min() * 1e3), "median": float(np.median(lat) * 1e3),
                                  "p95": float(np.percentile(lat, 95) * 1e3)}
+    if record.get("external_position"):
+        out["external_position"] = record["external_position"]
     if record.get("vision_cut"):
         out["vision_cut"] = {"at": record["vision_cut"][0], "seconds": record["vision_cut"][1],
                              **failsafe_timeline(record)}

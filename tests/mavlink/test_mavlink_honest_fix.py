@@ -3,6 +3,7 @@ velocity filter (not a constant), and message stamps at the frame's capture time
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -106,3 +107,26 @@ def test_messages_are_stamped_at_the_frames_capture_time_on_the_simulators_clock
     published = wall.clock.monotonic()
     later = published + 0.08
     assert wall.capture_unix_s(_item(5.0, published), later) == pytest.approx(wall.clock.unix_s(published))
+
+
+def test_external_position_estimate_is_a_global_command_without_altitude():
+    """MAV_CMD_EXTERNAL_POSITION_ESTIMATE (43003) as COMMAND_INT in the global frame: lat/lon degE7, no altitude
+    (NaN: ArduPilot accepts only that), param1 the send time, param2 the processing time (capture to send, so
+    the autopilot dates the fix that much earlier), param3 the horizontal accuracy; it survives encoding and
+    decoding; a fix withheld from the position feed is no GPS fix (GPS_INPUT fix_type 1) but the command still
+    carries it."""
+    from pymavlink.dialects.v20 import common as mavlink2
+
+    fix = PoseFix(time_s=0.0, lat_deg=47.1234567, lon_deg=8.7654321, alt_amsl_m=600.0, east_m=0.0, north_m=0.0,
+                  up_m=200.0, cov_en_m2=(4.0, 0.0, 9.0), withheld=True)
+    assert not assess(fix, 0.0, FixPolicy()).usable
+    assert msgs.gps_input(fix, assess(fix, 0.0, FixPolicy()), 1.7e9).fix_type == 1
+    quality = assess(dataclasses.replace(fix, withheld=False), 0.0, FixPolicy())
+    cmd = msgs.external_position_estimate(fix, quality, 12.5, 0.08, target_system=1)
+    mav = mavlink2.MAVLink(None, srcSystem=1, srcComponent=197)
+    decoded = mavlink2.MAVLink(None).parse_buffer(cmd.pack(mav))[0]
+    assert decoded.command == mavlink2.MAV_CMD_EXTERNAL_POSITION_ESTIMATE == 43003
+    assert decoded.frame == mavlink2.MAV_FRAME_GLOBAL and math.isnan(decoded.z) and math.isnan(decoded.param4)
+    assert (decoded.x, decoded.y) == (471234567, 87654321)
+    assert decoded.param1 == pytest.approx(12.5) and decoded.param2 == pytest.approx(0.08, rel=1e-6)
+    assert decoded.param3 == pytest.approx(math.sqrt(13.0), rel=1e-6)

@@ -50,7 +50,7 @@ local function update()
     lost_since = lost_since or now
     if not acting and not reported and now - lost_since >= LOSS_MS and vehicle:get_mode() == MODE_AUTO then
       if on_landing_sequence() then
-        gcs:send_text(SEVERITY_WARNING, "Vision failsafe: fix lost on the landing, landing on")
+        gcs:send_text(SEVERITY_WARNING, "Vision failsafe: fix lost landing, landing on")
         reported = true
       elseif mission:get_current_nav_id() == NAV_WAYPOINT then
         if vehicle:set_mode(MODE_LOITER) then
