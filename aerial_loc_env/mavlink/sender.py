@@ -28,6 +28,7 @@ from aerial_loc_env.mavlink.timebase import MonotonicClock, Schedule, SimClock, 
 ARDUPILOT_GPS_TIMEOUT_S = 0.245   # AP_GPS marks a MAVLink GPS unhealthy after gaps longer than this
 MIN_GPS_INPUT_RATE_HZ = 5.0
 MIN_HEX_KEY_LOOKALIKE = 32        # an all-hex passphrase this long is a mistyped 64-digit key, not a passphrase
+RECEIVE_POLL_S = 0.01            # following a simulator: its messages are read at least this often
 MAX_CAPTURE_AGE_S = 2.0           # a fix's own time further back than this is not a capture time on the clock
 
 
@@ -340,6 +341,8 @@ class MavlinkSender:
             if origin is not None:
                 schedules.append(origin if self.autopilot_sysid is not None else origin_early)
             wait = min(s.deadline_s for s in schedules) - time.monotonic()
+            if self.following:           # read the simulator's truth as it arrives, not once per send tick
+                wait = min(wait, RECEIVE_POLL_S)
             if wait > 0 and not self._origin_now:
                 self._stop.wait(wait)
 
@@ -454,7 +457,12 @@ class MavlinkSender:
             except mavlink2.MAVError:
                 continue
         now = time.monotonic()
-        for m in received:
+        # the simulator's time of each truth sample: SITL sends SIM_STATE and SYSTEM_TIME at one interval, in one
+        # burst, so the SYSTEM_TIME nearest it in the batch dates it (its arrival would date it up to a read
+        # period late)
+        boots = [(i, m.time_boot_ms / 1000.0) for i, m in enumerate(received)
+                 if m.get_type() == "SYSTEM_TIME" and m.get_srcComponent() == 1]
+        for i, m in enumerate(received):
             name = m.get_type()
             if name == "HEARTBEAT" and m.autopilot != mavlink2.MAV_AUTOPILOT_INVALID:
                 with self._lock:
@@ -471,7 +479,10 @@ class MavlinkSender:
             elif name == "SIM_STATE":
                 state = vehicle_state(m, now)
                 if state is not None:
-                    if self.following and self.clock.synced:
+                    if self.following and boots:
+                        sim_s = min(boots, key=lambda b: abs(b[0] - i))[1]
+                        state = dataclasses.replace(state, sim_time_s=sim_s)
+                    elif self.following and self.clock.synced:
                         state = dataclasses.replace(state, sim_time_s=self.clock.sim_at_s(now))
                     with self._lock:
                         self._vehicle = state
