@@ -169,10 +169,25 @@ def check_wind(wind: tuple[float, float] | None) -> tuple[float, float] | None:
     return float(wind[0]), float(wind[1])
 
 
+#: the bridge's least capture-to-send time (real seconds: rendering and the agent at their fastest; measured
+#: 12 ms of SITL's clock at speedup 2). ArduPilot dates a GPS_INPUT fix at its stamp (the frame's capture) plus
+#: the least transport delay its jitter correction has seen, then GPSn_DELAY_MS earlier: set to this, the EKF
+#: fuses each fix at its capture time (its default for a MAVLink GPS, 200 ms, fused them that much too early)
+BRIDGE_MIN_LATENCY_S = 0.006
+
+
+def gps_delay_params(gps_id: int, speedup: float) -> dict[str, int]:
+    """GPSn_DELAY_MS for the vision GPS (instance ``gps_id``) at SITL's ``speedup``: the bridge's least latency
+    on SITL's clock, at least 1 ms (0 would select ArduPilot's default)."""
+    return {f"GPS{gps_id + 1}_DELAY_MS": max(1, round(1000.0 * BRIDGE_MIN_LATENCY_S * speedup))}
+
+
 #: where a vision cut can start: a named point of the flight, or a mission item's number (when it starts)
 VISION_CUT_POINTS = ("loop", "approach")
 #: the loop's cut starts this long (SITL seconds) after its item started: past the corner's turn, on a leg
 CUT_LEG_DELAY_S = {"copter": 2.0, "plane": 5.0}
+#: after a cut, the EKF's return to the fix (its reset to the first fixes back) is counted as the failsafe's
+CUT_RECOVERY_S = 10.0
 
 
 def check_vision_cut(cut: tuple[str | int, float] | None) -> tuple[str | int, float] | None:
@@ -323,7 +338,8 @@ def fly_mission(scenario: str, agent: str, *, ground_amsl_m: float, vehicle: str
 
     # LOG_DISARMED 1: the dataflash log (SITL's own clock: truth, EKF, GPS update intervals) from boot on
     sim_wind = {} if wind is None else {"SIM_WIND_SPD": float(wind[0]), "SIM_WIND_DIR": float(wind[1])}
-    with SitlProcess(vehicle, home, {**spec.params, **sim_wind, "LOG_DISARMED": 1}, speedup=speedup,
+    delay = gps_delay_params(spec.gps_id, speedup) if spec.message == "gps_input" else {}
+    with SitlProcess(vehicle, home, {**spec.params, **delay, **sim_wind, "LOG_DISARMED": 1}, speedup=speedup,
                      sitl_dir=sitl_dir, scripts=PLANE_SCRIPTS if vehicle == "plane" else ()) as sitl:
         args = mav_cli.build_parser().parse_args([
             "--scenario", scenario, "--agent", agent, "--follow", "--seed", str(seed),
@@ -457,8 +473,17 @@ def fly_mission(scenario: str, agent: str, *, ground_amsl_m: float, vehicle: str
     record["loop_start"] = loop_start
     starts = {k: next((t for t, x in record["texts"] if x.startswith(f"Mission: {k}")), None)
               for k in (loop_start, loop_end)}
+    # a vision cut: from the first fix withheld to CUT_RECOVERY_S after the first fix back is the failsafe's
+    # (its own figures: report.failsafe_timeline), not the loop's tracking
+    cut_steps = [st[0] for st in record["steps"] if st[1] == "cut"]
+    window = (math.inf, -math.inf)
+    if cut_steps:
+        back = next((st[0] for st in record["steps"] if st[1] == "camera" and st[0] > cut_steps[-1]), cut_steps[-1])
+        window = (cut_steps[0], back + CUT_RECOVERY_S)
+    record["cut_window"] = window if cut_steps else None
     if starts[loop_start] is not None and starts[loop_end] is not None:
-        legs = lambda rows: [r for r in rows if starts[loop_start] <= r[0] <= starts[loop_end]]   # noqa: E731
+        legs = lambda rows: [r for r in rows if starts[loop_start] <= r[0] <= starts[loop_end]     # noqa: E731
+                             and not window[0] <= r[0] <= window[1]]
         record["leg_errors_m"] = horizontal_errors_m(legs(record["truth"]), legs(record["ekf"]))
         record["leg_flags"] = legs(record["ekf_flags"])
     else:

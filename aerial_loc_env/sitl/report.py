@@ -260,7 +260,9 @@ def summary(record: dict) -> dict:
     deltas = record.get("gps_deltas_ms", [])
     if deltas:     # ArduPilot's own health rule on its GPS update intervals (capture-stamped fixes: resends
         #            carry the frame's stamp, so the intervals are 0 between resends and a frame's between frames)
-        out["gps_unhealthy"] = len(gps_unhealthy(deltas))
+        bad = gps_unhealthy(deltas)
+        out["gps_unhealthy"] = len(bad)
+        out["gps_unhealthy_first"] = [(round(t - deltas[0][0], 2), why) for t, why in bad[:5]]
         positive = [d for _, d in deltas if d > 0]
         out["gps_fix_interval_ms"] = {"median": float(np.median(positive)), "max": float(max(positive))} \
             if positive else {}
