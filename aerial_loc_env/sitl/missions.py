@@ -169,8 +169,8 @@ def check_wind(wind: tuple[float, float] | None) -> tuple[float, float] | None:
     return float(wind[0]), float(wind[1])
 
 
-#: the bridge's least capture-to-send time (real seconds: rendering and the agent at their fastest; measured
-#: 12 ms of SITL's clock at speedup 2). ArduPilot dates a GPS_INPUT fix at its stamp (the frame's capture) plus
+#: the bridge's least capture-to-send time (real seconds: rendering and the agent at their fastest; the figure
+#: is in docs/mavlink.md, Latency). ArduPilot dates a GPS_INPUT fix at its stamp (the frame's capture) plus
 #: the least transport delay its jitter correction has seen, then GPSn_DELAY_MS earlier: set to this, the EKF
 #: fuses each fix at its capture time (its default for a MAVLink GPS, 200 ms, fused them that much too early)
 BRIDGE_MIN_LATENCY_S = 0.006
