@@ -47,8 +47,9 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--speedup", type=float, default=1.0, help=f"SITL's --speedup, in [{lo:g}, {hi:g}]; the camera "
                     "follows SITL's clock (frame times and odometry scaled by it): keep it where SITL and the agent "
                     "keep pace")
-    ap.add_argument("--wind", default=None, metavar="SPEED,FROM_DEG",
-                    help="SITL's wind: speed m/s and the direction it blows from, degrees (e.g. 5,270); default none")
+    ap.add_argument("--wind", default=None, metavar="SPEED,FROM_DEG[,GUST]",
+                    help="SITL's wind: speed m/s, the direction it blows from, degrees, and the gusts' std m/s "
+                         "(SIM_WIND_TURB), e.g. 5,270 or 8,270,1.5; default none")
     ap.add_argument("--vision-cut", default=None, metavar="AT,SECONDS",
                     help=f"withhold the vision fix from the autopilot for SECONDS (SITL's) from AT: "
                          f"{' or '.join(VISION_CUT_POINTS)} (a few seconds into the loop's first leg; the final) or "
@@ -60,8 +61,8 @@ def build_parser() -> argparse.ArgumentParser:
     return ap
 
 
-def parse_wind(text: str | None) -> tuple[float, float] | None:
-    """``--wind SPEED,FROM_DEG`` as a checked pair, None without the option."""
+def parse_wind(text: str | None) -> tuple[float, ...] | None:
+    """``--wind SPEED,FROM_DEG[,GUST]`` as a checked tuple, None without the option."""
     if text is None:
         return None
     try:
@@ -71,8 +72,9 @@ def parse_wind(text: str | None) -> tuple[float, float] | None:
     try:
         return check_wind(wind)
     except ConfigError:
-        raise ConfigError(f"--wind {text!r}: give SPEED,FROM_DEG with the speed in 0..30 m/s and the direction "
-                          f"the wind blows from in degrees, e.g. 5,270") from None
+        raise ConfigError(f"--wind {text!r}: give SPEED,FROM_DEG[,GUST] with the speed in 0..30 m/s, the direction "
+                          f"the wind blows from in degrees and the gusts' std in 0..10 m/s, e.g. 5,270 or 8,270,1.5"
+                          ) from None
 
 
 def parse_vision_cut(text: str | None) -> tuple[str | int, float] | None:

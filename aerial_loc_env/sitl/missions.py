@@ -159,14 +159,17 @@ def check_map_fits(scenario: str, vehicle: str, database: Any, leg_m: float) -> 
                           f"e.g. AerialLoc/PaperShadows-v1 (1200 x 1400 m)")
 
 
-def check_wind(wind: tuple[float, float] | None) -> tuple[float, float] | None:
-    """SITL's wind (speed m/s in [0, 30], the direction it blows from, degrees), or a clear error."""
+def check_wind(wind: tuple[float, ...] | None) -> tuple[float, ...] | None:
+    """SITL's wind: (speed m/s in [0, 30], the direction it blows from, degrees[, gust std m/s in [0, 10]]: SITL's
+    turbulence, SIM_WIND_TURB), or a clear error."""
     if wind is None:
         return None
-    if len(wind) != 2 or not 0 <= wind[0] <= 30 or not math.isfinite(wind[1]):
-        raise ConfigError(f"--wind {wind!r}: give SPEED,FROM_DEG with the speed in 0..30 m/s and the direction the "
-                          f"wind blows from in degrees, e.g. 5,270")
-    return float(wind[0]), float(wind[1])
+    ok = len(wind) in (2, 3) and all(math.isfinite(v) for v in wind) and 0 <= wind[0] <= 30 \
+        and (len(wind) == 2 or 0 <= wind[2] <= 10)
+    if not ok:
+        raise ConfigError(f"--wind {wind!r}: give SPEED,FROM_DEG[,GUST] with the speed in 0..30 m/s, the direction "
+                          f"the wind blows from in degrees and the gusts' std in 0..10 m/s, e.g. 5,270 or 8,270,1.5")
+    return tuple(float(v) for v in wind)
 
 
 #: the bridge's least capture-to-send time (real seconds: rendering and the agent at their fastest; the figure
@@ -272,7 +275,7 @@ def mission_items(vehicle: str, database: Any, lat0: float, lon0: float, leg_m: 
 def fly_mission(scenario: str, agent: str, *, ground_amsl_m: float, vehicle: str = "copter",
                 mission: str = "gps-input", leg_m: float = 80.0, altitude_m: float | None = None,
                 speedup: float = 1.0, sitl_dir=None, seed: int = 0, timeout_s: float = 300.0, log=None,
-                wind: tuple[float, float] | None = None, vision_cut: tuple[str | int, float] | None = None,
+                wind: tuple[float, ...] | None = None, vision_cut: tuple[str | int, float] | None = None,
                 external_position: bool = False) -> dict:
     """ArduPilot SITL on the vision fix, the camera following SITL's truth. Copter (``MISSIONS``: GPS_INPUT,
     ExternalNav, or SITL's GPS then denied): arm in AUTO on the pad fix, take off, a leg east and back, RTL and
@@ -282,7 +285,8 @@ def fly_mission(scenario: str, agent: str, *, ground_amsl_m: float, vehicle: str
     dead reckoning), touchdown and disarm. Returns the record, every time on SITL's clock (seconds since its
     boot): truth and EKF from SITL's dataflash log, the monitor's events, the bridge's steps (the estimator's
     own error, pad/camera/lost), ArduPilot's GPS update intervals, and for the plane the touchdown. ``wind``:
-    SITL's wind (speed m/s, direction it blows from, degrees; SIM_WIND_SPD / SIM_WIND_DIR), none by default.
+    SITL's wind (speed m/s, direction it blows from, degrees[, gusts' std m/s]; SIM_WIND_SPD / SIM_WIND_DIR /
+    SIM_WIND_TURB), none by default.
     ``vision_cut`` (where, seconds; ``check_vision_cut``): the fix is withheld from the autopilot for that long
     from that point (the agent keeps its frames), and the record holds the autopilot's reaction from its log.
     ``external_position``: the bridge also sends MAV_CMD_EXTERNAL_POSITION_ESTIMATE at 1 Hz (SITL's), through a
@@ -337,7 +341,8 @@ def fly_mission(scenario: str, agent: str, *, ground_amsl_m: float, vehicle: str
                       float(step.altitude_m)))
 
     # LOG_DISARMED 1: the dataflash log (SITL's own clock: truth, EKF, GPS update intervals) from boot on
-    sim_wind = {} if wind is None else {"SIM_WIND_SPD": float(wind[0]), "SIM_WIND_DIR": float(wind[1])}
+    sim_wind = {} if wind is None else {"SIM_WIND_SPD": wind[0], "SIM_WIND_DIR": wind[1],
+                                        "SIM_WIND_TURB": wind[2] if len(wind) > 2 else 0.0}
     delay = gps_delay_params(spec.gps_id, speedup) if spec.message == "gps_input" else {}
     with SitlProcess(vehicle, home, {**spec.params, **delay, **sim_wind, "LOG_DISARMED": 1}, speedup=speedup,
                      sitl_dir=sitl_dir, scripts=PLANE_SCRIPTS if vehicle == "plane" else ()) as sitl:

@@ -101,3 +101,11 @@ def test_summary_reports_the_cut_and_the_latency():
     s = summary(record)
     assert s["vision_cut"] == {"at": "loop", "seconds": 20.0} and s["gps_unhealthy"] == 0
     assert s["fix_latency_ms"]["median"] == pytest.approx(20.0) and s["external_position"]["acks"] == {0: 3, 4: 2}
+
+
+def test_wind_with_gusts_sets_sitl_turbulence():
+    """--wind SPEED,FROM_DEG[,GUST]: the gusts' std goes to SIM_WIND_TURB (SITL's turbulence, m/s); two values
+    keep the steady wind of before."""
+    from aerial_loc_env.sitl.cli import parse_wind
+
+    assert parse_wind("8,270,1.5") == (8.0, 270.0, 1.5) and parse_wind("5,90") == (5.0, 90.0)
