@@ -175,13 +175,13 @@ def check_wind(wind: tuple[float, ...] | None) -> tuple[float, ...] | None:
 #: the bridge's least capture-to-send time (real seconds: rendering and the agent at their fastest; the figure
 #: is in docs/mavlink.md, Latency). ArduPilot dates a GPS_INPUT fix at its stamp (the frame's capture) plus
 #: the least transport delay its jitter correction has seen, then GPSn_DELAY_MS earlier: set to this, the EKF
-#: fuses each fix at its capture time (its default for a MAVLink GPS, 200 ms, fused them that much too early)
+#: fuses each fix at its capture time (its default for a MAVLink GPS, a fifth of a second, fused them too early)
 BRIDGE_MIN_LATENCY_S = 0.006
 
 
 def gps_delay_params(gps_id: int, speedup: float) -> dict[str, int]:
     """GPSn_DELAY_MS for the vision GPS (instance ``gps_id``) at SITL's ``speedup``: the bridge's least latency
-    on SITL's clock, at least 1 ms (0 would select ArduPilot's default)."""
+    on SITL's clock, at least one millisecond (0 would select ArduPilot's default)."""
     return {f"GPS{gps_id + 1}_DELAY_MS": max(1, round(1000.0 * BRIDGE_MIN_LATENCY_S * speedup))}
 
 
