@@ -370,7 +370,11 @@ def write_outputs(record: dict, out_dir: Path) -> list[Path]:
             ax.plot(*en(record["estimates"]), "b.", ms=2, label="estimates (camera)")
         ax.set_xlabel("east of take-off, m")
         ax.set_ylabel("north, m")
-        ax.set_title(f"{record.get('vehicle', 'copter')}, {record.get('mission', 'gps-input')}: track", fontsize=9)
+        wind = record.get("wind")
+        blows = "" if not wind else f", wind {wind[0]:g} m/s from {wind[1]:g} deg" + (
+            f" gusting {wind[2]:g}" if len(wind) > 2 and wind[2] else "")
+        ax.set_title(f"{record.get('vehicle', 'copter')}, {record.get('mission', 'gps-input')}{blows}: track",
+                     fontsize=9)
         ax.legend(fontsize=7)
         timed = record.get("timed_errors", [])
         ax2.plot([t - t0 for t, _ in timed], [e for _, e in timed], "r-", lw=1, label="EKF vs truth")
@@ -379,6 +383,11 @@ def write_outputs(record: dict, out_dir: Path) -> list[Path]:
             ax2.plot([s[0] - t0 for s in cam], [s[2] for s in cam], "b.", ms=2, label="estimator vs truth")
         if record.get("t_denied") is not None:
             ax2.axvline(record["t_denied"] - t0, color="k", lw=0.8, ls=":", label="GNSS off")
+        cut = [st[0] for st in record.get("steps", []) if st[1] == "cut"]
+        if cut:                         # the vision cut: the fix withheld from the autopilot
+            ax2.axvspan(cut[0] - t0, cut[-1] - t0, color="orange", alpha=0.25, label="vision cut")
+            ax.plot(*en([r for r in truth if cut[0] <= r[0] <= cut[-1]]), "-", color="orange", lw=2.5,
+                    label="truth during the cut")
         ax2.set_yscale("log")
         ax2.set_xlabel("time since arming, s")
         ax2.set_ylabel("horizontal error, m")
