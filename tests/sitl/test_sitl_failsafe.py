@@ -109,3 +109,20 @@ def test_wind_with_gusts_sets_sitl_turbulence():
     from aerial_loc_env.sitl.cli import parse_wind
 
     assert parse_wind("8,270,1.5") == (8.0, 270.0, 1.5) and parse_wind("5,90") == (5.0, 90.0)
+
+
+def test_track_picture_marks_the_cut_and_names_the_wind(tmp_path):
+    """The report of a windy run with a vision cut writes its picture (matplotlib present) and its summary carries
+    the cut's timeline."""
+    pytest.importorskip("matplotlib")
+    from test_sitl_report import _record
+
+    from aerial_loc_env.sitl.report import write_outputs
+
+    record = _record()
+    record["steps"] = record["steps"][:4] + [(s[0], "cut", *s[2:]) for s in record["steps"][4:7]] \
+        + record["steps"][7:]
+    record.update(wind=(5.0, 270.0, 1.5), vision_cut=("loop", 0.75))
+    paths = write_outputs(record, tmp_path / "run")
+    assert (tmp_path / "run" / "track.png") in paths and (tmp_path / "run" / "track.png").stat().st_size > 1000
+    assert summary(record)["vision_cut"]["fix_back_s"] == pytest.approx(0.75)
