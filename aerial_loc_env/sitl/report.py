@@ -150,6 +150,20 @@ FAILSAFE_WORDS = ("ailsafe", "EKF variance", "Glitch", "stopped aiding", "is usi
                   "dead reckoning", "position")
 
 
+#: EKF3's solution status bits (XKF4.SS, ArduPilot's nav_filter_status), in order from bit 0
+EKF_STATUS_BITS = ("attitude", "horiz_vel", "vert_vel", "horiz_pos_rel", "horiz_pos_abs", "vert_pos", "terrain_alt",
+                   "const_pos_mode", "pred_horiz_pos_rel", "pred_horiz_pos_abs", "takeoff_detected", "takeoff",
+                   "touchdown", "using_gps", "gps_glitching", "gps_quality_good", "initialized",
+                   "rejecting_airspeed", "dead_reckoning")
+
+
+def ekf_status_change(before: int, after: int) -> str:
+    """What changed between two EKF3 solution statuses, in words: '+dead_reckoning -horiz_pos_abs'."""
+    words = [("+" if after >> i & 1 else "-") + name for i, name in enumerate(EKF_STATUS_BITS)
+             if (before ^ after) >> i & 1]
+    return " ".join(words)
+
+
 def mode_name(vehicle: str, number: int) -> str:
     """ArduPilot's name of flight mode ``number`` for the vehicle (plane or copter)."""
     from pymavlink import mavutil
@@ -180,8 +194,8 @@ def failsafe_timeline(record: dict) -> dict:
     gps = record.get("gps_status", [])
     gps_lost = next((t for t, f in gps if t >= t0 and f < 3), None)
     gps_back = next((t for t, f in gps if back is not None and t >= back - 1.0 and f >= 3), None)
-    ekf = [(round(t - t0, 2), f) for (t, f), (_, prev) in zip(record.get("ekf_status", [])[1:],
-                                                              record.get("ekf_status", []), strict=False)
+    ekf = [(round(t - t0, 2), ekf_status_change(prev, f)) for (t, f), (_, prev)
+           in zip(record.get("ekf_status", [])[1:], record.get("ekf_status", []), strict=False)
            if t0 - 1.0 <= t <= end and f != prev]
     reaction = next((t for t, n, _ in record.get("modes", []) if t >= t0), None)
     resumed = None

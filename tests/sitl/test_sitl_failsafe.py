@@ -77,10 +77,19 @@ def test_failsafe_timeline_from_a_record():
     assert tl["reaction_s"] == pytest.approx(0.95) and tl["modes"][0] == (0.95, "LOITER")
     assert tl["fix_back_s"] == pytest.approx(20.0) and tl["resumed_s"] == pytest.approx(22.15)
     assert tl["gps_no_fix_s"] == pytest.approx(0.05) and tl["gps_fix_back_s"] == pytest.approx(20.05)
-    assert tl["ekf_status_changes"] == [(3.75, 5), (20.75, 1)]
+    assert tl["ekf_status_changes"] == [(3.75, "+vert_vel"), (20.75, "-vert_vel")]
     assert tl["last_fix_before_s"] == pytest.approx(-0.25)
     assert tl["drift_m"][10] == (10, pytest.approx(10.5), pytest.approx(math.sqrt(11.0), abs=0.01))
     assert tl["messages"][0] == (pytest.approx(0.95), "Vision failsafe: fix lost, LOITER")
+
+
+def test_ekf_status_changes_in_words():
+    """XKF4.SS bits as ArduPilot names them: the plane's EKF3 in the cut went from glitching GPS to dead
+    reckoning without an absolute position, then back to using the GPS."""
+    from aerial_loc_env.sitl.report import ekf_status_change
+
+    assert ekf_status_change(115519, 377135) == "-horiz_pos_abs -pred_horiz_pos_abs +dead_reckoning"
+    assert ekf_status_change(377135, 123711) == ("+horiz_pos_abs +pred_horiz_pos_abs +using_gps -dead_reckoning")
 
 
 def test_plane_runs_the_shipped_lua_failsafe():
