@@ -286,6 +286,28 @@ def test_copter_mission_on_external_nav(mission, long_mission):
         assert s["vision_fix_s"] > 20.0
 
 
+def _plane_loop(r: dict, s: dict) -> list[str]:
+    """The plane kept pace, took its first camera frame before the loop, started every mission item in order and
+    flew the loop with an absolute position within the tracking bound (``_plane_loop_and_landing``); returns the
+    autopilot's messages."""
+    _kept_pace(s, PLANE_SPEEDUP)
+    texts = [t for _, t in r["texts"]]
+    loop_start = next(t for t, x in r["texts"] if x.startswith(f"Mission: {r['loop_start']}"))
+    first_frame = next(st[0] for st in r["steps"] if st[1] == "camera")
+    assert first_frame < loop_start, (first_frame, loop_start)
+    # every item started, in order (STATUSTEXT "Mission: k ..."; MISSION_ITEM_REACHED is not enough: ArduPlane
+    # reported the loop's last waypoint as item 6, the DO_LAND_START run right after it)
+    started = list(dict.fromkeys(int(x.split()[1]) for x in texts if x.startswith("Mission: ")))
+    assert started == list(range(1, r["last_wp"] + 1)), (started, texts[-12:])     # (a cut's resume repeats one)
+    loop = [f for _, f in r["leg_flags"]]
+    assert loop and all(f & 16 for f in loop), sorted(set(loop))
+    errors = np.array(r["leg_errors_m"])
+    assert len(errors) > 500
+    rmse = float(np.sqrt(np.mean(errors ** 2)))
+    assert rmse < 2 * 3.0 + 7.7 and errors.max() < 5 * 3.0 + 7.7, (rmse, errors.max())
+    return texts
+
+
 def _plane_loop_and_landing(r: dict, s: dict) -> None:
     """What both plane missions must show: the loop on the established vision fix, the landing, touchdown.
 
@@ -305,21 +327,7 @@ def _plane_loop_and_landing(r: dict, s: dict) -> None:
     measured 1-5 m against 7-10 m), and the touchdown within that of the final's line across it (the autopilot
     steers the line it believes it is on; along the line the point is the flare's, about 30 m short, and where it
     stops, within a few metres)."""
-    _kept_pace(s, PLANE_SPEEDUP)
-    texts = [t for _, t in r["texts"]]
-    loop_start = next(t for t, x in r["texts"] if x.startswith(f"Mission: {r['loop_start']}"))
-    first_frame = next(st[0] for st in r["steps"] if st[1] == "camera")
-    assert first_frame < loop_start, (first_frame, loop_start)
-    # every item started, in order (STATUSTEXT "Mission: k ..."; MISSION_ITEM_REACHED is not enough: ArduPlane
-    # reported the loop's last waypoint as item 6, the DO_LAND_START run right after it)
-    started = list(dict.fromkeys(int(x.split()[1]) for x in texts if x.startswith("Mission: ")))
-    assert started == list(range(1, r["last_wp"] + 1)), (started, texts[-12:])     # (a cut's resume repeats one)
-    loop = [f for _, f in r["leg_flags"]]
-    assert loop and all(f & 16 for f in loop), sorted(set(loop))
-    errors = np.array(r["leg_errors_m"])
-    assert len(errors) > 500
-    rmse = float(np.sqrt(np.mean(errors ** 2)))
-    assert rmse < 2 * 3.0 + 7.7 and errors.max() < 5 * 3.0 + 7.7, (rmse, errors.max())
+    texts = _plane_loop(r, s)
     # the landing sequence flown to touchdown and the autopilot's own disarm; the camera down to the agent's
     # lowest altitude (within the altimeter's noise), then dead reckoning to the ground
     assert any(x.startswith(f"Mission: {r['last_wp']} Land") for x in texts), texts[-12:]
@@ -402,16 +410,7 @@ def test_plane_crosswind_mission(wind, long_mission):
     s = summary(r)
     print(s)
     assert s["wind"] == wind
-    _kept_pace(s, PLANE_SPEEDUP)
-    texts = [t for _, t in r["texts"]]
-    started = list(dict.fromkeys(int(x.split()[1]) for x in texts if x.startswith("Mission: ")))
-    assert started == list(range(1, r["last_wp"] + 1)), (started, texts[-12:])
+    texts = _plane_loop(r, s)
     assert not any(x.startswith("Vision failsafe: fix lost, LOITER") for x in texts), texts
-    loop = [f for _, f in r["leg_flags"]]
-    assert loop and all(f & 16 for f in loop), sorted(set(loop))
-    errors = np.array(r["leg_errors_m"])
-    assert len(errors) > 500
-    rmse = float(np.sqrt(np.mean(errors ** 2)))
-    assert rmse < 2 * 3.0 + 7.7 and errors.max() < 5 * 3.0 + 7.7, (rmse, errors.max())
     assert any("Auto disarmed" in x for x in texts) and s["touchdown"]["landed"], s["touchdown"]
 
