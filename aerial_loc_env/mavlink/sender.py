@@ -229,6 +229,7 @@ class MavlinkSender:
         self._sim_time_mono_s: float | None = None
         self._skipped = 0
         self._latency_seq: int | None = None
+        self._new_last_tick = False        # the last tick sent a fix for the first time
         self._acks: collections.Counter[int] = collections.Counter()
         self._extpos: Schedule | None = None
         self._latencies_s: collections.deque[float] = collections.deque(maxlen=10_000)
@@ -354,6 +355,14 @@ class MavlinkSender:
         item = self.slot.get()
         if item is None:
             return  # nothing estimated yet: heartbeats only
+        with self._lock:
+            sent = self._item
+        if "gps_input" in self.config.messages and sent is not None and item.seq != sent.seq and self._new_last_tick:
+            # a resend between two new fixes: GPS_INPUT carries each fix's capture time, so ArduPilot's update
+            # interval is 0 on a resend and a frame's interval between new fixes, and two of those in a row (a
+            # backlog after a stall) are two delayed updates, which it calls unhealthy; the new fix goes next tick
+            item = sent
+        self._new_last_tick = sent is None or item.seq != sent.seq
         age = (now - item.received_mono_s) * (self.config.sim_speedup if self.following else 1.0)
         quality = assess(item.fix, age, self.policy)
         with self._lock:

@@ -130,3 +130,26 @@ def test_external_position_estimate_is_a_global_command_without_altitude():
     assert (decoded.x, decoded.y) == (471234567, 87654321)
     assert decoded.param1 == pytest.approx(12.5) and decoded.param2 == pytest.approx(0.08, rel=1e-6)
     assert decoded.param3 == pytest.approx(math.sqrt(13.0), rel=1e-6)
+
+
+def test_a_resend_separates_new_fixes_so_ardupilot_never_sees_two_frame_intervals_in_a_row():
+    """Capture-stamped GPS_INPUT: ArduPilot's update interval is 0 on a resend and a frame's interval (4 Hz:
+    250 ms, over its 245 ms) between new fixes; two of those in a row make its GPS unhealthy. After a stall the
+    slot can hold a newer fix at every tick: the sender then resends the last fix first, and the newest goes at
+    the next tick (the slot keeps only the latest: fix 1 here was replaced before a tick could take it)."""
+    sender = MavlinkSender(SenderConfig(connect="udpout:127.0.0.1:9"))
+    sent = []
+    sender._send = lambda kind, message: sent.append(message.time_usec)     # the wire is not under test here
+    t0 = sender.clock.monotonic()
+    fixes = []
+    for k in range(4):                       # a new fix at every tick (a backlog), then two ticks with none new
+        fix = PoseFix(time_s=0.25 * k, lat_deg=47.0, lon_deg=8.0, alt_amsl_m=600.0, east_m=0.0, north_m=0.0,
+                      up_m=200.0)
+        fixes.append(sender.publish(fix))
+        sender._tick(t0 + 0.1 * k)
+    sender._tick(t0 + 0.4)
+    sender._tick(t0 + 0.5)
+    stamps = [sender.clock.unix_s(item.received_mono_s) for item in fixes]
+    order = [min(range(4), key=lambda i, u=u: abs(stamps[i] * 1e6 - u)) for u in sent]
+    assert order == [0, 0, 2, 2, 3, 3], order
+    assert not any(b > a and c > b for a, b, c in zip(order, order[1:], order[2:], strict=False))
