@@ -11,6 +11,7 @@ GLOBAL_POSITION_INT), closing the loop.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
 import sys
 import time
@@ -29,7 +30,8 @@ from aerial_loc_env.mavlink.sender import MavlinkSender, SenderConfig, SenderSta
 from aerial_loc_env.world.maps.geo import east_north_m, offset_latlon
 
 ALIASES = {"gps": "gps_input", "gps_input": "gps_input", "vision": "vision_position_estimate",
-           "vision_position_estimate": "vision_position_estimate", "odom": "odometry", "odometry": "odometry"}
+           "vision_position_estimate": "vision_position_estimate", "odom": "odometry", "odometry": "odometry",
+           "external_position": "external_position", "extpos": "external_position"}
 SITL_HOME = "-35.363261,149.165230,584.0"   # ArduPilot SITL's default home (CMAC)
 # 0.5 m per axis at 4 Hz: the reported accuracies (h 0.7 m, speed 0.8 m/s, hdop 0.5) pass ArduPilot's default
 # GPS checks (5 m, 1 m/s, GPS_HDOP_GOOD 1.4); 2 m reported 3.2 m/s speed accuracy and was never used
@@ -70,7 +72,10 @@ def build_parser() -> argparse.ArgumentParser:
                            "/dev/ttyACM0,BAUD")
     link.add_argument("--message", action="append", default=None,
                       help=f"message(s) to send, repeatable or comma-separated: {', '.join(MESSAGE_KINDS)} "
-                           "(aliases gps, vision, odom); default gps_input")
+                           "(aliases gps, vision, odom, extpos: MAV_CMD_EXTERNAL_POSITION_ESTIMATE at "
+                           "--external-position-hz, for an autopilot dead reckoning); default gps_input")
+    link.add_argument("--external-position-hz", type=float, default=1.0,
+                      help="rate of the external_position message (low-rate global fixes)")
     link.add_argument("--rate-hz", type=float, default=10.0)
     link.add_argument("--sysid", type=int, default=1)
     link.add_argument("--compid", type=int, default=197)
@@ -90,7 +95,7 @@ def _messages(values: list[str] | None) -> tuple[str, ...]:
         for name in filter(None, (v.strip().lower() for v in value.split(","))):
             if name not in ALIASES:
                 raise ConfigError(f"--message {name!r}: unknown; use {', '.join(MESSAGE_KINDS)} "
-                                  "(or gps, vision, odom)")
+                                  "(or gps, vision, odom, extpos)")
             if ALIASES[name] not in out:
                 out.append(ALIASES[name])
     return tuple(out)
@@ -103,6 +108,7 @@ def sender_config(args: argparse.Namespace) -> SenderConfig:
         "odometry_frames": args.odometry_frames, "signing_key": args.signing_key,
         "signing_link_id": args.signing_link_id, "baud": args.baud,
         "request_vehicle_hz": 20.0 if args.follow else 0.0, "sim_speedup": args.sim_speedup,
+        "external_position_hz": args.external_position_hz,
     }, where="aerial-loc mavlink options")
 
 
@@ -222,7 +228,7 @@ class ScenarioRun:
             t0_s = t_s + float(self.driver.briefing.dt_s)     # simulated time keeps running across episodes
 
     def follow_steps(self, ground_amsl_m: float, *, pad_std_m: float = 0.5, pad_radius_m: float = math.inf,
-                     sim_speedup: float = 1.0) -> Iterator[Step | None]:
+                     sim_speedup: float = 1.0, cut: Callable[[], bool] | None = None) -> Iterator[Step | None]:
         """Frames at the simulator's true vehicle (``self.follow``, set by the caller from SIM_STATE).
 
         The camera frames at the scenario's rate (stream time: the monotonic time SIM_STATE arrived) while the
@@ -232,8 +238,10 @@ class ScenarioRun:
         as a companion computer goes by its altimeter. Before the first frame the fix is the take-off point (a
         surveyed pad, ``pad_std_m``), as a vehicle on the ground knows where it stands, while it is within
         ``pad_radius_m`` of the pad (beyond, e.g. a fixed wing's take-off run and climb, no fix); below that height
-        later (landing) or off the map the fix is lost (the autopilot then lands on inertial navigation). Yields
-        None while no truth has come. Frame times and odometry are in the simulator's seconds: the truth's
+        later (landing) or off the map the fix is lost (the autopilot then lands on inertial navigation). While
+        ``cut()`` holds (a vision-cut mission) the fix is withheld from the autopilot's position feed: the agent
+        keeps its frames (its track stays continuous) and the step has source "cut". Yields None while no truth has
+        come. Frame times and odometry are in the simulator's seconds: the truth's
         ``sim_time_s`` (SITL's boot time through SYSTEM_TIME), else its arrival scaled by ``sim_speedup`` (SITL
         ``--speedup``).
         """
@@ -245,13 +253,13 @@ class ScenarioRun:
         last_frame: Step | None = None
         min_alt, max_alt = self.camera_altitude_range_m()
 
-        def lost(pose: ExternalPose, altitude_m: float) -> Step:
+        def lost(pose: ExternalPose, altitude_m: float, source: str = "lost") -> Step:
             """No fix: the last frame's estimate flagged lost (a held position sent as valid told the EKF the
             vehicle had stopped)."""
             held = last_frame.estimate if last_frame is not None else _Estimate(*pad, None, np.eye(2))
             est = _Estimate(held.x_m, held.y_m, None, np.asarray(held.cov_xy_m2), "lost")
             return Step(pose.t_s, est, altitude_m, pose.yaw_rad, math.hypot(pose.x_m - held.x_m, pose.y_m - held.y_m),
-                        "lost")
+                        source)
         seen_s = math.nan
         while True:
             v = self.follow
@@ -288,7 +296,7 @@ class ScenarioRun:
                 est = self.agent.step(obs, info if getattr(self.agent, "uses_ground_truth", False) else None)
                 last_frame = Step(pose.t_s, est, float(obs["altitude"][0]), float(obs["yaw"][0]),
                                   math.hypot(est.x_m - x, est.y_m - y))
-                yield last_frame
+                yield dataclasses.replace(last_frame, source="cut") if cut is not None and cut() else last_frame
             else:
                 yield None
 
@@ -350,9 +358,12 @@ def check_sim_speedup(value: float, option: str = "--sim-speedup") -> float:
 
 
 def run(args: argparse.Namespace, *, out=sys.stdout, should_stop: Callable[[], bool] = lambda: False,
-        on_step: Callable[[Step], None] | None = None) -> int:
+        on_step: Callable[[Step], None] | None = None, vision_cut: Callable[[], bool] | None = None,
+        on_sender: Callable[[MavlinkSender], None] | None = None) -> int:
     """Fly and stream until the episode ends, ``--duration-s`` passes, or Ctrl-C (returns 130).
-    ``on_step`` sees each published step (a mission's record of the estimator's own error)."""
+    ``on_step`` sees each published step (a mission's record of the estimator's own error); while
+    ``vision_cut()`` holds (follow mode) the fix is withheld from the autopilot; ``on_sender`` gets the sender
+    once started (a mission's commands on the bridge's link, its latency record)."""
     if args.speed < 0 or not math.isfinite(args.speed):
         raise ConfigError(f"--speed {args.speed}: must be >= 0 (1 = real time, 0 = as fast as possible)")
     if not args.demo and not (args.scenario and args.agent):
@@ -369,7 +380,8 @@ def run(args: argparse.Namespace, *, out=sys.stdout, should_stop: Callable[[], b
         ground = ground_amsl_m(args.ground_amsl_m, om, args.scenario)
         bridge = EstimateBridge(lambda x, y: source.orthomap.world_to_latlon(x, y),
                                 (om.width_m / 2.0, om.height_m / 2.0), ground_amsl_m=ground)
-        steps = (source.follow_steps(ground, pad_radius_m=args.pad_radius_m, sim_speedup=args.sim_speedup)
+        steps = (source.follow_steps(ground, pad_radius_m=args.pad_radius_m, sim_speedup=args.sim_speedup,
+                                     cut=vision_cut)
                  if args.follow else source.steps(args.loop))
     sender = MavlinkSender(config, policy=FixPolicy(), origin=bridge.origin)
     tty = hasattr(out, "isatty") and out.isatty()
@@ -379,6 +391,8 @@ def run(args: argparse.Namespace, *, out=sys.stdout, should_stop: Callable[[], b
     code = 0
     try:
         sender.start()
+        if on_sender is not None:
+            on_sender(sender)
         t0 = time.monotonic()
         last_print = -math.inf
         for step in steps:
@@ -400,8 +414,9 @@ def run(args: argparse.Namespace, *, out=sys.stdout, should_stop: Callable[[], b
                 delay = t0 + t_sim / args.speed - time.monotonic()
                 if delay > 0:
                     time.sleep(delay)
-            item = sender.publish(bridge.fix(step.estimate, time_s=step.time_s, altitude_m=step.altitude_m,
-                                             yaw_fallback_rad=step.yaw_fallback_rad))
+            fix = bridge.fix(step.estimate, time_s=step.time_s, altitude_m=step.altitude_m,
+                             yaw_fallback_rad=step.yaw_fallback_rad)
+            item = sender.publish(dataclasses.replace(fix, withheld=True) if step.source == "cut" else fix)
             if on_step is not None:
                 on_step(step)
             while args.speed == 0 and sender.running and not sender.wait_taken(item.seq, 0.1):

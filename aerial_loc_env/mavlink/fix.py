@@ -50,12 +50,15 @@ class PoseFix:
     up_m: float
     vel_enu_mps: tuple[float, float, float] = (0.0, 0.0, 0.0)
     vel_up_valid: bool = False                  # vel_enu_mps[2] measured? (else GPS_INPUT flags it ignored)
+    vel_horiz_valid: bool = True                # vel_enu_mps[:2] known? (else flagged ignored, speed_std_mps huge)
     yaw_rad: float | None = None                # ENU yaw, CCW from east (None: the estimator has none)
     cov_en_m2: tuple[float, float, float] = (1.0, 0.0, 1.0)
     v_std_m: float = 1.0
     yaw_std_rad: float | None = None
     speed_std_mps: float = 1.0
     status: str = "ok"
+    withheld: bool = False                      # cut from the position feed (GPS_INPUT, VISION, ODOMETRY): no fix
+    #                                             there; a low-rate external position estimate may still carry it
 
     def __post_init__(self) -> None:
         if self.status not in STATUSES:
@@ -128,7 +131,7 @@ class FixQuality:
 
 def assess(fix: PoseFix | None, age_s: float, policy: FixPolicy) -> FixQuality:
     """Quality of ``fix`` held ``age_s``: fresh/ok -> 3D fix; stale/degraded -> inflated; lost -> none."""
-    if fix is None or fix.status == "lost" or age_s > policy.lost_after_s:
+    if fix is None or fix.status == "lost" or fix.withheld or age_s > policy.lost_after_s:
         return FixQuality(False, FIX_NONE, 0, LOST_H_ACC_M, LOST_H_ACC_M, 99.0, 99.99, 99.99, math.inf, -1)
     factor = 1.0 if fix.status == "ok" else policy.degraded_factor
     growth_m = policy.stale_growth_mps * max(0.0, age_s - policy.stale_after_s)

@@ -15,7 +15,7 @@ from pymavlink.dialects.v20 import common as mavlink2
 from aerial_loc_env.mavlink.fix import FixQuality, GeoOrigin, PoseFix
 from aerial_loc_env.mavlink.timebase import gps_week_ms
 
-MESSAGE_KINDS = ("gps_input", "vision_position_estimate", "odometry")
+MESSAGE_KINDS = ("gps_input", "vision_position_estimate", "odometry", "external_position")
 ODOMETRY_FRAMES = {  # name -> (frame_id, child_frame_id)
     "local_frd": (mavlink2.MAV_FRAME_LOCAL_FRD, mavlink2.MAV_FRAME_BODY_FRD),   # ArduPilot and PX4
     "local_ned": (mavlink2.MAV_FRAME_LOCAL_NED, mavlink2.MAV_FRAME_BODY_FRD),   # PX4 only
@@ -106,11 +106,17 @@ def heartbeat() -> mavlink2.MAVLink_heartbeat_message:
 
 def gps_input(fix: PoseFix, quality: FixQuality, unix_s: float, *, gps_id: int = 0,
               send_yaw: bool = False) -> mavlink2.MAVLink_gps_input_message:
-    """GPS_INPUT for ArduPilot's MAVLink GPS driver: horizontal velocity always filled; the vertical speed is
-    flagged as ignored unless the fix measured it (``vel_up_valid``): a vd of 0 sent as measured makes an EKF
-    fusing GPS vertical velocity (``EK3_SRC1_VELZ 3``) lag every climb."""
+    """GPS_INPUT for ArduPilot's MAVLink GPS driver, stamped ``unix_s``: the fix's capture time (the frame's), not
+    the send time (the sender resends a fix between frames with its own stamp). ArduPilot reads only the GPS week
+    time (``time_usec`` is not used), corrects it for transport jitter and fuses the fix that much in the past,
+    minus ``GPSn_DELAY_MS``. Ignore flags say what the fix does not carry: the vertical speed unless measured
+    (``vel_up_valid``: a vd of 0 sent as measured makes an EKF fusing GPS vertical velocity lag every climb),
+    the horizontal velocity while the bridge has none (``vel_horiz_valid``; its speed accuracy is then sent as
+    huge, since ArduPilot keeps the last velocity and accuracy of a field flagged ignored)."""
     week, week_ms = gps_week_ms(unix_s)
     ignore = 0 if fix.vel_up_valid else mavlink2.GPS_INPUT_IGNORE_FLAG_VEL_VERT
+    if not fix.vel_horiz_valid:
+        ignore |= mavlink2.GPS_INPUT_IGNORE_FLAG_VEL_HORIZ | mavlink2.GPS_INPUT_IGNORE_FLAG_VEL_VERT
     vn, ve, vd = enu_to_ned(*fix.vel_enu_mps)
     yaw_cdeg = heading_to_cdeg(yaw_enu_to_heading(fix.yaw_rad)) if send_yaw and fix.yaw_rad is not None else 0
     return mavlink2.MAVLink_gps_input_message(
@@ -144,6 +150,20 @@ def odometry(fix: PoseFix, quality: FixQuality, time_usec: int, reset_counter: i
         math.nan, math.nan, math.nan,
         upper_triangle(pose_covariance(fix, quality)), upper_triangle(vel_cov), reset_counter,
         mavlink2.MAV_ESTIMATOR_TYPE_VISION, quality.odometry_quality)
+
+
+def external_position_estimate(fix: PoseFix, quality: FixQuality, sent_s: float, processing_s: float,
+                               target_system: int = 1,
+                               target_component: int = 1) -> mavlink2.MAVLink_command_int_message:
+    """MAV_CMD_EXTERNAL_POSITION_ESTIMATE (COMMAND_INT, global frame): a low-rate global fix for an autopilot that
+    is dead reckoning. param1 the send time in the sender's time domain (seconds, as small as it can be kept: the
+    autopilot corrects it for transport jitter), param2 the processing time (capture to send, seconds: the
+    autopilot dates the fix that much earlier), param3 the horizontal accuracy (1 sigma, m), x/y lat/lon degE7,
+    z NaN (no altitude: ArduPilot accepts only the global frame without one)."""
+    return mavlink2.MAVLink_command_int_message(
+        target_system, target_component, mavlink2.MAV_FRAME_GLOBAL, mavlink2.MAV_CMD_EXTERNAL_POSITION_ESTIMATE,
+        0, 0, float(sent_s), float(max(0.0, processing_s)), float(quality.h_acc_m), math.nan,
+        deg_e7(fix.lat_deg), deg_e7(fix.lon_deg), math.nan)
 
 
 def set_gps_global_origin(origin: GeoOrigin, time_usec: int,

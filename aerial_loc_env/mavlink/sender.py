@@ -28,6 +28,8 @@ from aerial_loc_env.mavlink.timebase import MonotonicClock, Schedule, SimClock, 
 ARDUPILOT_GPS_TIMEOUT_S = 0.245   # AP_GPS marks a MAVLink GPS unhealthy after gaps longer than this
 MIN_GPS_INPUT_RATE_HZ = 5.0
 MIN_HEX_KEY_LOOKALIKE = 32        # an all-hex passphrase this long is a mistyped 64-digit key, not a passphrase
+RECEIVE_POLL_S = 0.01            # following a simulator: its messages are read at least this often
+MAX_CAPTURE_AGE_S = 2.0           # a fix's own time further back than this is not a capture time on the clock
 
 
 @dataclass(frozen=True)
@@ -54,6 +56,7 @@ class SenderConfig:
     # age and the truth's times run on the simulator's clock (SYSTEM_TIME), see timebase.SimClock
     sim_speedup: float = field(default=1.0, metadata=rng(0.1, 20.0))
     allow_slow_gps: bool = False                                      # permit GPS_INPUT below 5 Hz (replay)
+    external_position_hz: float = field(default=1.0, metadata=rng(0.01, 50.0))  # the low-rate global fix
 
     def validate(self, where: str) -> None:
         bad = [m for m in self.messages if m not in msgs.MESSAGE_KINDS]
@@ -225,6 +228,11 @@ class MavlinkSender:
         self._origin_now = False
         self._sim_time_mono_s: float | None = None
         self._skipped = 0
+        self._latency_seq: int | None = None
+        self._new_last_tick = False        # the last tick sent a fix for the first time
+        self._acks: collections.Counter[int] = collections.Counter()
+        self._extpos: Schedule | None = None
+        self._latencies_s: collections.deque[float] = collections.deque(maxlen=10_000)
         self.error: BaseException | None = None
 
     # -- lifecycle -------------------------------------------------------------------------------------------
@@ -303,6 +311,7 @@ class MavlinkSender:
         origin_early = Schedule(1.0 / min(1.0, cfg.origin_period_s), t0) if self.origin is not None else None
         origin = Schedule(1.0 / cfg.origin_period_s, t0) if self.origin is not None else None
         request = Schedule(0.5, t0) if cfg.request_vehicle_hz > 0 else None
+        self._extpos = Schedule(cfg.external_position_hz, t0) if "external_position" in cfg.messages else None
         while not self._stop.is_set():
             now = time.monotonic()
             if beat.due(now):
@@ -326,10 +335,15 @@ class MavlinkSender:
                 with self._lock:
                     self._skipped = main.skipped
             self._receive()
-            schedules = [s for s in (main, beat, request) if s is not None]
+            if self._extpos is not None and self._extpos.due(now):
+                self._external_position(now)
+                self._extpos.advance(now)
+            schedules = [s for s in (main, beat, request, self._extpos) if s is not None]
             if origin is not None:
                 schedules.append(origin if self.autopilot_sysid is not None else origin_early)
             wait = min(s.deadline_s for s in schedules) - time.monotonic()
+            if self.following:           # read the simulator's truth as it arrives, not once per send tick
+                wait = min(wait, RECEIVE_POLL_S)
             if wait > 0 and not self._origin_now:
                 self._stop.wait(wait)
 
@@ -341,15 +355,27 @@ class MavlinkSender:
         item = self.slot.get()
         if item is None:
             return  # nothing estimated yet: heartbeats only
+        with self._lock:
+            sent = self._item
+        if "gps_input" in self.config.messages and sent is not None and item.seq != sent.seq and self._new_last_tick:
+            # a resend between two new fixes: GPS_INPUT carries each fix's capture time, so ArduPilot's update
+            # interval is 0 on a resend and a frame's interval between new fixes, and two of those in a row (a
+            # backlog after a stall) are two delayed updates, which it calls unhealthy; the new fix goes next tick
+            item = sent
+        self._new_last_tick = sent is None or item.seq != sent.seq
         age = (now - item.received_mono_s) * (self.config.sim_speedup if self.following else 1.0)
         quality = assess(item.fix, age, self.policy)
         with self._lock:
             self._item, self._age_s, self._quality = item, age, quality
             self._lock.notify_all()
-        unix_s = self.clock.unix_s(now)
-        usec = int(unix_s * 1e6)
         cfg = self.config
         fix = item.fix
+        unix_s = self.capture_unix_s(item, now)
+        usec = int(unix_s * 1e6)
+        with self._lock:
+            if self._latency_seq != item.seq:        # the first send of each fix: capture to wire, clock seconds
+                self._latency_seq = item.seq
+                self._latencies_s.append(self.clock.unix_s(now) - unix_s)
         for kind in cfg.messages:
             if kind == "gps_input":
                 self._send(kind, msgs.gps_input(fix, quality, unix_s, gps_id=cfg.gps_id,
@@ -358,6 +384,50 @@ class MavlinkSender:
                 self._send(kind, msgs.vision_position_estimate(fix, quality, usec, item.reset_counter))
             elif kind == "odometry":
                 self._send(kind, msgs.odometry(fix, quality, usec, item.reset_counter, cfg.odometry_frames))
+
+    def _external_position(self, now: float) -> None:
+        """MAV_CMD_EXTERNAL_POSITION_ESTIMATE of the latest fix, withheld from the position feed or not (it is the
+        low-rate fix for an autopilot dead reckoning), if it is usable: sent time on the message clock since
+        this sender started, processing time = capture to send."""
+        item = self.slot.get()
+        if item is None:
+            return
+        fix = dataclasses.replace(item.fix, withheld=False)
+        age = (now - item.received_mono_s) * (self.config.sim_speedup if self.following else 1.0)
+        quality = assess(fix, age, self.policy)
+        if not quality.usable:
+            return
+        sent = self.clock.unix_s(now)
+        target = self.config.target_system or (self.autopilot_sysid or 1)
+        self._send("external_position", msgs.external_position_estimate(
+            fix, quality, sent - self.clock.anchor_unix_s, sent - self.capture_unix_s(item, now), target, 1))
+
+    def acks(self) -> dict[int, int]:
+        """COMMAND_ACK results received for MAV_CMD_EXTERNAL_POSITION_ESTIMATE: result -> count."""
+        with self._lock:
+            return dict(self._acks)
+
+    def capture_unix_s(self, item: SlotItem, now: float) -> float:
+        """The message stamp of the fix in ``item``: when its frame was captured, on the clock the messages run
+        on. Following a simulator whose clock is known, the fix's own time (the truth sample's, SITL's boot
+        seconds); otherwise (or when that time is not on the simulator's clock) when it was published. Never
+        later than now, never earlier than its publication minus ``MAX_CAPTURE_AGE_S``."""
+        now_unix = self.clock.unix_s(now)
+        if isinstance(self.clock, MonotonicClock):    # the wall clock: exact, and the same on every resend
+            published = self.clock.unix_s(item.received_mono_s)
+        else:
+            published = now_unix - max(0.0, now - item.received_mono_s) * self.config.sim_speedup
+        if self.following and isinstance(self.clock, SimClock) and self.clock.synced:
+            frame = self.clock.unix_of_sim_s(item.fix.time_s)
+            if published - MAX_CAPTURE_AGE_S <= frame <= now_unix:
+                return frame
+        return min(published, now_unix)
+
+    def latencies_s(self) -> tuple[float, ...]:
+        """Capture-to-send latency of each fix's first send (the clock's seconds: the simulator's when
+        following), the last ``maxlen`` of them."""
+        with self._lock:
+            return tuple(self._latencies_s)
 
     def _send(self, kind: str, message) -> None:
         signing = self._mav.signing
@@ -396,7 +466,12 @@ class MavlinkSender:
             except mavlink2.MAVError:
                 continue
         now = time.monotonic()
-        for m in received:
+        # the simulator's time of each truth sample: SITL sends SIM_STATE and SYSTEM_TIME at one interval, in one
+        # burst, so the SYSTEM_TIME nearest it in the batch dates it (its arrival would date it up to a read
+        # period late)
+        boots = [(i, m.time_boot_ms / 1000.0) for i, m in enumerate(received)
+                 if m.get_type() == "SYSTEM_TIME" and m.get_srcComponent() == 1]
+        for i, m in enumerate(received):
             name = m.get_type()
             if name == "HEARTBEAT" and m.autopilot != mavlink2.MAV_AUTOPILOT_INVALID:
                 with self._lock:
@@ -407,11 +482,17 @@ class MavlinkSender:
             elif name == "SYSTEM_TIME" and self.following and m.get_srcComponent() == 1:
                 self.clock.observe(m.time_boot_ms / 1000.0, now)     # the simulator's clock
                 self._sim_time_mono_s = now
+            elif name == "COMMAND_ACK" and m.command == mavlink2.MAV_CMD_EXTERNAL_POSITION_ESTIMATE:
+                with self._lock:
+                    self._acks[int(m.result)] += 1
             elif name == "SIM_STATE":
                 state = vehicle_state(m, now)
                 if state is not None:
-                    if self.following and self.clock.synced:
-                        state = dataclasses.replace(state, sim_time_s=self.clock.sim_s(now))
+                    if self.following and boots:
+                        sim_s = min(boots, key=lambda b: abs(b[0] - i))[1]
+                        state = dataclasses.replace(state, sim_time_s=sim_s)
+                    elif self.following and self.clock.synced:
+                        state = dataclasses.replace(state, sim_time_s=self.clock.sim_at_s(now))
                     with self._lock:
                         self._vehicle = state
 

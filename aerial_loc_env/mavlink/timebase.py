@@ -120,6 +120,17 @@ class SimClock:
     def unix_us(self, mono_s: float | None = None) -> int:
         return int(self.unix_s(mono_s) * 1e6)
 
+    def sim_at_s(self, mono_s: float) -> float:
+        """The simulator's time at monotonic instant ``mono_s`` as the observations place it, without the
+        never-backwards hold of ``sim_s`` (which would date a past instant at the latest time read): for stamping
+        an arrival, e.g. a truth sample's. Needs ``synced``."""
+        return self.rate * mono_s + max(self._offsets)
+
+    def unix_of_sim_s(self, sim_s: float) -> float:
+        """The Unix stamp this clock gives the simulator's instant ``sim_s`` (its boot seconds): how a past
+        instant, e.g. a frame's capture, is stamped on the clock the messages run on. Pure (no clamping)."""
+        return self.anchor_unix_s + self._to_elapsed_s + float(sim_s)
+
 
 class Schedule:
     """Absolute deadlines ``t0 + k / rate``: no drift accumulates, late ticks are skipped, never bunched."""

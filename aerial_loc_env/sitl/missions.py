@@ -10,6 +10,7 @@ import os
 import threading
 import time
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -75,7 +76,11 @@ MISSIONS = {
 # differentiated speed (about 3 m/s accuracy at 22 m/s): with them on, EKF3 often never took the fix again
 # (XKF4.GPS 131, EKF_STATUS_REPORT without an absolute position) and the AHRS flew the loop on DCM
 PLANE_FLIGHT = {"EK3_SRC1_VELZ": 0, "RTL_ALTITUDE": 200, "RTL_AUTOLAND": 2, "EK3_GPS_CHECK": 0,
-                "LAND_DISARMDELAY": 5}
+                "LAND_DISARMDELAY": 5, "SCR_ENABLE": 1}
+# ArduPlane's own failsafes do not act on a lost fix in fixed-wing flight (its EKF failsafe only in VTOL modes;
+# AFS_WP_GPS_LOSS would also fire below the camera's range on every final): the plane runs this Lua script
+# (SCR_ENABLE 1), which loiters where the fix was lost and resumes the mission when it is back
+PLANE_SCRIPTS = (Path(__file__).resolve().parent / "scripts" / "vision_failsafe.lua",)
 # GPS_INPUT as GPS1
 PLANE_GPS_INPUT = {**PLANE_FLIGHT, "GPS1_TYPE": 14}
 # GNSS denial: SITL's GPS as GPS1 (the primary), the vision fix as GPS2 (GPS_INPUT, gps_id 1); GPS_AUTO_SWITCH 4
@@ -154,14 +159,64 @@ def check_map_fits(scenario: str, vehicle: str, database: Any, leg_m: float) -> 
                           f"e.g. AerialLoc/PaperShadows-v2 (1200 x 1400 m)")
 
 
-def check_wind(wind: tuple[float, float] | None) -> tuple[float, float] | None:
-    """SITL's wind (speed m/s in [0, 30], the direction it blows from, degrees), or a clear error."""
+def check_wind(wind: tuple[float, ...] | None) -> tuple[float, ...] | None:
+    """SITL's wind: (speed m/s in [0, 30], the direction it blows from, degrees[, gust std m/s in [0, 10]]: SITL's
+    turbulence, SIM_WIND_TURB), or a clear error."""
     if wind is None:
         return None
-    if len(wind) != 2 or not 0 <= wind[0] <= 30 or not math.isfinite(wind[1]):
-        raise ConfigError(f"--wind {wind!r}: give SPEED,FROM_DEG with the speed in 0..30 m/s and the direction the "
-                          f"wind blows from in degrees, e.g. 5,270")
-    return float(wind[0]), float(wind[1])
+    ok = len(wind) in (2, 3) and all(math.isfinite(v) for v in wind) and 0 <= wind[0] <= 30 \
+        and (len(wind) == 2 or 0 <= wind[2] <= 10)
+    if not ok:
+        raise ConfigError(f"--wind {wind!r}: give SPEED,FROM_DEG[,GUST] with the speed in 0..30 m/s, the direction "
+                          f"the wind blows from in degrees and the gusts' std in 0..10 m/s, e.g. 5,270 or 8,270,1.5")
+    return tuple(float(v) for v in wind)
+
+
+#: the bridge's least capture-to-send time (real seconds: rendering and the agent at their fastest; the figure
+#: is in docs/mavlink.md, Latency). ArduPilot dates a GPS_INPUT fix at its stamp (the frame's capture) plus
+#: the least transport delay its jitter correction has seen, then GPSn_DELAY_MS earlier: set to this, the EKF
+#: fuses each fix at its capture time (its default for a MAVLink GPS, a fifth of a second, fused them too early)
+BRIDGE_MIN_LATENCY_S = 0.006
+
+
+def gps_delay_params(gps_id: int, speedup: float) -> dict[str, int]:
+    """GPSn_DELAY_MS for the vision GPS (instance ``gps_id``) at SITL's ``speedup``: the bridge's least latency
+    on SITL's clock, at least one millisecond (0 would select ArduPilot's default)."""
+    return {f"GPS{gps_id + 1}_DELAY_MS": max(1, round(1000.0 * BRIDGE_MIN_LATENCY_S * speedup))}
+
+
+#: where a vision cut can start: a named point of the flight, or a mission item's number (when it starts)
+VISION_CUT_POINTS = ("loop", "approach")
+#: the loop's cut starts this long (SITL seconds) after its item started: past the corner's turn, on a leg
+CUT_LEG_DELAY_S = {"copter": 2.0, "plane": 5.0}
+#: after a cut, the EKF's return to the fix (its reset to the first fixes back) is counted as the failsafe's
+CUT_RECOVERY_S = 10.0
+
+
+def check_vision_cut(cut: tuple[str | int, float] | None) -> tuple[str | int, float] | None:
+    """A vision cut (where, seconds): where is 'loop', 'approach' or a mission item's number >= 1, the duration
+    in (0, 120] SITL seconds; or a clear error."""
+    if cut is None:
+        return None
+    where, seconds = cut
+    item = int(where) if isinstance(where, int) or str(where).isdigit() else None
+    if (item is None and where not in VISION_CUT_POINTS) or (item is not None and item < 1) \
+            or not (math.isfinite(float(seconds)) and 0 < float(seconds) <= 120):
+        raise ConfigError(f"--vision-cut {where},{seconds}: give AT,SECONDS with AT one of "
+                          f"{', '.join(VISION_CUT_POINTS)} or a mission item's number (1 or more) and SECONDS in "
+                          f"(0, 120], e.g. loop,20")
+    return (item if item is not None else str(where)), float(seconds)
+
+
+def cut_start(vehicle: str, where: str | int, loop_start: int, final_item: int) -> tuple[int, float]:
+    """(mission item whose start begins the cut, SITL seconds after it): 'loop' a few seconds into the loop's
+    first leg (plane: from its first corner, copter: the leg east), 'approach' the final (plane: NAV_LAND from
+    the approach point; copter: RTL), a number that item."""
+    if where == "loop":
+        return loop_start, CUT_LEG_DELAY_S[vehicle]
+    if where == "approach":
+        return final_item, 0.0
+    return int(where), 0.0
 
 
 def sitl_home(orthomap: Any, ground_amsl_m: float, heading_deg: float = 0.0,
@@ -171,6 +226,17 @@ def sitl_home(orthomap: Any, ground_amsl_m: float, heading_deg: float = 0.0,
     x, y = xy_m if xy_m is not None else (orthomap.width_m / 2.0, orthomap.height_m / 2.0)
     lat, lon = (float(np.ravel(v)[0]) for v in orthomap.world_to_latlon(x, y))
     return f"{lat:.8f},{lon:.8f},{ground_amsl_m:.2f},{heading_deg:.0f}"
+
+
+def _wait_sim(monitor: Monitor, seconds: float, speedup: float) -> None:
+    """Wait ``seconds`` of SITL's clock (GLOBAL_POSITION_INT.time_boot_ms as the monitor receives it)."""
+    with monitor.lock:
+        start = monitor.track.clock[-1][1] if monitor.track.clock else None
+    if start is None:
+        time.sleep(seconds / speedup)
+        return
+    monitor.wait(lambda t: t.clock[-1][1] >= start + seconds, 2.0 * seconds / speedup + 30.0,
+                 f"{seconds:g} s of SITL's clock")
 
 
 def mission_items(vehicle: str, database: Any, lat0: float, lon0: float, leg_m: float, altitude_m: float,
@@ -209,7 +275,8 @@ def mission_items(vehicle: str, database: Any, lat0: float, lon0: float, leg_m: 
 def fly_mission(scenario: str, agent: str, *, ground_amsl_m: float, vehicle: str = "copter",
                 mission: str = "gps-input", leg_m: float = 80.0, altitude_m: float | None = None,
                 speedup: float = 1.0, sitl_dir=None, seed: int = 0, timeout_s: float = 300.0, log=None,
-                wind: tuple[float, float] | None = None) -> dict:
+                wind: tuple[float, ...] | None = None, vision_cut: tuple[str | int, float] | None = None,
+                external_position: bool = False) -> dict:
     """ArduPilot SITL on the vision fix, the camera following SITL's truth. Copter (``MISSIONS``: GPS_INPUT,
     ExternalNav, or SITL's GPS then denied): arm in AUTO on the pad fix, take off, a leg east and back, RTL and
     land. Plane (``PLANE_MISSIONS``: GPS_INPUT, or SITL's GPS then denied): arm in AUTO (on the pad fix, or on
@@ -218,7 +285,12 @@ def fly_mission(scenario: str, agent: str, *, ground_amsl_m: float, vehicle: str
     dead reckoning), touchdown and disarm. Returns the record, every time on SITL's clock (seconds since its
     boot): truth and EKF from SITL's dataflash log, the monitor's events, the bridge's steps (the estimator's
     own error, pad/camera/lost), ArduPilot's GPS update intervals, and for the plane the touchdown. ``wind``:
-    SITL's wind (speed m/s, direction it blows from, degrees; SIM_WIND_SPD / SIM_WIND_DIR), none by default.
+    SITL's wind (speed m/s, direction it blows from, degrees[, gusts' std m/s]; SIM_WIND_SPD / SIM_WIND_DIR /
+    SIM_WIND_TURB), none by default.
+    ``vision_cut`` (where, seconds; ``check_vision_cut``): the fix is withheld from the autopilot for that long
+    from that point (the agent keeps its frames), and the record holds the autopilot's reaction from its log.
+    ``external_position``: the bridge also sends MAV_CMD_EXTERNAL_POSITION_ESTIMATE at 1 Hz (SITL's), through a
+    cut too (the low-rate global fix for an autopilot dead reckoning); the record holds the autopilot's answers.
 
     Every input is checked before SITL starts; a death of SITL or of the bridge during the flight is an error
     at once, naming it."""
@@ -231,6 +303,7 @@ def fly_mission(scenario: str, agent: str, *, ground_amsl_m: float, vehicle: str
     speedup = check_sim_speedup(speedup, "--speedup")
     ground_amsl_m = check_ground_amsl_m(ground_amsl_m)
     wind = check_wind(wind)
+    vision_cut = check_vision_cut(vision_cut)
     find_sitl(vehicle, sitl_dir)
     scenario = check_scenario(scenario)
     env = gym.make(scenario)
@@ -251,7 +324,13 @@ def fly_mission(scenario: str, agent: str, *, ground_amsl_m: float, vehicle: str
     last_wp = len(items) if vehicle == "plane" else len(items) - 1
     loop_end = next(i for i, it in enumerate(items, 1) if it[0] in (mavutil.mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH,
                                                                     mavutil.mavlink.MAV_CMD_DO_LAND_START))
+    loop_start = 2 if vehicle == "copter" else 3
+    final_item = len(items)          # the plane's NAV_LAND (the final), the copter's RTL
+    if vision_cut is not None and not 1 <= cut_start(vehicle, vision_cut[0], loop_start, final_item)[0] <= len(items):
+        raise ConfigError(f"--vision-cut {vision_cut[0]}: the {vehicle}'s mission has items 1 to {len(items)}")
     stop = threading.Event()
+    cut = threading.Event()
+    t_cut = t_back = None
     result: dict = {}
     steps: list = []      # (monotonic time -> SITL's, source, estimator error m, estimate x, y in the map's frame)
     t_denied, denial = None, None
@@ -262,13 +341,16 @@ def fly_mission(scenario: str, agent: str, *, ground_amsl_m: float, vehicle: str
                       float(step.altitude_m)))
 
     # LOG_DISARMED 1: the dataflash log (SITL's own clock: truth, EKF, GPS update intervals) from boot on
-    sim_wind = {} if wind is None else {"SIM_WIND_SPD": float(wind[0]), "SIM_WIND_DIR": float(wind[1])}
-    with SitlProcess(vehicle, home, {**spec.params, **sim_wind, "LOG_DISARMED": 1}, speedup=speedup,
-                     sitl_dir=sitl_dir) as sitl:
+    sim_wind = {} if wind is None else {"SIM_WIND_SPD": wind[0], "SIM_WIND_DIR": wind[1],
+                                        "SIM_WIND_TURB": wind[2] if len(wind) > 2 else 0.0}
+    delay = gps_delay_params(spec.gps_id, speedup) if spec.message == "gps_input" else {}
+    with SitlProcess(vehicle, home, {**spec.params, **delay, **sim_wind, "LOG_DISARMED": 1}, speedup=speedup,
+                     sitl_dir=sitl_dir, scripts=PLANE_SCRIPTS if vehicle == "plane" else ()) as sitl:
         args = mav_cli.build_parser().parse_args([
             "--scenario", scenario, "--agent", agent, "--follow", "--seed", str(seed),
             "--ground-amsl-m", str(ground_amsl_m), "--connect", f"udpin:127.0.0.1:{sitl.bridge_port}",
-            "--message", spec.message, "--rate-hz", str(10.0 * speedup), "--sim-speedup", str(speedup),
+            "--message", spec.message + (",external_position" if external_position else ""),
+            "--external-position-hz", str(speedup), "--rate-hz", str(10.0 * speedup), "--sim-speedup", str(speedup),
             "--gps-id", str(spec.gps_id),
             *(["--pad-radius-m", "5"] if vehicle == "plane" else []),
             *([] if log is not None else ["--quiet"])])
@@ -276,7 +358,9 @@ def fly_mission(scenario: str, agent: str, *, ground_amsl_m: float, vehicle: str
         def run_bridge() -> None:
             with open(os.devnull, "w") as devnull:
                 try:
-                    result["rc"] = mav_cli.run(args, out=log or devnull, should_stop=stop.is_set, on_step=on_step)
+                    result["rc"] = mav_cli.run(args, out=log or devnull, should_stop=stop.is_set, on_step=on_step,
+                                               vision_cut=cut.is_set,
+                                               on_sender=lambda s: result.__setitem__("sender", s))
                 except Exception as exc:    # noqa: BLE001  (the watchdog reports it in the flight's thread)
                     result["error"] = exc
 
@@ -321,13 +405,26 @@ def fly_mission(scenario: str, agent: str, *, ground_amsl_m: float, vehicle: str
                 denial = "SIM_GPS1_ENABLE 0" + ("" if spec.deny_source_set is None
                                                 else f", EKF source set {spec.deny_source_set}")
                 t_denied = time.monotonic()
-            if vehicle == "copter":
+            if vision_cut is not None:      # the fix withheld from the autopilot, on SITL's clock
+                item, delay = cut_start(vehicle, vision_cut[0], loop_start, final_item)
+                monitor.wait(lambda t: any(x.startswith(f"Mission: {item} ") for _, x in t.texts),
+                             timeout_s / speedup, f"mission item {item} before the vision cut")
+                _wait_sim(monitor, delay, speedup)
+                cut.set()
+                t_cut = time.monotonic()
+                _wait_sim(monitor, vision_cut[1], speedup)
+                cut.clear()
+                t_back = time.monotonic()
+            if vehicle == "copter" and vision_cut is not None:     # its EKF failsafe lands it where it is
+                monitor.wait(lambda t: not t.armed, timeout_s / speedup, "the landing and disarming")
+            elif vehicle == "copter":
                 monitor.wait(lambda t: loop_end - 1 in t.reached, timeout_s / speedup, "the mission's last waypoint")
                 monitor.wait(lambda t: not t.armed, timeout_s / speedup, "landing and disarming after RTL")
             else:         # the loop, the landing sequence, touchdown, disarm 5 s later (LAND_DISARMDELAY)
                 monitor.wait(lambda t: not t.armed, 2 * timeout_s / speedup, "the landing and disarming")
             t_end = time.monotonic()
         finally:
+            cut.clear()
             stop.set()
             bridge.join(10)
             monitor.stop()
@@ -344,6 +441,7 @@ def fly_mission(scenario: str, agent: str, *, ground_amsl_m: float, vehicle: str
     mono = {"fix": t_fix, "armed": t_armed, "end": t_end}
     t_fix, t_armed, t_end = (to_sim(mono[k]) for k in ("fix", "armed", "end"))
     t_denied = None if t_denied is None else to_sim(t_denied)
+    t_cut, t_back = (None if t is None else to_sim(t) for t in (t_cut, t_back))
     mapped = lambda rows: [(to_sim(r[0]), *r[1:]) for r in rows]                      # noqa: E731
     flight = lambda rows: [r for r in rows if t_armed <= r[0] <= t_end]               # noqa: E731
     gps = flog["gps_delta_ms"]
@@ -357,6 +455,16 @@ def fly_mission(scenario: str, agent: str, *, ground_amsl_m: float, vehicle: str
               "reached": list(tr.reached), "acks": mapped(tr.acks), "gps_fix": flight(mapped(tr.gps_fix)),
               "fix_to_arm_s": t_armed - t_fix, "flight_s": t_end - t_armed, "bridge_rc": result.get("rc"),
               "t_armed": t_armed, "t_end": t_end, "t_denied": t_denied, "denial": denial,
+              "vision_cut": vision_cut, "t_cut": t_cut, "t_back": t_back,
+              "modes": flog["modes"], "log_messages": flog["messages"], "gps_status": flog["gps_status"],
+              "ekf_status": flog["ekf_status"], "ekf_var_m2": flog["ekf_var_m2"],
+              "gps_deltas_ms": [(t, d) for t, d in gps if t_fix <= t <= t_end],
+              # the fixes' capture-to-send latency (each fix's first send), SITL seconds
+              "fix_latency_s": list(result["sender"].latencies_s()) if "sender" in result else [],
+              # MAV_CMD_EXTERNAL_POSITION_ESTIMATE: how many sent, and the autopilot's COMMAND_ACK results
+              "external_position": ({"sent": result["sender"].stats().sent.get("external_position", 0),
+                                     "acks": result["sender"].acks()} if external_position and "sender" in result
+                                    else None),
               "steps": flight(mapped(steps)),
               "ground_amsl_m": ground_amsl_m, "camera_min_alt_m": camera_min_alt_m, "speedup": speedup,
               # SITL seconds per real second from the fix to the end: SITL keeps its --speedup or falls behind
@@ -367,12 +475,20 @@ def fly_mission(scenario: str, agent: str, *, ground_amsl_m: float, vehicle: str
     record["horizontal_errors_m"] = [e for _, e in record["timed_errors"]]
     # the AUTO legs on the vision fix: from the first waypoint (plane: from the loop's first corner, at its
     # altitude; the climb-out to it is the agent's acquisition, from its prior) to the start of RTL / the landing
-    loop_start = 2 if vehicle == "copter" else 3
     record["loop_start"] = loop_start
     starts = {k: next((t for t, x in record["texts"] if x.startswith(f"Mission: {k}")), None)
               for k in (loop_start, loop_end)}
+    # a vision cut: from the first fix withheld to CUT_RECOVERY_S after the first fix back is the failsafe's
+    # (its own figures: report.failsafe_timeline), not the loop's tracking
+    cut_steps = [st[0] for st in record["steps"] if st[1] == "cut"]
+    window = (math.inf, -math.inf)
+    if cut_steps:
+        back = next((st[0] for st in record["steps"] if st[1] == "camera" and st[0] > cut_steps[-1]), cut_steps[-1])
+        window = (cut_steps[0], back + CUT_RECOVERY_S)
+    record["cut_window"] = window if cut_steps else None
     if starts[loop_start] is not None and starts[loop_end] is not None:
-        legs = lambda rows: [r for r in rows if starts[loop_start] <= r[0] <= starts[loop_end]]   # noqa: E731
+        legs = lambda rows: [r for r in rows if starts[loop_start] <= r[0] <= starts[loop_end]     # noqa: E731
+                             and not window[0] <= r[0] <= window[1]]
         record["leg_errors_m"] = horizontal_errors_m(legs(record["truth"]), legs(record["ekf"]))
         record["leg_flags"] = legs(record["ekf_flags"])
     else:

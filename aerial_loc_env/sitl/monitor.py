@@ -32,6 +32,7 @@ class Track:
     reached: list = field(default_factory=list)
     acks: list = field(default_factory=list)          # (time, command, result) of COMMAND_ACK
     gps_fix: list = field(default_factory=list)       # (time, fix_type) of GPS_RAW_INT
+    modes: list = field(default_factory=list)         # (time, mode name) at each change of the flight mode
     armed: bool = False
     mode: str = ""
     relative_alt_m: float = 0.0
@@ -96,7 +97,10 @@ class Monitor:
                 t.reached.append(int(msg.seq))     # (ArduPilot repeats it; 65535: none reached yet)
             elif kind == "HEARTBEAT" and msg.get_srcComponent() == 1:
                 t.armed = bool(msg.base_mode & mavutil.mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
-                t.mode = mavutil.mode_string_v10(msg)
+                mode = mavutil.mode_string_v10(msg)
+                if mode != t.mode:
+                    t.modes.append((now, mode))
+                t.mode = mode
 
     def stop(self) -> None:
         self._stop.set()

@@ -109,8 +109,9 @@ class SitlProcess:
     """One SITL instance on loopback (context manager; killed, with its process group, on exit)."""
 
     def __init__(self, vehicle: str, home: str, params: dict[str, float], *, speedup: float = 1.0,
-                 sitl_dir: str | os.PathLike | None = None) -> None:
+                 sitl_dir: str | os.PathLike | None = None, scripts: tuple[Path, ...] = ()) -> None:
         self.binary, self.defaults, self.model = find_sitl(vehicle, sitl_dir)
+        self.scripts = tuple(Path(p) for p in scripts)    # Lua scripts the autopilot runs (SCR_ENABLE 1)
         self.home, self.params, self.speedup = home, dict(params), check_sim_speedup(speedup, "--speedup")
         self.monitor_port, self.bridge_port = free_udp_port(), free_udp_port()
         self.instance = random.randint(20, 90)      # its other ports (RC in, sim) away from other instances
@@ -121,6 +122,10 @@ class SitlProcess:
         self.workdir = Path(tempfile.mkdtemp(prefix="aerial_loc_sitl_"))
         extra = self.workdir / "extra.parm"
         extra.write_text("".join(f"{k} {v}\n" for k, v in self.params.items()))
+        if self.scripts:                 # ArduPilot SITL runs the Lua scripts in ./scripts of its working folder
+            (self.workdir / "scripts").mkdir()
+            for script in self.scripts:
+                shutil.copyfile(script, self.workdir / "scripts" / script.name)
         self.log = open(self.workdir / "sitl.log", "wb")   # noqa: SIM115 (closed in __exit__)
         # SITL binds ports of its own from its instance number (TCP 5760 + 10 I for the serial ports it serves,
         # UDP 5501 + 10 I for RC input) and exits at once when one is taken, e.g. by another SITL that drew the

@@ -36,11 +36,22 @@ def read_dataflash(path: str | os.PathLike, gps_instance: int = 0) -> dict[str, 
     from pymavlink import DFReader
 
     log = DFReader.DFReader_binary(str(path), zero_time_base=True)
-    out: dict[str, list] = {"truth": [], "ekf": [], "gps_delta_ms": [], "ekf_var_m2": []}
+    out: dict[str, list] = {"truth": [], "ekf": [], "gps_delta_ms": [], "ekf_var_m2": [], "modes": [],
+                            "messages": [], "gps_status": [], "ekf_status": []}
     first_gpa = True
-    while (m := log.recv_match(type=["SIM", "POS", "GPA", "XKV1"])) is not None:
+    while (m := log.recv_match(type=["SIM", "POS", "GPA", "XKV1", "MODE", "MSG", "GPS", "XKF4"])) is not None:
         t, kind = m.TimeUS / 1e6, m.get_type()
-        if kind == "XKV1":
+        if kind == "MODE":
+            out["modes"].append((t, int(m.ModeNum), int(m.Rsn)))
+        elif kind == "MSG":
+            out["messages"].append((t, str(m.Message)))
+        elif kind == "GPS":
+            if getattr(m, "I", 0) == gps_instance:
+                out["gps_status"].append((t, int(m.Status)))
+        elif kind == "XKF4":
+            if m.C == 0:
+                out["ekf_status"].append((t, int(m.SS)))
+        elif kind == "XKV1":
             if m.C == 0:
                 out["ekf_var_m2"].append((t, float(m.V07) + float(m.V08)))
         elif kind == "GPA":
@@ -51,6 +62,28 @@ def read_dataflash(path: str | os.PathLike, gps_instance: int = 0) -> dict[str, 
                     out["gps_delta_ms"].append((t, signed_uint16(int(m.Delta))))
         else:
             out["truth" if kind == "SIM" else "ekf"].append((t, float(m.Lat), float(m.Lng), float(m.Alt)))
+    return out
+
+
+#: ArduPilot's GPS health (AP_GPS::is_healthy): an update interval over this is a delayed frame, two in a row
+#: make the GPS unhealthy, and so does a running average (0.98 old + 0.02 new, of intervals under 2 s) over
+#: AVG_MAX_MS; an interval that runs backwards wraps (uint32) and counts as delayed
+GPS_MAX_DELTA_MS = 245
+GPS_AVG_MAX_MS = 215
+
+
+def gps_unhealthy(deltas_ms: list[tuple[float, int]]) -> list[tuple[float, str]]:
+    """When ArduPilot's health rule for a GPS (``AP_GPS::is_healthy``'s timing part) fails on the logged update
+    intervals (t, GPA.Delta ms, signed): (t, why) for each update at which it does."""
+    delayed, average, out = 0, 0.0, []
+    for t, d in deltas_ms:
+        delayed = delayed + 1 if (d > GPS_MAX_DELTA_MS or d < 0) else 0
+        if 0 <= d < 2000:
+            average = float(d) if average <= 0 else 0.98 * average + 0.02 * d
+        if delayed >= 2:
+            out.append((t, f"{delayed} delayed updates in a row ({d} ms)"))
+        elif average >= GPS_AVG_MAX_MS:
+            out.append((t, f"average update interval {average:.0f} ms"))
     return out
 
 
@@ -112,6 +145,84 @@ def touchdown(truth: list, ekf: list, steps: list, land_at: tuple[float, float],
             "dead_reckoning_s": t_down - cam[-1][0] if cam else math.nan}
 
 
+#: the autopilot's messages that belong to a failsafe timeline
+FAILSAFE_WORDS = ("ailsafe", "EKF variance", "Glitch", "stopped aiding", "is using", "source", "GPS", "Mission:",
+                  "dead reckoning", "position")
+
+
+#: EKF3's solution status bits (XKF4.SS, ArduPilot's nav_filter_status), in order from bit 0
+EKF_STATUS_BITS = ("attitude", "horiz_vel", "vert_vel", "horiz_pos_rel", "horiz_pos_abs", "vert_pos", "terrain_alt",
+                   "const_pos_mode", "pred_horiz_pos_rel", "pred_horiz_pos_abs", "takeoff_detected", "takeoff",
+                   "touchdown", "using_gps", "gps_glitching", "gps_quality_good", "initialized",
+                   "rejecting_airspeed", "dead_reckoning")
+
+
+def ekf_status_change(before: int, after: int) -> str:
+    """What changed between two EKF3 solution statuses, in words: '+dead_reckoning -horiz_pos_abs'."""
+    words = [("+" if after >> i & 1 else "-") + name for i, name in enumerate(EKF_STATUS_BITS)
+             if (before ^ after) >> i & 1]
+    return " ".join(words)
+
+
+def mode_name(vehicle: str, number: int) -> str:
+    """ArduPilot's name of flight mode ``number`` for the vehicle (plane or copter)."""
+    from pymavlink import mavutil
+
+    table = mavutil.mode_mapping_apm if vehicle == "plane" else mavutil.mode_mapping_acm
+    return table.get(int(number), str(number))
+
+
+def failsafe_timeline(record: dict) -> dict:
+    """What the autopilot did around a vision cut, on SITL's clock, seconds from the first fix withheld (the
+    bridge's steps marked "cut"): its messages and mode changes (from its own log), its GPS fix type, when its
+    EKF's solution changed, the fix back (the first camera fix sent after the cut), the reaction (the first mode
+    change after the cut), the mission resumed (the first mode change or mission item after the fix came back),
+    and the EKF's dead-reckoning drift (its error against the truth and the accuracy it claimed, sqrt of its
+    north + east position variances) each second since the last fix."""
+    steps = record.get("steps", [])
+    cut = [st[0] for st in steps if st[1] == "cut"]
+    if not cut:
+        return {}
+    t0 = cut[0]
+    vehicle = record.get("vehicle", "copter")
+    last_fix = max((st[0] for st in steps if st[1] == "camera" and st[0] < t0), default=t0)
+    back = next((st[0] for st in steps if st[1] == "camera" and st[0] > cut[-1]), None)
+    end = (back if back is not None else cut[-1]) + 60.0
+    msgs = [(round(t - t0, 2), x) for t, x in record.get("log_messages", []) if t0 - 2.0 <= t <= end
+            and any(w in x for w in FAILSAFE_WORDS + ("Vision",))]
+    modes = [(round(t - t0, 2), mode_name(vehicle, n)) for t, n, _ in record.get("modes", []) if t0 <= t <= end]
+    gps = record.get("gps_status", [])
+    gps_lost = next((t for t, f in gps if t >= t0 and f < 3), None)
+    gps_back = next((t for t, f in gps if back is not None and t >= back - 1.0 and f >= 3), None)
+    ekf = [(round(t - t0, 2), ekf_status_change(prev, f)) for (t, f), (_, prev)
+           in zip(record.get("ekf_status", [])[1:], record.get("ekf_status", []), strict=False)
+           if t0 - 1.0 <= t <= end and f != prev]
+    reaction = next((t for t, n, _ in record.get("modes", []) if t >= t0), None)
+    resumed = None
+    if back is not None:
+        after = [t for t, _, _ in record.get("modes", []) if t >= back]
+        items = [t for t, x in record.get("log_messages", []) if t >= back and x.startswith("Mission: ")]
+        resumed = min(after + items, default=None)
+    var = record.get("ekf_var_m2", [])
+    var_t = [t for t, _ in var]
+    drift = []
+    errors = [(t, e) for t, e in record.get("timed_errors", []) if last_fix <= t <= (back or cut[-1]) + 1.0]
+    for k in range(int((back or cut[-1]) - last_fix) + 2):
+        near = [e for t, e in errors if abs(t - (last_fix + k)) <= 0.25]
+        if near:
+            i = max(0, bisect.bisect_right(var_t, last_fix + k) - 1)
+            sigma = math.sqrt(max(0.0, var[i][1])) if var else math.nan
+            drift.append((k, round(float(np.median(near)), 2), round(sigma, 2)))
+    return {"cut_s": (cut[-1] - t0) if back is None else back - t0, "last_fix_before_s": round(last_fix - t0, 2),
+            "gps_no_fix_s": None if gps_lost is None else round(gps_lost - t0, 2),
+            "reaction_s": None if reaction is None else round(reaction - t0, 2),
+            "fix_back_s": None if back is None else round(back - t0, 2),
+            "gps_fix_back_s": None if gps_back is None else round(gps_back - t0, 2),
+            "resumed_s": None if resumed is None else round(resumed - t0, 2),
+            "modes": modes, "messages": msgs, "ekf_status_changes": ekf,
+            "drift_m": drift, "drift_max_m": max((d[1] for d in drift), default=math.nan)}
+
+
 def vision_fix_s(steps: list, after: float | None = None) -> float:
     """Seconds the bridge sent camera fixes (sum of step intervals, each at most 1 s, ending on a camera step)."""
     total = 0.0
@@ -160,6 +271,24 @@ def summary(record: dict) -> dict:
            "gps_gaps_over_245ms": int((g > 245).sum()), "gps_gap_max_ms": float(g.max()) if g.size else math.nan,
            "gps_gap_max_before_fix_ms": float(record.get("gps_gap_max_before_fix_ms", math.nan)),
            "events": list(dict.fromkeys(events))}
+    deltas = record.get("gps_deltas_ms", [])
+    if deltas:     # ArduPilot's own health rule on its GPS update intervals (capture-stamped fixes: resends
+        #            carry the frame's stamp, so the intervals are 0 between resends and a frame's between frames)
+        bad = gps_unhealthy(deltas)
+        out["gps_unhealthy"] = len(bad)
+        out["gps_unhealthy_first"] = [(round(t - deltas[0][0], 2), why) for t, why in bad[:5]]
+        positive = [d for _, d in deltas if d > 0]
+        out["gps_fix_interval_ms"] = {"median": float(np.median(positive)), "max": float(max(positive))} \
+            if positive else {}
+    lat = np.asarray(record.get("fix_latency_s", []), dtype=float)
+    if lat.size:
+        out["fix_latency_ms"] = {"min": float(lat.min() * 1e3), "median": float(np.median(lat) * 1e3),
+                                 "p95": float(np.percentile(lat, 95) * 1e3)}
+    if record.get("external_position"):
+        out["external_position"] = record["external_position"]
+    if record.get("vision_cut"):
+        out["vision_cut"] = {"at": record["vision_cut"][0], "seconds": record["vision_cut"][1],
+                             **failsafe_timeline(record)}
     if record.get("acquisition_errors_m"):
         out["acquisition_ekf_max_m"] = float(max(record["acquisition_errors_m"]))
     if record.get("touchdown"):
@@ -255,7 +384,11 @@ def write_outputs(record: dict, out_dir: Path) -> list[Path]:
             ax.plot(*en(record["estimates"]), "b.", ms=2, label="estimates (camera)")
         ax.set_xlabel("east of take-off, m")
         ax.set_ylabel("north, m")
-        ax.set_title(f"{record.get('vehicle', 'copter')}, {record.get('mission', 'gps-input')}: track", fontsize=9)
+        wind = record.get("wind")
+        blows = "" if not wind else f", wind {wind[0]:g} m/s from {wind[1]:g} deg" + (
+            f" gusting {wind[2]:g}" if len(wind) > 2 and wind[2] else "")
+        ax.set_title(f"{record.get('vehicle', 'copter')}, {record.get('mission', 'gps-input')}{blows}: track",
+                     fontsize=9)
         ax.legend(fontsize=7)
         timed = record.get("timed_errors", [])
         ax2.plot([t - t0 for t, _ in timed], [e for _, e in timed], "r-", lw=1, label="EKF vs truth")
@@ -264,6 +397,11 @@ def write_outputs(record: dict, out_dir: Path) -> list[Path]:
             ax2.plot([s[0] - t0 for s in cam], [s[2] for s in cam], "b.", ms=2, label="estimator vs truth")
         if record.get("t_denied") is not None:
             ax2.axvline(record["t_denied"] - t0, color="k", lw=0.8, ls=":", label="GNSS off")
+        cut = [st[0] for st in record.get("steps", []) if st[1] == "cut"]
+        if cut:                         # the vision cut: the fix withheld from the autopilot
+            ax2.axvspan(cut[0] - t0, cut[-1] - t0, color="orange", alpha=0.25, label="vision cut")
+            ax.plot(*en([r for r in truth if cut[0] <= r[0] <= cut[-1]]), "-", color="orange", lw=2.5,
+                    label="truth during the cut")
         ax2.set_yscale("log")
         ax2.set_xlabel("time since arming, s")
         ax2.set_ylabel("horizontal error, m")

@@ -44,8 +44,8 @@ def long_mission(mission_sitl: Callable[[str], Path]) -> Callable[[str, str], Pa
     def get(binary: str, duration: str) -> Path:
         folder = mission_sitl(binary)
         if os.environ.get("AERIAL_LOC_SITL_ALL") != "1":
-            pytest.skip(f"the long SITL missions (copter ExternalNav and GNSS denial, plane GNSS denial) run with "
-                        f"AERIAL_LOC_SITL_ALL=1 ({duration})")
+            pytest.skip(f"the long SITL missions (copter ExternalNav and GNSS denial, plane GNSS denial and crosswind) "
+                        f"run with AERIAL_LOC_SITL_ALL=1 ({duration})")
         return folder
 
     return get

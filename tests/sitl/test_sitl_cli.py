@@ -68,12 +68,12 @@ def test_out_an_existing_file_is_refused_before_the_flight(fake_sitl, tmp_path, 
     assert mine.read_text() == "mine" and not (fake_sitl / "runs").exists()
 
 
-@pytest.mark.parametrize("wind", ["5", "x,3", "40,270", "5,270,1", "5,nan", "-1,90"])
+@pytest.mark.parametrize("wind", ["5", "x,3", "40,270", "5,270,11", "5,270,1,2", "5,nan", "-1,90"])
 def test_wind_option_refuses_a_malformed_value_naming_the_form(wind, fake_sitl, tmp_path, capsys):
     """--wind is checked before SITL starts: a clear error naming the option and its form, exit 2."""
     rc, err = _sitl(["--vehicle", "plane", f"--wind={wind}", "--sitl-bin", str(fake_sitl), "--out",
                      str(tmp_path / "run")], capsys)
-    assert rc == 2 and f"--wind {wind!r}" in err and "SPEED,FROM_DEG" in err and "0..30 m/s" in err, err
+    assert rc == 2 and f"--wind {wind!r}" in err and "SPEED,FROM_DEG[,GUST]" in err and "0..30 m/s" in err, err
     assert not (fake_sitl / "runs").exists()
 
 

@@ -222,9 +222,9 @@ def test_copter_mission_on_the_vision_fix(mission_sitl):
     rmse = float(np.sqrt(np.mean(errors ** 2)))
     assert rmse < 2 * 3.0 + 3.5 and errors.max() < 5 * 3.0 + 3.5, (rmse, errors.max())
     # ArduPilot's own interval between GPS updates (GPA.Delta), from the EKF taking the fix to the end (a stall
-    # while the bridge starts up excluded): never long enough for ArduPilot to call the GPS unhealthy
-    gaps = np.array(r["gps_gaps_ms"])
-    assert len(gaps) > 100 and gaps.max() < 245, gaps.max()
+    # while the bridge starts up excluded), through its own health rule: never unhealthy (the fixes carry their
+    # frame's capture time, so a resend's interval is 0 and a frame's its camera interval, about 0.25 s)
+    assert len(r["gps_gaps_ms"]) > 100 and s["gps_unhealthy"] == 0, s["gps_fix_interval_ms"]
 
 
 
@@ -286,6 +286,28 @@ def test_copter_mission_on_external_nav(mission, long_mission):
         assert s["vision_fix_s"] > 20.0
 
 
+def _plane_loop(r: dict, s: dict) -> list[str]:
+    """The plane kept pace, took its first camera frame before the loop, started every mission item in order and
+    flew the loop with an absolute position within the tracking bound (``_plane_loop_and_landing``); returns the
+    autopilot's messages."""
+    _kept_pace(s, PLANE_SPEEDUP)
+    texts = [t for _, t in r["texts"]]
+    loop_start = next(t for t, x in r["texts"] if x.startswith(f"Mission: {r['loop_start']}"))
+    first_frame = next(st[0] for st in r["steps"] if st[1] == "camera")
+    assert first_frame < loop_start, (first_frame, loop_start)
+    # every item started, in order (STATUSTEXT "Mission: k ..."; MISSION_ITEM_REACHED is not enough: ArduPlane
+    # reported the loop's last waypoint as item 6, the DO_LAND_START run right after it)
+    started = list(dict.fromkeys(int(x.split()[1]) for x in texts if x.startswith("Mission: ")))
+    assert started == list(range(1, r["last_wp"] + 1)), (started, texts[-12:])     # (a cut's resume repeats one)
+    loop = [f for _, f in r["leg_flags"]]
+    assert loop and all(f & 16 for f in loop), sorted(set(loop))
+    errors = np.array(r["leg_errors_m"])
+    assert len(errors) > 500
+    rmse = float(np.sqrt(np.mean(errors ** 2)))
+    assert rmse < 2 * 3.0 + 7.7 and errors.max() < 5 * 3.0 + 7.7, (rmse, errors.max())
+    return texts
+
+
 def _plane_loop_and_landing(r: dict, s: dict) -> None:
     """What both plane missions must show: the loop on the established vision fix, the landing, touchdown.
 
@@ -305,21 +327,7 @@ def _plane_loop_and_landing(r: dict, s: dict) -> None:
     measured 1-5 m against 7-10 m), and the touchdown within that of the final's line across it (the autopilot
     steers the line it believes it is on; along the line the point is the flare's, about 30 m short, and where it
     stops, within a few metres)."""
-    _kept_pace(s, PLANE_SPEEDUP)
-    texts = [t for _, t in r["texts"]]
-    loop_start = next(t for t, x in r["texts"] if x.startswith(f"Mission: {r['loop_start']}"))
-    first_frame = next(st[0] for st in r["steps"] if st[1] == "camera")
-    assert first_frame < loop_start, (first_frame, loop_start)
-    # every item started, in order (STATUSTEXT "Mission: k ..."; MISSION_ITEM_REACHED is not enough: ArduPlane
-    # reported the loop's last waypoint as item 6, the DO_LAND_START run right after it)
-    started = [int(x.split()[1]) for x in texts if x.startswith("Mission: ")]
-    assert started == list(range(1, r["last_wp"] + 1)), (started, texts[-12:])
-    loop = [f for _, f in r["leg_flags"]]
-    assert loop and all(f & 16 for f in loop), sorted(set(loop))
-    errors = np.array(r["leg_errors_m"])
-    assert len(errors) > 500
-    rmse = float(np.sqrt(np.mean(errors ** 2)))
-    assert rmse < 2 * 3.0 + 7.7 and errors.max() < 5 * 3.0 + 7.7, (rmse, errors.max())
+    texts = _plane_loop(r, s)
     # the landing sequence flown to touchdown and the autopilot's own disarm; the camera down to the agent's
     # lowest altitude (within the altimeter's noise), then dead reckoning to the ground
     assert any(x.startswith(f"Mission: {r['last_wp']} Land") for x in texts), texts[-12:]
@@ -338,19 +346,33 @@ def test_plane_mission_on_the_vision_fix(mission_sitl):
     on the pad fix, takes off north with no fix from leaving the pad until the camera is in range (the agent's
     lowest altitude, 40 m), flies a 600 m x 800 m loop over the map, then the landing sequence (DO_LAND_START, an
     approach point 1 km north at 100 m, NAV_LAND at home heading south: the vision fix down to 40 m, about 25 s
-    of dead reckoning below) to touchdown and disarm; SITL at PLANE_SPEEDUP, every figure on its clock."""
+    of dead reckoning below) to touchdown and disarm; SITL at PLANE_SPEEDUP, every figure on its clock.
+
+    With a vision cut in the loop (issue 27's target): 5 s into the loop's first leg the fix is withheld for 20 s
+    of SITL's clock (GPS_INPUT: no fix). The plane's vision failsafe (the shipped Lua script) must act within 5 s,
+    from SITL's own log: its mode to LOITER; and when the fix is back the mission resumes (AUTO) within 5 s, the
+    loop then flown to the end with the bounds below (the cut and the 10 s after the fix came back are the
+    failsafe's, not the loop's tracking)."""
     sitl_dir = mission_sitl("arduplane")
     r = fly_mission("AerialLoc/PaperShadows-v2", "template-ncc", ground_amsl_m=30.0, sitl_dir=sitl_dir,
-                    vehicle="plane", speedup=PLANE_SPEEDUP)
+                    vehicle="plane", speedup=PLANE_SPEEDUP, vision_cut=("loop", 20.0))
     s = summary(r)
     print(s)
     texts = [t for _, t in r["texts"]]
     assert any("EKF3 IMU0 is using GPS" in t for t in texts), texts
     _plane_loop_and_landing(r, s)
-    assert s["vision_fix_s"] > 150.0          # the loop and the approach on the camera fix
-    # GPS_INPUT flows throughout, with no fix during the climb: ArduPilot never saw a gap it calls unhealthy
-    gaps = np.array(r["gps_gaps_ms"])
-    assert len(gaps) > 500 and gaps.max() < 245, gaps.max()
+    assert s["vision_fix_s"] > 130.0          # the loop (less the cut) and the approach on the camera fix
+    # GPS_INPUT flows throughout, with no fix during the climb and the cut: ArduPilot's GPS health rule on its own
+    # update intervals never fails
+    assert len(r["gps_gaps_ms"]) > 500 and s["gps_unhealthy"] == 0, s["gps_fix_interval_ms"]
+    # the failsafe timeline, seconds from the first fix withheld, from SITL's log
+    cut = s["vision_cut"]
+    assert 19.0 <= cut["fix_back_s"] <= 21.0 and cut["gps_no_fix_s"] < 1.0, cut
+    assert cut["modes"][0][1] == "LOITER" and cut["reaction_s"] < 5.0, cut
+    assert any(x.startswith("Vision failsafe: fix lost") for _, x in cut["messages"]), cut["messages"]
+    back_to_auto = [t for t, m in cut["modes"] if m == "AUTO" and t >= cut["fix_back_s"]]
+    assert back_to_auto and back_to_auto[0] - cut["fix_back_s"] < 5.0, cut
+    assert cut["drift_m"] and all(math.isfinite(e) for _, e, _ in cut["drift_m"])
 
 
 @pytest.mark.timeout(600)
@@ -370,3 +392,25 @@ def test_plane_gnss_denial(long_mission):
     assert any(f < 3 for t, f in r["gps_fix"] if t > t_d + 2.0), "SITL's GPS still had a fix"
     _plane_loop_and_landing(r, s)
     assert s["denied_ekf_max_m"] < 5 * 3.0 + 7.7 and s["vision_fix_s"] > 100.0, s
+
+
+@pytest.mark.timeout(600)
+@pytest.mark.parametrize("wind", [(5.0, 270.0), (8.0, 270.0, 1.5)], ids=["5-steady", "8-gusting"])
+def test_plane_crosswind_mission(wind, long_mission):
+    """ArduPlane's GPS_INPUT mission in a crosswind from the west (SITL's SIM_WIND_SPD / DIR, and its turbulence
+    SIM_WIND_TURB for the gusts), across the loop's long legs and the final: the plane crabs, the env's odometry
+    carries the lateral speed (from SITL's stream), the agent keeps its track. The loop is held to the no-wind
+    bounds (fix sigma 3 m, the fix's age at cruise speed: RMSE < 2 sigma + 7.7 m, max < 5 sigma + 7.7 m) and the
+    mission completes (touchdown, disarm); the touchdown's distance across the line, after about 25 s of dead
+    reckoning below the camera's range in the crosswind, is recorded, not bounded (docs/mavlink.md, Crosswind).
+    About 2.4 min each at PLANE_SPEEDUP: in CI only with AERIAL_LOC_SITL_ALL=1."""
+    sitl_dir = long_mission("arduplane", "2.4 min each")
+    r = fly_mission("AerialLoc/PaperShadows-v2", "template-ncc", ground_amsl_m=30.0, sitl_dir=sitl_dir,
+                    vehicle="plane", speedup=PLANE_SPEEDUP, wind=wind)
+    s = summary(r)
+    print(s)
+    assert s["wind"] == wind
+    texts = _plane_loop(r, s)
+    assert not any(x.startswith("Vision failsafe: fix lost, LOITER") for x in texts), texts
+    assert any("Auto disarmed" in x for x in texts) and s["touchdown"]["landed"], s["touchdown"]
+
