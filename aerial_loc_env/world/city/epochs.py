@@ -371,7 +371,7 @@ def _soil(L: _Layers, rng: np.random.Generator, sel: np.ndarray) -> None:
         c = (int(rng.integers(w)), int(rng.integers(h)))
         cv2.circle(marks, c, L.px(rng.uniform(1.0, 4.0)), 2, -1)
     col = SOIL_TINTS[rng.integers(len(SOIL_TINTS))] * tex[..., None]
-    col[marks == 1] *= rng.uniform(0.65, 0.85)
+    col[marks == 1] *= rng.uniform(0.78, 0.92)
     col[marks == 3] *= rng.uniform(0.55, 0.75)
     heap = SOIL_TINTS[rng.integers(len(SOIL_TINTS))] * 1.15 if rng.random() < 0.5 else np.array(
         [178, 172, 160], np.float32)

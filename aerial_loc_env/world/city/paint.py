@@ -77,11 +77,13 @@ _MATERIAL_TABLE: dict[Material, tuple[LandCover, int, int, int]] = {
 }
 
 
-# material -> darkening (shade units) of stains: oil drips, tyre marks, wet patches, tar; sparse blobs at two
-# scales. Markings get wear instead: the paint thins to the asphalt under it in places.
+# material -> darkening (shade units) of stains: oil drips, tyre marks, wet patches, tar on paving; weeds, clover
+# and moist hollows on grass and fields; sparse blobs at two scales. Markings get wear instead: the paint thins
+# to the asphalt under it in places.
 _STAIN_AMPLITUDE: dict[Material, int] = {
     Material.ASPHALT: 36, Material.PARKING: 40, Material.PLAZA: 28, Material.SIDEWALK: 24,
     Material.ROOF_FLAT: 26, Material.GRAVEL: 22, Material.SOIL: 20, Material.TRACK: 16,
+    Material.GRASS: 30, Material.FIELD: 30, Material.SHRUB: 30,
 }
 _MARKING_WEAR = 70
 
