@@ -133,6 +133,31 @@ class Filler:
         except KeyError:
             raise ValueError(f"unknown ground kind {kind!r}; use one of {sorted(GROUND_KINDS)}") from None
         self.scene.grounds.append(([poly], _jitter(self.rng, np.array(base), spread), mat))
+        if kind == "paving":
+            self._plaza_clutter(poly)
+
+    def _plaza_clutter(self, quad: np.ndarray) -> None:
+        """What open paving carries: planters, benches and kiosks, bands of a second paving, drain lines (drawn
+        with the grounds: buildings stand over them)."""
+        r = self.rng
+        c, u, a, b = quad_frame(quad)
+        if min(a, b) < 8.0:
+            return
+        v = np.array([-u[1], u[0]])
+        for _ in range(int(r.poisson(a * b / 500.0))):
+            p = c + u * r.uniform(-0.42, 0.42) * a + v * r.uniform(-0.42, 0.42) * b
+            kind = r.random()
+            if kind < 0.4:                                   # a planter: shrubs in a box
+                self.scene.grounds.append(([orect(p, u, r.uniform(1.5, 6.0), r.uniform(1.0, 2.5))],
+                                           _jitter(r, np.array([70, 100, 56]), 14), Material.SHRUB))
+            elif kind < 0.7:                                 # a bench or a bin: a small dark or light box
+                grey = int(r.choice([60, 90, 190]))
+                self.scene.grounds.append(([orect(p, u, r.uniform(0.5, 2.0), r.uniform(0.4, 0.8))],
+                                           _jitter(r, np.array([grey, grey, grey]), 8), Material.PLAZA))
+            else:                                            # a band of another paving
+                self.scene.grounds.append(([orect(p, u if r.random() < 0.5 else v, r.uniform(4.0, 20.0),
+                                                  r.uniform(1.0, 3.0))],
+                                           _jitter(r, np.array([150, 140, 132]), 20), Material.PLAZA))
 
     def tree(self, p: np.ndarray, r_m: float | None = None) -> None:
         r = self.rng
