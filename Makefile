@@ -35,8 +35,13 @@ test-fast: venv
 bench: venv
 	OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 $(PY) -m aerial_loc_env.perf $(ARGS)
 
+# with ../shared, a real LEVIR-CD pair beside the simulated gap (in results/pictures, never docs/img: its licence
+# forbids copies in the repository)
+LEVIR  := ../shared/data/pairs/levir-cd
 pictures: venv
 	$(VENV)/bin/aerial-loc pictures --out docs/img --realism
+	$(if $(wildcard $(LEVIR)/A/test_1.png),$(VENV)/bin/aerial-loc pictures --out results/pictures --frames 1 --realism \
+		--pair $(LEVIR)/A/test_1.png $(LEVIR)/B/test_1.png --pair-gsd 0.5)
 
 lint: venv
 	$(VENV)/bin/ruff check aerial_loc_env tests

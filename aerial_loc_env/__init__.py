@@ -1,8 +1,8 @@
 """aerial_loc_env: a Gymnasium benchmark for image-based absolute localization of drones without GNSS.
 
 Importing the package registers the scenarios of ``envs/`` with Gymnasium (``AerialLoc/<Name>-v<N>``), so
-``import aerial_loc_env; gym.make("AerialLoc/PaperShadows-v1")`` works; so does
-``gym.make("aerial_loc_env:AerialLoc/PaperShadows-v1")`` without the explicit import.
+``import aerial_loc_env; gym.make("AerialLoc/PaperShadows-v2")`` works; so does
+``gym.make("aerial_loc_env:AerialLoc/PaperShadows-v2")`` without the explicit import.
 
 The public API, one import deep (``import aerial_loc_env as ale``):
 

@@ -11,8 +11,9 @@ Writes, into ``--out``:
 - ``contact_sheet.png``: all the pairs stacked;
 - with ``--realism``, ``gap_<level>.png``: the map database at the true pose | the camera frame, for each kind
   of realistic map-camera gap alone (epoch change, relief displacement over tall buildings, the map's own sun,
-  the map's own sensor) and all together (``AerialLoc/RealisticPaper-v1``); with ``--map``, the kinds that apply
-  to that map (its acquisition by another sensor, the realistic camera, both), flown over it.
+  the map's own sensor) and all together (``AerialLoc/RealisticPaper-v2``); with ``--map``, the kinds that apply
+  to that map (its acquisition by another sensor, the realistic camera, both), flown over it; with ``--pair``
+  also ``gap_real_pair.png``, a real two-epoch pair in the same layout (what the simulated gap should look like).
 """
 
 from __future__ import annotations
@@ -49,7 +50,11 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument("--realism", action="store_true",
                     help="also write gap_<level>.png: map patch | camera frame for each kind of realistic gap "
                          "(epoch change, relief, the map's own sun, the map's sensor, all of them); with --map, "
-                         "the kinds that apply to that map, flown over it (RealMap-v1 at --altitude)")
+                         "the kinds that apply to that map, flown over it (RealMap-v2 at --altitude)")
+    ap.add_argument("--pair", nargs=2, metavar=("EARLIER", "LATER"),
+                    help="--realism: also gap_real_pair.png, a real two-epoch pair flown as RealPair-v2 (map = "
+                         "EARLIER, camera over LATER) in the same layout, to set beside the simulated gap")
+    ap.add_argument("--pair-gsd", type=float, help="--pair: ground metres per pixel of images without georeference")
     return ap
 
 
@@ -58,11 +63,16 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if (args.crs or args.gsd is not None) and not args.map:
             raise ConfigError("pictures: --crs and --gsd describe the file given with --map; give --map too")
+        if (args.pair or args.pair_gsd is not None) and not args.realism:
+            raise ConfigError("pictures: --pair and --pair-gsd add a picture to --realism; give --realism too")
+        if args.pair_gsd is not None and not args.pair:
+            raise ConfigError("pictures: --pair-gsd describes the images given with --pair; give --pair too")
         written = write_pictures(Path(args.out), map_path=args.map, seed=args.seed, altitude_m=args.altitude,
                                  n_frames=args.frames, map_crs=args.crs, map_gsd_m=args.gsd)
         if args.realism:
             written += write_realism_pictures(Path(args.out), seed=args.seed, map_path=args.map, map_crs=args.crs,
-                                              map_gsd_m=args.gsd, altitude_m=args.altitude)
+                                              map_gsd_m=args.gsd, altitude_m=args.altitude,
+                                              pair=None if not args.pair else (*args.pair, args.pair_gsd))
     except AerialLocError as exc:
         print(f"aerial-loc pictures: {exc}", file=sys.stderr)
         return 2
@@ -245,8 +255,8 @@ def realism_levels() -> list[tuple[str, str, str, dict, str]]:
     from aerial_loc_env.env import load_scenario
     from aerial_loc_env.env.scenarios import SECTIONS
 
-    real = load_scenario("AerialLoc/RealisticPaper-v1").to_dict()
-    season = load_scenario("AerialLoc/SeasonChange-v1").to_dict()
+    real = load_scenario("AerialLoc/RealisticPaper-v2").to_dict()
+    season = load_scenario("AerialLoc/SeasonChange-v2").to_dict()
     # relief alone: Downtown with every other part of the gap back at its default (off)
     relief = {name: config_to_dict(SECTIONS[name]()()) for name in
               ("epoch", "database", "gimbal", "altimeter", "exposure", "haze", "photometry")}
@@ -254,31 +264,31 @@ def realism_levels() -> list[tuple[str, str, str, dict, str]]:
     sun = real["shadows"]["database_sun_deg"]
     return [
         ("paper", "the paper's setting: shadow-free map | camera with cast shadows (PaperShadows)",
-         "AerialLoc/PaperShadows-v1", {}, "middle"),
+         "AerialLoc/PaperShadows-v2", {}, "middle"),
         ("epoch", "epoch change only: map of epoch A | camera over epoch B (SeasonChange's rates)",
-         "AerialLoc/PaperNoShadows-v1", {**_QUIET, "epoch": season["epoch"]}, "middle"),
+         "AerialLoc/PaperNoShadows-v2", {**_QUIET, "epoch": season["epoch"]}, "middle"),
         ("relief", "relief only: affine map patch | perspective camera, tall buildings at the frame edge "
-                   "(Downtown)", "AerialLoc/Downtown-v1", relief, "relief"),
+                   "(Downtown)", "AerialLoc/Downtown-v2", relief, "relief"),
         ("database_sun", f"map with another sun's shadows (az {sun[0]:.0f}, el {sun[1]:.0f} deg) | camera "
-                         "with the flight's sun", "AerialLoc/PaperShadows-v1",
+                         "with the flight's sun", "AerialLoc/PaperShadows-v2",
          {"shadows.database_sun_deg": sun}, "middle"),
         ("acquisition", "map acquired by another sensor (GSD, blur, JPEG, colour, haze, lean, georeference "
-                        "bias) | camera", "AerialLoc/PaperNoShadows-v1", {**_QUIET, "database": real["database"]},
+                        "bias) | camera", "AerialLoc/PaperNoShadows-v2", {**_QUIET, "database": real["database"]},
          "middle"),
-        ("realistic", "everything: RealisticPaper-v1 map | camera", "AerialLoc/RealisticPaper-v1", {}, "middle"),
+        ("realistic", "everything: RealisticPaper-v2 map | camera", "AerialLoc/RealisticPaper-v2", {}, "middle"),
     ]
 
 
 def map_realism_levels(map_path: str, *, crs: str | None = None, gsd_m: float | None = None,
                        altitude_m: float = 200.0) -> tuple[list[tuple[str, str, str, dict, str]], list[str]]:
-    """The realism levels that apply to a user's map, flown over it (``AerialLoc/RealMap-v1`` with the pictures'
+    """The realism levels that apply to a user's map, flown over it (``AerialLoc/RealMap-v2`` with the pictures'
     600 x 400 camera at ``altitude_m``, clouds off unless all is on), and the levels left out with why: the epoch
     change needs the city's land cover and height model, relief and the map's own sun a height model, building
     lean in the acquisition too (it is left out of the acquisition on a map without one)."""
     from aerial_loc_env.env import load_scenario
 
     orthomap = _load_map(map_path, crs=crs, gsd_m=gsd_m)
-    real = load_scenario("AerialLoc/RealisticPaper-v1").to_dict()
+    real = load_scenario("AerialLoc/RealisticPaper-v2").to_dict()
     has_dsm = orthomap.dsm_m is not None
     base: dict = {"map": {"kind": "file", "path": str(map_path), **({"crs": crs} if crs else {}),
                           **({"gsd_m": gsd_m} if gsd_m is not None else {})},
@@ -289,35 +299,50 @@ def map_realism_levels(map_path: str, *, crs: str | None = None, gsd_m: float | 
     name = orthomap.name
     levels = [
         ("acquisition", f"{name}: map acquired by another sensor (GSD, blur, JPEG, colour, haze, georeference bias"
-                        f"{', lean' if has_dsm else ''}) | camera", "AerialLoc/RealMap-v1",
+                        f"{', lean' if has_dsm else ''}) | camera", "AerialLoc/RealMap-v2",
          {**base, **quiet, "database": database}, "middle"),
         ("camera", f"{name}: map | realistic camera (gimbal 0.3 deg, heading 1 deg, baro 2 m, auto-exposure, haze, "
-                   "photometry)", "AerialLoc/RealMap-v1", {**base, **quiet, **camera}, "middle"),
+                   "photometry)", "AerialLoc/RealMap-v2", {**base, **quiet, **camera}, "middle"),
         ("realistic", f"{name}: everything that applies: another sensor's map | realistic camera, cloud shadows",
-         "AerialLoc/RealMap-v1", {**base, "database": database, **camera}, "middle"),
+         "AerialLoc/RealMap-v2", {**base, "database": database, **camera}, "middle"),
     ]
     left_out = ["epoch (needs the procedural city's land cover and height model)"]
     if has_dsm:
         levels.insert(2, ("relief", f"{name}: relief only: affine map patch | perspective camera",
-                          "AerialLoc/RealMap-v1", {**base, **quiet, "perspective": {"enabled": True}}, "relief"))
+                          "AerialLoc/RealMap-v2", {**base, **quiet, "perspective": {"enabled": True}}, "relief"))
     else:
         left_out += ["relief and database_sun (need a height model; the map has none)"]
     return levels, left_out
 
 
+def pair_level(path_a: str, path_b: str, gsd_m: float | None = None) -> tuple[str, str, str, dict, str]:
+    """The realism level of a real two-epoch pair: ``AerialLoc/RealPair-v2`` over it (map = the earlier image,
+    camera over the later one), to be seen beside the simulated levels in the same layout."""
+    pair = {"path_a": str(path_a), "path_b": str(path_b), **({"gsd_m": gsd_m} if gsd_m is not None else {})}
+    a, b = (f"{Path(p).parent.name}/{Path(p).name}" for p in (path_a, path_b))
+    return ("real_pair", f"a real two-epoch pair: map = {a} (earlier) | camera over {b} (later), RealPair-v2",
+            "AerialLoc/RealPair-v2", {"map": pair}, "middle")
+
+
 def write_realism_pictures(out: Path, *, seed: int = 0, levels: list | None = None, map_path: str | None = None,
                            map_crs: str | None = None, map_gsd_m: float | None = None,
-                           altitude_m: float = 200.0) -> list[Path]:
+                           altitude_m: float = 200.0,
+                           pair: tuple[str, str, float | None] | None = None) -> list[Path]:
     """``gap_<level>.png``: map patch at the true pose | camera frame, one per realism level, labelled: the
     procedural city's levels (``realism_levels``), or with ``map_path`` those that apply to that map
-    (``map_realism_levels``; the others are named on stderr)."""
+    (``map_realism_levels``; the others are named on stderr); with ``pair`` (earlier, later, GSD or None) also
+    ``gap_real_pair.png`` (``pair_level``)."""
     from aerial_loc_env.env import AerialLocEnv, load_scenario
 
     if levels is None and map_path is not None:
         levels, left_out = map_realism_levels(map_path, crs=map_crs, gsd_m=map_gsd_m, altitude_m=altitude_m)
         print(f"aerial-loc pictures --realism: on {map_path}, left out: {'; '.join(left_out)}", file=sys.stderr)
+    levels = realism_levels() if levels is None else list(levels)
+    Path(out).mkdir(parents=True, exist_ok=True)
+    if pair is not None:
+        levels.append(pair_level(*pair))
     written = []
-    for stem, title, sid, overrides, choice in (realism_levels() if levels is None else levels):
+    for stem, title, sid, overrides, choice in levels:
         env = AerialLocEnv(load_scenario(sid, overrides))
         try:
             obs, info = env.reset(seed=seed)

@@ -43,3 +43,24 @@ def test_realism_pictures_fly_over_the_given_map(tmp_path, capsys):
     assert "left out: epoch (needs the procedural city's land cover" in err and "relief and database_sun" in err
     picture = cv2.imread(str(tmp_path / "out" / "gap_camera.png"))
     assert picture.shape[1] == 2 * 600 + 6
+
+
+def test_a_real_pair_picture_in_the_same_layout_as_the_simulated_gap(tmp_path, capsys):
+    """``--realism --pair EARLIER LATER --pair-gsd G`` adds gap_real_pair.png, the pair flown as RealPair (map =
+    the earlier image | camera over the later one) in the simulated levels' layout; --pair alone is refused."""
+    import cv2
+    from synthetic_pairs import write_pair
+
+    from aerial_loc_env.pictures import main, pair_level, write_realism_pictures
+
+    a, b = write_pair(tmp_path / "pair", size_px=1024, world_file=False)
+    assert main(["--out", str(tmp_path / "x"), "--pair", str(a), str(b)]) == 2
+    assert "give --realism too" in capsys.readouterr().err
+    assert main(["--out", str(tmp_path / "x"), "--realism", "--pair-gsd", "0.5"]) == 2
+    assert "give --pair too" in capsys.readouterr().err
+    (path,) = write_realism_pictures(tmp_path / "out", levels=[], pair=(str(a), str(b), 0.5))
+    assert path.name == "gap_real_pair.png" and pair_level(str(a), str(b))[2] == "AerialLoc/RealPair-v2"
+    picture = cv2.imread(str(path))
+    assert picture.shape[1] == 2 * 600 + 6
+    half = picture.shape[1] // 2
+    assert picture[60:, :half].std() > 5 and picture[60:, half + 6:].std() > 5      # both sides hold the ground

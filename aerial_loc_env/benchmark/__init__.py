@@ -5,7 +5,7 @@ tables.
 From Python::
 
     from aerial_loc_env.benchmark import make_grid, run_experiment
-    grid = make_grid("mine", ["mcl-shadow-aware", "mcl-conventional"], ["AerialLoc/PaperShadows-v1"],
+    grid = make_grid("mine", ["mcl-shadow-aware", "mcl-conventional"], ["AerialLoc/PaperShadows-v2"],
                      seeds=10)
     rows = run_experiment(grid, "results/mine", workers=2)     # or run_experiment("table5", ...)
 """

@@ -1,7 +1,7 @@
 """``aerial-loc fidelity``: does the simulator rank estimators as real imagery does?
 
 A benchmark is worth using when it ranks localization methods as real flights would. This report flies the
-same agents over real two-epoch pairs (``AerialLoc/RealPair-v1``: the map is the earlier image, the camera flies
+same agents over real two-epoch pairs (``AerialLoc/RealPair-v2``: the map is the earlier image, the camera flies
 over the later one) and over chosen simulated presets at the **same flight geometry** (camera, altitude, speed,
 duration, prior), and compares:
 
@@ -15,7 +15,7 @@ duration, prior), and compares:
 
 The issue's targets: tau >= ``TARGET_TAU`` and every ratio within ``TARGET_RATIO``.
 
-**The flight** (``pair_scenarios.fit_flight``): RealPair-v1's geometry (the paper's 600 x 400 camera, 5 m/s,
+**The flight** (``pair_scenarios.fit_flight``): RealPair-v2's geometry (the paper's 600 x 400 camera, 5 m/s,
 a 15 m prior) at the altitude and duration fitted to the smallest pair; every pair and every preset fly that one
 geometry, so that the comparison is at one geometry. A 512 m tile at 0.5 m/px (the LEVIR-CD pairs) gets
 RealPair's own: 200 m, 60 s.
@@ -48,6 +48,7 @@ from aerial_loc_env.benchmark.pair_scenarios import (
     pair_sources,
     sim_overrides,
 )
+from aerial_loc_env.benchmark.report import BOOTSTRAP_RESAMPLES, two_stage_resample
 from aerial_loc_env.errors import ConfigError, MapError
 
 #: the agents of issue 24's table: (spec, label)
@@ -55,8 +56,7 @@ DEFAULT_AGENTS = (("mcl-mi", "MCL MI"), ("mcl-ncc", "MCL NCC"), ("template-ncc",
                   ("mcl-abbrief", "MCL abBRIEF"), ("mcl-conventional", "MCL conventional"),
                   ("mcl-shadow-aware", "MCL shadow-aware"), ("mcl-ssd", "MCL SSD"),
                   ("mcl-restoration", "MCL restoration"), ("features-orb", "ORB + RANSAC"))
-DEFAULT_SIMS = ("AerialLoc/RealisticPaper-v1",)
-BOOTSTRAP_RESAMPLES = 2000
+DEFAULT_SIMS = ("AerialLoc/RealisticPaper-v2",)
 TARGET_TAU = 0.8
 TARGET_RATIO = (0.67, 1.5)
 
@@ -95,8 +95,7 @@ def bootstrap_ratio(sim: Sequence[float], real_by_pair: Sequence[Sequence[float]
     ratios = np.empty(resamples)
     for k in range(resamples):
         s = sim_arr[gen.integers(0, sim_arr.size, sim_arr.size)]
-        chosen = [groups[i] for i in gen.integers(0, len(groups), len(groups))]
-        r = np.concatenate([g[gen.integers(0, g.size, g.size)] for g in chosen])
+        r = two_stage_resample(groups, gen)
         ratios[k] = np.median(s) / max(float(np.median(r)), 1e-9)
     lo, hi = np.percentile(ratios, [2.5, 97.5])
     return float(lo), float(hi)

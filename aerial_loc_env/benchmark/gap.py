@@ -557,7 +557,7 @@ def main(argv: list[str] | None = None) -> int:
     pairs = _pair_sources(args)
     if not args.scenarios and not pairs:
         ap.error("give at least one SCENARIO, --pair or --pairs-dir "
-                 "(e.g. aerial-loc gap AerialLoc/PaperShadows-v1 --pairs-dir ../shared/data/pairs/levir-cd 0.5)")
+                 "(e.g. aerial-loc gap AerialLoc/PaperShadows-v2 --pairs-dir ../shared/data/pairs/levir-cd 0.5)")
     if args.seeds < 1:
         ap.error("--seeds must be >= 1")
     extra = {} if args.window_m is None else {"window_m": tuple(args.window_m)}

@@ -18,11 +18,11 @@ An experiment spec::
     sweep = {"measurement_params.n_pairs" = [10, 30, 50, 70]}   # one agent entry per value (product of keys)
 
     [[scenarios]]
-    id = "AerialLoc/PaperShadows-v1"
+    id = "AerialLoc/PaperShadows-v2"
     overrides = {"flight.duration_s" = 30}   # gym.make overrides
 
     [[scenarios]]
-    pairs = "../shared/data/pairs/levir-cd"  # a folder of real two-epoch pairs (A/, B/): one AerialLoc/RealPair-v1
+    pairs = "../shared/data/pairs/levir-cd"  # a folder of real two-epoch pairs (A/, B/): one AerialLoc/RealPair-v2
     gsd_m = 0.5                              # scenario per pair, its flight fitted to it (pair_scenarios.py)
 
 Parameter keys may be dotted (``measurement_params.n_pairs``): they address nested tables of the spec and are
@@ -47,9 +47,10 @@ from aerial_loc_env.errors import ConfigError
 
 EXPERIMENT_DIR = Path(__file__).resolve().parent / "experiments"
 PLOTS = ("error_vs_time", "track", "likelihood", "shadow_pairs")  # plus "rmse_vs_<param>"
-#: the report sections an experiment may ask for (``paper = [...]``): the paper's tables, and "comparison" (every
-#: agent on every scenario side by side); report.PAPER_SECTIONS builds each
-PAPER_SECTION_NAMES = ("table5", "table9", "sweeps", "global", "comparison")
+#: the report sections an experiment may ask for (``paper = [...]``): the paper's tables, "comparison" (every
+#: agent on every scenario side by side) and "intervals" (every figure with its bootstrap interval, per scenario
+#: group); report.PAPER_SECTIONS builds each
+PAPER_SECTION_NAMES = ("table5", "table9", "sweeps", "global", "comparison", "intervals")
 
 
 def nest_params(params: Mapping[str, Any]) -> dict[str, Any]:
@@ -331,7 +332,7 @@ def check_scenarios(grid: Grid) -> None:
 
 
 def make_grid(name: str, agents: Sequence[Any], scenarios: Sequence[Any], seeds: Any, **options: Any) -> Grid:
-    """A grid from Python: ``make_grid("mine", ["mcl-shadow-aware"], ["AerialLoc/Small-v1"], seeds=5)``."""
+    """A grid from Python: ``make_grid("mine", ["mcl-shadow-aware"], ["AerialLoc/Small-v2"], seeds=5)``."""
     where = f"grid '{name}'"
     return grid_from_dict({"name": name, "agents": _entries(agents, "agents", where, (str, Mapping)),
                            "scenarios": _entries(scenarios, "scenarios", where, (str, Mapping)), "seeds": seeds,

@@ -1,7 +1,7 @@
-"""A folder of real two-epoch pairs as benchmark scenarios: one ``AerialLoc/RealPair-v1`` per pair, its flight
+"""A folder of real two-epoch pairs as benchmark scenarios: one ``AerialLoc/RealPair-v2`` per pair, its flight
 fitted to the pair (``fit_flight``), and the simulated presets flown at that geometry (``sim_overrides``).
 
-**The flight, fitted to a pair**: the geometry of ``AerialLoc/RealPair-v1`` (the paper's 600 x 400 camera, 41.1 deg
+**The flight, fitted to a pair**: the geometry of ``AerialLoc/RealPair-v2`` (the paper's 600 x 400 camera, 41.1 deg
 field of view, 5 m/s, 4 Hz, a 15 m prior and a 45 m margin for it), flown at the highest altitude, at most 200 m,
 whose footprint leaves a flyable square of at least ``FLYABLE_SHARE`` of the pair's short side (the footprint's
 half-diagonal plus the margin kept from every edge), for as long as a track of ``TRACK_PER_SIDE`` times that
@@ -24,12 +24,12 @@ from typing import Any
 
 from aerial_loc_env.errors import ConfigError, MapError
 
-PAIR_ID = "AerialLoc/RealPair-v1"
-#: the flyable square kept of the pair's short side (RealPair-v1's 240 m of 512 m)
+PAIR_ID = "AerialLoc/RealPair-v2"
+#: the flyable square kept of the pair's short side (RealPair-v2's 240 m of 512 m)
 FLYABLE_SHARE = 0.46
 MAX_ALTITUDE_M = 200.0
 MIN_ALTITUDE_M = 20.0
-#: the track flies this many times the flyable square's side (RealPair-v1: 300 m over 240 m), at most MAX_DURATION_S
+#: the track flies this many times the flyable square's side (RealPair-v2: 300 m over 240 m), at most MAX_DURATION_S
 TRACK_PER_SIDE = 1.25
 MAX_DURATION_S = 60.0
 
@@ -62,7 +62,7 @@ def pair_extent_m(source: PairSource) -> tuple[float, float]:
 
 
 def _pair_geometry() -> Any:
-    """RealPair-v1's scenario (its paths are placeholders: only the flight, camera and prior are read)."""
+    """RealPair-v2's scenario (its paths are placeholders: only the flight, camera and prior are read)."""
     from aerial_loc_env.env import load_scenario
 
     return load_scenario(PAIR_ID, {"map.path_a": "A.png", "map.path_b": "B.png"})
@@ -70,7 +70,7 @@ def _pair_geometry() -> Any:
 
 def fit_flight(extent_m: tuple[float, float]) -> dict[str, float]:
     """The flight over a pair of ``extent_m`` (see the module doc): ``flight.altitude_m`` and
-    ``flight.duration_s`` overrides of RealPair-v1."""
+    ``flight.duration_s`` overrides of RealPair-v2."""
     sc = _pair_geometry()
     short = float(min(extent_m))
     per_m = 0.5 * math.hypot(*sc.camera.footprint_m(1.0))          # the footprint's half-diagonal per metre
@@ -89,7 +89,7 @@ def fit_flight(extent_m: tuple[float, float]) -> dict[str, float]:
 
 def pair_entries(sources: Sequence[PairSource], flight: Mapping[str, float] | None = None,
                  overrides: Mapping[str, Any] | None = None, label_prefix: str = "") -> list[dict[str, Any]]:
-    """One benchmark scenario (``{"id": RealPair-v1, "overrides", "label"}``) per pair, each at ``flight``
+    """One benchmark scenario (``{"id": RealPair-v2, "overrides", "label"}``) per pair, each at ``flight``
     (default: its own ``fit_flight``), with ``overrides`` on top."""
     out = []
     for s in sources:
@@ -104,7 +104,7 @@ def pair_entries(sources: Sequence[PairSource], flight: Mapping[str, float] | No
 
 def expand_pairs_entry(item: Mapping[str, Any], where: str, base_dir: Path | None = None) -> list[dict[str, Any]]:
     """An experiment's ``[[scenarios]]`` entry ``pairs = "DIR"`` (optional ``gsd_m``, ``label``, ``overrides``):
-    one RealPair-v1 scenario per pair of the folder, each at its own fitted flight (``grid.py``)."""
+    one RealPair-v2 scenario per pair of the folder, each at its own fitted flight (``grid.py``)."""
     unknown = set(item) - {"pairs", "gsd_m", "label", "overrides", "id"}
     if unknown or not isinstance(item.get("pairs"), str):
         raise ConfigError(f"{where}: a pairs entry needs pairs = \"DIR\" (a folder with A/ and B/) and may have "
@@ -120,16 +120,15 @@ def expand_pairs_entry(item: Mapping[str, Any], where: str, base_dir: Path | Non
     folder = Path(item["pairs"]).expanduser()
     if base_dir is not None and not folder.is_absolute():
         folder = base_dir / folder
+    prefix = f"{item['label']}: " if item.get("label") else ""
     try:
-        sources = pair_sources(folder, gsd)
+        return pair_entries(pair_sources(folder, gsd), None, overrides, prefix)
     except MapError as exc:
         raise ConfigError(f"{where}: {exc}") from None
-    prefix = f"{item['label']}: " if item.get("label") else ""
-    return pair_entries(sources, None, overrides, prefix)
 
 
 def sim_overrides(flight: Mapping[str, float]) -> dict[str, Any]:
-    """A simulated preset flown at the pairs' geometry: RealPair-v1's camera, flight and prior at ``flight``."""
+    """A simulated preset flown at the pairs' geometry: RealPair-v2's camera, flight and prior at ``flight``."""
     sc = _pair_geometry()
     f, c = sc.flight, sc.camera
     return {"flight": {"altitude_m": flight["flight.altitude_m"], "duration_s": flight["flight.duration_s"],

@@ -121,6 +121,27 @@ def _world_extent(orthomap: Any, u0: int, u1: int, v0: int, v1: int) -> tuple[fl
     return (u0 * gx, u1 * gx, (h - v1) * gy, (h - v0) * gy)
 
 
+def _map_crop(orthomap: Any, u0: int, u1: int, v0: int, v1: int, max_px: int) -> np.ndarray:
+    """The map's pixels [v0, v1) x [u0, u1) at most ``max_px`` on a side: a strided view of a map in memory, or
+    on a map read by window the coarsest of the file's levels that keeps that size (then every ``stride``-th
+    pixel of it), never the whole map."""
+    from aerial_loc_env.estimators.database import DatabaseWindow
+    from aerial_loc_env.world.maps.raster import RasterMap
+
+    stride = max(1, int(np.ceil(max(u1 - u0, v1 - v0) / max_px)))
+    frame = orthomap.frame if isinstance(orthomap, DatabaseWindow) else orthomap
+    if not isinstance(frame, RasterMap):
+        return np.asarray(orthomap.rgb[v0:v1:stride, u0:u1:stride])
+    level = min(frame.n_overviews, stride.bit_length() - 1)        # 2**level <= stride
+    f = 1 << level
+    lw, lh = -(-frame.width_px // f), -(-frame.height_px // f)
+    a0, b0 = min(u0 // f, lw - 1), min(v0 // f, lh - 1)
+    a1, b1 = max(a0 + 1, min(-(-u1 // f), lw)), max(b0 + 1, min(-(-v1 // f), lh))
+    rgb, _ = frame.read(a0, b0, a1 - a0, b1 - b0, level=level)
+    step = max(1, stride // f)
+    return rgb[::step, ::step]
+
+
 def track_plot(scenario: ScenarioEntry, seed: int, agent: AgentEntry, path: Path, max_px: int = 1400) -> Path:
     """Fig. 12: the map around the track, the true track, the estimates, the final particles and the last
     frame's ground-truth shadow (its outline projected onto the map)."""
@@ -139,8 +160,7 @@ def track_plot(scenario: ScenarioEntry, seed: int, agent: AgentEntry, path: Path
     y0, y1 = max(0.0, pts[:, 1].min() - pad), min(om.height_m, pts[:, 1].max() + pad)
     u0, u1 = int(x0 / om.gsd_x_m), int(np.ceil(x1 / om.gsd_x_m))
     v0, v1 = int(om.height_px - y1 / om.gsd_y_m), int(np.ceil(om.height_px - y0 / om.gsd_y_m))
-    stride = max(1, int(np.ceil(max(u1 - u0, v1 - v0) / max_px)))
-    crop = np.asarray(om.rgb[v0:v1:stride, u0:u1:stride])
+    crop = _map_crop(om, u0, u1, v0, v1, max_px)
     fig, ax = plt.subplots(figsize=(8, 8 * (y1 - y0) / max(x1 - x0, 1e-9)))
     ax.imshow(crop, extent=_world_extent(om, u0, u1, v0, v1), interpolation="bilinear")
     ax.plot(truth[:, 0], truth[:, 1], "-", color="lime", lw=2, label="true track")

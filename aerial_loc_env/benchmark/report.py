@@ -330,9 +330,102 @@ def comparison_table(rows: Sequence[dict]) -> str:
     return "\n".join(lines) + "\n"
 
 
+#: resamples behind each bootstrap interval (``interval_table``, ``fidelity``)
+BOOTSTRAP_RESAMPLES = 2000
+#: the recall radii of ``interval_table`` [m]: the share of all steps whose error is within each
+RECALL_RADII_M = (5.0, 10.0)
+
+
+def two_stage_resample(groups: Sequence[np.ndarray], gen: np.random.Generator) -> np.ndarray:
+    """One bootstrap resample of grouped items: the groups drawn with replacement, then each drawn group's items
+    (trials nest in pairs or worlds: resampling the groups keeps their spread in the interval)."""
+    chosen = [groups[i] for i in gen.integers(0, len(groups), len(groups))]
+    return np.concatenate([g[gen.integers(0, g.size, g.size)] for g in chosen])
+
+
+def _scenario_group(scenario: str) -> str:
+    """The group a scenario label belongs to: the part before ": " (a pairs entry labels its pairs ``"<label>:
+    <pair>"``), else the label itself."""
+    return scenario.split(": ", 1)[0]
+
+
+def _trial_figures(rows: Sequence[dict]) -> dict[str, np.ndarray]:
+    """Per trial: its RMSE, squared-error sum, steps, steps within each recall radius, convergence time (NaN if
+    it never converged)."""
+    errs = [np.asarray(r["errors_m"], dtype=float) for r in rows]
+    ttc = [r.get("time_to_converge_s") for r in rows]
+    return {"rmse": np.array([r["rmse_m"] for r in rows], dtype=float),
+            "sq": np.array([float(np.sum(e ** 2)) for e in errs]),
+            "n": np.array([e.size for e in errs], dtype=float),
+            **{f"within_{k}": np.array([float(np.sum(e <= d)) for e in errs]) for k, d in enumerate(RECALL_RADII_M)},
+            "ttc": np.array([np.nan if t is None else float(t) for t in ttc], dtype=float),
+            "converged": np.array([bool(r.get("converged")) for r in rows], dtype=float)}
+
+
+def _figures(f: dict[str, np.ndarray], idx: np.ndarray) -> np.ndarray:
+    """The interval table's figures of the trials ``idx`` (with repeats): median-trial RMSE, pooled RMSE, the
+    recalls, median convergence time of the converged trials, converged share."""
+    n = f["n"][idx].sum()
+    ttc = f["ttc"][idx]
+    ttc = ttc[np.isfinite(ttc)]
+    return np.array([np.median(f["rmse"][idx]), math.sqrt(f["sq"][idx].sum() / n),
+                     *(f[f"within_{k}"][idx].sum() / n for k in range(len(RECALL_RADII_M))),
+                     np.median(ttc) if ttc.size else np.nan, f["converged"][idx].mean()])
+
+
+def trial_intervals(rows: Sequence[dict], *, resamples: int = BOOTSTRAP_RESAMPLES,
+                    seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """The figures of ``rows`` (one agent's trials on one scenario group; ``_figures``' order) and their 95 %
+    bootstrap intervals (2, figures): scenarios resampled with replacement, then each chosen scenario's trials
+    (``two_stage_resample``), ``resamples`` times from ``numpy.random.default_rng(seed)``."""
+    f = _trial_figures(rows)
+    by_scenario: dict[str, list[int]] = {}
+    for i, r in enumerate(rows):
+        by_scenario.setdefault(r["scenario"], []).append(i)
+    groups = [np.asarray(v) for v in by_scenario.values()]
+    gen = np.random.default_rng(seed)
+    draws = np.empty((resamples, 6))
+    for b in range(resamples):
+        draws[b] = _figures(f, two_stage_resample(groups, gen))
+    lo_hi = np.full((2, draws.shape[1]), np.nan)
+    for k in range(draws.shape[1]):       # a figure undefined in some resamples (no trial converged): the rest
+        column = draws[np.isfinite(draws[:, k]), k]
+        if column.size:
+            lo_hi[:, k] = np.percentile(column, [2.5, 97.5])
+    return _figures(f, np.arange(len(rows))), lo_hi
+
+
+def interval_table(rows: Sequence[dict]) -> str:
+    """Every agent on every scenario group (a folder of real pairs, the held-out worlds, the real tiles: the label
+    before ": "), each figure with its 95 % bootstrap interval over the trials (``trial_intervals``); agents
+    ordered by their median-trial RMSE within each group."""
+    groups: dict[str, dict[str, list[dict]]] = {}
+    for r in rows:
+        groups.setdefault(_scenario_group(r["scenario"]), {}).setdefault(r["agent"], []).append(r)
+    radii = " | ".join(f"within {d:g} m" for d in RECALL_RADII_M)
+    lines = ["## Every figure with its 95 % bootstrap interval over trials", "",
+             "Median-trial RMSE and pooled RMSE [m], the share of all steps within each radius, the median time "
+             "to converge of the converged trials [s] and the converged share; [low, high] is the 95 % interval "
+             f"of {BOOTSTRAP_RESAMPLES} bootstrap resamples (the group's scenarios, then each one's trials).", "",
+             f"| scenarios | agent | trials | median-trial RMSE | pooled RMSE | {radii} | time to converge "
+             "| converged |", "|---|" + "---|" * (6 + len(RECALL_RADII_M))]
+    for group, by_agent in groups.items():
+        cells = {a: trial_intervals(rs) for a, rs in by_agent.items()}
+        for agent in sorted(cells, key=lambda a: cells[a][0][0]):
+            value, (lo, hi) = cells[agent]
+            digits = (2, 2, 2, 2, 1, 2)
+            shown = []
+            for k, d in enumerate(digits):
+                pct = 2 <= k < 2 + len(RECALL_RADII_M) or k == 5
+                fmt = _pct if pct else (lambda x, d=d: _fmt(x, d))
+                shown.append(f"{fmt(value[k])} [{fmt(lo[k])}, {fmt(hi[k])}]")
+            lines.append(f"| {group} | {agent} | {len(by_agent[agent])} | " + " | ".join(shown) + " |")
+    return "\n".join(lines) + "\n"
+
+
 #: paper-section name (grid.PAPER_SECTION_NAMES, which experiment specs list) -> builder
 PAPER_SECTIONS: dict[str, Callable[[Sequence[dict]], str]] = dict(zip(
-    PAPER_SECTION_NAMES, (table5, table9, sweep_tables, global_table, comparison_table), strict=True))
+    PAPER_SECTION_NAMES, (table5, table9, sweep_tables, global_table, comparison_table, interval_table), strict=True))
 
 
 def paper_sections(names: Iterable[str], rows: Sequence[dict]) -> list[str]:

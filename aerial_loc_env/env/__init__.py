@@ -2,7 +2,7 @@
 
 Importing this package registers every scenario of ``envs/`` with Gymnasium (``AerialLoc/<Name>-v<N>``): a
 module of the package that needs the ids imports ``aerial_loc_env.env`` (the package root does too, so
-``import aerial_loc_env`` is enough for a user). Then ``gym.make("AerialLoc/PaperShadows-v1", altitude_m=150)``.
+``import aerial_loc_env`` is enough for a user). Then ``gym.make("AerialLoc/PaperShadows-v2", altitude_m=150)``.
 ``world_to_action`` / ``action_to_world`` convert metres <-> the normalized action; ``env.unwrapped.briefing`` is
 what an estimator may know.
 """

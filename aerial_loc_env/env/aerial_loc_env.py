@@ -6,6 +6,7 @@ Observation Space, Rewards, Starting State, Episode End, Arguments, Version Hist
 
 from __future__ import annotations
 
+import copy
 import math
 from collections.abc import Mapping
 from typing import Any
@@ -17,11 +18,12 @@ from gymnasium import spaces
 
 from aerial_loc_env.env.briefing import Briefing, Prior
 from aerial_loc_env.env.scenarios import Scenario, build_scenario, check_relief, load_scenario
-from aerial_loc_env.errors import AerialLocError, ConfigError
+from aerial_loc_env.errors import AerialLocError, ConfigError, MapError
 from aerial_loc_env.sensors.camera import CameraModel, Pose, SceneExposure, apply_affine, world_to_map_affine
 from aerial_loc_env.sensors.flight import (
     Measurements,
     Track,
+    add_lateral_noise,
     footprint_radius_m,
     measure,
     sample_track,
@@ -33,6 +35,8 @@ ODOMETRY_SPEED_MAX_MPS = 500.0
 ODOMETRY_YAW_RATE_MAX_RADPS = 20.0
 ALTITUDE_MAX_M = 20000.0
 OVERVIEW_PX = 512
+#: the stream index of the lateral odometry noise's generator (``AerialLocEnv.lateral_rng``)
+LATERAL_NOISE_STREAM = 1
 
 
 class InvalidActionError(AerialLocError, ValueError):
@@ -80,7 +84,8 @@ class AerialLocEnv(gym.Env):
     altitude_m) of the returned frame, ``time_s``, ``step``, ``prior``, ``shadow_fraction``, ``sun_azimuth_deg``,
     ``sun_elevation_deg``, ``shadow_strength``; after a step ``position_error_m`` and ``estimate_xy_m`` of the
     scored action; with ``observation.info_shadow_mask`` the frame's ground-truth ``shadow_mask`` (H, W) bool;
-    with ``[gimbal]`` jitter the frame's ``gimbal_roll_pitch_rad``, with auto-exposure its ``exposure_gain``.
+    with ``[gimbal]`` jitter the frame's ``gimbal_roll_pitch_rad``, with auto-exposure its ``exposure_gain``, with
+    ``[wind]`` the wind at the frame ``wind_en_mps`` (east, north; ``env.unwrapped.wind`` holds the episode's).
 
     The camera is the map re-projected by one affine warp unless ``[perspective]`` renders the height model as
     a pinhole camera sees it (relief displacement, facades, occlusion); ``[gimbal]``, ``[altimeter]``,
@@ -105,11 +110,14 @@ class AerialLocEnv(gym.Env):
     | key | space | meaning |
     |---|---|---|
     | ``image`` | ``Box(0, 255, (H, W, 3), uint8)`` | the camera frame; the top of the image points along the heading |
-    | ``odometry`` | ``Box((2,), float32)`` | measured ``[forward_speed_mps, yaw_rate_radps]`` over the last step |
+    | ``odometry`` | ``Box((3,), float32)`` | measured ``[forward_speed_mps, yaw_rate_radps, lateral_speed_mps]`` |
     | ``yaw`` | ``Box(-pi, pi, (1,), float32)`` | measured heading ``yaw_rad`` (ENU, counter-clockwise from east) |
     | ``altitude`` | ``Box(0, ALTITUDE_MAX_M, (1,), float32)`` | measured altitude above ground, metres |
 
-    ``H, W`` are ``observation.height_px/width_px`` (default: the camera's). Bounds are finite (speed
+    The odometry is what a flow sensor or the autopilot's velocity estimate gives over the last step: the ground
+    velocity in the body frame, forward along the heading and lateral (positive to the left), and the yaw rate.
+    In wind the vehicle crabs (its heading is not its course), and the lateral speed is what moves it sideways.
+    ``H, W`` are ``observation.height_px/width_px`` (default: the camera's). Bounds are finite (speeds
     +-``ODOMETRY_SPEED_MAX_MPS``, yaw rate +-``ODOMETRY_YAW_RATE_MAX_RADPS``, altitude ``[0, ALTITUDE_MAX_M]``;
     measurements are clipped to them) so that both checkers stay silent.
 
@@ -121,13 +129,17 @@ class AerialLocEnv(gym.Env):
 
     ## Starting State
 
-    ``reset(seed=...)`` draws everything from ``self.np_random``: the track (start uniformly over the flyable
-    region, the part of the map whose footprint clearance ``flight.margin_m`` stays on valid data; waypoint
-    legs at ``flight.speed_mps`` and ``flight.altitude_m``), the odometry noise, the sun and the shadow
-    strength, the clouds, and the renderer's noise; then the prior and, when their sections are on, the gimbal
-    jitter, the heading offset and the altimeter's bias and drift (off, they draw nothing). The prior: with
-    ``episode.start = "tracking"`` a Gaussian whose mean is drawn ``episode.prior_std_m`` (1-sigma per axis)
-    around the true start; with ``"global"`` uniform over the map. Same seed, same episode, bit for bit.
+    ``reset(seed=...)`` draws everything from ``self.np_random``: with ``[wind]`` on, the wind first (the mean
+    and the gusts, ``world.wind``) from a child of its seed sequence (``wind_rng``; off, nothing is drawn), and
+    a windy episode is the calm episode of its seed plus the wind (``_fly_track``); the track (start uniformly
+    over the flyable region, the part of the map whose footprint clearance ``flight.margin_m`` stays on valid
+    data; waypoint legs at the airspeed ``flight.speed_mps`` and ``flight.altitude_m``, the course held through
+    the wind), the odometry noise (the lateral speed's from a generator seeded by the episode's draws,
+    ``lateral_rng``), the sun and the shadow strength, the clouds, and the renderer's noise; then the prior and,
+    when their sections are on, the gimbal jitter, the heading offset and the altimeter's bias and drift (off,
+    they draw nothing). The prior: with ``episode.start = "tracking"`` a Gaussian whose mean is drawn
+    ``episode.prior_std_m`` (1-sigma per axis) around the true start; with ``"global"`` uniform over the map.
+    Same seed, same episode, bit for bit.
 
     ## Episode End
 
@@ -144,7 +156,7 @@ class AerialLocEnv(gym.Env):
     - ``scenario``: a registered id (one spec file in ``envs/``; ``aerial-loc scenarios`` lists them,
       ``--show ID`` prints one in full) or a ``Scenario``;
     - ``render_mode``: None or ``"rgb_array"``;
-    - ``overrides``: any field of the spec's sections (``map``, ``city``, ``epoch``, ``flight``, ``camera``,
+    - ``overrides``: any field of the spec's sections (``map``, ``city``, ``epoch``, ``flight``, ``wind``, ``camera``,
       ``perspective``, ``gimbal``, ``altimeter``, ``exposure``, ``haze``, ``odometry``, ``shadows``,
       ``database``, ``photometry``, ``observation``, ``episode``, ``reward``; see
       ``aerial_loc_env.env.scenarios``) as a section dict (``flight={"altitude_m": 150}``), a dotted key
@@ -168,11 +180,19 @@ class AerialLocEnv(gym.Env):
       float path), cast shadows baked into the map per episode (masks differ only where the occlusion is near
       0.5), the perspective camera's block-grid ray march and baked shadows (perspective v5). ``gym.make`` of a
       v0 id names the v1 id (Gymnasium's deprecation error).
+    * v2 (every id): the observation changed: ``odometry`` is ``[forward_speed_mps, yaw_rate_radps,
+      lateral_speed_mps]`` (the body-frame ground velocity; the lateral speed appended, so indices 0 and 1 keep
+      their meaning) with the noise ``odometry.lateral_std_mps``, and the ``[wind]`` section (off in every v1
+      spec) in which the vehicle crabs. Without wind the frames, tracks, priors and the other measurements are
+      those of v1 for the same seed (the lateral noise comes from a stream of its own, as the wind does: a windy
+      episode has the start, sun, prior and noise of the calm one of its seed); agents' estimates change
+      as their motion models now use (and draw noise for) the lateral term. ``AerialLoc/Crosswind-v2`` (new):
+      RealisticPaper in 3-8 m/s of wind with gusts. ``gym.make`` of a v1 id names the v2 id.
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 4}
 
-    def __init__(self, scenario: str | Scenario = "AerialLoc/Small-v1", render_mode: str | None = None,
+    def __init__(self, scenario: str | Scenario = "AerialLoc/Small-v2", render_mode: str | None = None,
                  **overrides: Any) -> None:
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise AerialLocError(f"render_mode {render_mode!r} is not supported; use None or 'rgb_array'")
@@ -201,11 +221,10 @@ class AerialLocEnv(gym.Env):
         self.region = self.world.flyable_region(clearance, name=f"{sc.id} map '{self.orthomap.name}'")
         if self.region.area_m2 <= 0.0:
             raise self.region.too_small_error()
+        odometry_max = np.float32([ODOMETRY_SPEED_MAX_MPS, ODOMETRY_YAW_RATE_MAX_RADPS, ODOMETRY_SPEED_MAX_MPS])
         self.observation_space = spaces.Dict({
             "image": spaces.Box(0, 255, (h, w, 3), dtype=np.uint8),
-            "odometry": spaces.Box(np.float32([-ODOMETRY_SPEED_MAX_MPS, -ODOMETRY_YAW_RATE_MAX_RADPS]),
-                                   np.float32([ODOMETRY_SPEED_MAX_MPS, ODOMETRY_YAW_RATE_MAX_RADPS]),
-                                   dtype=np.float32),
+            "odometry": spaces.Box(-odometry_max, odometry_max, dtype=np.float32),
             "yaw": spaces.Box(np.float32([-math.pi]), np.float32([math.pi]), dtype=np.float32),
             "altitude": spaces.Box(np.float32([0.0]), np.float32([ALTITUDE_MAX_M]), dtype=np.float32),
         })
@@ -213,6 +232,7 @@ class AerialLocEnv(gym.Env):
         self.briefing: Briefing | None = None
         self._overlay: dict[str, np.ndarray] = {}
         self._track: Track | None = None
+        self.wind = None      # the episode's WindField (ground truth, like info: not for agents)
 
     # ------------------------------------------------------------------ construction helpers
     def _build_renderer(self) -> None:
@@ -271,7 +291,7 @@ class AerialLocEnv(gym.Env):
             raise AerialLocError(f"{self.scenario.id}: reset options {sorted(options)} are not supported; "
                                  "configure the scenario with gym.make overrides instead")
         sc, rng = self.scenario, self.np_random
-        self._track = sample_track(sc.flight, self.region, rng)
+        self._track = self._fly_track(rng)
         if self.world.windowed:
             self._read_window()
         on = sc.odometry
@@ -292,6 +312,9 @@ class AerialLocEnv(gym.Env):
             self._prior = Prior("uniform")
         self._draw_sensor_errors(rng)
         self._bake_shadows()
+        # the lateral speed's noise from a stream of its own: every other draw (the frames' too, which read
+        # np_random as they render) stays the one of the odometry without a lateral term
+        self._meas = add_lateral_noise(self._meas, self._track, self.lateral_rng(), on.lateral_std_mps)
         self.briefing = Briefing(orthomap=self.database, camera=self.camera, prior=self._prior,
                                  dt_s=sc.flight.dt_s, altitude_m=sc.flight.altitude_m,
                                  odometry_noise=sc.odometry, scenario_id=sc.id)
@@ -301,6 +324,39 @@ class AerialLocEnv(gym.Env):
         self._overlay = {}
         obs, info = self._observe(0)
         return obs, info
+
+    def _fly_track(self, rng: np.random.Generator) -> Track:
+        """The episode's track, through the episode's wind (``self.wind``, drawn here; calm air draws nothing).
+
+        A windy episode is the calm episode of its seed plus the wind: the wind comes from a generator of its own
+        (``wind_rng``), the track flies from a copy of ``rng``'s state (the same start, first waypoint and noise
+        banks as the calm track), and ``rng`` then draws what the calm track drew, so the sun, the clouds, the
+        prior's offset and the frames' noise that follow are the calm episode's."""
+        sc = self.scenario
+        t_s = np.arange(sc.flight.steps + 1) * sc.flight.dt_s
+        self.wind = sc.wind.draw(self.wind_rng() if sc.wind.enabled else rng, t_s)
+        if self.wind.calm:
+            return sample_track(sc.flight, self.region, rng)
+        track = sample_track(sc.flight, self.region, copy.deepcopy(rng), self.wind)
+        try:
+            sample_track(sc.flight, self.region, rng)          # the calm track's draws
+        except MapError:
+            pass                                               # no calm track there: its draws are spent anyway
+        return track
+
+    def wind_rng(self) -> np.random.Generator:
+        """The episode's generator of the wind: a child of ``np_random``'s seed sequence (spawning draws nothing
+        from ``np_random``; ``reset(seed=s)`` gives the same child again, a reset without a seed the next one)."""
+        bits = self.np_random.bit_generator
+        try:
+            return np.random.default_rng(bits.seed_seq.spawn(1)[0])
+        except (AttributeError, TypeError, ValueError):    # a generator set by hand without a seed sequence
+            return np.random.default_rng(int(self.np_random.integers(0, 2**63 - 1)))
+
+    def lateral_rng(self) -> np.random.Generator:
+        """The episode's generator of the lateral odometry noise: seeded from the episode's draws (the renderer's
+        noise seed) with a stream index of its own, so it leaves ``np_random`` untouched."""
+        return np.random.default_rng([self._noise_seed, LATERAL_NOISE_STREAM])
 
     def _draw_sensor_errors(self, rng: np.random.Generator) -> None:
         """Gimbal attitude jitter (rendered, unknown to the vehicle), the heading offset and the barometric
@@ -387,6 +443,11 @@ class AerialLocEnv(gym.Env):
         self._shadow_box_px = (j0 * f, i0 * f, j1 * f, i1 * f)
         return ShadowGrid(field, gx, gy, f)
 
+    def _ground_speed_mps(self, i: int) -> float:
+        """The ground speed over the step ending at pose ``i`` (the motion blur's length; the airspeed without
+        wind)."""
+        return math.hypot(float(self._track.forward_mps[i]), float(self._track.lateral_mps[i]))
+
     def _pose(self, i: int) -> Pose:
         t = self._track
         return Pose(float(t.x_m[i]), float(t.y_m[i]), float(t.yaw_rad[i]), float(t.altitude_m[i]))
@@ -399,7 +460,7 @@ class AerialLocEnv(gym.Env):
         # the baked shadows while the occluders are the ones baked (env.external swaps in the whole map's)
         occlusion = self._baked if self._baked is not None and self._occlusion is self._baked_from else self._occlusion
         frame = self._renderer.render(pose, self.np_random, occlusion, self._shading,
-                                      t_s=float(self._track.t_s[i]), speed_mps=float(self._track.speed_mps[i]),
+                                      t_s=float(self._track.t_s[i]), speed_mps=self._ground_speed_mps(i),
                                       tilt_rad=tilt, pre_sensor=(lambda image: exposure(image, pose.altitude_m))
                                       if exposure.active else None,
                                       sun_deg=None if self._occlusion is None else
@@ -429,6 +490,8 @@ class AerialLocEnv(gym.Env):
             info["gimbal_roll_pitch_rad"] = np.array(tilt)
         if exposure.gain is not None:
             info["exposure_gain"] = exposure.gain
+        if self.wind is not None and not self.wind.calm:
+            info["wind_en_mps"] = np.array(self.wind.at(min(i, len(self.wind.t_s) - 1)))
         return obs, info
 
     def _check_action(self, action: Any) -> np.ndarray:

@@ -42,14 +42,17 @@ class Prior:
 
 @dataclass(frozen=True)
 class OdometryNoise:
-    """Noise (1 sigma) of the vehicle's own sensors. Speed and yaw rate: the second reference's figures for
-    eq. (1) (10 cm/s, 5 deg/s); heading and altitude: a compass/gimbal and a baro/lidar altimeter. This is
-    also the [odometry] section of a scenario."""
+    """Noise (1 sigma) of the vehicle's own sensors. Forward speed and yaw rate: the second reference's figures
+    for eq. (1) (10 cm/s, 5 deg/s); the lateral speed (the body-frame ground velocity across the heading, from a
+    flow sensor or the autopilot's velocity estimate) as the forward one: such a sensor's error does not prefer
+    an axis; heading and altitude: a compass/gimbal and a baro/lidar altimeter. This is also the [odometry]
+    section of a scenario."""
 
     speed_std_mps: float = field(default=0.10, metadata=rng(0.0, 50.0))
     yaw_rate_std_radps: float = field(default=math.radians(5.0), metadata=rng(0.0, 10.0))
     heading_std_rad: float = field(default=math.radians(2.0), metadata=rng(0.0, math.pi))
     altitude_std_m: float = field(default=1.0, metadata=rng(0.0, 1000.0))
+    lateral_std_mps: float = field(default=0.10, metadata=rng(0.0, 50.0))
 
 
 @dataclass(frozen=True, eq=False)

@@ -10,8 +10,9 @@ the *autopilot's* vehicle is. ``ExternalFlight`` does that with the env's own re
 - ``due(t_s)`` says whether a frame is due at stream time ``t_s`` (the scenario's camera rate,
   ``flight.rate_hz``): feed the stream at any rate, render only at the camera's;
 - ``observe(pose)`` renders the frame at the pose and returns the env's observation: image, odometry derived
-  from the stream (forward speed and yaw rate since the last frame, plus the scenario's odometry noise),
-  measured heading and altitude (noisy). Ground truth is in ``info`` only, as in the env.
+  from the stream (the displacement since the last frame in the body frame: forward and lateral speed, and the
+  yaw rate, plus the scenario's odometry noise), measured heading and altitude (noisy). Ground truth is in
+  ``info`` only, as in the env.
 
 Estimators still see only observations and ``briefing`` (whose ``dt_s`` is the camera period). Poses are in
 the world frame (ENU metres on the map, yaw CCW from east, altitude above ground, docs/ARCHITECTURE.md); use
@@ -108,6 +109,7 @@ class ExternalFlight:
         u.briefing = dataclasses.replace(u.briefing, prior=u._prior)   # altitude: the scenario's nominal
         self.briefing = u.briefing
         self._gimbal = u._attitude
+        self._lateral_rng = u.lateral_rng()
         self.frames = 0
         self._last = None
         self._next_due_s = -math.inf
@@ -140,20 +142,25 @@ class ExternalFlight:
         sc, rng = u.scenario, u.np_random
         last = self._last
         if last is None or pose.t_s <= last.t_s:
-            speed, yaw_rate = 0.0, 0.0
+            forward, lateral, yaw_rate = 0.0, 0.0, 0.0
         else:
             dt = pose.t_s - last.t_s
-            # the odometry's forward speed: the displacement along the heading (a copter moving sideways or
-            # backwards is not a unicycle; its sideways motion is not in the env's odometry model)
-            speed = ((pose.x_m - last.x_m) * math.cos(pose.yaw_rad)
-                     + (pose.y_m - last.y_m) * math.sin(pose.yaw_rad)) / dt
+            # the body-frame ground velocity: the displacement on the mid-step heading's forward and left axes
+            # (the motion models' heading), so a crabbing plane or a copter moving sideways is measured as it moves
             yaw_rate = float(wrap_angle(pose.yaw_rad - last.yaw_rad)) / dt
+            mid = last.yaw_rad + 0.5 * yaw_rate * dt
+            dx, dy = pose.x_m - last.x_m, pose.y_m - last.y_m
+            forward = (dx * math.cos(mid) + dy * math.sin(mid)) / dt
+            lateral = (dy * math.cos(mid) - dx * math.sin(mid)) / dt
         on = sc.odometry
         noise = rng.normal(0.0, 1.0, 4) * (on.speed_std_mps, on.yaw_rate_std_radps, on.heading_std_rad,
                                             on.altitude_std_m)
-        odo = (speed, yaw_rate) if last is None else (speed + noise[0], yaw_rate + noise[1])
+        lateral_noise = self._lateral_rng.normal(0.0, on.lateral_std_mps)   # its own stream, as in the env
+        odo = (forward, yaw_rate, lateral) if last is None else \
+            (forward + noise[0], yaw_rate + noise[1], lateral + lateral_noise)
         u._track = Track(*(np.array([v], dtype=np.float64) for v in (
-            pose.t_s, pose.x_m, pose.y_m, pose.yaw_rad, pose.altitude_m, speed, yaw_rate)))
+            pose.t_s, pose.x_m, pose.y_m, pose.yaw_rad, pose.altitude_m, math.hypot(forward, lateral), yaw_rate,
+            forward, lateral)))
         u._meas = Measurements(
             odometry=np.array([odo], dtype=np.float32),
             yaw_rad=np.array([np.clip(wrap_angle(pose.yaw_rad + noise[2]), -math.pi, math.pi)], dtype=np.float32),

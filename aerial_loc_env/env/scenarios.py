@@ -9,6 +9,7 @@ that map to frozen dataclasses through ``aerial_loc_env.config.build_config``:
                         (``path`` to a PNG/TIFF/GeoTIFF/bundle, optional ``gsd_m``, ``crs``); ``use_dsm``
 ``[city]``              the procedural city's config (``aerial_loc_env.world.city``)
 ``[flight]``            ``aerial_loc_env.sensors.flight.FlightConfig``
+``[wind]``              ``aerial_loc_env.world.wind.WindConfig``: mean wind and gusts (off by default)
 ``[camera]``            ``aerial_loc_env.sensors.camera.CameraModel`` (the sensor)
 ``[odometry]``          ``aerial_loc_env.env.briefing.OdometryNoise``
 ``[shadows]``           ``aerial_loc_env.world.shadows.ShadowConfig``
@@ -109,6 +110,7 @@ SECTIONS: dict[str, Any] = {
     "map": lambda: MapConfig,
     "city": _lazy("aerial_loc_env.world.city", "CityConfig"),
     "flight": _lazy("aerial_loc_env.sensors.flight", "FlightConfig"),
+    "wind": _lazy("aerial_loc_env.world.wind", "WindConfig"),
     "camera": _lazy("aerial_loc_env.sensors.camera", "CameraModel"),
     "odometry": _lazy("aerial_loc_env.env.briefing", "OdometryNoise"),
     "shadows": _lazy("aerial_loc_env.world.shadows", "ShadowConfig"),
@@ -235,7 +237,7 @@ def build_scenario(spec: Mapping[str, Any], overrides: Mapping[str, Any] | None 
     sid = spec.get("id")
     if not isinstance(sid, str) or not re.fullmatch(rf"{NAMESPACE}/[A-Za-z0-9_]+-v\d+", sid):
         raise ConfigError(f"{where}: 'id' = {sid!r} must look like '{NAMESPACE}/<Name>-v<version>' "
-                          "(e.g. 'AerialLoc/Small-v1'; bump the version when the scenario's behaviour changes)")
+                          "(e.g. 'AerialLoc/Small-v2'; bump the version when the scenario's behaviour changes)")
     extra = split_overrides(overrides or {}, where=f"{sid} overrides")
     sections = {}
     for name, cls_fn in SECTIONS.items():
@@ -249,6 +251,7 @@ def build_scenario(spec: Mapping[str, Any], overrides: Mapping[str, Any] | None 
             label = f"{where} [{name}]"
         sections[name] = build_config(cls_fn(), table, where=label)
     sections["altimeter"].check_flight(sections["flight"], sid)     # checks across sections
+    sections["wind"].check_flight(sections["flight"].speed_mps, sid)
     return Scenario(id=sid, description=str(spec.get("description", "")), source=where, sections=sections)
 
 
@@ -338,12 +341,12 @@ def broken_specs() -> tuple[BrokenSpec, ...]:
 
 
 def _short_name(sid: str) -> str:
-    """``Small`` for ``AerialLoc/Small-v1`` (the part between the namespace and the version)."""
+    """``Small`` for ``AerialLoc/Small-v2`` (the part between the namespace and the version)."""
     return sid.split("/", 1)[1].rsplit("-v", 1)[0]
 
 
 def resolve(scenario: str) -> tuple[Path, dict]:
-    """Find a spec by full id (``AerialLoc/Small-v1``), short name (``Small``) or file stem (``small``)."""
+    """Find a spec by full id (``AerialLoc/Small-v2``), short name (``Small``) or file stem (``small``)."""
     table = specs()
     if scenario in table:
         return table[scenario]

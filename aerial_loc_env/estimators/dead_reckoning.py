@@ -1,8 +1,10 @@
 """Dead reckoning: the odometry alone from the prior mean, the floor every estimator must beat.
 
-It integrates the same motion model as the MCL (mid-step heading = mean of the two measured headings) without
-noise, and grows the covariance by the odometry noise per step on top of the prior's, so that its reported
-uncertainty is honest. With a uniform prior it stays at the map centre ("lost" by its covariance).
+It integrates the same motion model as the MCL (the body-frame forward and lateral speeds rotated by the
+mid-step heading = mean of the two measured headings) without noise, and grows the covariance by the odometry
+noise per step on top of the prior's (each speed's noise along its body axis, the heading's across the step's
+displacement), so that its reported uncertainty is honest. With a uniform prior it stays at the map centre
+("lost" by its covariance).
 """
 
 from __future__ import annotations
@@ -21,7 +23,7 @@ if TYPE_CHECKING:
 
 
 class DeadReckoningAgent(Agent):
-    """Integrates the measured speed and heading from the prior's mean."""
+    """Integrates the measured body-frame velocity and heading from the prior's mean."""
 
     def reset(self, briefing: Briefing, *, seed: int | None = None) -> Estimate:
         self.briefing = briefing
@@ -46,14 +48,14 @@ class DeadReckoningAgent(Agent):
         dt = self.briefing.dt_s
         if self.t > 0:  # the first observation is taken at the start pose
             psi = mid_heading(self.prev_yaw, obs.yaw_rad, obs.yaw_rate_radps, dt)
-            d = obs.speed_mps * dt
             c, s = np.cos(psi), np.sin(psi)
-            self.xy += d * np.array([c, s])
-            noise = self.briefing.odometry_noise
-            along = (noise.speed_std_mps * dt) ** 2
-            across = (d * noise.heading_std_rad / np.sqrt(2.0)) ** 2
             rot = np.array([[c, -s], [s, c]])
-            self.cov = self.cov + rot @ np.diag([along, across]) @ rot.T
+            step = rot @ np.array([obs.speed_mps * dt, obs.lateral_mps * dt])
+            self.xy += step
+            noise = self.briefing.odometry_noise
+            speeds = np.diag([(noise.speed_std_mps * dt) ** 2, (noise.lateral_std_mps * dt) ** 2])
+            across = np.array([-step[1], step[0]])      # a heading error turns the whole displacement
+            self.cov = self.cov + rot @ speeds @ rot.T + (noise.heading_std_rad ** 2 / 2.0) * np.outer(across, across)
         self.prev_yaw = obs.yaw_rad
         self.t += 1
         return Estimate(float(self.xy[0]), float(self.xy[1]), yaw_rad=obs.yaw_rad, cov_xy_m2=self.cov.copy(),

@@ -106,6 +106,10 @@ class PatchSampler:
         h, w = orthomap.height_px, orthomap.width_px
         lw, lh = max(2, int(round(w / downsample))), max(2, int(round(h / downsample)))
         self.filled: tuple[int, int, int, int] | None = None     # a window's level pixels; None: all of them
+        if lw * lh >= 2 ** 32:     # windowed or whole: the kernel's sample index is 32-bit
+            raise MapError(f"PatchSampler: the level of map '{orthomap.name}' ({lw} x {lh} samples) exceeds the "
+                           "kernel's 32-bit sample index; downsample it more (a coarser patch grid) or use a smaller "
+                           "map")
         if window is not None:
             self._window_level(orthomap, img, nodata, (lw, lh))
         else:
@@ -144,10 +148,6 @@ class PatchSampler:
                       size: tuple[int, int]) -> None:
         """The level of a window of a map read by window, on the whole map's level grid (see the class)."""
         lw, lh = size
-        if lw * lh >= 2 ** 32:
-            raise MapError(f"PatchSampler: the level of map '{window.name}' ({lw} x {lh} samples) exceeds the "
-                           "kernel's 32-bit sample index; downsample it more (a coarser patch grid) or use a smaller "
-                           "map")
         # NaN where the level averages no-data, as the whole map's; has_nan as there, whatever this window holds
         layer = window.level(img.astype(np.float32, copy=False), size, np.float32, planar=True, nan_on_nodata=True,
                              key=("PatchSampler", size, img.shape[2:]))

@@ -69,10 +69,11 @@ class Observation(NamedTuple):
     """The env's observation dict, unpacked and checked once (see ARCHITECTURE.md, observation table)."""
 
     image: np.ndarray          # (H, W, 3) uint8
-    speed_mps: float           # measured forward speed over the last step
+    speed_mps: float           # measured forward speed (body-frame ground velocity) over the last step
     yaw_rate_radps: float      # measured yaw rate over the last step
     yaw_rad: float             # measured heading now
     altitude_m: float          # measured altitude above ground
+    lateral_mps: float = 0.0   # measured lateral speed (body frame, positive to the left) over the last step
 
 
 def parse_observation(observation: Mapping[str, np.ndarray], briefing: Briefing | None = None,
@@ -85,9 +86,11 @@ def parse_observation(observation: Mapping[str, np.ndarray], briefing: Briefing 
     if missing:
         raise ConfigError(f"observation: missing key(s) {missing}; expected image, odometry, yaw, altitude")
     odo = np.asarray(observation["odometry"], dtype=np.float64).reshape(-1)
-    if odo.shape != (2,):
-        raise ConfigError("observation['odometry'] must hold [speed_mps, yaw_rate_radps], "
-                          f"got shape {odo.shape}")
+    if odo.shape != (3,):
+        old = (" (a v1 observation: [forward_speed_mps, yaw_rate_radps]; the v2 ids append the lateral speed, "
+               "positive to the left, so a crabbing vehicle's motion can be represented)") if odo.shape == (2,) else ""
+        raise ConfigError("observation['odometry'] must hold [forward_speed_mps, yaw_rate_radps, lateral_speed_mps] "
+                          f"(the v2 layout), got shape {odo.shape}{old}")
     yaw = float(np.asarray(observation["yaw"], dtype=np.float64).reshape(-1)[0])
     alt = float(np.asarray(observation["altitude"], dtype=np.float64).reshape(-1)[0])
     if not (np.all(np.isfinite(odo)) and math.isfinite(yaw) and math.isfinite(alt) and alt > 0):
@@ -98,7 +101,7 @@ def parse_observation(observation: Mapping[str, np.ndarray], briefing: Briefing 
         raise ConfigError(f"observation['image'] must be (H, W, 3) uint8, got {image.shape} {image.dtype}")
     if briefing is not None:
         check_against_briefing(image, alt, briefing, altitude_range_m, agent)
-    return Observation(image, float(odo[0]), float(odo[1]), yaw, alt)
+    return Observation(image, float(odo[0]), float(odo[1]), yaw, alt, float(odo[2]))
 
 
 #: measured altitude beyond this factor of the briefing's nominal altitude: not the briefed flight

@@ -127,7 +127,7 @@ class WindowMatchingAgent(Agent):
         return max(min(m.gsd_x_m, m.gsd_y_m), short_m / self.AUTO_PX_ACROSS)
 
     #: the lowest altitude matched at: the footprint's short side spans this many working pixels. Measured on
-    #: PaperShadows-v1 (1 m working pixels, template-ncc, 22 m/s, 4 Hz; docs/mavlink.md): 20 px (40 m) still
+    #: PaperShadows-v2 (1 m working pixels, template-ncc, 22 m/s, 4 Hz; docs/mavlink.md): 20 px (40 m) still
     #: fixes 56 % of frames within 0.8 m RMSE; at 15 px (30 m) the matches thin out and the track drifts to
     #: 24 m between them; below 8 px no template can be cut
     MIN_PX_ACROSS = 20

@@ -120,7 +120,7 @@ import gymnasium as gym
 import numpy as np
 import aerial_loc_env.env  # noqa: F401
 t1 = time.perf_counter()
-env = gym.make("AerialLoc/RealMap-v1", path=sys.argv[1])
+env = gym.make("AerialLoc/RealMap-v2", path=sys.argv[1])
 t2 = time.perf_counter()
 obs, info = env.reset(seed=0)
 t3 = time.perf_counter()
@@ -147,7 +147,7 @@ print(json.dumps(out))
 
 
 def open_in_fresh_process(path: Path, agent: str | None = None) -> dict:
-    """``gym.make("AerialLoc/RealMap-v1", path=path)`` + ``reset`` in a fresh interpreter (and, with ``agent``, that
+    """``gym.make("AerialLoc/RealMap-v2", path=path)`` + ``reset`` in a fresh interpreter (and, with ``agent``, that
     agent's reset and one episode flown with it): its times and peak RSS."""
     env = {**os.environ, "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
     done = subprocess.run([sys.executable, "-c", _OPEN_SCRIPT, str(path)] + ([agent] if agent else []),
@@ -178,11 +178,11 @@ def _make_reset(size_px: int, agent: str | None = None) -> Callable[[], Callable
 
 
 def _episode(path_of: Callable[[], Path]) -> Callable[[], Callable[[], object]]:
-    """perf.env's episode timer on RealMap-v1 over the map ``path_of()`` gives (made when the row runs)."""
+    """perf.env's episode timer on RealMap-v2 over the map ``path_of()`` gives (made when the row runs)."""
     def setup() -> Callable[[], object]:
         from aerial_loc_env.perf.env import _episode_setup
 
-        return _episode_setup("AerialLoc/RealMap-v1", path=str(path_of()))()
+        return _episode_setup("AerialLoc/RealMap-v2", path=str(path_of()))()
 
     return setup
 
@@ -195,7 +195,7 @@ def _agent_steps(path_of: Callable[[], Path]) -> Callable[[], Callable[[], objec
         from aerial_loc_env.env import AerialLocEnv
         from aerial_loc_env.estimators.registry import make_agent
 
-        env = AerialLocEnv("AerialLoc/RealMap-v1", path=str(path_of()))
+        env = AerialLocEnv("AerialLoc/RealMap-v2", path=str(path_of()))
         episodes = []
         for seed in range(3):
             obs, _ = env.reset(seed=seed)
@@ -232,7 +232,7 @@ def _city_bundle() -> Path:
 def _steps() -> int:
     from aerial_loc_env.env.scenarios import load_scenario
 
-    return load_scenario("AerialLoc/RealMap-v1", {"map": {"path": "x"}}).flight.steps
+    return load_scenario("AerialLoc/RealMap-v2", {"map": {"path": "x"}}).flight.steps
 
 
 BENCHMARKS = [

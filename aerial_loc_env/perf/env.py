@@ -64,14 +64,14 @@ def _steps(scenario: str) -> int:
 
 BENCHMARKS = [
     Benchmark(name="env episode PaperShadows 600x400 + cast shadows (per step)",
-              setup=_episode_setup("AerialLoc/PaperShadows-v1"), target_ratio=2.5, unit="step", repeats=5,
-              per_call_items=_steps("AerialLoc/PaperShadows-v1")),
+              setup=_episode_setup("AerialLoc/PaperShadows-v2"), target_ratio=2.5, unit="step", repeats=5,
+              per_call_items=_steps("AerialLoc/PaperShadows-v2")),
     Benchmark(name="env episode Small 64x64 + cast shadows (per step)",
-              setup=_episode_setup("AerialLoc/Small-v1"), target_ratio=0.5, unit="step", repeats=20,
-              per_call_items=_steps("AerialLoc/Small-v1")),
+              setup=_episode_setup("AerialLoc/Small-v2"), target_ratio=0.5, unit="step", repeats=20,
+              per_call_items=_steps("AerialLoc/Small-v2")),
     Benchmark(name="env reset PaperShadows (track, sun, shadows over the track box, frame 0)",
-              setup=_reset_setup("AerialLoc/PaperShadows-v1"), target_ratio=None, unit="reset", repeats=10),
+              setup=_reset_setup("AerialLoc/PaperShadows-v2"), target_ratio=None, unit="reset", repeats=10),
     Benchmark(name="env episode CloudShadows 600x400 (per step)",
-              setup=_episode_setup("AerialLoc/CloudShadows-v1"), target_ratio=None, unit="step", repeats=5,
-              per_call_items=_steps("AerialLoc/CloudShadows-v1")),
+              setup=_episode_setup("AerialLoc/CloudShadows-v2"), target_ratio=None, unit="step", repeats=5,
+              per_call_items=_steps("AerialLoc/CloudShadows-v2")),
 ]

@@ -52,7 +52,7 @@ def _scene(seed: int = 0) -> tuple[object, dict]:
     occ[60:220, 80:300] = 1.0          # two building shadows, ~30 % of the frame
     occ[250:380, 380:560] = 1.0
     frame = apply_shading(frame, occ, 0.9)
-    obs = {"image": frame, "odometry": np.array([41.7, 0.0], np.float32), "yaw": np.array([yaw], np.float32),
+    obs = {"image": frame, "odometry": np.array([41.7, 0.0, 0.0], np.float32), "yaw": np.array([yaw], np.float32),
            "altitude": np.array([_ALT_M], np.float32)}
     return briefing, obs
 
@@ -65,7 +65,7 @@ def _mcl_step(spec: str, **overrides) -> Callable[[], Callable[[], object]]:
         agent = make_agent(spec, particles_in_extras=False, **overrides)
         agent.reset(briefing, seed=0)
         agent.step(obs)  # past the first (motionless) step
-        still = dict(obs, odometry=np.zeros(2, np.float32))   # keep the particles on the map
+        still = dict(obs, odometry=np.zeros(3, np.float32))   # keep the particles on the map
 
         def step() -> object:
             return agent.step(still)

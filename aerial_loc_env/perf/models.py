@@ -44,12 +44,13 @@ def _scene(seed: int = 0) -> tuple[SimpleNamespace, dict, np.ndarray]:
     briefing = SimpleNamespace(orthomap=orthomap, camera=camera, altitude_m=_ALT_M, dt_s=0.25,
                                prior=SimpleNamespace(kind="gaussian", mean_xy_m=(250.0, 250.0), std_xy_m=15.0),
                                odometry_noise=SimpleNamespace(speed_std_mps=0.1, yaw_rate_std_radps=0.087,
-                                                              heading_std_rad=0.035, altitude_std_m=1.0),
+                                                              heading_std_rad=0.035, altitude_std_m=1.0,
+                                                              lateral_std_mps=0.1),
                                scenario_id="perf")
     x, y, yaw = 250.0, 250.0, 0.4
     a = camera.camera_to_map(orthomap, x, y, yaw, _ALT_M)
     frame = cv2.warpAffine(rgb, a, (camera.width_px, camera.height_px), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
-    obs = {"image": frame, "odometry": np.zeros(2, np.float32), "yaw": np.array([yaw], np.float32),
+    obs = {"image": frame, "odometry": np.zeros(3, np.float32), "yaw": np.array([yaw], np.float32),
            "altitude": np.array([_ALT_M], np.float32)}
     states = np.column_stack([x + g.normal(0, 15, _N), y + g.normal(0, 15, _N), yaw + g.normal(0, 0.05, _N)])
     return briefing, obs, states

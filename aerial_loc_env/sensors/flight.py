@@ -1,15 +1,23 @@
-"""Flight: constant-speed, constant-altitude tracks that stay over valid map, and the vehicle's noisy sensors.
+"""Flight: constant-airspeed, constant-altitude tracks that stay over valid map, and the vehicle's noisy sensors.
 
-The motion model is the second reference's eq. (1) (Leung et al.): with forward speed ``v`` and yaw rate
-``omega`` held over a step ``dt``,
+The motion model is the second reference's eq. (1) (Leung et al.) with the wind added: with airspeed ``v``
+and yaw rate ``omega`` held over a step ``dt`` and the wind ``(w_e, w_n)`` (``world.wind``),
 
-    x += v dt cos(yaw + omega dt / 2);  y += v dt sin(yaw + omega dt / 2);  yaw += omega dt.
+    x += v dt cos(yaw + omega dt / 2) + w_e dt;  y += v dt sin(yaw + omega dt / 2) + w_n dt;  yaw += omega dt,
+
+so that in wind the ground track is the air velocity plus the wind and the vehicle crabs: its heading (where the
+camera's top points) is not its course. Without wind ``v`` is the ground speed and this is eq. (1) unchanged.
 
 The commanded yaw rate is piecewise constant: straight legs towards random waypoints joined by coordinated
-turns at ``turn_rate_deg_s``. The applied speed and yaw rate carry small process noise, the altitude a small
-jitter. Tracks are drawn by rejection sampling from the episode's generator until every pose keeps the camera
-footprint plus a margin over valid map (``FlyableRegion``); on a map too small for a full track the longest
-valid track found is used (never shorter than ``min_steps``), and a map too small for that is a ``MapError``.
+turns at ``turn_rate_deg_s``. The guidance steers the COURSE to the waypoint: it solves the wind triangle for
+the heading, ``heading = course - asin(w_perp / v)`` (``w_perp`` the wind's component to the left of the
+course), and turns towards that heading. The applied airspeed and yaw rate carry small process noise, the
+altitude a small jitter. A ``Track`` also records the true ground velocity in the body frame over each step
+(forward along the mid-step heading, lateral positive to the left), what a flow sensor or the autopilot's
+velocity estimate measures. Tracks are drawn by rejection sampling from the episode's generator until every pose
+keeps the camera footprint plus a margin over valid map (``FlyableRegion``); on a map too small for a full
+track the longest valid track found is used (never shorter than ``min_steps``), and a map too small for that is
+a ``MapError``.
 """
 
 from __future__ import annotations
@@ -22,6 +30,10 @@ import numpy as np
 from aerial_loc_env.config import rng
 from aerial_loc_env.errors import ConfigError
 from aerial_loc_env.world.maps.region import FlyableRegion
+from aerial_loc_env.world.wind import WindField
+
+#: the largest crab the guidance commands: asin of this share of the airspeed (a gust beyond it is not held)
+MAX_CROSSWIND_SHARE = 0.9
 
 
 @dataclass(frozen=True)
@@ -30,14 +42,14 @@ class FlightConfig:
 
     altitude_m: float = field(default=200.0, metadata=rng(1.0, 5000.0, doc="nominal altitude above ground"))
     duration_s: float = field(default=60.0, metadata=rng(0.25, 3600.0, doc="episode length (track time)"))
-    speed_mps: float = field(default=2500.0 / 60.0, metadata=rng(0.0, 200.0, lo_open=True,
-                                                                   doc="ground speed (2.5 km in 60 s)"))
+    speed_mps: float = field(default=2500.0 / 60.0, metadata=rng(
+        0.0, 200.0, lo_open=True, doc="airspeed; the ground speed without wind (2.5 km in 60 s)"))
     rate_hz: float = field(default=4.0, metadata=rng(0.1, 100.0, doc="camera rate"))
     turn_rate_deg_s: float = field(default=10.0, metadata=rng(0.0, 90.0, lo_open=True,
                                                                doc="yaw rate of coordinated turns"))
     min_leg_m: float = field(default=300.0, metadata=rng(0.0, 1e5,
                                                              doc="preferred distance to a new waypoint"))
-    speed_noise_mps: float = field(default=0.2, metadata=rng(0.0, 10.0, doc="process noise of the speed"))
+    speed_noise_mps: float = field(default=0.2, metadata=rng(0.0, 10.0, doc="process noise of the airspeed"))
     yaw_rate_noise_deg_s: float = field(default=0.5, metadata=rng(0.0, 30.0,
                                                                      doc="process noise of the yaw rate"))
     altitude_noise_m: float = field(default=0.5, metadata=rng(0.0, 50.0,
@@ -66,8 +78,10 @@ class FlightConfig:
 
 @dataclass(frozen=True)
 class Track:
-    """A true trajectory: ``n`` poses at the camera rate; ``speed_mps[i]``/``yaw_rate_radps[i]`` are the true
-    values applied over the step ending at pose ``i`` (index 0: the commanded values at the start)."""
+    """A true trajectory: ``n`` poses at the camera rate; ``speed_mps[i]`` (airspeed) and ``yaw_rate_radps[i]``
+    are the true values applied over the step ending at pose ``i`` (index 0: the commanded values at the start);
+    ``forward_mps[i]``/``lateral_mps[i]`` the true ground velocity over that step in the body frame (along the
+    mid-step heading; lateral positive to the left): ``(speed_mps, 0)`` without wind."""
 
     t_s: np.ndarray
     x_m: np.ndarray
@@ -76,6 +90,8 @@ class Track:
     altitude_m: np.ndarray
     speed_mps: np.ndarray
     yaw_rate_radps: np.ndarray
+    forward_mps: np.ndarray
+    lateral_mps: np.ndarray
 
     def __len__(self) -> int:
         return int(self.x_m.shape[0])
@@ -99,11 +115,13 @@ def footprint_radius_m(footprint_w_m: float, footprint_h_m: float) -> float:
     return 0.5 * math.hypot(footprint_w_m, footprint_h_m)
 
 
-def sample_track(config: FlightConfig, region: FlyableRegion, rng: np.random.Generator) -> Track:
-    """Draw a track that stays in ``region`` (see the module doc); deterministic given ``rng``."""
+def sample_track(config: FlightConfig, region: FlyableRegion, rng: np.random.Generator,
+                 wind: WindField | None = None) -> Track:
+    """Draw a track that stays in ``region`` (see the module doc); deterministic given ``rng``. ``wind``: the
+    episode's wind at the frame times of a full track (``WindConfig.draw``); None is calm air."""
     best: Track | None = None
     for _ in range(config.max_tries):
-        track = _fly(config, region, rng)
+        track = _fly(config, region, rng, wind)
         if best is None or len(track) > len(best):
             best = track
         if len(track) == config.steps + 1:
@@ -116,17 +134,31 @@ def sample_track(config: FlightConfig, region: FlyableRegion, rng: np.random.Gen
     return best
 
 
-def _fly(config: FlightConfig, region: FlyableRegion, rng: np.random.Generator) -> Track:
+def crab_heading(course_rad: float, wind_e_mps: float, wind_n_mps: float, airspeed_mps: float) -> float:
+    """The heading that makes good ``course_rad`` through the wind (the wind triangle): ``course - asin(w_perp /
+    v)``, ``w_perp`` the wind's component to the left of the course; the ratio is held within
+    ``MAX_CROSSWIND_SHARE``. Calm air: exactly ``course_rad``."""
+    cross = wind_n_mps * math.cos(course_rad) - wind_e_mps * math.sin(course_rad)
+    ratio = cross / max(airspeed_mps, 1e-9)
+    return course_rad - math.asin(max(-MAX_CROSSWIND_SHARE, min(MAX_CROSSWIND_SHARE, ratio)))
+
+
+def _fly(config: FlightConfig, region: FlyableRegion, rng: np.random.Generator,
+         wind: WindField | None = None) -> Track:
     """One attempt: fly waypoint legs until the full duration or until the next pose leaves the region."""
     n = config.steps + 1
     dt = config.dt_s
     turn = math.radians(config.turn_rate_deg_s)
     yaw_noise = math.radians(config.yaw_rate_noise_deg_s)
+    air = config.speed_mps
+    we, wn = (np.zeros(n), np.zeros(n)) if wind is None else (wind.east_mps, wind.north_mps)
+    if len(we) < n:
+        raise ValueError(f"sample_track: the wind holds {len(we)} frame(s), the track {n}")
     start = region.sample(rng)[0]
     # waypoints keep a turn radius from the edge: the turn towards the next one then rarely leaves the region
-    inset = config.speed_mps / max(turn, 1e-9)
+    inset = air / max(turn, 1e-9)
     waypoint = _next_waypoint(region, rng, start, config.min_leg_m, inset)
-    yaw = math.atan2(waypoint[1] - start[1], waypoint[0] - start[0])
+    yaw = crab_heading(math.atan2(waypoint[1] - start[1], waypoint[0] - start[0]), float(we[0]), float(wn[0]), air)
     # noise drawn as a bank up front: the same rng draws whatever the track's fate.
     speed_noise = rng.normal(0.0, config.speed_noise_mps, n)
     rate_noise = rng.normal(0.0, yaw_noise, n)
@@ -134,28 +166,41 @@ def _fly(config: FlightConfig, region: FlyableRegion, rng: np.random.Generator) 
     alt = config.altitude_m + np.clip(rng.normal(0.0, config.altitude_noise_m, n),
                                       -3.0 * config.altitude_noise_m, 3.0 * config.altitude_noise_m)
     xs, ys, yaws = np.empty(n), np.empty(n), np.empty(n)
-    speeds, rates = np.empty(n), np.empty(n)
+    speeds, rates, forwards, laterals = np.empty(n), np.empty(n), np.empty(n), np.empty(n)
     x, y = float(start[0]), float(start[1])
-    xs[0], ys[0], yaws[0], speeds[0], rates[0] = x, y, yaw, config.speed_mps, 0.0
-    reach = max(config.speed_mps * dt * 2.0, config.speed_mps / max(turn, 1e-9) * 0.5)
+    xs[0], ys[0], yaws[0], speeds[0], rates[0] = x, y, yaw, air, 0.0
+    forwards[0], laterals[0] = _body_velocity(air, yaw, float(we[0]), float(wn[0]))
+    reach = max(air * dt * 2.0, air / max(turn, 1e-9) * 0.5)
     count = 1
     for i in range(1, n):
         if math.hypot(waypoint[0] - x, waypoint[1] - y) < reach:
             waypoint = _next_waypoint(region, rng, (x, y), config.min_leg_m, inset)
-        err = float(wrap_angle(math.atan2(waypoint[1] - y, waypoint[0] - x) - yaw))
+        e_i, n_i = float(we[i]), float(wn[i])      # the wind over the step ending at pose i
+        heading = crab_heading(math.atan2(waypoint[1] - y, waypoint[0] - x), e_i, n_i, air)
+        err = float(wrap_angle(heading - yaw))
         cmd = max(-turn, min(turn, err / dt))
-        v = max(0.0, config.speed_mps + speed_noise[i])
+        v = max(0.0, air + speed_noise[i])
         w = cmd + rate_noise[i]
         half = yaw + 0.5 * w * dt
-        x, y = x + v * dt * math.cos(half), y + v * dt * math.sin(half)
+        # calm air adds 0.0: the same floats as the track without wind
+        x, y = x + v * dt * math.cos(half) + e_i * dt, y + v * dt * math.sin(half) + n_i * dt
         yaw = float(wrap_angle(yaw + w * dt))
         if not region.contains(x, y):
             break
         xs[i], ys[i], yaws[i], speeds[i], rates[i] = x, y, yaw, v, w
+        forwards[i], laterals[i] = _body_velocity(v, half, e_i, n_i)
         count = i + 1
     m = count
     return Track(t_s=np.arange(m) * dt, x_m=xs[:m].copy(), y_m=ys[:m].copy(), yaw_rad=yaws[:m].copy(),
-                 altitude_m=alt[:m].copy(), speed_mps=speeds[:m].copy(), yaw_rate_radps=rates[:m].copy())
+                 altitude_m=alt[:m].copy(), speed_mps=speeds[:m].copy(), yaw_rate_radps=rates[:m].copy(),
+                 forward_mps=forwards[:m].copy(), lateral_mps=laterals[:m].copy())
+
+
+def _body_velocity(airspeed_mps: float, heading_rad: float, wind_e_mps: float,
+                   wind_n_mps: float) -> tuple[float, float]:
+    """The ground velocity (airspeed along ``heading_rad`` plus the wind) in the body frame: (forward, left)."""
+    c, s = math.cos(heading_rad), math.sin(heading_rad)
+    return airspeed_mps + (wind_e_mps * c + wind_n_mps * s), wind_n_mps * c - wind_e_mps * s
 
 
 def _next_waypoint(region: FlyableRegion, rng: np.random.Generator, here, min_leg_m: float,
@@ -226,7 +271,7 @@ class AltimeterConfig:
 class Measurements:
     """What the vehicle's own sensors report at each pose of a track (float32, ready for observations)."""
 
-    odometry: np.ndarray     # (n, 2) [forward speed m/s, yaw rate rad/s] over the step ending at each pose
+    odometry: np.ndarray     # (n, 3) [forward m/s, yaw rate rad/s, lateral m/s] over the step ending at each pose
     yaw_rad: np.ndarray      # (n,) heading, wrapped to [-pi, pi)
     altitude_m: np.ndarray   # (n,) altitude above ground, >= 0
 
@@ -235,14 +280,29 @@ def measure(track: Track, rng: np.random.Generator, *, speed_std_mps: float, yaw
             heading_std_rad: float, altitude_std_m: float) -> Measurements:
     """Noisy odometry, heading and altitude for every pose (one vectorized draw per episode).
 
-    At pose 0 the odometry is the commanded values, noise-free (nothing has been flown yet).
+    The odometry is the body-frame ground velocity (forward, lateral) and the yaw rate. Its lateral column is
+    the true value here; ``add_lateral_noise`` draws its noise from a generator of its own, so that every other
+    draw of an episode is the one it was when the odometry had no lateral term. At pose 0 the odometry is the
+    commanded values, noise-free (nothing has been flown yet).
     """
     n = len(track)
-    odo = np.stack([track.speed_mps + rng.normal(0.0, speed_std_mps, n),
-                    track.yaw_rate_radps + rng.normal(0.0, yaw_rate_std_radps, n)], axis=1)
-    odo[0] = (track.speed_mps[0], track.yaw_rate_radps[0])
+    odo = np.stack([track.forward_mps + rng.normal(0.0, speed_std_mps, n),
+                    track.yaw_rate_radps + rng.normal(0.0, yaw_rate_std_radps, n),
+                    track.lateral_mps.astype(np.float64)], axis=1)
+    odo[0, :2] = (track.forward_mps[0], track.yaw_rate_radps[0])
     yaw = wrap_angle(track.yaw_rad + rng.normal(0.0, heading_std_rad, n))
     alt = np.maximum(track.altitude_m + rng.normal(0.0, altitude_std_m, n), 0.0)
     return Measurements(odometry=odo.astype(np.float32),
                         yaw_rad=np.clip(yaw, -math.pi, math.pi).astype(np.float32),
                         altitude_m=alt.astype(np.float32))
+
+
+def add_lateral_noise(meas: Measurements, track: Track, rng: np.random.Generator,
+                      lateral_std_mps: float) -> Measurements:
+    """``meas`` with the lateral speed's noise drawn (one vectorized draw; pose 0 stays noise-free)."""
+    n = len(track)
+    lateral = track.lateral_mps + rng.normal(0.0, lateral_std_mps, n)
+    lateral[0] = track.lateral_mps[0]
+    odo = meas.odometry.copy()
+    odo[:, 2] = lateral.astype(np.float32)
+    return Measurements(odometry=odo, yaw_rad=meas.yaw_rad, altitude_m=meas.altitude_m)

@@ -39,14 +39,13 @@ from __future__ import annotations
 
 import numba
 import numpy as np
-from numba import types
-from numba.extending import intrinsic
 
 from aerial_loc_env.jit import FAST_GATHER as _FAST_GATHER
 from aerial_loc_env.jit import GATHER_LANES as _GATHER_LANES
 from aerial_loc_env.jit import JIT as _JIT
 from aerial_loc_env.jit import fma32 as _fma
 from aerial_loc_env.jit import gather_f32x16 as _gather_f32x16
+from aerial_loc_env.jit import index32 as _index32
 from aerial_loc_env.jit import wide_vectors as _wide
 from aerial_loc_env.sensors.render_kernels import gain_byte
 
@@ -54,19 +53,6 @@ _LANES = 16    # OpenCV's nearest warps: vector body in blocks of 2 x 8 float32 
 _F32 = np.float32
 _U1, _U2, _U3 = np.uint64(1), np.uint64(2), np.uint64(3)   # unsigned offsets (no wraparound)
 _FAR = -(1 << 30)   # an int32 pixel far outside any window (below every rounded coordinate within +-1e9)
-
-
-@intrinsic
-def _index32(typingctx, row, stride, col):
-    """int32 ``row * stride + col`` in 32-bit arithmetic (numba widens int32 products to int64, which costs a
-    64-bit vector multiply); the caller keeps it below 2**31."""
-    if not all(t == types.int32 for t in (row, stride, col)):
-        return None
-
-    def codegen(context, builder, signature, args):
-        return builder.add(builder.mul(args[0], args[1], flags=["nsw"]), args[2], flags=["nsw"])
-
-    return types.int32(types.int32, types.int32, types.int32), codegen
 
 
 @numba.njit(inline="always", **_JIT)

@@ -151,7 +151,7 @@ def check_map_fits(scenario: str, vehicle: str, database: Any, leg_m: float) -> 
     if w_m < need_w_m or h_m < need_h_m:
         raise ConfigError(f"--scenario {scenario}: its map is {w_m:.0f} x {h_m:.0f} m, and the {vehicle}'s flight "
                           f"({plan}) needs at least {need_w_m:.0f} x {need_h_m:.0f} m; choose a larger scenario, "
-                          f"e.g. AerialLoc/PaperShadows-v1 (1200 x 1400 m)")
+                          f"e.g. AerialLoc/PaperShadows-v2 (1200 x 1400 m)")
 
 
 def check_wind(wind: tuple[float, float] | None) -> tuple[float, float] | None:

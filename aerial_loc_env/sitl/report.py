@@ -20,13 +20,19 @@ from aerial_loc_env.world.maps.geo import distance_m, east_north_m
 OUTPUT_FILES = ("errors.csv", "messages.txt", "summary.json", "track.png")
 
 
+def signed_uint16(value: int) -> int:
+    """A uint16 log field that holds a difference, read back as the signed 16-bit value it wrapped from."""
+    return value - 0x10000 if value >= 0x8000 else value
+
+
 def read_dataflash(path: str | os.PathLike, gps_instance: int = 0) -> dict[str, list]:
     """What SITL logged, on its own clock (TimeUS as seconds since boot): the truth (SIM), the EKF's position
     (POS), each as (t, lat, lon, alt AMSL), and the update intervals of GPS ``gps_instance`` (0 = GPS1) (t,
     GPA.Delta ms: the time between its last two updates as ArduPilot stamps them; over 0.245 s it marks the GPS
     unhealthy; the first is skipped: it has no update before it, ArduPilot logs the time since boot or a wrapped
-    value there), and EKF3's own horizontal position variance (t, XKV1.V07 + V08 of its first core, m^2: the
-    north and east position states' variances)."""
+    value there; the field is a uint16 of a difference of jitter-corrected stamps, so a stamp a few ms earlier
+    than the one before reads 65536 - n: decoded as the signed n, never a 65 s gap), and EKF3's own horizontal
+    position variance (t, XKV1.V07 + V08 of its first core, m^2: the north and east position states' variances)."""
     from pymavlink import DFReader
 
     log = DFReader.DFReader_binary(str(path), zero_time_base=True)
@@ -42,7 +48,7 @@ def read_dataflash(path: str | os.PathLike, gps_instance: int = 0) -> dict[str, 
                 if first_gpa:
                     first_gpa = False
                 else:
-                    out["gps_delta_ms"].append((t, int(m.Delta)))
+                    out["gps_delta_ms"].append((t, signed_uint16(int(m.Delta))))
         else:
             out["truth" if kind == "SIM" else "ekf"].append((t, float(m.Lat), float(m.Lng), float(m.Alt)))
     return out

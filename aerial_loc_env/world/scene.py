@@ -74,14 +74,14 @@ class MapConfig:
                        if getattr(self, n) is not None]
         if self.kind != "pair" and pair_fields:
             raise ConfigError(f"{where}: map.{pair_fields[0]} is only used with map.kind = 'pair' (a real "
-                              "two-epoch pair, e.g. gym.make('AerialLoc/RealPair-v1', path_a=..., path_b=...))")
+                              "two-epoch pair, e.g. gym.make('AerialLoc/RealPair-v2', path_a=..., path_b=...))")
         if self.kind == "pair":
             missing = [n for n in ("path_a", "path_b") if not getattr(self, n)]
             if missing:
                 raise ConfigError(
                     f"{where}: map.kind = 'pair' needs map.path_a (epoch A, the map database) and map.path_b "
                     f"(epoch B, the ground the camera sees); {' and '.join('map.' + m for m in missing)} "
-                    "missing: e.g. gym.make('AerialLoc/RealPair-v1', path_a='A/test_1.png', "
+                    "missing: e.g. gym.make('AerialLoc/RealPair-v2', path_a='A/test_1.png', "
                     "path_b='B/test_1.png', map={'gsd_m': 0.5}) (gsd_m: for images without a georeference)")
             if self.path:
                 raise ConfigError(f"{where}: map.path is for map.kind = 'file'; a pair's images are map.path_a "

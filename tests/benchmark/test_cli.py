@@ -10,7 +10,7 @@ from aerial_loc_env.benchmark.report import paper_sections
 
 def test_the_default_runs_the_paper_setting_beside_the_realistic_gap():
     grid = load_grid("default")
-    assert [s.id for s in grid.scenarios] == ["AerialLoc/PaperShadows-v1", "AerialLoc/RealisticPaper-v1"]
+    assert [s.id for s in grid.scenarios] == ["AerialLoc/PaperShadows-v2", "AerialLoc/RealisticPaper-v2"]
     assert grid.paper[0] == "comparison"
     row = {"agent": "SSD", "seed": 0, "errors_m": [1.0], "converged": True, "diverged": False,
            "agent_spec": {"name": "mcl-ssd", "params": {}}, "shadow_fraction_mean": 0.3}
@@ -27,5 +27,5 @@ def test_the_likelihood_pair_is_one_ground_with_and_without_shadows():
     for name in ("table9", "table9_realistic", "shadow_mismatch"):   # two conditions of one ground: as listed
         grid = load_grid(name)
         assert _with_and_without_shadows(grid) == list(grid.scenarios[:2]), name
-    one = make_grid("one", ["mcl-ssd"], ["AerialLoc/Small-v1"], seeds=1)
-    assert [s.id for s in _with_and_without_shadows(one)] == ["AerialLoc/Small-v1"] * 2
+    one = make_grid("one", ["mcl-ssd"], ["AerialLoc/Small-v2"], seeds=1)
+    assert [s.id for s in _with_and_without_shadows(one)] == ["AerialLoc/Small-v2"] * 2

@@ -139,13 +139,13 @@ def test_scenario_frame_and_database_align_at_the_true_pose():
     must say so (this checks the database window's geometry, margin included)."""
     ideal = {"exposure_std": 0.0, "white_balance_std": 0.0, "gamma_std": 0.0, "read_noise_dn": 0.0,
              "shot_noise_gain": 0.0, "vignetting": 0.0, "exposure_time_s": 0.0}
-    flat = gap.scenario_gap("AerialLoc/Small-v1", {"shadows.strength_range": [0.0, 0.0], "photometry": ideal},
+    flat = gap.scenario_gap("AerialLoc/Small-v2", {"shadows.strength_range": [0.0, 0.0], "photometry": ideal},
                             seeds=[0], stride=15)
     assert len(flat) == 5   # 61 frames, every 15th
     s = gap.summarize(flat)
     assert s["ncc"]["median"] > 0.97 and s["bit_agreement"]["median"] > 0.9
     assert s["template_within"]["mean"] == 1.0
-    shaded = gap.summarize(gap.scenario_gap("AerialLoc/Small-v1", seeds=[0], stride=15))
+    shaded = gap.summarize(gap.scenario_gap("AerialLoc/Small-v2", seeds=[0], stride=15))
     assert shaded["ncc"]["median"] < s["ncc"]["median"]
 
 
@@ -176,12 +176,12 @@ def test_real_pairs_are_far_less_alike_than_the_paper_scenario():
 
 
 def test_realism_pictures_show_map_and_camera_side_by_side(tmp_path):
-    """One labelled picture per level: the map patch at the true pose beside the camera frame (Small-v1, with
+    """One labelled picture per level: the map patch at the true pose beside the camera frame (Small-v2, with
     the perspective camera for the relief level)."""
     from aerial_loc_env.pictures import write_realism_pictures
 
-    levels = [("plain", "plain", "AerialLoc/Small-v1", {}, "middle"),
-              ("relief", "relief", "AerialLoc/Small-v1", {"perspective": {"enabled": True}}, "relief")]
+    levels = [("plain", "plain", "AerialLoc/Small-v2", {}, "middle"),
+              ("relief", "relief", "AerialLoc/Small-v2", {"perspective": {"enabled": True}}, "relief")]
     written = write_realism_pictures(tmp_path, seed=0, levels=levels)
     assert [p.name for p in written] == ["gap_plain.png", "gap_relief.png"]
     for path in written:

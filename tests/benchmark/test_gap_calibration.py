@@ -23,7 +23,7 @@ from aerial_loc_env.benchmark import gap
 from aerial_loc_env.errors import ConfigError
 
 PAIRS = SHARED_DATA / "pairs" / "levir-cd"
-REALISTIC = ("AerialLoc/RealisticPaper-v1", "AerialLoc/SeasonChange-v1", "AerialLoc/Downtown-v1")
+REALISTIC = ("AerialLoc/RealisticPaper-v2", "AerialLoc/SeasonChange-v2", "AerialLoc/Downtown-v2")
 #: frames per scenario (the first frame of seeds 0..FRAMES-1) and the confidence of each statistic's interval
 FRAMES = 24
 CONFIDENCE = 0.99
@@ -75,10 +75,10 @@ def test_proportion_interval_solves_the_binomial_tails(k):
 
 
 def test_frames_per_seed_stops_each_episode():
-    windows = gap.scenario_gap("AerialLoc/Small-v1", seeds=[0, 1], stride=5, frames_per_seed=2)
+    windows = gap.scenario_gap("AerialLoc/Small-v2", seeds=[0, 1], stride=5, frames_per_seed=2)
     assert len(windows) == 4        # frames 0 and 5 of each seed, not the whole 61-frame episodes
     with pytest.raises(ConfigError, match="frames_per_seed"):
-        gap.scenario_gap("AerialLoc/Small-v1", frames_per_seed=0)
+        gap.scenario_gap("AerialLoc/Small-v2", frames_per_seed=0)
 
 
 # ------------------------------------------------------------------------------------------ the presets
@@ -121,5 +121,5 @@ def test_realistic_preset_gap_lies_inside_the_real_pairs_spread(scenario, real_s
 def test_the_paper_setting_is_caught_outside(real_spread):
     """The check has power: the paper's scenario (the map re-projected plus shadows: NCC ~0.8, bits ~0.8 on
     the full report) is outside the real spread on the statistics the gap is about, margins included."""
-    outside, _ = _calibration("AerialLoc/PaperShadows-v1", real_spread)
+    outside, _ = _calibration("AerialLoc/PaperShadows-v2", real_spread)
     assert {"ncc", "bit_agreement", "peak_margin", "orb_inlier_ratio"} <= set(outside)

@@ -22,7 +22,7 @@ from aerial_loc_env.env import (
 )
 from aerial_loc_env.errors import AerialLocError, ConfigError
 
-SMALL = "AerialLoc/Small-v1"
+SMALL = "AerialLoc/Small-v2"
 SHORT = {"duration_s": 5.0}          # 20 steps: enough for every property, fast
 
 
@@ -48,7 +48,7 @@ def test_spaces_follow_the_contract():
     space = env.observation_space
     assert isinstance(space, gym.spaces.Dict) and set(space.spaces) == {"image", "odometry", "yaw", "altitude"}
     assert space["image"].shape == (64, 64, 3) and space["image"].dtype == np.uint8
-    for key, n in (("odometry", 2), ("yaw", 1), ("altitude", 1)):
+    for key, n in (("odometry", 3), ("yaw", 1), ("altitude", 1)):
         assert space[key].shape == (n,) and space[key].dtype == np.float32
     assert np.isclose(space["yaw"].high[0], math.pi, atol=1e-6)
     assert env.action_space == gym.spaces.Box(-1.0, 1.0, (2,), np.float32)
@@ -187,19 +187,23 @@ def test_briefing_is_exactly_the_contract():
 
 
 def test_odometry_observations_carry_the_configured_noise():
-    env = make(duration_s=15.0, odometry={"speed_std_mps": 0.5, "heading_std_rad": 0.05})
-    speed_err, yaw_err = [], []
+    env = make(duration_s=15.0, odometry={"speed_std_mps": 0.5, "heading_std_rad": 0.05, "lateral_std_mps": 0.3})
+    speed_err, yaw_err, lateral_err = [], [], []
     for seed in range(4):
         obs, info = env.reset(seed=seed)
         track = env._track
         for k in range(1, len(track)):
             obs, *_ = env.step(np.zeros(2, np.float32))
             speed_err.append(obs["odometry"][0] - track.speed_mps[k])
+            lateral_err.append(obs["odometry"][2] - track.lateral_mps[k])
             yaw_err.append((obs["yaw"][0] - track.yaw_rad[k] + math.pi) % (2 * math.pi) - math.pi)
     n = len(speed_err)
     tol = 5.0 / math.sqrt(2 * n)
     assert np.std(speed_err) == pytest.approx(0.5, rel=tol)
     assert np.std(yaw_err) == pytest.approx(0.05, rel=tol)
+    assert np.std(lateral_err) == pytest.approx(0.3, rel=tol)
+    assert abs(np.mean(lateral_err)) < 4 * 0.3 / math.sqrt(n)     # unbiased; no wind: the truth is 0
+    assert not np.any(track.lateral_mps)
 
 
 @pytest.mark.parametrize("action, match", [
@@ -297,7 +301,7 @@ def test_file_map_shortens_the_track_and_rejects_a_map_too_small(tmp_path):
     from aerial_loc_env.errors import MapError
 
     path = _png_map(tmp_path / "tile.png", 400)                    # 100 m x 100 m at 0.25 m/px
-    env = gym.make("AerialLoc/RealMap-v1", path=path, altitude_m=40.0, speed_mps=8.0, map={"gsd_m": 0.25},
+    env = gym.make("AerialLoc/RealMap-v2", path=path, altitude_m=40.0, speed_mps=8.0, map={"gsd_m": 0.25},
                    turn_rate_deg_s=5.0).unwrapped
     lengths = []
     for seed in range(3):
@@ -307,7 +311,7 @@ def test_file_map_shortens_the_track_and_rejects_a_map_too_small(tmp_path):
     # 8 m/s with a 92 m turn radius cannot stay 60 s over a ~40 m flyable square: shortened, not refused
     assert all(env.scenario.flight.min_steps <= n < env.scenario.flight.steps for n in lengths)
     with pytest.raises(MapError, match="too small"):
-        gym.make("AerialLoc/RealMap-v1", map={"path": path, "gsd_m": 0.25}, altitude_m=200.0)
+        gym.make("AerialLoc/RealMap-v2", map={"path": path, "gsd_m": 0.25}, altitude_m=200.0)
 
 
 def test_database_with_another_suns_shadows():
@@ -324,14 +328,14 @@ def test_database_with_another_suns_shadows():
 
 
 def test_env_reset_refuses_a_boolean_seed():
-    env = gym.make("AerialLoc/Small-v1")
+    env = gym.make("AerialLoc/Small-v2")
     with pytest.raises((ConfigError, ValueError), match="seed"):
         env.reset(seed=True)
     env.close()
 
 
 def test_realmap_clouds_cover_the_flown_window_not_the_whole_map(tmp_path):
-    """RealMap-v1 on a 1 km map: the episode's cloud field spans the track's window plus the drift (no repeat
+    """RealMap-v2 on a 1 km map: the episode's cloud field spans the track's window plus the drift (no repeat
     while the episode flies), at cells matched to the cloud scale, instead of the whole map at 0.5 m."""
     from aerial_loc_env.sensors.flight import footprint_radius_m
     from aerial_loc_env.world.shadows import CloudField
@@ -340,7 +344,7 @@ def test_realmap_clouds_cover_the_flown_window_not_the_whole_map(tmp_path):
     tex = cv2.GaussianBlur(g.integers(0, 255, (2000, 2000, 3)).astype(np.uint8), (0, 0), 3)
     png = tmp_path / "km.png"
     cv2.imwrite(str(png), cv2.normalize(tex, None, 0, 255, cv2.NORM_MINMAX))
-    env = gym.make("AerialLoc/RealMap-v1", path=str(png), **{"map.gsd_m": 0.5})
+    env = gym.make("AerialLoc/RealMap-v2", path=str(png), **{"map.gsd_m": 0.5})
     for seed in range(3):
         env.reset(seed=seed)
         u = env.unwrapped
@@ -358,3 +362,28 @@ def test_realmap_clouds_cover_the_flown_window_not_the_whole_map(tmp_path):
         assert ny * c.cell_m >= min(1000.0, y1 - y0 + pad) + abs(vy) * t_end - c.cell_m
         assert nx * ny * c.cell_m ** 2 < 0.8 * 1000.0 ** 2          # not the whole map
     env.close()
+
+
+def test_wind_comes_from_its_own_stream_and_the_vehicle_crabs():
+    """The same seed with and without wind: the same start, sun and prior (the wind's generator is a child of the
+    seed's sequence), the wind in info, the lateral odometry carrying the crosswind; reset(seed) repeats the wind,
+    a reset without a seed draws another."""
+    calm = make(duration_s=5.0)
+    windy = make(duration_s=5.0, wind={"speed_range_mps": [6.0, 6.0], "gust_std_mps": 0.5})
+    _, info_c = calm.reset(seed=4)
+    _, info_w = windy.reset(seed=4)
+    np.testing.assert_array_equal(info_c["true_pose"][[0, 1, 3]], info_w["true_pose"][[0, 1, 3]])  # the start
+    assert info_c["true_pose"][2] != info_w["true_pose"][2]         # its heading: crabbed into the wind
+    assert info_c["prior"] == info_w["prior"] and info_c["sun_azimuth_deg"] == info_w["sun_azimuth_deg"]
+    assert "wind_en_mps" not in info_c and math.hypot(*info_w["wind_en_mps"]) > 3.0
+    first = windy.wind
+    windy.reset(seed=4)
+    assert np.array_equal(windy.wind.east_mps, first.east_mps)
+    windy.reset()
+    assert not np.array_equal(windy.wind.east_mps, first.east_mps)
+    windy.reset(seed=4)
+    t = windy._track
+    lateral = np.array([windy.step(np.zeros(2, np.float32))[0]["odometry"][2] for _ in range(len(t) - 1)])
+    assert np.all(t.lateral_mps[1:] != 0.0)                      # the wind is never exactly along the heading
+    noise = windy.briefing.odometry_noise.lateral_std_mps
+    assert abs(np.mean(lateral - t.lateral_mps[1:])) < 4 * noise / math.sqrt(len(lateral))

@@ -17,7 +17,7 @@ import aerial_loc_env  # noqa: F401  (registers the scenarios)
 from aerial_loc_env.env.scenarios import specs
 
 #: the ids whose map the user names (RealMap: a file; RealPair: two images) have tests of their own
-USER_MAPS = ("AerialLoc/RealMap-v1", "AerialLoc/RealPair-v1")
+USER_MAPS = ("AerialLoc/RealMap-v2", "AerialLoc/RealPair-v2")
 IDS = [sid for sid in specs() if sid not in USER_MAPS]
 
 
@@ -28,12 +28,12 @@ def test_checkers_pass_without_warnings(sid):
 
 @pytest.mark.parametrize("tile", REAL_TILES)
 def test_real_map_checkers_pass_on_the_shared_tiles(shared_data, tile):
-    check_env_silently("AerialLoc/RealMap-v1", path=str(shared_data / tile))
+    check_env_silently("AerialLoc/RealMap-v2", path=str(shared_data / tile))
 
 
 @pytest.mark.parametrize("tile", REAL_TILES)
 def test_real_map_tracks_avoid_nodata(shared_data, tile):
-    env = gym.make("AerialLoc/RealMap-v1", path=str(shared_data / tile)).unwrapped
+    env = gym.make("AerialLoc/RealMap-v2", path=str(shared_data / tile)).unwrapped
     om = env.orthomap
     assert om.nodata is not None and om.nodata.any()
     for seed in range(3):
@@ -47,13 +47,13 @@ def test_real_map_tracks_avoid_nodata(shared_data, tile):
 def _kwargs(sid: str, shared: bool) -> dict:
     """Short episodes (2 s, 8 steps) keep these tests fast; the real map flies over the Manila tile."""
     kw: dict = {"duration_s": 2.0}
-    if sid == "AerialLoc/RealPair-v1":
+    if sid == "AerialLoc/RealPair-v2":
         levir = SHARED_DATA / "pairs" / "levir-cd"
         if not shared or not (levir / "A" / "test_1.png").is_file():
             pytest.skip(f"real image pairs not available: {levir}")
         kw.update(path_a=str(levir / "A" / "test_1.png"), path_b=str(levir / "B" / "test_1.png"),
                   map={"gsd_m": 0.5})
-    if sid == "AerialLoc/RealMap-v1":
+    if sid == "AerialLoc/RealMap-v2":
         tile = SHARED_DATA / REAL_TILES[0]
         if not shared or not tile.is_file():
             pytest.skip(f"real imagery not available: {tile}")
@@ -109,7 +109,7 @@ def test_sb3_multi_input_policy_accepts_the_observation(tmp_path):
     sb3 = pytest.importorskip("stable_baselines3")
     from stable_baselines3.common.logger import configure
 
-    env = gym.make("AerialLoc/Small-v1", duration_s=2.0)
+    env = gym.make("AerialLoc/Small-v2", duration_s=2.0)
     model = sb3.PPO("MultiInputPolicy", env, n_steps=8, batch_size=8, n_epochs=1, device="cpu", seed=0)
     model.set_logger(configure(str(tmp_path), []))   # SB3's default logger leaves an SB3-<date> folder in /tmp
     model.learn(8)                                   # one rollout and one update through the policy

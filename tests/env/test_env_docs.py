@@ -35,7 +35,7 @@ def test_the_sections_are_gymnasiums_in_order_and_none_is_empty():
 
 @pytest.fixture(scope="module")
 def env():
-    return AerialLocEnv("AerialLoc/Small-v1", flight={"duration_s": 2.0})
+    return AerialLocEnv("AerialLoc/Small-v2", flight={"duration_s": 2.0})
 
 
 def test_the_spaces_are_documented_as_built(env):
@@ -93,7 +93,7 @@ def test_the_readme_driver_example_prints_what_the_readme_shows(tmp_path):
     assert all(got), got
     got = [m.groups() for m in got]
     assert [t for t, _e, _s in got] == [t for t, _e, _s in shown]
-    prior_std_m = load_scenario("AerialLoc/PaperShadows-v1").episode.prior_std_m
+    prior_std_m = load_scenario("AerialLoc/PaperShadows-v2").episode.prior_std_m
     errors = [float(e) for _t, e, _s in got]
     assert all(math.isfinite(e) for e in errors)
     assert errors[-1] < prior_std_m / 5, got
@@ -106,6 +106,6 @@ def test_the_readme_gymnasium_loop_runs_the_whole_track(tmp_path):
     out = _run_as_a_user(code[1], tmp_path)
     got = re.fullmatch(r"(\d+) steps, last error ([\d.]+) m\n", out)
     assert said and got, out
-    sc = load_scenario("AerialLoc/PaperShadows-v1")
+    sc = load_scenario("AerialLoc/PaperShadows-v2")
     assert int(got.group(1)) == int(said.group(1)) == round(sc.flight.duration_s * sc.flight.rate_hz)
     assert float(got.group(2)) < sc.episode.prior_std_m / 5

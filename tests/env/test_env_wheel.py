@@ -30,14 +30,14 @@ ids = sorted(s for s in gym.registry if s.startswith("AerialLoc/"))
 tile = sys.argv[1]
 for sid in ids:
     kw = {}
-    if sid == "AerialLoc/RealPair-v1":
+    if sid == "AerialLoc/RealPair-v2":
         try:
             gym.make(sid)
         except ConfigError:
             print("ok", sid, "(no pair: missing paths are a ConfigError)")
             continue
         raise SystemExit("RealPair without paths did not raise ConfigError")
-    if sid == "AerialLoc/RealMap-v1":
+    if sid == "AerialLoc/RealMap-v2":
         if not tile:
             try:
                 gym.make(sid)

@@ -13,7 +13,7 @@ gym = pytest.importorskip("gymnasium")
 from aerial_loc_env.env.external import ExternalFlight, ExternalPose  # noqa: E402
 from aerial_loc_env.errors import AerialLocError, MapError  # noqa: E402
 
-SCENARIO = "AerialLoc/Small-v1"    # 400 m city, 100 m altitude, 4 Hz camera, footprint 75 m x 50 m
+SCENARIO = "AerialLoc/Small-v2"    # 400 m city, 100 m altitude, 4 Hz camera, footprint 75 m x 50 m
 
 
 def _env():
@@ -49,7 +49,7 @@ def test_shadows_are_valid_wherever_the_vehicle_goes():
 
 def test_camera_rate_and_odometry_come_from_the_stream():
     flight = ExternalFlight(_env())
-    assert flight.period_s == pytest.approx(0.25)             # Small-v1: 4 Hz
+    assert flight.period_s == pytest.approx(0.25)             # Small-v2: 4 Hz
     speed, alt = 10.0, 100.0
     stream = [ExternalPose(100.0 + speed * t, 200.0, 0.0, alt, t) for t in np.arange(0.0, 5.0, 0.05)]  # 20 Hz
     frames = []
@@ -99,3 +99,19 @@ def test_off_the_map_and_on_the_ground_are_clear_errors():
         flight.observe(ExternalPose(200.0, 200.0, 0.0, 0.0, 1.0))
     with pytest.raises(AerialLocError, match="non-finite"):
         ExternalPose(math.nan, 0.0, 0.0, 100.0, 0.0)
+
+
+def test_a_crabbing_stream_gives_the_lateral_speed():
+    """A plane flying due east with its nose 13 deg left of its track (crabbing into a wind from the north): the
+    odometry measures the ground velocity in the body frame, forward v cos 13 deg
+    and lateral -v sin 13 deg (to the right), each within 4 standard errors of the scenario's noise."""
+    flight = ExternalFlight(_env())
+    speed, crab = 22.0, math.radians(13.0)
+    stream = [ExternalPose(80.0 + speed * t, 200.0, crab, 100.0, t) for t in np.arange(0.0, 10.0, 0.25)]
+    frames = [flight.reset(stream[0], seed=2)] + [flight.observe(p) for p in stream[1:]]
+    odo = np.array([obs["odometry"] for obs, _ in frames[1:]], dtype=np.float64)
+    noise = flight.briefing.odometry_noise
+    n = len(odo)
+    assert abs(odo[:, 0].mean() - speed * math.cos(crab)) < 4 * noise.speed_std_mps / math.sqrt(n)
+    assert abs(odo[:, 2].mean() + speed * math.sin(crab)) < 4 * noise.lateral_std_mps / math.sqrt(n)
+    assert np.std(odo[:, 2]) == pytest.approx(noise.lateral_std_mps, rel=5.0 / math.sqrt(2 * n))

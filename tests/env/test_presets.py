@@ -7,8 +7,8 @@ import pytest
 
 from aerial_loc_env.env import load_scenario
 
-PAPER = ("AerialLoc/PaperShadows-v1", "AerialLoc/PaperNoShadows-v1")
-REALISTIC = ("AerialLoc/RealisticPaper-v1", "AerialLoc/SeasonChange-v1", "AerialLoc/Downtown-v1")
+PAPER = ("AerialLoc/PaperShadows-v2", "AerialLoc/PaperNoShadows-v2")
+REALISTIC = ("AerialLoc/RealisticPaper-v2", "AerialLoc/SeasonChange-v2", "AerialLoc/Downtown-v2")
 SETTING = ("flight", "camera", "odometry", "observation", "episode", "reward")
 
 

@@ -1,4 +1,4 @@
-"""AerialLoc/RealPair-v1: a real two-epoch pair given by path (map = epoch A, camera over epoch B), through
+"""AerialLoc/RealPair-v2: a real two-epoch pair given by path (map = epoch A, camera over epoch B), through
 Gymnasium's and SB3's env checkers, deterministic for a seed, and clear errors for what a user may get wrong."""
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ from synthetic_pairs import write_pair
 import aerial_loc_env  # noqa: F401  (registers the scenarios)
 from aerial_loc_env.errors import ConfigError, MapError
 
-SID = "AerialLoc/RealPair-v1"
+SID = "AerialLoc/RealPair-v2"
 LEVIR = SHARED_DATA / "pairs" / "levir-cd"
 
 
@@ -62,7 +62,7 @@ def test_same_seed_same_frames(synthetic):
 
 def test_missing_paths_are_a_clear_error():
     with pytest.raises(ConfigError, match=r"map\.kind = 'pair' needs map\.path_a .* map\.path_a and map\.path_b "
-                                          r"missing: e\.g\. gym\.make\('AerialLoc/RealPair-v1', path_a="):
+                                          r"missing: e\.g\. gym\.make\('AerialLoc/RealPair-v2', path_a="):
         gym.make(SID)
     with pytest.raises(ConfigError, match=r"map\.path_b missing"):
         gym.make(SID, path_a="A/x.png")
@@ -73,7 +73,7 @@ def test_a_missing_image_a_misregistered_pair_and_an_epoch_are_refused(tmp_path,
                                        r"exist"):
         gym.make(SID, path_a=synthetic["path_a"], path_b=str(tmp_path / "nowhere.png"))
     a, b = write_pair(tmp_path / "far", size_px=1024, shift_m=(2.5, 0.0))
-    with pytest.raises(MapError, match=r"^AerialLoc/RealPair-v1: p\.png \(A\) and p\.png \(B\) are misregistered "
+    with pytest.raises(MapError, match=r"^AerialLoc/RealPair-v2: p\.png \(A\) and p\.png \(B\) are misregistered "
                                        r"by 2\.\d\d m"):
         gym.make(SID, path_a=str(a), path_b=str(b))
     env = gym.make(SID, path_a=str(a), path_b=str(b), map={"correct_shift": True}, duration_s=2.0).unwrapped
@@ -83,7 +83,7 @@ def test_a_missing_image_a_misregistered_pair_and_an_epoch_are_refused(tmp_path,
     with pytest.raises(ConfigError, match=r"perspective\.enabled = true .* has no height model"):
         gym.make(SID, perspective={"enabled": True}, **synthetic)
     with pytest.raises(ConfigError, match=r"map\.path_a is only used with map\.kind = 'pair'"):
-        gym.make("AerialLoc/Small-v1", path_a=synthetic["path_a"])
+        gym.make("AerialLoc/Small-v2", path_a=synthetic["path_a"])
 
 
 @pytest.mark.parametrize("name", ["test_1.png", "test_4.png"])

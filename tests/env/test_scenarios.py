@@ -35,10 +35,10 @@ def test_every_spec_file_is_registered_and_required_ids_exist():
     ids = [sid for sid in gym.registry if sid.startswith("AerialLoc/")]
     assert len(files) == len(specs()) == len(ids)
     for name in REQUIRED:
-        assert f"AerialLoc/{name}-v1" in ids
+        assert f"AerialLoc/{name}-v2" in ids
 
 
-@pytest.mark.parametrize("sid", [s for s in specs() if s not in ("AerialLoc/RealMap-v1", "AerialLoc/RealPair-v1")])
+@pytest.mark.parametrize("sid", [s for s in specs() if s not in ("AerialLoc/RealMap-v2", "AerialLoc/RealPair-v2")])
 def test_specs_validate_and_round_trip(sid):
     sc = load_scenario(sid)
     again = build_scenario(sc.to_dict(), where="round trip")
@@ -46,7 +46,7 @@ def test_specs_validate_and_round_trip(sid):
 
 
 def test_paper_defaults_follow_table_4():
-    sc = load_scenario("AerialLoc/PaperShadows-v1")
+    sc = load_scenario("AerialLoc/PaperShadows-v2")
     assert sc.flight.altitude_m == 200.0 and sc.flight.duration_s == 60.0 and sc.flight.rate_hz == 4.0
     assert sc.flight.speed_mps * sc.flight.duration_s == pytest.approx(2500.0, rel=1e-3)
     assert (sc.camera.width_px, sc.camera.height_px) == (600, 400)
@@ -79,25 +79,25 @@ def test_three_override_forms_agree():
 ])
 def test_bad_overrides_are_clear_errors(overrides, match):
     with pytest.raises(ConfigError, match=match):
-        load_scenario("AerialLoc/Small-v1", overrides)
+        load_scenario("AerialLoc/Small-v2", overrides)
 
 
 def test_gym_make_validates_overrides():
     with pytest.raises(ConfigError, match="unknown key 'bogus'"):
-        gym.make("AerialLoc/Small-v1", bogus=1)
+        gym.make("AerialLoc/Small-v2", bogus=1)
     with pytest.raises(ConfigError, match="out of range"):
-        gym.make("AerialLoc/Small-v1", speed_mps=1e6)
+        gym.make("AerialLoc/Small-v2", speed_mps=1e6)
 
 
 def test_real_map_needs_an_existing_path(tmp_path):
     with pytest.raises(ConfigError, match="map.path"):
-        gym.make("AerialLoc/RealMap-v1")
+        gym.make("AerialLoc/RealMap-v2")
     with pytest.raises(MapError, match="does not exist"):
-        gym.make("AerialLoc/RealMap-v1", path=str(tmp_path / "nowhere.tif"))
+        gym.make("AerialLoc/RealMap-v2", path=str(tmp_path / "nowhere.tif"))
 
 
 def test_unknown_scenario_lists_the_registered_ones():
-    with pytest.raises(ConfigError, match="AerialLoc/Small-v1"):
+    with pytest.raises(ConfigError, match="AerialLoc/Small-v2"):
         load_scenario("NoSuchScenario")
 
 
@@ -105,27 +105,30 @@ def test_split_overrides_and_spec_dict():
     assert split_overrides({"flight.altitude_m": 1.0, "camera": {"hfov_deg": 50.0}}) == {
         "flight": {"altitude_m": 1.0}, "camera": {"hfov_deg": 50.0}}
     d = scenario_spec_dict("Small", altitude_m=90.0)
-    assert d["id"] == "AerialLoc/Small-v1" and d["flight"]["altitude_m"] == 90.0
+    assert d["id"] == "AerialLoc/Small-v2" and d["flight"]["altitude_m"] == 90.0
 
 
 def test_cli_lists_ids(capsys):
     assert main([]) == 0
     out = capsys.readouterr().out
     for name in REQUIRED:
-        assert f"AerialLoc/{name}-v1" in out
+        assert f"AerialLoc/{name}-v2" in out
     assert main(["--show", "Small"]) == 0
     shown = tomllib.loads(capsys.readouterr().out)          # valid TOML, the full validated spec
     assert build_scenario(shown).sections == load_scenario("Small").sections
 
 
-def test_an_older_version_of_an_id_names_the_registered_one():
-    """The ids went to v1 when their frames changed for the same seed: asking for v0 says which id to use (from
-    the spec loader and from Gymnasium itself), never an unrelated 'unknown scenario'."""
-    with pytest.raises(ConfigError, match=r"'AerialLoc/Small-v0' is not registered.*'AerialLoc/Small-v1'"):
-        load_scenario("AerialLoc/Small-v0")
+@pytest.mark.parametrize("old", ["AerialLoc/Small-v0", "AerialLoc/Small-v1", "AerialLoc/PaperShadows-v1"])
+def test_an_older_version_of_an_id_names_the_registered_one(old):
+    """The ids went to v1 when their frames changed for the same seed, to v2 when the odometry gained the lateral
+    speed: asking for an older one says which id to use (from the spec loader and from Gymnasium itself), never an
+    unrelated 'unknown scenario'."""
+    new = old.rsplit("-v", 1)[0] + "-v2"
+    with pytest.raises(ConfigError, match=rf"'{old}' is not registered.*'{new}'"):
+        load_scenario(old)
     with pytest.warns(DeprecationWarning, match="out of date"), \
-            pytest.raises(gym.error.Error, match=r"AerialLoc/Small-v1"):
-        gym.make("AerialLoc/Small-v0")
+            pytest.raises(gym.error.Error, match=new):
+        gym.make(old)
 
 
 def test_section_given_a_non_table_says_so():
@@ -151,15 +154,15 @@ def test_one_broken_spec_does_not_take_the_others_down(tmp_path, monkeypatch, ca
     scenarios._scan.cache_clear()
     try:
         ids = scenarios.register_all()
-        assert "AerialLoc/Small-v1" in ids
-        assert scenarios.load_scenario("AerialLoc/Small-v1").flight.altitude_m == 100.0
+        assert "AerialLoc/Small-v2" in ids
+        assert scenarios.load_scenario("AerialLoc/Small-v2").flight.altitude_m == 100.0
         with pytest.raises(ConfigError, match=r"broken\.toml.*invalid TOML"):
             scenarios.load_scenario("broken")
         with pytest.raises(ConfigError, match=r"latin\.toml.*UTF-8"):
             scenarios.load_scenario("AerialLoc/Latin-v0")
         assert scenarios.main([]) == 0
         out = capsys.readouterr().out
-        assert "AerialLoc/Small-v1" in out and "broken.toml" in out and "latin.toml" in out
+        assert "AerialLoc/Small-v2" in out and "broken.toml" in out and "latin.toml" in out
     finally:
         scenarios._scan.cache_clear()
         for sid in ("AerialLoc/Latin-v0", "AerialLoc/Broken-v0"):
@@ -169,9 +172,9 @@ def test_one_broken_spec_does_not_take_the_others_down(tmp_path, monkeypatch, ca
 def test_scenarios_show_realmap_without_a_path(capsys):
     from aerial_loc_env.env.scenarios import main
 
-    assert main(["--show", "AerialLoc/RealMap-v1"]) == 0
+    assert main(["--show", "AerialLoc/RealMap-v2"]) == 0
     out = capsys.readouterr().out
-    assert 'id = "AerialLoc/RealMap-v1"' in out and "# path = (required" in out and "altitude_m = 50.0" in out
+    assert 'id = "AerialLoc/RealMap-v2"' in out and "# path = (required" in out and "altitude_m = 50.0" in out
 
 
 @pytest.mark.parametrize("section, value, example", [
@@ -186,16 +189,16 @@ def test_a_section_given_one_value_names_its_fields_with_an_example(section, val
     """Every section given a single value gets the same message: it is a section, how to set one of its fields
     (one whose type fits the value, as a dict or a dotted key), and the list of its fields."""
     with pytest.raises(ConfigError) as err:
-        gym.make("AerialLoc/Small-v1", **{section: value})
+        gym.make("AerialLoc/Small-v2", **{section: value})
     text = str(err.value)
-    assert text.startswith(f"AerialLoc/Small-v1 overrides: {section} = {value!r}: '{section}' is a section of fields, "
+    assert text.startswith(f"AerialLoc/Small-v2 overrides: {section} = {value!r}: '{section}' is a section of fields, "
                            "not one value; set one of its fields, e.g. "), text
     assert example in text and f"Fields of [{section}]: " in text
 
 
 def test_haze_given_one_value_also_names_the_databases_haze_field():
     with pytest.raises(ConfigError, match=r"did you mean the field 'database\.haze'\?.*extinction_per_km"):
-        load_scenario("AerialLoc/Small-v1", {"haze": 0.5})
+        load_scenario("AerialLoc/Small-v2", {"haze": 0.5})
 
 
 def test_a_spec_file_with_a_section_as_one_value_shows_the_table_form():
@@ -205,10 +208,10 @@ def test_a_spec_file_with_a_section_as_one_value_shows_the_table_form():
 
 
 def test_an_altimeter_too_noisy_for_the_altitude_is_refused_at_gym_make_naming_its_field():
-    with pytest.raises(ConfigError, match=r"^AerialLoc/Small-v1: altimeter\.bias_std_m = 500 m is too large for "
+    with pytest.raises(ConfigError, match=r"^AerialLoc/Small-v2: altimeter\.bias_std_m = 500 m is too large for "
                                           r"flight\.altitude_m = 100 m.*in \[0, 16\.67\] m"):
-        gym.make("AerialLoc/Small-v1", **{"altimeter.bias_std_m": 500})
-    assert load_scenario("AerialLoc/Small-v1", {"altimeter.bias_std_m": 500, "altitude_m": 3000.0,
+        gym.make("AerialLoc/Small-v2", **{"altimeter.bias_std_m": 500})
+    assert load_scenario("AerialLoc/Small-v2", {"altimeter.bias_std_m": 500, "altitude_m": 3000.0,
                                                 "camera.hfov_deg": 1.0}).altimeter.bias_std_m == 500
 
 
@@ -227,7 +230,7 @@ class _World:
     ({"perspective.enabled": False}, None, False),                           # affine, no height model: fine
 ])
 def test_check_relief_refuses_buildings_the_perspective_camera_would_cut(overrides, tallest_m, refused):
-    sc = load_scenario("AerialLoc/Small-v1", overrides)
+    sc = load_scenario("AerialLoc/Small-v2", overrides)
     if refused:
         with pytest.raises(ConfigError, match=r"tallest building of the map is 95\.1 m, but flight\.altitude_m = 100 m"
                                               r".*flight\.altitude_m >= 101 m.*city\.max_building_height_m \(allowed "
@@ -244,10 +247,10 @@ def test_check_relief_refuses_buildings_the_perspective_camera_would_cut(overrid
 def test_check_relief_refuses_a_perspective_camera_without_a_height_model(overrides, tallest_m, said):
     """Without a height model the perspective camera is the affine one: refused, naming the fix (it used to be a
     silent no-op)."""
-    sc = load_scenario("AerialLoc/Small-v1", overrides)
+    sc = load_scenario("AerialLoc/Small-v2", overrides)
     world = _World(tallest_m)
     world.ground.name = "ground"
-    with pytest.raises(ConfigError, match=rf"^AerialLoc/Small-v1: perspective\.enabled = true .*{said}.*set "
+    with pytest.raises(ConfigError, match=rf"^AerialLoc/Small-v2: perspective\.enabled = true .*{said}.*set "
                                           r"perspective\.enabled = false"):
         scenarios.check_relief(sc, world)
 
@@ -258,13 +261,13 @@ def test_a_perspective_camera_over_a_map_file_without_dsm_is_refused_at_gym_make
 
     png = tmp_path / "tile.png"
     cv2.imwrite(str(png), np.random.default_rng(0).integers(0, 255, (800, 800, 3), dtype=np.uint8))
-    with pytest.raises(ConfigError, match=r"^AerialLoc/RealMap-v1: perspective\.enabled = true .* the map 'tile' "
+    with pytest.raises(ConfigError, match=r"^AerialLoc/RealMap-v2: perspective\.enabled = true .* the map 'tile' "
                                           r"has no height model"):
-        gym.make("AerialLoc/RealMap-v1", path=str(png), map={"gsd_m": 0.5}, perspective={"enabled": True})
+        gym.make("AerialLoc/RealMap-v2", path=str(png), map={"gsd_m": 0.5}, perspective={"enabled": True})
 
 
 def test_a_perspective_camera_below_the_towers_is_refused_at_gym_make():
-    """Small-v1's city has 60 m buildings: a perspective camera at 60 m would see them cut at 57 m."""
-    with pytest.raises(ConfigError, match=r"^AerialLoc/Small-v1: the tallest building of the map is 60\.0 m, but "
+    """Small-v2's city has 60 m buildings: a perspective camera at 60 m would see them cut at 57 m."""
+    with pytest.raises(ConfigError, match=r"^AerialLoc/Small-v2: the tallest building of the map is 60\.0 m, but "
                                           r"flight\.altitude_m = 60 m: .*fly higher \(flight\.altitude_m >= 64 m\)"):
-        gym.make("AerialLoc/Small-v1", **{"perspective.enabled": True, "flight.altitude_m": 60.0})
+        gym.make("AerialLoc/Small-v2", **{"perspective.enabled": True, "flight.altitude_m": 60.0})

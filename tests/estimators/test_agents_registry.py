@@ -134,7 +134,7 @@ def test_estimate_and_observation_checks() -> None:
     with pytest.raises(ConfigError, match="missing key"):
         parse_observation({"image": np.zeros((4, 4, 3), np.uint8)})
     with pytest.raises(ConfigError, match="uint8"):
-        parse_observation({"image": np.zeros((4, 4)), "odometry": np.zeros(2), "yaw": [0.0], "altitude": [1.0]})
+        parse_observation({"image": np.zeros((4, 4)), "odometry": np.zeros(3), "yaw": [0.0], "altitude": [1.0]})
 
 
 def test_dead_reckoning_integrates_the_odometry() -> None:
@@ -146,7 +146,7 @@ def test_dead_reckoning_integrates_the_odometry() -> None:
     img = np.zeros((4, 4, 3), np.uint8)
     yaw = 0.0
     for _ in range(41):                                  # 1 motionless + 40 steps of a 0.1 rad/s turn at 8 m/s
-        obs = {"image": img, "odometry": np.array([8.0, 0.1], np.float32), "yaw": np.array([yaw], np.float32),
+        obs = {"image": img, "odometry": np.array([8.0, 0.1, 0.0], np.float32), "yaw": np.array([yaw], np.float32),
                "altitude": np.array([100.0], np.float32)}
         est = dr.step(obs)
         yaw += 0.1 * br.dt_s

@@ -67,7 +67,7 @@ def test_baseline_recovers_a_known_offset_and_keeps_tracking(name):
     speed, dt = 10.0, briefing.dt_s
     x2, y2 = x + speed * dt * math.cos(yaw), y + speed * dt * math.sin(yaw)
     obs = observation(render_frame(m, x2, y2, yaw, camera=WIDE), yaw)
-    obs["odometry"] = np.array([speed, 0.0], np.float32)
+    obs["odometry"] = np.array([speed, 0.0, 0.0], np.float32)
     est2 = agent.step(obs)
     assert est2.status == "ok" and math.hypot(est2.x_m - x2, est2.y_m - y2) < 1.0
 
@@ -102,7 +102,7 @@ def test_a_fix_far_outside_the_predicted_uncertainty_is_gated(name):
         d = speed * dt * k
         px, py = x + d * math.cos(yaw), y + d * math.sin(yaw)   # the dead-reckoned track
         obs = observation(render_frame(m, px + 30.0, py, yaw, camera=WIDE), yaw)
-        obs["odometry"] = np.array([speed, 0.0], np.float32)
+        obs["odometry"] = np.array([speed, 0.0, 0.0], np.float32)
         est = agent.step(obs)
         statuses.append(est.status)
         if est.status == "ok":
@@ -151,13 +151,13 @@ COMPARISON_SPECS = ["mcl-ssd", "mcl-ncc", "mcl-mi", "mcl-abbrief", "mcl-edges", 
 
 
 def test_every_comparison_agent_runs_on_the_small_scenario():
-    """Integration: the specs of this issue run in lockstep on AerialLoc/Small-v1 (64 x 64 observations)."""
+    """Integration: the specs of this issue run in lockstep on AerialLoc/Small-v2 (64 x 64 observations)."""
     gym = pytest.importorskip("gymnasium")
     import aerial_loc_env  # noqa: F401  (registers the scenarios)
     from aerial_loc_env.env import world_to_action
     from aerial_loc_env.estimators.registry import make_agent
 
-    env = gym.make("AerialLoc/Small-v1")
+    env = gym.make("AerialLoc/Small-v2")
     try:
         obs, info = env.reset(seed=0)
         briefing = env.unwrapped.briefing
@@ -182,14 +182,14 @@ def test_every_comparison_agent_runs_on_the_small_scenario():
 
 
 def _run(agent: str, tile: Path, seed: int, **overrides):
-    """Errors, statuses of ``agent`` over a RealMap-v1 episode on ``tile``."""
+    """Errors, statuses of ``agent`` over a RealMap-v2 episode on ``tile``."""
     import gymnasium as gym
 
     import aerial_loc_env  # noqa: F401
     from aerial_loc_env.env import world_to_action
     from aerial_loc_env.estimators.registry import make_agent
 
-    env = gym.make("AerialLoc/RealMap-v1", path=str(tile), **overrides)
+    env = gym.make("AerialLoc/RealMap-v2", path=str(tile), **overrides)
     obs, info = env.reset(seed=seed)
     a = make_agent(agent)
     a.reset(env.unwrapped.briefing, seed=seed)
@@ -208,7 +208,7 @@ def _run(agent: str, tile: Path, seed: int, **overrides):
 
 @pytest.mark.slow
 def test_orb_fixes_at_realmap_geometry(shared_data):
-    """At RealMap-v1's geometry (a 37 x 25 m footprint) ORB used to see a 75 x 50 px frame with no keypoints and
+    """At RealMap-v2's geometry (a 37 x 25 m footprint) ORB used to see a 75 x 50 px frame with no keypoints and
     silently equal dead reckoning; its working resolution now follows the footprint."""
     errors, statuses = _run("features-orb", shared_data / "valencia_orchard.tif", 0, **{"flight.duration_s": 15.0})
     assert np.mean([s == "ok" for s in statuses]) > 0.5

@@ -70,7 +70,7 @@ def briefing_standin(orthomap, camera: CameraModel = CAMERA, altitude_m: float =
     prior = SimpleNamespace(kind="gaussian", mean_xy_m=mean_xy_m or (orthomap.width_m / 2, orthomap.height_m / 2),
                             std_xy_m=std_xy_m)
     noise = SimpleNamespace(speed_std_mps=0.1, yaw_rate_std_radps=math.radians(5), heading_std_rad=0.02,
-                            altitude_std_m=1.0)
+                            altitude_std_m=1.0, lateral_std_mps=0.1)
     return SimpleNamespace(orthomap=orthomap, camera=camera, prior=prior, dt_s=0.25, altitude_m=altitude_m,
                            odometry_noise=noise, scenario_id="test")
 
@@ -84,7 +84,7 @@ def render_frame(orthomap, x_m: float, y_m: float, yaw_rad: float, camera: Camer
 
 
 def observation(image: np.ndarray, yaw_rad: float = 0.0, altitude_m: float = ALT_M) -> dict:
-    return {"image": image, "odometry": np.zeros(2, np.float32), "yaw": np.array([yaw_rad], np.float32),
+    return {"image": image, "odometry": np.zeros(3, np.float32), "yaw": np.array([yaw_rad], np.float32),
             "altitude": np.array([altitude_m], np.float32)}
 
 

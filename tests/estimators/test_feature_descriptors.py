@@ -40,7 +40,7 @@ def test_each_descriptor_describes_the_detectors_keypoints(name):
 
 
 def test_teblid_agent_fixes_on_a_paper_shadows_frame():
-    env = gym.make("AerialLoc/PaperShadows-v1", **{"flight.duration_s": 2.0})
+    env = gym.make("AerialLoc/PaperShadows-v2", **{"flight.duration_s": 2.0})
     obs, info = env.reset(seed=0)
     agent = make_agent("features-teblid")
     assert agent.params.descriptor == "teblid" and agent.extractor is not None

@@ -1,4 +1,4 @@
-"""estimators/feature_matching.py: ORB fixes at RealMap-v1's defaults over a map coarse for the footprint (it used
+"""estimators/feature_matching.py: ORB fixes at RealMap-v2's defaults over a map coarse for the footprint (it used
 to see a 125 x 83 px frame with 0-3 keypoints and never fix), and the paper's geometry is unchanged."""
 
 from __future__ import annotations
@@ -37,7 +37,7 @@ def test_upsampling_only_where_the_working_image_is_too_small():
 
 
 def test_orb_fixes_at_realmap_defaults_over_a_coarse_map(tmp_path):
-    env = gym.make("AerialLoc/RealMap-v1", path=str(_coarse_map(tmp_path)), map={"gsd_m": 0.3},
+    env = gym.make("AerialLoc/RealMap-v2", path=str(_coarse_map(tmp_path)), map={"gsd_m": 0.3},
                    **{"flight.duration_s": 10.0})
     obs, info = env.reset(seed=0)
     agent = make_agent("features-orb")

@@ -29,7 +29,7 @@ from aerial_loc_env.world.shadows import apply_shading
 
 def observation(image: np.ndarray, speed: float = 0.0, yaw_rate: float = 0.0, yaw: float = 0.0,
                 alt: float = ALT_M) -> dict:
-    return {"image": image, "odometry": np.array([speed, yaw_rate], np.float32),
+    return {"image": image, "odometry": np.array([speed, yaw_rate, 0.0], np.float32),
             "yaw": np.array([yaw], np.float32), "altitude": np.array([alt], np.float32)}
 
 
@@ -221,9 +221,10 @@ def test_motion_model_moves_by_the_odometry() -> None:
     assert psi == pytest.approx(0.05)
     mean = states[:, :2].mean(axis=0)
     np.testing.assert_allclose(mean, 2.5 * np.array([math.cos(psi), math.sin(psi)]), atol=0.01)
-    # spread: along-track speed noise * dt, across-track distance * heading noise / sqrt(2)
+    # spread: along-track speed noise * dt, across-track distance * heading noise / sqrt(2) and the lateral
+    # speed's noise * dt
     std = states[:, :2].std(axis=0)
-    assert std.max() == pytest.approx(max(0.1 * 0.25, 2.5 * 0.02 / math.sqrt(2)), rel=0.1)
+    assert std.max() == pytest.approx(max(0.1 * 0.25, math.hypot(2.5 * 0.02 / math.sqrt(2), 0.1 * 0.25)), rel=0.1)
     assert mid_heading(3.1, -3.1, 0.0, 0.25) == pytest.approx(-math.pi, abs=0.01) or \
         mid_heading(3.1, -3.1, 0.0, 0.25) == pytest.approx(math.pi, abs=0.01)
 

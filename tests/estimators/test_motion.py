@@ -22,15 +22,15 @@ def _propagate_reference(m: OdometryMotionModel, states: np.ndarray, obs: Observ
     if m.state == "xy":
         heading = mid_heading(m.prev_yaw_rad, obs.yaw_rad, obs.yaw_rate_radps, dt)
         psi = heading + rng.normal(0.0, m.noise.heading_std_rad * k / math.sqrt(2.0), n)
-        states[:, 0] += v * dt * np.cos(psi)
-        states[:, 1] += v * dt * np.sin(psi)
-        states[:, 2] = wrap(obs.yaw_rad + rng.normal(0.0, m.noise.heading_std_rad * k, n))
+        yaw = wrap(obs.yaw_rad + rng.normal(0.0, m.noise.heading_std_rad * k, n))
     else:
         omega = obs.yaw_rate_radps + rng.normal(0.0, m.noise.yaw_rate_std_radps * k, n)
         psi = states[:, 2] + 0.5 * omega * dt
-        states[:, 0] += v * dt * np.cos(psi)
-        states[:, 1] += v * dt * np.sin(psi)
-        states[:, 2] = wrap(states[:, 2] + omega * dt)
+        yaw = wrap(states[:, 2] + omega * dt)
+    lat = obs.lateral_mps + rng.normal(0.0, m.noise.lateral_std_mps * k, n)
+    states[:, 0] += v * dt * np.cos(psi) - lat * dt * np.sin(psi)
+    states[:, 1] += v * dt * np.sin(psi) + lat * dt * np.cos(psi)
+    states[:, 2] = yaw
     if m.jitter_std_m > 0:
         states[:, :2] += rng.normal(0.0, m.jitter_std_m, (n, 2))
     m.prev_yaw_rad = obs.yaw_rad
@@ -41,7 +41,7 @@ def _propagate_reference(m: OdometryMotionModel, states: np.ndarray, obs: Observ
 @pytest.mark.parametrize("jitter", [0.0, 0.5])
 @pytest.mark.parametrize("scale", [1.0, 2.5])
 def test_one_normal_draw_moves_the_particles_as_one_call_per_term(state, jitter, scale):
-    noise = SimpleNamespace(speed_std_mps=0.3, yaw_rate_std_radps=0.05, heading_std_rad=0.035)
+    noise = SimpleNamespace(speed_std_mps=0.3, yaw_rate_std_radps=0.05, heading_std_rad=0.035, lateral_std_mps=0.2)
     new = OdometryMotionModel(noise, 0.25, state=state, noise_scale=scale, jitter_std_m=jitter)
     ref = OdometryMotionModel(noise, 0.25, state=state, noise_scale=scale, jitter_std_m=jitter)
     g = np.random.default_rng(2)
@@ -49,7 +49,7 @@ def test_one_normal_draw_moves_the_particles_as_one_call_per_term(state, jitter,
     a, b = s0.copy(), s0.copy()
     ra, rb = np.random.default_rng(11), np.random.default_rng(11)
     for t, yaw in enumerate((0.4, 3.13, -3.1405, 1e-17, -np.pi, 2.0)):   # headings across the wrap too
-        obs = Observation(np.zeros((4, 4, 3), np.uint8), 12.0 + t, 0.02 * t - 0.05, yaw, 200.0)
+        obs = Observation(np.zeros((4, 4, 3), np.uint8), 12.0 + t, 0.02 * t - 0.05, yaw, 200.0, 1.5 - 0.7 * t)
         new.propagate(a, obs, ra)
         _propagate_reference(ref, b, obs, rb)
         np.testing.assert_array_equal(a, b)

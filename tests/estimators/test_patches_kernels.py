@@ -281,3 +281,18 @@ def test_index32_wraps_in_32_bits():
     assert index(np.int32(3), np.int32(1000), np.int32(7)) == 3007
     assert index(np.int32(-2), np.int32(5), np.int32(1)) == -9
     assert index(np.int32(70000), np.int32(70000), np.int32(0)) == np.int32(np.int64(70000 * 70000) - 2 ** 32)
+
+
+def test_a_level_beyond_the_32_bit_sample_index_is_refused_before_any_work():
+    """A whole map whose level holds 2**32 samples or more would wrap the kernel's flat index and read the wrong
+    pixels: refused with the map's name and the way out (a zero-stride view stands in for the huge image)."""
+    from types import SimpleNamespace
+
+    from aerial_loc_env.errors import MapError
+    from aerial_loc_env.sensors.camera import CameraModel
+
+    side = 1 << 16
+    huge = SimpleNamespace(name="huge", height_px=side, width_px=side, gsd_x_m=0.25, gsd_y_m=0.25)
+    image = np.broadcast_to(np.zeros((1, 1, 3), np.uint8), (side, side, 3))
+    with pytest.raises(MapError, match=r"huge.*32-bit sample index.*downsample"):
+        PatchSampler(huge, CameraModel(), PatchGeometry(60, 40), image, 200.0, downsample=1.0)

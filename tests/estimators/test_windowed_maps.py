@@ -27,7 +27,7 @@ from aerial_loc_env.world.maps.cog import write_cog
 from aerial_loc_env.world.maps.io import open_map
 from aerial_loc_env.world.maps.raster import RasterMap
 
-SIZE_PX = 1600          # 400 m at 0.25 m/px: RealMap-v1's 300 m flight crosses several agent windows
+SIZE_PX = 1600          # 400 m at 0.25 m/px: RealMap-v2's 300 m flight crosses several agent windows
 
 
 class _HoledMap(SyntheticMap):
@@ -50,9 +50,9 @@ def cog(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def episode(cog):
-    """One RealMap-v1 episode's frames (rendered from the map loaded whole) and the two briefings of the same
+    """One RealMap-v2 episode's frames (rendered from the map loaded whole) and the two briefings of the same
     file: loaded whole, and read by window."""
-    env = AerialLocEnv("AerialLoc/RealMap-v1", path=str(cog), map={"read": "whole"},
+    env = AerialLocEnv("AerialLoc/RealMap-v2", path=str(cog), map={"read": "whole"},
                        observation={"info_shadow_mask": True})   # (for the oracle)
     obs, info = env.reset(seed=2)
     frames = [(obs, info)]

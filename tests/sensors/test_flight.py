@@ -1,4 +1,5 @@
-"""Flight: tracks stay over valid map, follow eq. (1), are reproducible; sensors carry their noise."""
+"""Flight: tracks stay over valid map, follow eq. (1), are reproducible, crab through the wind; sensors carry
+their noise."""
 
 from __future__ import annotations
 
@@ -9,8 +10,17 @@ import pytest
 
 from aerial_loc_env.config import build_config
 from aerial_loc_env.errors import ConfigError, MapError
-from aerial_loc_env.sensors.flight import AltimeterConfig, FlightConfig, measure, sample_track, wrap_angle
+from aerial_loc_env.sensors.flight import (
+    MAX_CROSSWIND_SHARE,
+    AltimeterConfig,
+    FlightConfig,
+    crab_heading,
+    measure,
+    sample_track,
+    wrap_angle,
+)
 from aerial_loc_env.world.maps.region import FlyableRegion
+from aerial_loc_env.world.wind import WindConfig
 
 
 def _paper_region(clearance_m: float = 135.0, nodata=None) -> FlyableRegion:
@@ -82,8 +92,8 @@ def test_measurement_noise_statistics():
     assert n == cfg.steps + 1
     m = measure(track, np.random.default_rng(2), speed_std_mps=0.1, yaw_rate_std_radps=0.05,
                 heading_std_rad=0.02, altitude_std_m=1.0)
-    assert m.odometry.dtype == np.float32 and m.odometry.shape == (n, 2)
-    np.testing.assert_allclose(m.odometry[0], [track.speed_mps[0], track.yaw_rate_radps[0]], rtol=1e-6)
+    assert m.odometry.dtype == np.float32 and m.odometry.shape == (n, 3)
+    np.testing.assert_allclose(m.odometry[0], [track.speed_mps[0], track.yaw_rate_radps[0], 0.0], rtol=1e-6)
     err_v = m.odometry[1:, 0] - track.speed_mps[1:]
     err_h = wrap_angle(m.yaw_rad.astype(np.float64) - track.yaw_rad)
     # sample std of n-1 = 2400 draws: relative standard error 1/sqrt(2 * 2400) ~ 1.4 %; allow 5 sigma.
@@ -126,3 +136,75 @@ def test_an_altimeter_error_within_half_the_altitude_is_accepted():
     flight = FlightConfig(altitude_m=200.0, duration_s=60.0)
     AltimeterConfig(bias_std_m=33.3).check_flight(flight, "spec")
     AltimeterConfig(bias_std_m=2.0, drift_std_m_per_sqrt_s=4.0).check_flight(flight, "spec")   # sqrt(4 + 960)
+
+
+# ------------------------------------------------------------------------------------------------- wind, crab
+def _crab_track(wind_e: float, wind_n: float, airspeed: float = 22.0):
+    """A noise-free track through a steady wind over a large region (long straight legs)."""
+    cfg = FlightConfig(speed_mps=airspeed, duration_s=120.0, speed_noise_mps=0.0, yaw_rate_noise_deg_s=0.0,
+                       altitude_noise_m=0.0, min_leg_m=1500.0)
+    wind = WindConfig(speed_range_mps=(math.hypot(wind_e, wind_n),) * 2,
+                      from_deg_range=((math.degrees(math.atan2(-wind_e, -wind_n)) % 360.0),) * 2)
+    field = wind.draw(np.random.default_rng(0), np.arange(cfg.steps + 1) * cfg.dt_s)
+    np.testing.assert_allclose([field.east_mps[0], field.north_mps[0]], [wind_e, wind_n], atol=1e-12)
+    return cfg, sample_track(cfg, FlyableRegion(8000.0, 8000.0, 100.0), np.random.default_rng(5), field)
+
+
+def test_a_crab_of_known_wind_gives_the_expected_heading_track_difference_and_odometry():
+    """5 m/s from the north at 22 m/s of airspeed: on straight legs the course points at the waypoint and the
+    heading is the course minus asin(w_perp / v); the ground velocity is the air velocity plus the wind; the
+    body-frame odometry is (v + w . forward, w . left), noise-free here."""
+    w_e, w_n, v = 0.0, -5.0, 22.0
+    cfg, track = _crab_track(w_e, w_n, v)
+    dt = cfg.dt_s
+    assert len(track) == cfg.steps + 1
+    dx, dy = np.diff(track.x_m), np.diff(track.y_m)
+    half = track.yaw_rad[:-1] + 0.5 * track.yaw_rate_radps[1:] * dt
+    # the ground displacement: airspeed along the mid-step heading plus the wind, every step
+    np.testing.assert_allclose(dx, v * dt * np.cos(half) + w_e * dt, atol=1e-9)
+    np.testing.assert_allclose(dy, v * dt * np.sin(half) + w_n * dt, atol=1e-9)
+    # on the straight legs (no turn commanded) the drift angle is the wind triangle's
+    straight = np.abs(track.yaw_rate_radps[1:]) < 1e-9
+    assert straight.sum() > 200
+    course = np.arctan2(dy, dx)[straight]
+    cross = w_n * np.cos(course) - w_e * np.sin(course)
+    drift = wrap_angle(half[straight] - course)
+    np.testing.assert_allclose(drift, -np.arcsin(cross / v), atol=1e-9)
+    assert np.max(np.abs(drift)) > math.radians(10.0)       # the legs do cross the wind: up to 13 deg of crab
+    # the body-frame ground velocity, and the odometry that measures it
+    fwd = v + w_e * np.cos(half) + w_n * np.sin(half)
+    left = w_n * np.cos(half) - w_e * np.sin(half)
+    np.testing.assert_allclose(track.forward_mps[1:], fwd, atol=1e-12)
+    np.testing.assert_allclose(track.lateral_mps[1:], left, atol=1e-12)
+    np.testing.assert_allclose(np.hypot(track.forward_mps[1:], track.lateral_mps[1:]), np.hypot(dx, dy) / dt,
+                               atol=1e-9)
+    m = measure(track, np.random.default_rng(1), speed_std_mps=0.0, yaw_rate_std_radps=0.0, heading_std_rad=0.0,
+                altitude_std_m=0.0)
+    np.testing.assert_allclose(m.odometry[1:, 0], fwd, rtol=1e-6)
+    np.testing.assert_allclose(m.odometry[1:, 2], left, rtol=1e-6, atol=1e-5)
+
+
+def test_crab_heading_solves_the_wind_triangle():
+    v = 22.0
+    for course in (0.0, 0.7, -2.0, 3.0):
+        for w_e, w_n in ((0.0, -5.0), (3.0, 4.0), (-8.0, 1.0)):
+            h = crab_heading(course, w_e, w_n, v)
+            ground = (v * math.cos(h) + w_e, v * math.sin(h) + w_n)
+            # the ground velocity points along the course (no component across it, positive along it)
+            assert -ground[0] * math.sin(course) + ground[1] * math.cos(course) == pytest.approx(0.0, abs=1e-9)
+            assert ground[0] * math.cos(course) + ground[1] * math.sin(course) > 0.0
+    assert crab_heading(0.4, 0.0, 0.0, v) == 0.4
+    # a crosswind beyond the airspeed's reach: the crab is held at asin(MAX_CROSSWIND_SHARE)
+    assert crab_heading(0.0, 0.0, -50.0, v) == pytest.approx(math.asin(MAX_CROSSWIND_SHARE))
+
+
+def test_calm_air_leaves_the_track_as_it_was():
+    """Without wind the body-frame velocity is (airspeed, 0) exactly, and an explicit calm field flies the same
+    track as none."""
+    cfg = FlightConfig()
+    track = sample_track(cfg, _paper_region(), np.random.default_rng(3))
+    assert np.array_equal(track.forward_mps, track.speed_mps) and not np.any(track.lateral_mps)
+    calm = WindConfig().draw(np.random.default_rng(0), np.arange(cfg.steps + 1) * cfg.dt_s)
+    again = sample_track(cfg, _paper_region(), np.random.default_rng(3), calm)
+    for name in ("x_m", "y_m", "yaw_rad", "speed_mps", "forward_mps", "lateral_mps"):
+        assert np.array_equal(getattr(track, name), getattr(again, name))

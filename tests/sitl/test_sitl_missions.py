@@ -37,7 +37,7 @@ def test_home_is_the_map_centre():
     gym = pytest.importorskip("gymnasium")
     import aerial_loc_env.env  # noqa: F401
 
-    env = gym.make("AerialLoc/Small-v1")
+    env = gym.make("AerialLoc/Small-v2")
     om = env.unwrapped.database
     lat, lon, alt, hdg = (float(v) for v in sitl_home(om, 30.0, 90.0).split(","))
     x, y = (float(np.ravel(v)[0]) for v in om.latlon_to_world(lat, lon))
@@ -56,7 +56,7 @@ def test_mission_parameters_follow_ardupilots_external_nav_recipe():
     assert gps["GPS1_TYPE"] == 14 and "VISO_TYPE" not in gps
     assert {m.message for m in MISSIONS.values()} == {"gps_input", "vision_position_estimate"}
     with pytest.raises(ConfigError, match="external-nav"):
-        fly_mission("AerialLoc/Small-v1", "template-ncc", ground_amsl_m=30.0, mission="optical-flow")
+        fly_mission("AerialLoc/Small-v2", "template-ncc", ground_amsl_m=30.0, mission="optical-flow")
     with pytest.raises(ConfigError, match="--mission 'external-nav' for --vehicle plane: use one of gps-input"):
         mission_spec("plane", "external-nav")
 
@@ -118,28 +118,28 @@ def test_scenario_is_checked_before_anything_starts():
     (RealMap: gym.make(id, path=...)) says that sitl takes no map file and which ids it flies; short names
     resolve to the id."""
     pytest.importorskip("gymnasium")
-    assert check_scenario("small") == check_scenario("Small") == "AerialLoc/Small-v1"
+    assert check_scenario("small") == check_scenario("Small") == "AerialLoc/Small-v2"
     with pytest.raises(ConfigError, match="--scenario: scenario 'AerialLoc/Small-v0' is not registered: this "
-                                          "version of the package has 'AerialLoc/Small-v1'"):
+                                          "version of the package has 'AerialLoc/Small-v2'"):
         check_scenario("AerialLoc/Small-v0")
     with pytest.raises(ConfigError) as exc:
-        check_scenario("AerialLoc/RealMap-v1")
+        check_scenario("AerialLoc/RealMap-v2")
     msg = str(exc.value)
     assert "`aerial-loc sitl` takes no map file; it flies the procedural-city scenarios: " in msg
     flies = msg.rsplit(": ", 1)[1].split(", ")
-    assert {"AerialLoc/Small-v1", "AerialLoc/PaperShadows-v1"} <= set(flies) and "AerialLoc/RealMap-v1" not in flies
+    assert {"AerialLoc/Small-v2", "AerialLoc/PaperShadows-v2"} <= set(flies) and "AerialLoc/RealMap-v2" not in flies
 
 
 def test_map_too_small_for_the_flight_is_refused():
     """The plane's loop sits 300 m inside the map and its final runs 1 km north of home: a map without room for
-    them (Small-v1, 400 m) is refused before SITL starts, naming the size needed and a scenario that has it."""
-    check_map_fits("AerialLoc/PaperShadows-v1", "plane", _FlatMap(1200.0, 1400.0), 80.0)
-    check_map_fits("AerialLoc/Small-v1", "copter", _FlatMap(400.0, 400.0), 80.0)
-    with pytest.raises(ConfigError, match=r"--scenario AerialLoc/Small-v1: its map is 400 x 400 m, and the plane's "
-                                          r"flight .* needs at least 1000 x 1350 m; .*PaperShadows-v1"):
-        check_map_fits("AerialLoc/Small-v1", "plane", _FlatMap(400.0, 400.0), 80.0)
+    them (Small-v2, 400 m) is refused before SITL starts, naming the size needed and a scenario that has it."""
+    check_map_fits("AerialLoc/PaperShadows-v2", "plane", _FlatMap(1200.0, 1400.0), 80.0)
+    check_map_fits("AerialLoc/Small-v2", "copter", _FlatMap(400.0, 400.0), 80.0)
+    with pytest.raises(ConfigError, match=r"--scenario AerialLoc/Small-v2: its map is 400 x 400 m, and the plane's "
+                                          r"flight .* needs at least 1000 x 1350 m; .*PaperShadows-v2"):
+        check_map_fits("AerialLoc/Small-v2", "plane", _FlatMap(400.0, 400.0), 80.0)
     with pytest.raises(ConfigError, match="copter's flight .*160 m leg east"):
-        check_map_fits("AerialLoc/Small-v1", "copter", _FlatMap(400.0, 400.0), 160.0)
+        check_map_fits("AerialLoc/Small-v2", "copter", _FlatMap(400.0, 400.0), 160.0)
 
 
 @pytest.mark.parametrize(("kwargs", "message"), [
@@ -149,15 +149,15 @@ def test_map_too_small_for_the_flight_is_refused():
     ({"ground_amsl_m": math.nan}, r"--ground-amsl-m nan: must be a finite height in \[-500, 9000\] m AMSL"),
     ({"ground_amsl_m": 1e9}, r"--ground-amsl-m 1000000000.0: must be a finite height in \[-500, 9000\]"),
     ({"wind": (40.0, 270.0)}, "--wind .*0..30 m/s"),
-    ({"scenario": "AerialLoc/Small-v0"}, "has 'AerialLoc/Small-v1'"),
-    ({"scenario": "AerialLoc/RealMap-v1"}, "takes no map file"),
-    ({"vehicle": "plane", "scenario": "AerialLoc/Small-v1"}, "needs at least 1000 x 1350 m"),
+    ({"scenario": "AerialLoc/Small-v0"}, "has 'AerialLoc/Small-v2'"),
+    ({"scenario": "AerialLoc/RealMap-v2"}, "takes no map file"),
+    ({"vehicle": "plane", "scenario": "AerialLoc/Small-v2"}, "needs at least 1000 x 1350 m"),
 ])
 def test_fly_mission_refuses_bad_inputs_before_sitl_starts(fake_sitl, kwargs, message):
     """Each of these reached SITL or the bridge's thread before (a floating point exception, a thread traceback
     and a 120 s wait for the EKF, a DeprecatedEnv traceback): now a clear error, and SITL never runs."""
     pytest.importorskip("gymnasium")
-    args = {"scenario": "AerialLoc/Small-v1", "ground_amsl_m": 30.0, **kwargs}
+    args = {"scenario": "AerialLoc/Small-v2", "ground_amsl_m": 30.0, **kwargs}
     with pytest.raises(ConfigError, match=message):
         fly_mission(args.pop("scenario"), "template-ncc", sitl_dir=fake_sitl, **args)
     assert not (fake_sitl / "runs").exists()
@@ -171,7 +171,7 @@ def test_sitl_dying_during_the_mission_is_reported_at_once(fake_sitl):
     (fake_sitl / "arducopter").write_text("#!/bin/sh\nsleep 1.5\necho 'Floating point exception'\nexit 136\n")
     with pytest.raises(AerialLocError, match=r"SITL \(arducopter\) died: exit code 136; the end of its output:\n"
                                              r"Floating point exception"):
-        fly_mission("AerialLoc/Small-v1", "template-ncc", ground_amsl_m=30.0, sitl_dir=fake_sitl, timeout_s=3600.0)
+        fly_mission("AerialLoc/Small-v2", "template-ncc", ground_amsl_m=30.0, sitl_dir=fake_sitl, timeout_s=3600.0)
 
 
 @pytest.mark.timeout(120)
@@ -186,7 +186,7 @@ def test_bridge_failing_during_the_mission_is_reported_at_once(fake_sitl, monkey
 
     monkeypatch.setattr(mav_cli, "run", broken)
     with pytest.raises(AerialLocError, match="the bridge stopped: --connect: the link could not be opened"):
-        fly_mission("AerialLoc/Small-v1", "template-ncc", ground_amsl_m=30.0, sitl_dir=fake_sitl, timeout_s=3600.0)
+        fly_mission("AerialLoc/Small-v2", "template-ncc", ground_amsl_m=30.0, sitl_dir=fake_sitl, timeout_s=3600.0)
 
 
 def _kept_pace(s: dict, speedup: float) -> None:
@@ -206,7 +206,7 @@ def test_copter_mission_on_the_vision_fix(mission_sitl):
     at 10 m/s = 3.5 m, in SITL's seconds whatever the speedup): RMSE under 2 sigma + 3.5 m, max under
     5 sigma + 3.5 m."""
     sitl_dir = mission_sitl("arducopter")
-    r = fly_mission("AerialLoc/Small-v1", "template-ncc", ground_amsl_m=30.0, sitl_dir=sitl_dir,
+    r = fly_mission("AerialLoc/Small-v2", "template-ncc", ground_amsl_m=30.0, sitl_dir=sitl_dir,
                     speedup=COPTER_SPEEDUP)
     s = summary(r)
     print(s, [t for _, t in r["texts"]][-12:])
@@ -237,7 +237,7 @@ def test_template_matching_estimates_down_to_its_smallest_template():
     import aerial_loc_env.env  # noqa: F401
     from aerial_loc_env.estimators.registry import make_agent
 
-    env = gym.make("AerialLoc/PaperShadows-v1")
+    env = gym.make("AerialLoc/PaperShadows-v2")
     obs, _ = env.reset(seed=0)
     briefing = env.unwrapped.briefing
     agent = make_agent("template-ncc")
@@ -260,7 +260,7 @@ def test_copter_mission_on_external_nav(mission, long_mission):
     GPS_INPUT mission (the fix sigma 3 m: RMSE < 2 sigma + 3.5 m, max < 5 sigma + 3.5 m on the legs). About
     3.5 min each at real time: run in CI only with AERIAL_LOC_SITL_ALL=1 (keeps CI within its budget)."""
     sitl_dir = long_mission("arducopter", "3.5 min each")
-    r = fly_mission("AerialLoc/Small-v1", "template-ncc", ground_amsl_m=30.0, sitl_dir=sitl_dir, mission=mission)
+    r = fly_mission("AerialLoc/Small-v2", "template-ncc", ground_amsl_m=30.0, sitl_dir=sitl_dir, mission=mission)
     s = summary(r)
     print(s)
     texts = [t for _, t in r["texts"]]
@@ -289,7 +289,7 @@ def test_copter_mission_on_external_nav(mission, long_mission):
 def _plane_loop_and_landing(r: dict, s: dict) -> None:
     """What both plane missions must show: the loop on the established vision fix, the landing, touchdown.
 
-    The camera gives frames from the agent's lowest altitude (template-ncc on PaperShadows-v1: 40 m); the
+    The camera gives frames from the agent's lowest altitude (template-ncc on PaperShadows-v2: 40 m); the
     take-off climbs on to 100 m and the first leg climbs out to the loop's 200 m (about 40 s in all): the agent's
     acquisition from the scenario's 15 m prior (seed 0 puts it 20.5 m off, and before a first fix a match within 3
     prior sigmas is taken, false ones too: its first estimates were up to 42-49 m off, and the EKF carried 13 m
@@ -340,7 +340,7 @@ def test_plane_mission_on_the_vision_fix(mission_sitl):
     approach point 1 km north at 100 m, NAV_LAND at home heading south: the vision fix down to 40 m, about 25 s
     of dead reckoning below) to touchdown and disarm; SITL at PLANE_SPEEDUP, every figure on its clock."""
     sitl_dir = mission_sitl("arduplane")
-    r = fly_mission("AerialLoc/PaperShadows-v1", "template-ncc", ground_amsl_m=30.0, sitl_dir=sitl_dir,
+    r = fly_mission("AerialLoc/PaperShadows-v2", "template-ncc", ground_amsl_m=30.0, sitl_dir=sitl_dir,
                     vehicle="plane", speedup=PLANE_SPEEDUP)
     s = summary(r)
     print(s)
@@ -360,7 +360,7 @@ def test_plane_gnss_denial(long_mission):
     itself; the loop, approach and landing as in the GPS_INPUT mission, with its bounds. About 2.2 min at
     PLANE_SPEEDUP: in CI only with AERIAL_LOC_SITL_ALL=1."""
     sitl_dir = long_mission("arduplane", "2.2 min")
-    r = fly_mission("AerialLoc/PaperShadows-v1", "template-ncc", ground_amsl_m=30.0, sitl_dir=sitl_dir,
+    r = fly_mission("AerialLoc/PaperShadows-v2", "template-ncc", ground_amsl_m=30.0, sitl_dir=sitl_dir,
                     vehicle="plane", mission="gnss-denial", speedup=PLANE_SPEEDUP)
     s = summary(r)
     print(s)

@@ -12,6 +12,7 @@ from aerial_loc_env.errors import AerialLocError, ConfigError
 from aerial_loc_env.sitl.report import (
     OUTPUT_FILES,
     check_out_dir,
+    signed_uint16,
     summary,
     timed_horizontal_errors,
     touchdown,
@@ -114,3 +115,11 @@ def test_report_writes_its_files_and_never_over_a_previous_run(tmp_path):
     with pytest.raises(AerialLocError, match="summary.json appeared there during the flight; it is left as it is"):
         write_outputs(record, tmp_path / "run")
     assert {p.name: p.read_bytes() for p in paths} == before
+
+
+def test_gps_update_interval_decoded_as_signed():
+    """GPA.Delta is a uint16 of a stamp difference: a stamp 12 ms earlier than the one before is logged as 65524
+    and must read as -12 (no gap), while real gaps and ordinary intervals keep their values."""
+    assert signed_uint16(65524) == -12
+    assert signed_uint16(0xFFFF) == -1
+    assert signed_uint16(100) == 100 and signed_uint16(245) == 245 and signed_uint16(0x7FFF) == 0x7FFF

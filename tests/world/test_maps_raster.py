@@ -220,7 +220,7 @@ def _frames(path: Path, read: str, seeds=(0, 3), steps: int = 6) -> list[np.ndar
 
     import aerial_loc_env.env  # noqa: F401
 
-    env = gym.make("AerialLoc/RealMap-v1", path=str(path), read=read, altitude_m=40.0, min_leg_m=20.0)
+    env = gym.make("AerialLoc/RealMap-v2", path=str(path), read=read, altitude_m=40.0, min_leg_m=20.0)
     out = []
     for seed in seeds:
         obs, info = env.reset(seed=seed)
@@ -249,7 +249,7 @@ def test_env_by_window_flies_over_valid_data_and_renders_overviews(cogs):
 
     import aerial_loc_env.env  # noqa: F401
 
-    env = gym.make("AerialLoc/RealMap-v1", path=str(cogs["jpeg"]), read="window", altitude_m=40.0,
+    env = gym.make("AerialLoc/RealMap-v2", path=str(cogs["jpeg"]), read="window", altitude_m=40.0,
                    min_leg_m=20.0, render_mode="rgb_array")
     u = env.unwrapped
     assert u.world.windowed and u._renderer is None
@@ -269,7 +269,7 @@ def test_env_refuses_an_epoch_on_a_map_read_by_window(cogs):
     import aerial_loc_env.env  # noqa: F401
 
     with pytest.raises(ConfigError, match=r"\[epoch\].*read by window.*map.read = 'whole'"):
-        gym.make("AerialLoc/RealMap-v1", path=str(cogs["jpeg"]), read="window", epoch={"car_turnover": 0.5})
+        gym.make("AerialLoc/RealMap-v2", path=str(cogs["jpeg"]), read="window", epoch={"car_turnover": 0.5})
 
 
 # --- RealMap on the real tiles: the frames they always had ---------------------------------------------------
@@ -281,7 +281,7 @@ def test_realmap_frames_on_the_real_tiles_unchanged(shared_data):
 
     want = {"manila_pasig_river.tif": "f70fc0b928d46ba9", "valencia_orchard.tif": "4df4c53aab3b5ecf"}
     for tile, digest in want.items():
-        env = gym.make("AerialLoc/RealMap-v1", path=str(shared_data / tile))
+        env = gym.make("AerialLoc/RealMap-v2", path=str(shared_data / tile))
         assert isinstance(env.unwrapped.orthomap, Orthomap)
         h = hashlib.sha256()
         for seed in (0, 1):
@@ -300,7 +300,7 @@ def test_env_refuses_an_episode_window_larger_than_memory_at_reset(cogs, monkeyp
 
     import aerial_loc_env.env  # noqa: F401
 
-    env = gym.make("AerialLoc/RealMap-v1", path=str(cogs["jpeg"]), read="window", altitude_m=40.0, min_leg_m=20.0)
+    env = gym.make("AerialLoc/RealMap-v2", path=str(cogs["jpeg"]), read="window", altitude_m=40.0, min_leg_m=20.0)
     monkeypatch.setattr(raster, "available_memory_bytes", lambda: 1000)
     with pytest.raises(MapError, match=r"the episode's window of map 'jpeg': \d+ x \d+ px; reading it needs about "
                                        r".* more than the 0.0 MB available\. Shorten the flight \(flight.duration_s"):

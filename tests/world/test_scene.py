@@ -72,6 +72,6 @@ def test_a_map_file_changed_on_disk_is_read_again(tmp_path):
 
 
 def test_a_missing_map_file_names_the_field_and_the_path(tmp_path):
-    spec = _spec(map=MapConfig(kind="file", path=str(tmp_path / "nope.tif")), where="AerialLoc/RealMap-v1")
-    with pytest.raises(MapError, match=r"AerialLoc/RealMap-v1: map.path '.*nope.tif' does not exist"):
+    spec = _spec(map=MapConfig(kind="file", path=str(tmp_path / "nope.tif")), where="AerialLoc/RealMap-v2")
+    with pytest.raises(MapError, match=r"AerialLoc/RealMap-v2: map.path '.*nope.tif' does not exist"):
         build_world(spec)

@@ -1,8 +1,13 @@
-"""The motion model p(x_t | x_{t-1}, u_t) from the odometry and its noise (second reference, eq. (1)).
+"""The motion model p(x_t | x_{t-1}, u_t) from the odometry and its noise (second reference, eq. (1), with the
+body-frame lateral speed added so that a crabbing vehicle's motion is represented).
 
-Over a step ``dt`` with forward speed ``v`` and yaw rate ``omega``::
+Over a step ``dt`` with forward speed ``v``, lateral speed ``l`` (positive to the left) and yaw rate ``omega``::
 
-    x += v dt cos(psi_mid);  y += v dt sin(psi_mid);  yaw += omega dt,   psi_mid = yaw + omega dt / 2.
+    x += (v cos(psi_mid) - l sin(psi_mid)) dt;  y += (v sin(psi_mid) + l cos(psi_mid)) dt;  yaw += omega dt,
+
+    psi_mid = yaw + omega dt / 2.
+
+Without wind ``l`` is zero (up to its noise) and this is eq. (1).
 
 Two state layouts (``states`` is always (N, 3) = [x_m, y_m, yaw_rad], so that the measurement models see one
 layout):
@@ -14,9 +19,10 @@ layout):
 - ``"xyyaw"``: the yaw is a state propagated with the noisy yaw rate (eq. (1)); the measured heading then enters
   as a compass factor of the likelihood (``compass_log_likelihood``).
 
-Noise per particle: speed ``N(v, s_v^2)``, heading ``N(psi, s_psi^2)`` (or yaw rate ``N(omega, s_w^2)``), all
-scaled by ``noise_scale``, plus an isotropic roughening ``jitter_std_m`` that keeps the cloud from collapsing
-onto a few copies when it is resampled every step (the odometry noise alone moves particles by ~0.1 m a step).
+Noise per particle: speed ``N(v, s_v^2)``, lateral speed ``N(l, s_l^2)``, heading ``N(psi, s_psi^2)`` (or yaw
+rate ``N(omega, s_w^2)``), all scaled by ``noise_scale``, plus an isotropic roughening ``jitter_std_m`` that keeps
+the cloud from collapsing onto a few copies when it is resampled every step (the odometry noise alone moves
+particles by ~0.1 m a step).
 """
 
 from __future__ import annotations
@@ -67,14 +73,15 @@ class OdometryMotionModel:
 
         All the step's normal draws come from ONE ``standard_normal`` call, scaled per use: the same numbers,
         in the same order, as one ``rng.normal(0, std, n)`` call per noise term (``normal`` is
-        ``0 + std * z`` over the same stream), without the fixed cost of four calls on N = 700. The headings'
-        cos and sin are NumPy's; the rest is one compiled pass (``_move``: the same float operations, in the same
+        ``0 + std * z`` over the same stream), without the fixed cost of five calls on N = 700 (order: forward
+        speed, heading or yaw rate, the yaw (``"xy"``), the lateral speed, the jitter). The headings' cos and sin
+        are NumPy's; the rest is one compiled pass (``_move``: the same float operations, in the same
         order, as the NumPy expressions it replaced, tests/estimators/test_motion.py).
         """
         n = states.shape[0]
         k, dt = self.noise_scale, self.dt_s
         xy = self.state == "xy"
-        m = 3 if xy else 2                                    # draws per particle before the jitter
+        m = 4 if xy else 3                                    # draws per particle before the jitter
         z = rng.standard_normal((m + 2 if self.jitter_std_m > 0 else m) * n)
         if xy:
             heading = mid_heading(self.prev_yaw_rad, obs.yaw_rad, obs.yaw_rate_radps, dt)
@@ -84,7 +91,7 @@ class OdometryMotionModel:
             psi = states[:, 2] + 0.5 * omega * dt
         _move(states, z, np.cos(psi), np.sin(psi), xy, obs.speed_mps, self.noise.speed_std_mps * k, dt,
               obs.yaw_rad, self.noise.heading_std_rad * k, obs.yaw_rate_radps, self.noise.yaw_rate_std_radps * k,
-              self.jitter_std_m)
+              obs.lateral_mps, self.noise.lateral_std_mps * k, self.jitter_std_m)
         self.prev_yaw_rad = obs.yaw_rad
         return states
 

@@ -10,19 +10,22 @@ from aerial_loc_env.jit import JIT
 
 
 @njit(**JIT)
-def _move(states, z, cos, sin, xy, speed, speed_std, dt, yaw, yaw_std, rate, rate_std, jitter):
-    """``propagate``'s arithmetic per particle i, given its heading's ``cos``/``sin`` (N,): speed ``v = speed +
-    speed_std z[i]``, ``x += v dt cos``, ``y += v dt sin``; the yaw ``wrap(yaw + yaw_std z[2N + i])`` (``xy``) or
-    ``wrap(yaw_i + omega dt)``, ``omega = rate + rate_std z[N + i]``; then the jitter ``jitter z`` from the draws
-    after the first 3N (2N), two a particle. ``%`` is Python's float remainder, as NumPy's (fmod, then the
-    divisor added when the signs differ)."""
+def _move(states, z, cos, sin, xy, speed, speed_std, dt, yaw, yaw_std, rate, rate_std, lateral, lateral_std, jitter):
+    """``propagate``'s arithmetic per particle i, given its heading's ``cos``/``sin`` (N,): forward speed ``v =
+    speed + speed_std z[i]``, lateral speed ``l = lateral + lateral_std z[M + i]`` (``M`` = 3N for ``xy``, 2N
+    otherwise), ``x += v dt cos - l dt sin``, ``y += v dt sin + l dt cos``; the yaw ``wrap(yaw + yaw_std z[2N +
+    i])`` (``xy``) or ``wrap(yaw_i + omega dt)``, ``omega = rate + rate_std z[N + i]``; then the jitter ``jitter
+    z`` from the draws after the first M + N, two a particle. ``%`` is Python's float remainder, as NumPy's (fmod,
+    then the divisor added when the signs differ)."""
     n = states.shape[0]
     pi, two_pi = math.pi, 2.0 * math.pi
-    after = (3 if xy else 2) * n
+    side = (3 if xy else 2) * n
+    after = side + n
     for i in range(n):
         v = speed + speed_std * z[i]
-        states[i, 0] += v * dt * cos[i]
-        states[i, 1] += v * dt * sin[i]
+        lat = lateral + lateral_std * z[side + i]
+        states[i, 0] += v * dt * cos[i] - lat * dt * sin[i]
+        states[i, 1] += v * dt * sin[i] + lat * dt * cos[i]
         if xy:
             states[i, 2] = (yaw + yaw_std * z[2 * n + i] + pi) % two_pi - pi
         else:
