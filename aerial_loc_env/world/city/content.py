@@ -136,6 +136,16 @@ class Filler:
         if kind == "paving":
             self._plaza_clutter(poly)
 
+    def _green_lot(self, quad: np.ndarray) -> None:
+        """A lot left unbuilt: lawn with a path's worth of paving kept, shrubs and trees."""
+        r = self.rng
+        self.scene.grounds.append(([quad], _jitter(r, np.array(GROUND_KINDS["lawn"][0]), 14), Material.GRASS))
+        for _ in range(int(r.integers(0, 3))):
+            self.scene.grounds.append(([sub_quad(quad, *sorted(r.uniform(0.05, 0.95, 2)),
+                                                 *sorted(r.uniform(0.05, 0.95, 2)))],
+                                       _jitter(r, np.array([70, 100, 56]), 14), Material.SHRUB))
+        self.trees_in(quad, 70.0)
+
     def _plaza_clutter(self, quad: np.ndarray) -> None:
         """What open paving carries: planters, benches and kiosks, bands of a second paving, drain lines (drawn
         with the grounds: buildings stand over them)."""
@@ -368,8 +378,9 @@ class Filler:
             col = _jitter(r, ROOF_FLAT_COLOURS[r.integers(len(ROOF_FLAT_COLOURS))], 14)
             style = "green" if r.random() < 0.08 else "flat"
             shape = str(r.choice(["rect", "rect", "rect", "rect", "L", "L", "T", "U"]))
-            self.building(c, u, ba, bb, style, col, self.height(9.0, 16.0 + 20.0 * z, 4.0 + 6 * z), shape,
-                          units=int(r.integers(1, 6)))
+            if not self.building(c, u, ba, bb, style, col, self.height(9.0, 16.0 + 20.0 * z, 4.0 + 6 * z), shape,
+                                 units=int(r.integers(1, 6))):
+                self._green_lot(parcel)
             if r.random() < 0.5 * self.td:
                 self.tree(bilinear(parcel, r.uniform(0.1, 0.9), 0.04), 3.0)
 
@@ -388,6 +399,7 @@ class Filler:
             pa, pb = la * r.uniform(0.75, 0.92), lb * r.uniform(0.7, 0.9)
             col = _jitter(r, ROOF_FLAT_COLOURS[r.integers(len(ROOF_FLAT_COLOURS))], 12)
             if not self.building(lc, lu, pa, pb, "flat", col, podium_h, "rect", units=int(r.integers(0, 4))):
+                self._green_lot(lot)             # land that cannot be built on (a riverbank): a pocket park
                 continue
             ta, tb = pa * r.uniform(0.45, 0.8), pb * r.uniform(0.45, 0.8)
             tu = rotate(lu, r.choice([0.0, 0.0, r.uniform(-0.4, 0.4)]))
