@@ -157,7 +157,7 @@ def test_map_bias_and_gimbal_error_are_scored_apart_from_appearance():
              "shot_noise_gain": 0.0, "vignetting": 0.0, "exposure_time_s": 0.0}
     over = {"shadows.strength_range": [0.0, 0.0], "photometry": ideal, "database.georef_bias_m": [3.0, -2.6],
             "gimbal.roll_pitch_std_deg": 1.0}
-    s = gap.summarize(gap.scenario_gap("AerialLoc/Small-v1", over, seeds=[0, 1], stride=15))
+    s = gap.summarize(gap.scenario_gap("AerialLoc/Small-v2", over, seeds=[0, 1], stride=15))
     assert s["template_within"]["mean"] == 1.0
     assert s["ncc"]["median"] > 0.95
 
