@@ -4,7 +4,11 @@ A benchmark ranks localization methods the way a real flight would only if its m
 as real acquisitions do. This module measures that difference with five statistics, on
 
 - a scenario (``scenario_gap``): the env's camera frame against the database patch rendered at the frame's
-  *true* pose (the estimators' map, ``briefing.orthomap``), at every ``stride``-th frame of several seeds;
+  *true* pose (the estimators' map, ``briefing.orthomap``), at every ``stride``-th frame of several seeds. Like
+  is compared with like: a co-registered pair cannot show a map's georeference bias (``database.georef_bias_m``)
+  nor a gimbal's attitude error, so the patch is rendered where the map shows the ground the tilted camera
+  sees (the bias added, the frame centre's shift under the gimbal's roll and pitch applied); the statistics
+  then measure appearance alone (how large the bias is, the scenario states);
 - a pair of co-registered real images of the same ground at two dates (``pair_gap``): the later epoch plays the
   camera, the earlier the database, tiled into camera-sized windows. The two go onto one grid first
   (``world.maps.pairs.load_pair``: each through its own georeference, square pixels, at the pair's own sampling;
@@ -382,6 +386,7 @@ def scenario_gap(scenario: str, overrides: Mapping[str, Any] | None = None, *, s
         for seed in seeds:
             obs, info = env.reset(seed=int(seed))
             db = env.briefing.orthomap
+            bias_m = tuple(float(v) for v in env.scenario.database.georef_bias_m)
             if id(db) not in renderers:
                 renderers[id(db)] = CameraRenderer(db, env.camera, Photometry.ideal(), strict=False)
             renderer = renderers[id(db)]
@@ -389,7 +394,8 @@ def scenario_gap(scenario: str, overrides: Mapping[str, Any] | None = None, *, s
             while True:
                 if step % stride == 0:
                     pose = Pose(*(float(v) for v in info["true_pose"]))
-                    out.append(_frame_stats(obs["image"], pose, env.camera, renderer, cfg))
+                    out.append(_frame_stats(obs["image"], pose, env.camera, renderer, cfg, bias_m,
+                                            info.get("gimbal_roll_pitch_rad")))
                     measured += 1
                 if done or measured == frames_per_seed:
                     break
@@ -401,13 +407,26 @@ def scenario_gap(scenario: str, overrides: Mapping[str, Any] | None = None, *, s
     return out
 
 
-def _frame_stats(image: np.ndarray, pose: Any, camera: Any, renderer: Any, cfg: GapConfig) -> dict[str, float]:
+def _frame_stats(image: np.ndarray, pose: Any, camera: Any, renderer: Any, cfg: GapConfig,
+                 bias_m: tuple[float, float] = (0.0, 0.0), tilt_rad: Any = None) -> dict[str, float]:
+    """One frame's statistics against the database patch where the map shows the ground the camera sees: at
+    the true pose moved by the map's georeference bias ``bias_m`` (east, north), the patch shifted by the frame
+    centre's displacement under the gimbal's (roll, pitch) ``tilt_rad``."""
+    from aerial_loc_env.sensors.perspective import tilt_homography
+
     fw, fh = camera.footprint_m(pose.altitude_m)
     gsd = max(cfg.gsd_m, camera.gsd_m(pose.altitude_m))
     w, h = max(8, round(fw / gsd)), max(8, round(fh / gsd))
     m = cfg.margin_px(gsd)
     small = camera.resized(w, h)
+    if bias_m != (0.0, 0.0):
+        pose = pose._replace(x_m=pose.x_m + bias_m[0], y_m=pose.y_m + bias_m[1])
     affine = renderer.camera_to_map(pose, small)
+    hom = None if tilt_rad is None else tilt_homography(small, float(tilt_rad[0]), float(tilt_rad[1]))
+    if hom is not None:                     # the nadir pixel the tilted frame's centre shows
+        c = np.array([w / 2.0, h / 2.0, 1.0])
+        q = hom @ c
+        affine[:, 2] += affine[:, :2] @ (q[:2] / q[2] - c[:2])
     affine[:, 2] -= affine[:, :2] @ np.array([m, m], dtype=np.float64)
     database = renderer.warp_map(affine, (w + 2 * m, h + 2 * m))
     cam = cv2.resize(np.asarray(image), (w, h), interpolation=cv2.INTER_AREA)

@@ -188,6 +188,12 @@ class AerialLocEnv(gym.Env):
       episode has the start, sun, prior and noise of the calm one of its seed); agents' estimates change
       as their motion models now use (and draw noise for) the lateral term. ``AerialLoc/Crosswind-v2`` (new):
       RealisticPaper in 3-8 m/s of wind with gusts. ``gym.make`` of a v1 id names the v2 id.
+    * v2, the procedural city's appearance (city generator 5, epoch generator 3; every id on the city renders
+      other frames than v1 for the same seed): tree crowns of several foliage clumps (irregular, lit, leaf
+      grain), leaf-off trees as branches over the ground whose trunk and thick limbs alone cast shadows, varied
+      construction sites, rooftop vents, AC units and skylights, stains on paving, roofs and lawns, worn
+      markings, plaza furniture, a less saturated palette; the realistic presets' shaded walls lit by sky and
+      ground (``perspective.ambient`` 0.4) and a colour-enhanced map product (``database.saturation`` 1.2).
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 4}

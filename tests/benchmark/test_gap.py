@@ -149,6 +149,19 @@ def test_scenario_frame_and_database_align_at_the_true_pose():
     assert shaded["ncc"]["median"] < s["ncc"]["median"]
 
 
+def test_map_bias_and_gimbal_error_are_scored_apart_from_appearance():
+    """A co-registered pair cannot show a map's georeference bias nor a gimbal's tilt: the scenario's database
+    patch is taken where the map shows what the tilted camera sees, so a 4 m bias and a 1 deg gimbal (3 m at
+    the frame centre from 200 m) leave the ideal frame a perfect match, peak within 2 m included."""
+    ideal = {"exposure_std": 0.0, "white_balance_std": 0.0, "gamma_std": 0.0, "read_noise_dn": 0.0,
+             "shot_noise_gain": 0.0, "vignetting": 0.0, "exposure_time_s": 0.0}
+    over = {"shadows.strength_range": [0.0, 0.0], "photometry": ideal, "database.georef_bias_m": [3.0, -2.6],
+            "gimbal.roll_pitch_std_deg": 1.0}
+    s = gap.summarize(gap.scenario_gap("AerialLoc/Small-v2", over, seeds=[0, 1], stride=15))
+    assert s["template_within"]["mean"] == 1.0
+    assert s["ncc"]["median"] > 0.95
+
+
 @pytest.mark.slow
 @pytest.mark.skipif(not PAIRS.is_dir(), reason=f"real two-epoch pairs not available ({PAIRS} is absent: they "
                                               "live beside the project, never in it)")

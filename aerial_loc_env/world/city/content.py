@@ -97,6 +97,9 @@ class Building:
     courtyard: np.ndarray | None = None
     cap_m: float = 60.0                                     # nothing of it (ridges, units) rises above this
     panels: list[np.ndarray] = field(default_factory=list)  # rooftop solar panel rows
+    vents: list[np.ndarray] = field(default_factory=list)   # small rooftop boxes (vents, AC units), 0.5 m tall
+    skylights: list[tuple[np.ndarray, int]] = field(default_factory=list)   # flat glass (poly, shade)
+    stains: list[tuple[np.ndarray, int]] = field(default_factory=list)      # roof patches (poly, shade)
 
 
 @dataclass
@@ -130,6 +133,41 @@ class Filler:
         except KeyError:
             raise ValueError(f"unknown ground kind {kind!r}; use one of {sorted(GROUND_KINDS)}") from None
         self.scene.grounds.append(([poly], _jitter(self.rng, np.array(base), spread), mat))
+        if kind == "paving":
+            self._plaza_clutter(poly)
+
+    def _green_lot(self, quad: np.ndarray) -> None:
+        """A lot left unbuilt: lawn with a path's worth of paving kept, shrubs and trees."""
+        r = self.rng
+        self.scene.grounds.append(([quad], _jitter(r, np.array(GROUND_KINDS["lawn"][0]), 14), Material.GRASS))
+        for _ in range(int(r.integers(0, 3))):
+            self.scene.grounds.append(([sub_quad(quad, *sorted(r.uniform(0.05, 0.95, 2)),
+                                                 *sorted(r.uniform(0.05, 0.95, 2)))],
+                                       _jitter(r, np.array([70, 100, 56]), 14), Material.SHRUB))
+        self.trees_in(quad, 70.0)
+
+    def _plaza_clutter(self, quad: np.ndarray) -> None:
+        """What open paving carries: planters, benches and kiosks, bands of a second paving, drain lines (drawn
+        with the grounds: buildings stand over them)."""
+        r = self.rng
+        c, u, a, b = quad_frame(quad)
+        if min(a, b) < 8.0:
+            return
+        v = np.array([-u[1], u[0]])
+        for _ in range(int(r.poisson(a * b / 500.0))):
+            p = c + u * r.uniform(-0.42, 0.42) * a + v * r.uniform(-0.42, 0.42) * b
+            kind = r.random()
+            if kind < 0.4:                                   # a planter: shrubs in a box
+                self.scene.grounds.append(([orect(p, u, r.uniform(1.5, 6.0), r.uniform(1.0, 2.5))],
+                                           _jitter(r, np.array([70, 100, 56]), 14), Material.SHRUB))
+            elif kind < 0.7:                                 # a bench or a bin: a small dark or light box
+                grey = int(r.choice([60, 90, 190]))
+                self.scene.grounds.append(([orect(p, u, r.uniform(0.5, 2.0), r.uniform(0.4, 0.8))],
+                                           _jitter(r, np.array([grey, grey, grey]), 8), Material.PLAZA))
+            else:                                            # a band of another paving
+                self.scene.grounds.append(([orect(p, u if r.random() < 0.5 else v, r.uniform(4.0, 20.0),
+                                                  r.uniform(1.0, 3.0))],
+                                           _jitter(r, np.array([150, 140, 132]), 20), Material.PLAZA))
 
     def tree(self, p: np.ndarray, r_m: float | None = None) -> None:
         r = self.rng
@@ -188,8 +226,43 @@ class Filler:
                 bld.units.append((orect(cc, wu, su, sv), extra))
         if style in ("flat", "metal") and self.rng.random() < 0.12 and height_m + 0.6 <= self.hmax:
             bld.panels = self._solar_rows(wings[int(self.rng.integers(len(wings)))])
+        if style in ("flat", "green", "metal") and height_m + 0.6 <= self.hmax:
+            self._roof_clutter(bld, wings, style)
         self.scene.buildings.append(bld)
         return True
+
+    def _roof_clutter(self, bld: Building, wings: list, style: str) -> None:
+        """What real flat roofs carry: vents and AC boxes (often in a row along a wall), skylights, repaired
+        patches and water stains: small, high-contrast detail where real images have their keypoints."""
+        r = self.rng
+        for c, u, a, b in wings:
+            v = np.array([-u[1], u[0]])
+            area = a * b
+            if style != "metal":
+                for _ in range(int(r.poisson(area / 120.0))):
+                    s_ = r.uniform(0.5, 1.3)
+                    p = c + u * r.uniform(-0.45, 0.45) * (a - 2) + v * r.uniform(-0.45, 0.45) * (b - 2)
+                    bld.vents.append(orect(p, u, s_, s_ * r.uniform(0.6, 1.5)))
+                if r.random() < 0.35 and a > 8:             # a row of AC units along one side
+                    side = 1.0 if r.random() < 0.5 else -1.0
+                    n_ac = int(r.integers(2, 7))
+                    for j in range(n_ac):
+                        p = c + u * ((j - (n_ac - 1) / 2) * 1.6) + v * side * (b / 2 - 1.4)
+                        bld.vents.append(orect(p, u, 1.1, 0.9))
+            if r.random() < (0.25 if style == "metal" else 0.2) and a > 10 and b > 8:   # skylights in a row
+                n_sky = int(r.integers(2, 8))
+                shade = int(r.choice([70, 84, 176]))
+                pitch = r.uniform(3.0, 6.0)
+                for j in range(n_sky):
+                    off = (j - (n_sky - 1) / 2) * pitch
+                    if abs(off) < a / 2 - 2.0:
+                        bld.skylights.append((orect(c + u * off, u, r.uniform(1.2, 2.2), r.uniform(1.2, 3.0)),
+                                              shade))
+            for _ in range(int(r.poisson(area / 400.0)) if min(a, b) > 4.0 else 0):   # patches, ponding stains
+                p = c + u * r.uniform(-0.4, 0.4) * a + v * r.uniform(-0.4, 0.4) * b
+                q = orect(p, rotate(u, r.normal(0, 0.05)), r.uniform(1.5, min(8.0, a * 0.5)),
+                          r.uniform(1.0, min(5.0, b * 0.5)))
+                bld.stains.append((q, int(r.choice([104, 112, 118, 140, 146]))))
 
     def _solar_rows(self, wing: tuple[np.ndarray, np.ndarray, float, float]) -> list[np.ndarray]:
         """Rows of solar panels (1.7 m deep, 0.9 m apart) over part of a flat roof wing."""
@@ -305,8 +378,9 @@ class Filler:
             col = _jitter(r, ROOF_FLAT_COLOURS[r.integers(len(ROOF_FLAT_COLOURS))], 14)
             style = "green" if r.random() < 0.08 else "flat"
             shape = str(r.choice(["rect", "rect", "rect", "rect", "L", "L", "T", "U"]))
-            self.building(c, u, ba, bb, style, col, self.height(9.0, 16.0 + 20.0 * z, 4.0 + 6 * z), shape,
-                          units=int(r.integers(1, 6)))
+            if not self.building(c, u, ba, bb, style, col, self.height(9.0, 16.0 + 20.0 * z, 4.0 + 6 * z), shape,
+                                 units=int(r.integers(1, 6))):
+                self._green_lot(parcel)
             if r.random() < 0.5 * self.td:
                 self.tree(bilinear(parcel, r.uniform(0.1, 0.9), 0.04), 3.0)
 
@@ -325,6 +399,7 @@ class Filler:
             pa, pb = la * r.uniform(0.75, 0.92), lb * r.uniform(0.7, 0.9)
             col = _jitter(r, ROOF_FLAT_COLOURS[r.integers(len(ROOF_FLAT_COLOURS))], 12)
             if not self.building(lc, lu, pa, pb, "flat", col, podium_h, "rect", units=int(r.integers(0, 4))):
+                self._green_lot(lot)             # land that cannot be built on (a riverbank): a pocket park
                 continue
             ta, tb = pa * r.uniform(0.45, 0.8), pb * r.uniform(0.45, 0.8)
             tu = rotate(lu, r.choice([0.0, 0.0, r.uniform(-0.4, 0.4)]))
@@ -435,16 +510,21 @@ class Filler:
     def _use_construction(self, quad: np.ndarray) -> None:
         r = self.rng
         c, u, a, b = quad_frame(quad)
-        self.ground(quad, "soil")
-        for _ in range(int(r.integers(3, 8))):
+        self.ground(quad, str(r.choice(["soil", "soil", "gravel", "field"])))
+        for _ in range(int(r.integers(2, 10))):
             pc = bilinear(quad, *r.uniform(0.1, 0.9, 2))
-            self.ground(orect(pc, rotate(u, r.uniform(0, np.pi)), r.uniform(5, 25), r.uniform(5, 20)),
-                        str(r.choice(["gravel", "soil", "paving"])))
-        for _ in range(int(r.integers(2, 7))):
+            self.ground(orect(pc, rotate(u, r.uniform(0, np.pi) if r.random() < 0.4 else 0.0), r.uniform(4, 28),
+                              r.uniform(3, 20)), str(r.choice(["gravel", "soil", "paving", "asphalt"])))
+        for _ in range(int(r.integers(0, 7))):
             pc = bilinear(quad, *r.uniform(0.1, 0.9, 2))
-            self.car(pc, rotate(u, r.uniform(0, np.pi)), r.uniform(6.0, 9.0))
-        if r.random() < 0.5:
-            self.building(c, u, a * 0.4, b * 0.3, "flat", (150, 150, 150), self.height(3.0, 12.0), "rect", 0)
+            self.car(pc, rotate(u, r.uniform(0, np.pi)), r.uniform(5.0, 10.0))
+        for _ in range(int(r.integers(0, 4))):     # site cabins and containers
+            pc = bilinear(quad, *r.uniform(0.1, 0.9, 2))
+            col = ((226, 226, 220), (70, 100, 150), (190, 80, 50), (120, 130, 110))[int(r.integers(4))]
+            self.building(pc, u, 6.0, 2.5, "flat", _jitter(r, np.array(col), 10), 2.6, "rect", 0)
+        if r.random() < 0.5:                        # a structure going up: a grey deck on its storeys
+            self.building(c, u, a * r.uniform(0.25, 0.55), b * r.uniform(0.2, 0.45), "flat",
+                          _jitter(r, np.array([168, 166, 160]), 16), self.height(3.0, 24.0), "rect", 0)
 
     def _use_fields(self, quad: np.ndarray) -> None:
         r = self.rng
@@ -474,7 +554,7 @@ def choose_use(rng: np.random.Generator, z: float, park_fraction: float) -> str:
 
 
 # ---------------------------------------------------------------------------------------------------------
-def paint_scene(canvas: Canvas, scene: Scene) -> None:
+def paint_scene(canvas: Canvas, scene: Scene, rng: np.random.Generator) -> None:
     """Draw grounds, lines, markings, cars, trees, buildings, in that order."""
     for polys, col, mat in scene.grounds:
         canvas.fill(polys, col, mat)
@@ -485,7 +565,7 @@ def paint_scene(canvas: Canvas, scene: Scene) -> None:
             canvas.lines(polys, col, mat, width, height, closed=mat == Material.WALL)
     canvas.paint_lines(scene.markings, (226, 226, 222), Material.MARKING, 0.12)
     paint_cars(canvas, scene.cars)
-    paint_trees(canvas, scene.trees)
+    paint_trees(canvas, scene.trees, rng)
     for b in scene.buildings:
         paint_building(canvas, b)
 
@@ -503,35 +583,81 @@ def paint_cars(canvas: Canvas, cars: list[tuple[np.ndarray, int]]) -> None:
     glass = centre + (polys - centre) * 0.72
     roof = centre + (polys - centre) * 0.45
     canvas.shade_fill(list(glass), 70)
-    canvas.shade_fill(list(roof), 124)
+    for k, q in enumerate(roof):               # each car its own shade of its colour (paint, dirt, sheen)
+        canvas.shade_fill([q], 112 + (k * 53) % 33)
 
 
-def paint_trees(canvas: Canvas, trees: list[tuple[float, float, float, float, int]]) -> None:
-    """Round canopies: a dark rim, a lit crown offset towards the north-west, a few lumps; dome heights.
+#: Direction (image x right, y down) the crowns' baked-in light comes from: the map's late-morning sun in the
+#: south-south-east, as the realistic presets' database sun.
+CROWN_LIGHT = np.array([0.5, 0.75, 0.43])
 
-    Fixed-point centres and radii of all the discs are computed at once; the loop only calls OpenCV.
+
+def paint_trees(canvas: Canvas, trees: list[tuple[float, float, float, float, int]],
+                rng: np.random.Generator) -> None:
+    """Crowns of several foliage clumps each: an irregular outline, a lumpy height surface and its shading.
+
+    A crown is the union of 3-8 clumps (ellipsoid caps of 0.35-0.65 of the crown radius scattered over it); the
+    height of a pixel is the highest clump over it, so neighbouring clumps meet in darker creases. Brightness
+    is the surface lit from ``CROWN_LIGHT`` with an ambient share and a leaf-cluster grain at 0.3-0.6 m; the
+    colour varies per tree (hue, value) and slightly per clump. Nothing is stepped, so no ring appears, and the
+    darkest crease stays above half the crown's brightness (no black fringe). Drawn tree by tree over its
+    bounding box, into all four layers where the crown is.
     """
     if not trees:
         return
-    t = np.asarray(trees, np.float64)
-    p, rad, h, k = t[:, :2], t[:, 2], t[:, 3], t[:, 4].astype(np.int64)
-    light = np.array([-0.22, -0.22])
-    lumps = [p + (rad * 0.45)[:, None] * np.stack([np.cos(a + p[:, 0]), np.sin(a + p[:, 0])], axis=1)
-             for a in (0.7, 2.6, 4.4)]
-    # (centre, radius, shade) of the shading discs, drawn in this order over the rim
-    shades = [(lp, 0.42 * rad, 118) for lp in lumps] + [(p + light * rad[:, None], 0.55 * rad, 138),
-                                                         (p + light * rad[:, None] * 1.4, 0.25 * rad, 156)]
-    px = canvas.px
-    cen = px(p)
-    r_rim, r_top = canvas.px_radius(rad), canvas.px_radius(0.6 * rad)
-    sh = [(px(c), canvas.px_radius(r), v) for c, r, v in shades]
-    rim_h = np.maximum(0.85 * h, 5.0)
-    for i in range(len(t)):
-        c = (int(cen[i, 0]), int(cen[i, 1]))
-        canvas.disc_px(c, int(r_rim[i]), TREE_COLOURS[k[i]], Material.TREE, float(rim_h[i]), 96)
-        canvas.circle_px(canvas.dsm_m, c, int(r_top[i]), float(h[i]))
-        for cc, rr, v in sh:
-            canvas.circle_px(canvas.shade, (int(cc[i, 0]), int(cc[i, 1])), int(rr[i]), v)
+    g = canvas.gsd_m
+    light = CROWN_LIGHT / np.linalg.norm(CROWN_LIGHT)
+    for x, y, rad, h, k in trees:
+        n_clumps = int(rng.integers(3, 6)) + int(rad > 3.5) * int(rng.integers(0, 4))
+        ang = rng.uniform(0, 2 * np.pi, n_clumps)
+        dist = rad * np.sqrt(rng.uniform(0.0, 1.0, n_clumps)) * 0.5
+        cr = rad * rng.uniform(0.35, 0.65, n_clumps)
+        cx = np.concatenate([[x], x + dist * np.cos(ang)])
+        cy = np.concatenate([[y], y + dist * np.sin(ang)])
+        cr = np.concatenate([[rad * rng.uniform(0.5, 0.7)], cr])
+        ch = np.concatenate([[1.0], rng.uniform(0.8, 0.97, n_clumps)])           # relative clump tops
+        x0 = int(np.floor((cx - cr).min() / g - 0.5))
+        x1 = int(np.ceil((cx + cr).max() / g - 0.5)) + 1
+        y0 = int(np.floor((cy - cr).min() / g - 0.5))
+        y1 = int(np.ceil((cy + cr).max() / g - 0.5)) + 1
+        x0c, y0c = max(x0, 0), max(y0, 0)
+        x1c, y1c = min(x1, canvas.width_px), min(y1, canvas.height_px)
+        if x1c <= x0c or y1c <= y0c:
+            continue
+        ys, xs = np.mgrid[y0c:y1c, x0c:x1c].astype(np.float32)
+        xs = (xs + 0.5) * g
+        ys = (ys + 0.5) * g
+        dx = xs[None] - cx[:, None, None].astype(np.float32)
+        dy = ys[None] - cy[:, None, None].astype(np.float32)
+        q = 1.0 - (dx * dx + dy * dy) / (cr[:, None, None] ** 2).astype(np.float32)
+        cap = np.sqrt(np.clip(q, 0.0, None))                        # ellipsoid cap of each clump, 0..1
+        z = np.where(q > 0, (0.55 + 0.45 * cap) * ch[:, None, None].astype(np.float32), 0.0)
+        best = z.argmax(axis=0)
+        top = np.take_along_axis(z, best[None], axis=0)[0]
+        inside = top > 0
+        if not inside.any():
+            continue
+        # surface normal of the winning clump (cap slope), lit from `light`
+        bx = np.take_along_axis(dx, best[None], axis=0)[0]
+        by = np.take_along_axis(dy, best[None], axis=0)[0]
+        r2 = cr[best].astype(np.float32) ** 2
+        c_b = np.maximum(np.take_along_axis(cap, best[None], axis=0)[0], 0.15)
+        nx, ny, nz = bx / r2 / c_b, by / r2 / c_b, np.full_like(c_b, 1.0 / float(rad))
+        norm = np.sqrt(nx * nx + ny * ny + nz * nz)
+        lam = np.clip((nx * light[0] + ny * light[1] + nz * light[2]) / norm, 0.0, 1.0)
+        grain = rng.random((top.shape[0] + 1, top.shape[1] + 1), dtype=np.float32)
+        grain = 0.25 * (grain[:-1, :-1] + grain[1:, :-1] + grain[:-1, 1:] + grain[1:, 1:])   # clusters ~0.5 m
+        gain = (0.55 + 0.5 * lam) * (0.8 + 0.2 * top) * (0.55 + 0.9 * grain)
+        shade = np.clip(NEUTRAL_SHADE * gain, 60, 190).astype(np.uint8)
+        base = TREE_COLOURS[k].astype(np.float32)
+        tint = np.array([rng.normal(1.0, 0.07), rng.normal(1.0, 0.05), rng.normal(1.0, 0.08)], np.float32)
+        clump_tint = 1.0 + rng.normal(0.0, 0.04, len(cx)).astype(np.float32)
+        col = np.clip(base * tint * rng.uniform(0.85, 1.12) * clump_tint[best][..., None], 0, 255)
+        win = (slice(y0c, y1c), slice(x0c, x1c))
+        canvas.rgb[win][inside] = col[inside].astype(np.uint8)
+        canvas.shade[win][inside] = shade[inside]
+        canvas.material[win][inside] = int(Material.TREE)
+        canvas.dsm_m[win][inside] = np.maximum(top[inside] * float(h), 5.0)
 
 
 def paint_building(canvas: Canvas, b: Building) -> None:
@@ -592,6 +718,13 @@ def paint_building(canvas: Canvas, b: Building) -> None:
             canvas.dsm_fill([cv_ridge], min(h + 0.15 * W, b.cap_m))
     if b.courtyard is not None:
         canvas.fill([b.courtyard], (150, 146, 138), Material.PLAZA, 0.0)
+    for q, shade in b.stains:
+        canvas.shade_fill([q], shade)
+    for q, shade in b.skylights:
+        canvas.shade_fill([q], shade)
+    if b.vents:
+        grey = 150 + int(h * 7) % 60
+        canvas.fill(b.vents, (grey, grey, grey + 3), Material.ROOF_UNIT, min(h + 0.5, b.cap_m), 140)
     if b.panels:
         canvas.fill(b.panels, (40, 50, 76), Material.ROOF_UNIT, min(b.height_m + 0.6, b.cap_m), 128)
         canvas.shade_lines([np.vstack([p, p[:1]]) for p in b.panels], 150)

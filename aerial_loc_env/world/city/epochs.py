@@ -27,21 +27,28 @@ import numpy as np
 
 from aerial_loc_env.config import config_to_dict, rng
 from aerial_loc_env.errors import ConfigError, MapError
+from aerial_loc_env.world.city.paint import WORLD_SATURATION
 from aerial_loc_env.world.maps.cache import cached_bundle, spec_key
 from aerial_loc_env.world.maps.landcover import LandCover as LC
 from aerial_loc_env.world.maps.orthomap import Orthomap
 
 #: Bump whenever change_epoch's output changes for a given input and config: it is part of the cache key and of
 #: the benchmark's scenario fingerprint (env/fingerprint.py).
-GENERATOR_VERSION = 2
+GENERATOR_VERSION = 3
 
-ROOF_COLOURS = np.array([(152, 150, 146), (96, 98, 102), (168, 92, 70), (74, 104, 142), (84, 118, 92),
-                         (206, 204, 198), (140, 56, 48), (120, 112, 100), (182, 170, 150)], np.float32)
-SOIL_RGB = (150, 126, 98)
-STRAW_RGB = np.array([176, 162, 112], np.float32)
-BRANCH_RGB = np.array([98, 88, 78], np.float32)
+def _muted(colours) -> np.ndarray:
+    """Palette colours as the procedural city paints them: pulled towards their grey by ``WORLD_SATURATION``."""
+    c = np.asarray(colours, np.float32)
+    grey = c @ np.array([0.299, 0.587, 0.114], np.float32)
+    return grey[..., None] + WORLD_SATURATION * (c - grey[..., None])
+
+
+ROOF_COLOURS = _muted([(152, 150, 146), (96, 98, 102), (168, 92, 70), (74, 104, 142), (84, 118, 92),
+                       (206, 204, 198), (140, 56, 48), (120, 112, 100), (182, 170, 150)])
+STRAW_RGB = _muted([176, 162, 112])
+BRANCH_RGB = np.array([112, 102, 92], np.float32)
 FRESH_PAINT_RGB = np.array([238, 238, 234], np.float32)
-WATER_TINTS = np.array([(112, 110, 78), (62, 104, 74), (38, 58, 86), (118, 126, 120)], np.float32)
+WATER_TINTS = _muted([(112, 110, 78), (62, 104, 74), (38, 58, 86), (118, 126, 120)])
 OPEN_GROUND = (LC.LAWN, LC.BARE_SOIL, LC.FIELD, LC.SHRUB)
 PAVED = (LC.ROAD, LC.PARKING, LC.LANE_MARKING)
 KINDS = ("water", "grass", "markings", "trees", "roofs", "demolished", "construction", "built", "cars_gone",
@@ -266,6 +273,9 @@ def _markings(L: _Layers, rng: np.random.Generator, rate: float) -> None:
 
 
 def _trees(L: _Layers, rng: np.random.Generator, rate: float) -> None:
+    """Leaf-off crowns: the ground shows through a branch structure and a haze of twigs; only the trunk and the
+    thick inner part of the limbs keep height, so a bare tree casts thin shadows instead of a solid crown's (the
+    height model is 2.5-D: a twig with a height would stand as a pole down to the ground)."""
     n, labels, _, _ = _components(L.cls == LC.TREE)
     if n == 0:
         return
@@ -274,14 +284,47 @@ def _trees(L: _Layers, rng: np.random.Generator, rate: float) -> None:
     if not bare.any():
         return
     ground = _ground_under(L, L.cls == LC.TREE)
-    twigs = 0.6 * _noise(rng, L.h, L.w, L.px(0.6))[bare] + 0.4 * rng.random(int(bare.sum()), dtype=np.float32)
-    crown = _noise(rng, L.h, L.w, L.px(1.0))
-    rel = np.clip(L.dsm[bare] / 20.0, 0.0, 1.0)
-    b = np.clip(0.15 + 0.5 * rel + 1.2 * (twigs - 0.5), 0.0, 0.95)[:, None]
-    branch = BRANCH_RGB * (0.8 + 0.4 * twigs)[:, None]
-    L.rgb[bare] = np.clip(ground[bare] * (1 - b) + branch * b, 0, 255).astype(np.uint8)
-    keep = crown[bare] < 0.4                                          # a sparse crown: dappled shadows
-    L.dsm[bare] = np.where(keep, L.dsm[bare], 0.0)
+    grain = 0.9 + 0.2 * rng.random((L.h, L.w), dtype=np.float32)[bare]          # the ground's own grain
+    # trunks: the crowns' tops (local maxima of the smoothed height within 2.5 m), radius from the outline
+    crown = bare.astype(np.uint8)
+    inside_m = cv2.distanceTransform(crown, cv2.DIST_L2, 5) * L.gsd
+    top = cv2.GaussianBlur(np.where(bare, L.a_dsm, 0.0).astype(np.float32), (0, 0), 1.0 / L.gsd)
+    k = 2 * L.px(2.5) + 1
+    peak = bare & (top >= cv2.dilate(top, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))) - 1e-4) & (
+        inside_m >= 1.0)
+    ys, xs = np.nonzero(peak)
+    branches = np.zeros((L.h, L.w), np.uint8)
+    height = np.zeros((L.h, L.w), np.float32)
+    twigs = np.zeros((L.h, L.w), np.float32)
+    for y, x in zip(ys, xs, strict=True):
+        r_m = float(np.clip(inside_m[y, x] * 1.15, 1.5, 8.0))
+        h_m = 0.8 * float(L.a_dsm[y, x])
+        cv2.circle(twigs, (int(x), int(y)), L.px(r_m), 1.0, -1)
+        cv2.circle(height, (int(x), int(y)), max(1, L.px(0.35)), h_m, -1)
+        for a in rng.uniform(0, 2 * np.pi, int(rng.integers(6, 11))):
+            length = r_m * rng.uniform(0.6, 1.0) / L.gsd
+            end = (x + length * math.cos(a), y + length * math.sin(a))
+            mid = (x + 0.5 * length * math.cos(a), y + 0.5 * length * math.sin(a))
+            limbs = [((x, y), end, 2 if length > 12 else 1)]
+            for side in (-1.0, 1.0):
+                if rng.random() < 0.7:
+                    b = a + side * rng.uniform(0.35, 0.8)
+                    fl = length * rng.uniform(0.35, 0.55)
+                    limbs.append((mid, (mid[0] + fl * math.cos(b), mid[1] + fl * math.sin(b)), 1))
+            for p0, p1, t in limbs:
+                q0 = (int(round(p0[0])), int(round(p0[1])))
+                q1 = (int(round(p1[0])), int(round(p1[1])))
+                cv2.line(branches, q0, q1, 1, t, cv2.LINE_AA)
+                if p0 == (x, y):                           # the limb's thick inner part
+                    cv2.line(height, q0, (int(round(mid[0] * 0.6 + x * 0.4)), int(round(mid[1] * 0.6 + y * 0.4))),
+                             h_m, 1, cv2.LINE_8)
+    twigs = cv2.GaussianBlur(twigs, (0, 0), 0.8 / L.gsd)[bare]
+    limb = branches[bare].astype(np.float32) / max(float(branches.max()), 1.0)
+    haze = 0.4 * twigs * (0.5 + rng.random(twigs.shape, dtype=np.float32))
+    b = np.clip(np.maximum(haze, 0.7 * limb), 0.0, 0.85)[:, None]
+    branch = BRANCH_RGB * (0.85 + 0.3 * rng.random(b.shape, dtype=np.float32))
+    L.rgb[bare] = np.clip(ground[bare] * grain[:, None] * (1 - b) + branch * b, 0, 255).astype(np.uint8)
+    L.dsm[bare] = np.minimum(L.dsm[bare], height[bare])
 
 
 def _roofs(L: _Layers, rng: np.random.Generator, rate: float, bl: _Buildings) -> None:
@@ -302,8 +345,14 @@ def _roofs(L: _Layers, rng: np.random.Generator, rate: float, bl: _Buildings) ->
     L.rgb[m] = np.clip(new[lab] * flat, 0, 255).astype(np.uint8)
 
 
+SOIL_TINTS = _muted([(150, 126, 98), (168, 150, 120), (128, 100, 76), (176, 136, 96), (142, 136, 124)])
+MACHINE_RGB = _muted([(212, 170, 40), (222, 128, 36), (232, 232, 226), (184, 54, 40), (70, 110, 60),
+                      (60, 90, 150)])
+
+
 def _soil(L: _Layers, rng: np.random.Generator, sel: np.ndarray) -> None:
-    """Cleared ground (a construction site's floor) where ``sel``: soil with tyre tracks and gravel, height 0."""
+    """Cleared ground (a construction site's floor) where ``sel``: soil of one of several tints with tyre tracks,
+    gravel and sand heaps, sometimes a darker excavation; height 0."""
     ys, xs = np.nonzero(sel)
     if ys.size == 0:
         return
@@ -311,19 +360,95 @@ def _soil(L: _Layers, rng: np.random.Generator, sel: np.ndarray) -> None:
     h, w = y1 - y0, x1 - x0
     tex = 0.78 + 0.3 * _noise(rng, h, w, L.px(1.5)) + 0.1 * rng.random((h, w), dtype=np.float32)
     marks = np.zeros((h, w), np.uint8)
-    for _ in range(int(rng.integers(2, 6))):       # tyre tracks: dark curves across the site
-        p = rng.uniform([0, 0], [w, h], (4, 2))
-        cv2.polylines(marks, [np.rint(p).astype(np.int32).reshape(-1, 1, 2)], False, 1, L.px(0.6))
-    for _ in range(int(rng.integers(1, 4))):       # gravel and sand heaps: light blobs
+    if rng.random() < 0.4:                         # an excavation: a darker, moister pit
         c = (int(rng.integers(w)), int(rng.integers(h)))
-        cv2.circle(marks, c, L.px(rng.uniform(1.5, 4.0)), 2, -1)
-    col = np.asarray(SOIL_RGB, np.float32) * tex[..., None]
-    col[marks == 1] *= 0.72
-    col[marks == 2] = np.array([178, 172, 160], np.float32) * tex[marks == 2][:, None]
+        axes = (L.px(rng.uniform(3.0, 10.0)), L.px(rng.uniform(3.0, 8.0)))
+        cv2.ellipse(marks, c, axes, float(rng.uniform(0, 180)), 0, 360, 3, -1)
+    for _ in range(int(rng.integers(1, 7))):       # tyre tracks: dark curves across the site
+        p = rng.uniform([0, 0], [w, h], (int(rng.integers(3, 6)), 2))
+        cv2.polylines(marks, [np.rint(p).astype(np.int32).reshape(-1, 1, 2)], False, 1, L.px(rng.uniform(0.4, 0.9)))
+    for _ in range(int(rng.integers(0, 6))):       # gravel and sand heaps: light blobs
+        c = (int(rng.integers(w)), int(rng.integers(h)))
+        cv2.circle(marks, c, L.px(rng.uniform(1.0, 4.0)), 2, -1)
+    col = SOIL_TINTS[rng.integers(len(SOIL_TINTS))] * tex[..., None]
+    col[marks == 1] *= rng.uniform(0.78, 0.92)
+    col[marks == 3] *= rng.uniform(0.55, 0.75)
+    heap = SOIL_TINTS[rng.integers(len(SOIL_TINTS))] * 1.15 if rng.random() < 0.5 else np.array(
+        [178, 172, 160], np.float32)
+    col[marks == 2] = heap * tex[marks == 2][:, None]
     m = sel[y0:y1, x0:x1]
     L.rgb[y0:y1, x0:x1][m] = np.clip(col[m], 0, 255).astype(np.uint8)
     L.cls[y0:y1, x0:x1][m] = LC.BARE_SOIL
     L.dsm[y0:y1, x0:x1][m] = 0.0
+
+
+def _site_object(L: _Layers, rng: np.random.Generator, sel: np.ndarray, m: np.ndarray, origin: tuple[int, int],
+                 size_m: tuple[float, float], rgb, cls: int, height_m: float, ang: float | None = None) -> None:
+    """A rectangle (machine, container, pallet stack) at a random point of site ``m`` (offset ``origin``),
+    kept on the site ``sel``."""
+    ys, xs = np.nonzero(m)
+    k = int(rng.integers(ys.size))
+    a = rng.uniform(0, np.pi) if ang is None else ang
+    got = _poly_mask(_rect_poly(xs[k] + origin[1], ys[k] + origin[0], size_m[0] / L.gsd, size_m[1] / L.gsd, a),
+                     L.h, L.w)
+    if got is None:
+        return
+    mm, (my, mx) = got
+    mm = mm & sel[my, mx]
+    L.rgb[my, mx][mm] = np.clip(np.asarray(rgb, np.float32) * (0.9 + 0.2 * rng.random((int(mm.sum()), 1))), 0,
+                                255).astype(np.uint8)
+    L.cls[my, mx][mm] = cls
+    L.dsm[my, mx][mm] = height_m
+
+
+def _construction(L: _Layers, rng: np.random.Generator, per_km2: float, bl: _Buildings) -> None:
+    """Sites of several kinds: earthworks, a foundation slab with its formwork grid, a structure going up
+    (a grey deck at storey height), material yards; machines of several colours, site cabins, a fence."""
+    area_km2 = L.h * L.w * L.gsd ** 2 / 1e6
+    n = int(rng.poisson(per_km2 * area_km2))
+    allowed = L.mask(OPEN_GROUND + (LC.TREE, LC.PLAZA))
+
+    def orient(x: float, y: float) -> float:
+        return bl.frame(bl.nearest(x, y))[0] if bl.n else 0.0
+
+    for m, (sy, sx), (cx, cy, a, b, ang) in list(_place(L, rng, n, allowed, (20.0, 50.0, 15.0, 40.0), 1.0,
+                                                        orient)):
+        sel = np.zeros((L.h, L.w), bool)
+        sel[sy, sx] = m
+        _soil(L, rng, sel)
+        origin = (sy.start, sx.start)
+        kind = str(rng.choice(["earthworks", "slab", "structure", "yard"]))
+        if kind in ("slab", "structure"):
+            fa, fb = a * rng.uniform(0.4, 0.7), b * rng.uniform(0.4, 0.7)
+            got = _poly_mask(_rect_poly(cx, cy, fa, fb, ang), L.h, L.w)
+            if got is not None:
+                fm, (fy, fx) = got
+                fm = fm & sel[fy, fx]
+                grey = np.array([176, 174, 168], np.float32) * rng.uniform(0.85, 1.05)
+                tex = 0.92 + 0.12 * rng.random(fm.shape, dtype=np.float32)
+                yy, xx = np.mgrid[fy, fx]
+                along = (xx - cx) * math.cos(ang) + (yy - cy) * math.sin(ang)
+                across = -(xx - cx) * math.sin(ang) + (yy - cy) * math.cos(ang)
+                pitch = L.px(rng.uniform(3.0, 6.0))
+                grid = (np.abs(np.mod(along, pitch)) < 1.0) | (np.abs(np.mod(across, pitch)) < 1.0)
+                tex = np.where(grid, tex * rng.uniform(0.6, 0.8), tex)      # formwork, rebar, columns
+                L.rgb[fy, fx][fm] = np.clip(grey * tex[fm][:, None], 0, 255).astype(np.uint8)
+                L.cls[fy, fx][fm] = LC.BUILDING if kind == "structure" else LC.PLAZA
+                L.dsm[fy, fx][fm] = float(rng.uniform(3.0, 12.0)) if kind == "structure" else 0.0
+        if kind == "yard":                          # stacks of material: pallets, pipes, rebar bundles
+            for _ in range(int(rng.integers(3, 10))):
+                tone = np.array([150, 120, 86] if rng.random() < 0.5 else [120, 122, 126], np.float32)
+                _site_object(L, rng, sel, m, origin, (rng.uniform(1.5, 5.0), rng.uniform(1.0, 3.0)), tone * (
+                    rng.uniform(0.7, 1.2)), LC.OTHER, 1.0, ang)
+        for _ in range(int(rng.integers(0, 4))):   # machines
+            col = MACHINE_RGB[rng.integers(len(MACHINE_RGB))]
+            _site_object(L, rng, sel, m, origin, (rng.uniform(4.0, 8.0), rng.uniform(2.2, 3.0)), col, LC.CAR, 3.0)
+        for _ in range(int(rng.integers(0, 3))):   # site cabins and containers, along the site's axis
+            col = _muted([(226, 226, 220), (70, 100, 150), (190, 80, 50), (120, 130, 110)][int(rng.integers(4))])
+            _site_object(L, rng, sel, m, origin, (6.0, 2.5), col, LC.BUILDING, 2.6, ang)
+        if rng.random() < 0.5:                      # a fence or hoarding around it: a thin dark outline
+            edge = m & ~cv2.erode(m.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+            L.rgb[sy, sx][edge] = (L.rgb[sy, sx][edge] * 0.6).astype(np.uint8)
 
 
 def _demolish(L: _Layers, rng: np.random.Generator, rate: float, bl: _Buildings) -> None:
@@ -335,33 +460,6 @@ def _demolish(L: _Layers, rng: np.random.Generator, rate: float, bl: _Buildings)
     if sel.any():
         _soil(L, rng, cv2.dilate(sel.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
               & np.isin(L.cls, (LC.BUILDING, LC.ROOF_EQUIPMENT, LC.WALL)) | sel)
-
-
-def _construction(L: _Layers, rng: np.random.Generator, per_km2: float, bl: _Buildings) -> None:
-    area_km2 = L.h * L.w * L.gsd ** 2 / 1e6
-    n = int(rng.poisson(per_km2 * area_km2))
-    allowed = L.mask(OPEN_GROUND + (LC.TREE, LC.PLAZA))
-
-    def orient(x: float, y: float) -> float:
-        return bl.frame(bl.nearest(x, y))[0] if bl.n else 0.0
-
-    for m, (sy, sx), _ in list(_place(L, rng, n, allowed, (20.0, 50.0, 15.0, 40.0), 1.0, orient)):
-        sel = np.zeros((L.h, L.w), bool)
-        sel[sy, sx] = m
-        _soil(L, rng, sel)
-        # a few machines (3 m tall, yellow) and a site hut
-        for _ in range(int(rng.integers(1, 4))):
-            ys, xs = np.nonzero(m)
-            k = int(rng.integers(ys.size))
-            poly = _rect_poly(xs[k] + sx.start, ys[k] + sy.start, 6.0 / L.gsd, 2.6 / L.gsd, rng.uniform(0, np.pi))
-            got = _poly_mask(poly, L.h, L.w)
-            if got is None:
-                continue
-            mm, (my, mx) = got
-            mm = mm & sel[my, mx]
-            L.rgb[my, mx][mm] = (212, 170, 40)
-            L.cls[my, mx][mm] = LC.CAR
-            L.dsm[my, mx][mm] = 3.0
 
 
 def _built(L: _Layers, rng: np.random.Generator, rate: float, bl: _Buildings) -> None:
@@ -465,7 +563,7 @@ def _cars_new(L: _Layers, rng: np.random.Generator, rate: float) -> None:
         if not np.all(paved[win][big]) or np.any(L.dsm[win][big] != L.dsm[win][big].flat[0]):
             continue
         src = L.a_rgb[y:y + h, x:x + w][m].astype(np.float32)
-        col = CAR_COLOURS[int(rng.choice(len(CAR_COLOURS), p=CAR_WEIGHTS))].astype(np.float32)
+        col = _muted(CAR_COLOURS[int(rng.choice(len(CAR_COLOURS), p=CAR_WEIGHTS))])
         ground = float(L.dsm[win][big].flat[0])
         tgt = (slice(ty, ty + h), slice(tx, tx + w))
         L.rgb[tgt][m] = _recolour(src, np.median(src, axis=0), col, 1.0)

@@ -39,7 +39,7 @@ from aerial_loc_env.world.maps.orthomap import Orthomap
 MAX_PIXELS = 150_000_000
 
 #: Bump whenever the generator's output changes for a given config: it is part of the cache key.
-GENERATOR_VERSION = 4
+GENERATOR_VERSION = 5
 
 
 
@@ -146,7 +146,7 @@ def generate_city(config: CityConfig | None = None) -> Orthomap:
                     car_density=cfg.car_density, max_height_m=cfg.max_building_height_m)
     for b in layout.blocks:
         filler.fill(b)
-    paint_scene(canvas, filler.scene)
+    paint_scene(canvas, filler.scene, r_content)
     paint_roads(canvas, layout, filler, r_roads)
 
     rgb = canvas.textured_rgb(r_texture)

@@ -63,7 +63,7 @@ _MATERIAL_TABLE: dict[Material, tuple[LandCover, int, int, int]] = {
     Material.ROOF_METAL: (LandCover.BUILDING, 10, 6, 8),
     Material.ROOF_GREEN: (LandCover.BUILDING, 30, 36, 20),
     Material.ROOF_UNIT: (LandCover.ROOF_EQUIPMENT, 14, 8, 4),
-    Material.TREE: (LandCover.TREE, 40, 44, 16),
+    Material.TREE: (LandCover.TREE, 16, 20, 14),
     Material.PARKING: (LandCover.PARKING, 20, 10, 12),
     Material.CAR: (LandCover.CAR, 8, 4, 2),
     Material.WATER: (LandCover.WATER, 8, 14, 16),
@@ -75,6 +75,22 @@ _MATERIAL_TABLE: dict[Material, tuple[LandCover, int, int, int]] = {
     Material.POOL: (LandCover.POOL, 6, 10, 4),
     Material.GRAVEL: (LandCover.BARE_SOIL, 40, 20, 14),
 }
+
+
+# material -> darkening (shade units) of stains: oil drips, tyre marks, wet patches, tar on paving; weeds, clover
+# and moist hollows on grass and fields; sparse blobs at two scales. Markings get wear instead: the paint thins
+# to the asphalt under it in places.
+_STAIN_AMPLITUDE: dict[Material, int] = {
+    Material.ASPHALT: 36, Material.PARKING: 40, Material.PLAZA: 28, Material.SIDEWALK: 24,
+    Material.ROOF_FLAT: 26, Material.GRAVEL: 22, Material.SOIL: 20, Material.TRACK: 16,
+    Material.GRASS: 30, Material.FIELD: 30, Material.SHRUB: 30,
+}
+_MARKING_WEAR = 70
+
+#: How much of its colour a pixel keeps about its own grey (1 keeps the palette, 0 is grey): the palette names
+#: the materials' colours; calibrated so that the camera frames' Lab chroma lies within the real two-epoch
+#: pairs' later epochs (../shared/data/pairs), which are far less saturated than a painted palette.
+WORLD_SATURATION = 0.72
 
 
 def _lut(column: int) -> np.ndarray:
@@ -204,10 +220,22 @@ class Canvas:
             else:
                 noise = _upsampled_noise(rng, h, w, max(1, int(round(scale_m / self.gsd_m))))
             mod = cv2.add(mod, cv2.multiply(noise, cv2.LUT(mat, amp), scale=1.0 / 255.0))
+        # stains: the top few percent of smooth noise at 1.5 m and at 5 m, darkening paved ground and roofs
+        stain_amp = np.zeros(256, np.uint8)
+        for m_, a_ in _STAIN_AMPLITUDE.items():
+            stain_amp[int(m_)] = a_
+        stain_amp[int(Material.MARKING)] = _MARKING_WEAR
+        amp = cv2.LUT(mat, stain_amp)
+        for cell_m, cut in ((1.5, 196), (5.0, 186)):
+            blot = _upsampled_noise(rng, h, w, max(1, int(round(cell_m / self.gsd_m))))
+            blot = cv2.multiply(cv2.subtract(blot, cut), 255.0 / (255 - cut))
+            mod = cv2.subtract(mod, cv2.multiply(blot, amp, scale=1.0 / 255.0))
         # large-scale illumination / weathering field (about 60 m blobs, +-10 %)
         light = _upsampled_noise(rng, h, w, max(1, int(round(60.0 / self.gsd_m))), lo=110, hi=146)
         mod = cv2.multiply(mod, light, scale=1.0 / 128.0)
         out = cv2.multiply(self.rgb, cv2.cvtColor(mod, cv2.COLOR_GRAY2RGB), scale=1.0 / NEUTRAL_SHADE)
+        grey = cv2.cvtColor(cv2.cvtColor(out, cv2.COLOR_RGB2GRAY), cv2.COLOR_GRAY2RGB)
+        out = cv2.addWeighted(out, WORLD_SATURATION, grey, 1.0 - WORLD_SATURATION, 0.0)
         sigma_px = 0.12 / self.gsd_m          # optics blur: about 0.12 m, i.e. half a pixel at 0.25 m
         if sigma_px > 0.3:
             out = cv2.GaussianBlur(out, (3, 3), sigma_px)

@@ -209,4 +209,4 @@ def paint_roads(canvas: Canvas, layout: Layout, filler: Filler, rng: np.random.G
                 if mats[0] == Material.SIDEWALK and not np.isin(mats, _TALL).any():
                     trees.append((float(p[0]), float(p[1]), rad, float(rng.uniform(6.5, 11.0)),
                                   int(rng.integers(6))))
-    paint_trees(canvas, trees)
+    paint_trees(canvas, trees, rng)
