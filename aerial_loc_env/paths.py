@@ -159,3 +159,21 @@ def refuse_overwrite(path: Path, what: str, flag: str = "--overwrite") -> None:
     if Path(path).exists():
         raise ConfigError(f"{what} '{path}' already exists and would be overwritten; "
                           f"choose another path or pass {flag}")
+
+
+
+#: the package folder: models shipped as package data are named relative to it
+PACKAGE_DIR = Path(__file__).resolve().parent
+
+
+def find_model_file(name: str | os.PathLike, what: str, hint: str) -> Path:
+    """A model file a spec names: absolute, else under the package folder (shipped as package data, so a spec
+    works from any directory and from a wheel), else under the current directory. None there: a ConfigError
+    ``"<what> '<name>' does not exist (looked at ...); <hint>"``."""
+    p = Path(name).expanduser()
+    candidates = [p] if p.is_absolute() else [PACKAGE_DIR / p, Path.cwd() / p]
+    found = next((c for c in candidates if c.is_file()), None)
+    if found is None:
+        raise ConfigError(f"{what} '{name}' does not exist (looked at {', '.join(str(c) for c in candidates)}); "
+                          f"{hint}")
+    return found

@@ -25,8 +25,8 @@ from aerial_loc_env.estimators.protocol import Agent, Estimate, parse_observatio
 from aerial_loc_env.learning.observations import LocalRegistration, square_image
 from aerial_loc_env.learning.recipes import algo_class
 from aerial_loc_env.learning.train import check_model_zip, load_training_meta
+from aerial_loc_env.paths import find_model_file
 
-PACKAGE_DIR = Path(__file__).resolve().parent.parent
 _MODELS: dict[tuple[str, float], Any] = {}
 
 
@@ -41,14 +41,8 @@ class LearnedParams:
 
 def resolve_model_path(model: str) -> Path:
     """The model file: absolute, else under the package folder, else under the current directory."""
-    p = Path(model).expanduser()
-    candidates = [p] if p.is_absolute() else [PACKAGE_DIR / p, Path.cwd() / p]
-    for c in candidates:
-        if c.is_file():
-            return c
-    raise ConfigError(f"learned agent: params.model '{model}' does not exist (looked at "
-                      f"{', '.join(str(c) for c in candidates)}); train it with `aerial-loc train <recipe> "
-                      "--out <folder>` and point params.model to <folder>/model.zip")
+    return find_model_file(model, "learned agent: params.model", "train it with `aerial-loc train <recipe> --out "
+                           "<folder>` and point params.model to <folder>/model.zip")
 
 
 class LearnedAgent(Agent):

@@ -7,6 +7,8 @@ Examples::
     aerial-loc train ppo-local-registration \
         --resume runs/ppo-local-registration/checkpoints/model_5000_steps.zip
     aerial-loc train --curve runs/ppo-local-registration         # training curves -> <run>/learning_curve.png
+    aerial-loc train mcl-learned --out /tmp/w.npz                # the learned MCL model's encoder (--timesteps:
+                                                                 # its steps)
 """
 
 from __future__ import annotations
@@ -37,6 +39,18 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if not args.recipe:
         ap.error("a recipe is required (or --curve RUN_DIR)")
+    from aerial_loc_env.learning.embedding import is_embedding_recipe
+
+    if is_embedding_recipe(args.recipe):     # the learned MCL model's encoder (learning/embedding.py)
+        from aerial_loc_env.learning.embedding import read_recipe, train_embedding
+
+        recipe = read_recipe(args.recipe, **({"steps": args.timesteps} if args.timesteps else {}))
+        out = Path(args.out) if args.out else Path("runs") / Path(args.recipe).stem
+        out = out if out.suffix == ".npz" else out / "weights.npz"
+        res = train_embedding(recipe, out, overwrite=args.overwrite, verbose=args.verbose > 0)
+        print(f"trained {res.figures['steps']} steps in {res.wall_s:.0f} s; weights: {res.path} "
+              f"(temperature {res.temperature:.4g})")
+        return 0
     from aerial_loc_env.learning.train import train
 
     res = train(args.recipe, args.out, overwrite=args.overwrite, resume=args.resume,

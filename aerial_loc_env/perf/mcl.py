@@ -84,4 +84,8 @@ BENCHMARKS = [
               unit="step", repeats=200),
     Benchmark("mcl step shadow-weighted, map detector N=700 K=70 c=3", _mcl_step("mcl-shadow-weighted"),
               unit="step", repeats=200),
+    # the learned model (issue 23): the frame warped north-up and embedded, one correlation surface over the
+    # particles' box, bilinear lookups; the map's embedding is made at reset. Target: <= 5x the floor.
+    Benchmark("mcl step learned N=700 (600x400)", _mcl_step("mcl-learned"), target_ratio=5.0, unit="step",
+              repeats=200),
 ]
