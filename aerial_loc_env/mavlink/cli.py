@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from aerial_loc_env.config import build_config
+from aerial_loc_env.config import build_config, parse_assignments
 from aerial_loc_env.errors import AerialLocError, ConfigError
 from aerial_loc_env.mavlink.bridge import EstimateBridge
 from aerial_loc_env.mavlink.fix import FixPolicy
@@ -51,6 +51,8 @@ def build_parser() -> argparse.ArgumentParser:
     src.add_argument("--demo", action="store_true", help="synthetic circular track, no env or agent needed")
     src.add_argument("--origin", default=SITL_HOME, help="--demo: LAT,LON,ALT_AMSL of the track centre")
     src.add_argument("--seed", type=int, default=0)
+    src.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                     help="a scenario override (JSON value; repeatable), e.g. flight.rate_hz=5")
     src.add_argument("--speed", type=float, default=1.0,
                      help="simulated seconds per real second; 0 = as fast as the sender takes each frame's "
                           "fix (one per --rate-hz tick)")
@@ -187,7 +189,7 @@ class ScenarioRun:
     camera is where the autopilot's vehicle is, the agent estimates from those frames.
     """
 
-    def __init__(self, scenario: str, agent_name: str, seed: int) -> None:
+    def __init__(self, scenario: str, agent_name: str, seed: int, overrides: dict | None = None) -> None:
         try:
             import gymnasium as gym
 
@@ -199,7 +201,7 @@ class ScenarioRun:
                 f"aerial-loc mavlink: the environment or the agents are not available ({exc}); "
                 "use --demo to stream a synthetic track") from exc
         try:
-            self.env = gym.make(scenario)
+            self.env = gym.make(scenario, **(overrides or {}))
         except gym.error.Error as exc:
             raise ConfigError(f"--scenario {scenario!r}: {exc}; list them: aerial-loc scenarios") from exc
         self.agent = make_agent(agent_name)
@@ -368,6 +370,8 @@ def run(args: argparse.Namespace, *, out=sys.stdout, should_stop: Callable[[], b
         raise ConfigError(f"--speed {args.speed}: must be >= 0 (1 = real time, 0 = as fast as possible)")
     if not args.demo and not (args.scenario and args.agent):
         raise ConfigError("aerial-loc mavlink: give --scenario and --agent (or --demo for a synthetic track)")
+    if args.demo and args.set:
+        raise ConfigError("aerial-loc mavlink: --set overrides the --scenario's fields; --demo flies no scenario")
     check_sim_speedup(args.sim_speedup)
     config = sender_config(args)
     if args.demo:
@@ -375,7 +379,8 @@ def run(args: argparse.Namespace, *, out=sys.stdout, should_stop: Callable[[], b
         bridge = EstimateBridge(source.world_to_latlon, (0.0, 0.0), ground_amsl_m=source.ground_amsl_m)
         steps = source.steps()
     else:
-        source = ScenarioRun(args.scenario, args.agent, args.seed)
+        source = ScenarioRun(args.scenario, args.agent, args.seed,
+                             parse_assignments(args.set, where="--set", example="flight.rate_hz=5"))
         om = source.orthomap      # lat/lon through the current episode's map (--loop may change it)
         ground = ground_amsl_m(args.ground_amsl_m, om, args.scenario)
         bridge = EstimateBridge(lambda x, y: source.orthomap.world_to_latlon(x, y),

@@ -117,6 +117,12 @@ PLANE_MIN_LEG_M = 400.0
 EDGE_M = 100.0
 
 
+#: the camera's rate in the missions: each frame's fix reaches the autopilot stamped at its capture time, and
+#: ArduPilot calls a GPS unhealthy after two updates in a row more than 245 ms apart (or a running mean over
+#: 215 ms), so a 4 Hz camera sits on that line and a scheduling hiccup crosses it; 5 Hz leaves 45 ms
+MISSION_CAMERA_HZ = 5.0
+
+
 def check_scenario(scenario: str) -> str:
     """The registered id of ``scenario`` (id, short name or spec stem) if ``aerial-loc sitl`` can fly it, else
     a clear error: an old version names the current id, a map-file scenario says which ids can be flown."""
@@ -351,7 +357,7 @@ def fly_mission(scenario: str, agent: str, *, ground_amsl_m: float, vehicle: str
             "--ground-amsl-m", str(ground_amsl_m), "--connect", f"udpin:127.0.0.1:{sitl.bridge_port}",
             "--message", spec.message + (",external_position" if external_position else ""),
             "--external-position-hz", str(speedup), "--rate-hz", str(10.0 * speedup), "--sim-speedup", str(speedup),
-            "--gps-id", str(spec.gps_id),
+            "--gps-id", str(spec.gps_id), "--set", f"flight.rate_hz={MISSION_CAMERA_HZ:g}",
             *(["--pad-radius-m", "5"] if vehicle == "plane" else []),
             *([] if log is not None else ["--quiet"])])
 

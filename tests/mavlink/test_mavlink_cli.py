@@ -145,3 +145,20 @@ def test_demo_track_is_ground_metres_on_the_wgs84_tangent_plane(vincenty_m):
         assert type(lat) is float and type(lon) is float
         assert vincenty_m(demo.lat0, demo.lon0, lat, lon) == pytest.approx(math.hypot(x, y), abs=1e-5)
         assert demo.latlon_to_world(lat, lon) == pytest.approx((x, y), abs=1e-8)
+
+
+def test_set_overrides_the_flown_scenario_and_is_refused_with_demo():
+    """``--set KEY=VALUE`` reaches the env the bridge flies (the SITL missions set their camera's rate this way);
+    with --demo (no scenario) it is refused, and an unknown key names itself."""
+    from aerial_loc_env.errors import ConfigError
+
+    run = mav_cli.ScenarioRun("AerialLoc/Small-v2", "dead-reckoning", 0, {"flight.rate_hz": 5})
+    try:
+        assert run.env.unwrapped.scenario.flight.rate_hz == 5.0
+    finally:
+        run.env.close()
+    args = mav_cli.build_parser().parse_args(["--demo", "--set", "flight.rate_hz=5", "--duration-s", "0.1"])
+    with pytest.raises(ConfigError, match="--demo flies no scenario"):
+        mav_cli.run(args, out=io.StringIO())
+    with pytest.raises(ConfigError, match="no_such_field"):
+        mav_cli.ScenarioRun("AerialLoc/Small-v2", "dead-reckoning", 0, {"flight.no_such_field": 1})
