@@ -118,8 +118,9 @@ EDGE_M = 100.0
 
 
 #: the camera's rate in the missions: each frame's fix reaches the autopilot stamped at its capture time, and
-#: ArduPilot calls a GPS unhealthy after two updates in a row more than 245 ms apart (or a running mean over
-#: 215 ms), so a 4 Hz camera sits on that line and a scheduling hiccup crosses it; 5 Hz leaves 45 ms
+#: ArduPilot calls a GPS unhealthy after two updates in a row further apart than ``report.GPS_MAX_DELTA_MS`` (or a
+#: running mean over ``report.GPS_AVG_MAX_MS``): a 4 Hz camera's interval sits on that line, where a scheduling
+#: hiccup crosses it; 5 Hz leaves a margin
 MISSION_CAMERA_HZ = 5.0
 
 
