@@ -72,14 +72,18 @@ GPS_MAX_DELTA_MS = 245
 GPS_AVG_MAX_MS = 215
 
 
-def gps_unhealthy(deltas_ms: list[tuple[float, int]]) -> list[tuple[float, str]]:
+def gps_unhealthy(deltas_ms: list[tuple[float, int]], since_s: float = -math.inf) -> list[tuple[float, str]]:
     """When ArduPilot's health rule for a GPS (``AP_GPS::is_healthy``'s timing part) fails on the logged update
-    intervals (t, GPA.Delta ms, signed): (t, why) for each update at which it does."""
+    intervals (t, GPA.Delta ms, signed): (t, why) for each update at or after ``since_s`` at which it does. The
+    running average runs over every interval from the first, as ArduPilot's does from boot (started at the window
+    instead, its first interval alone would stand for the average)."""
     delayed, average, out = 0, 0.0, []
     for t, d in deltas_ms:
         delayed = delayed + 1 if (d > GPS_MAX_DELTA_MS or d < 0) else 0
         if 0 <= d < 2000:
             average = float(d) if average <= 0 else 0.98 * average + 0.02 * d
+        if t < since_s:
+            continue
         if delayed >= 2:
             out.append((t, f"{delayed} delayed updates in a row ({d} ms)"))
         elif average >= GPS_AVG_MAX_MS:
@@ -274,10 +278,11 @@ def summary(record: dict) -> dict:
     deltas = record.get("gps_deltas_ms", [])
     if deltas:     # ArduPilot's own health rule on its GPS update intervals (capture-stamped fixes: resends
         #            carry the frame's stamp, so the intervals are 0 between resends and a frame's between frames)
-        bad = gps_unhealthy(deltas)
+        since = float(record.get("gps_deltas_since_s", deltas[0][0]))
+        bad = gps_unhealthy(deltas, since)
         out["gps_unhealthy"] = len(bad)
-        out["gps_unhealthy_first"] = [(round(t - deltas[0][0], 2), why) for t, why in bad[:5]]
-        positive = [d for _, d in deltas if d > 0]
+        out["gps_unhealthy_first"] = [(round(t - since, 2), why) for t, why in bad[:5]]
+        positive = [d for t, d in deltas if d > 0 and t >= since]
         out["gps_fix_interval_ms"] = {"median": float(np.median(positive)), "max": float(max(positive))} \
             if positive else {}
     lat = np.asarray(record.get("fix_latency_s", []), dtype=float)

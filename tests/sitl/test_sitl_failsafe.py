@@ -135,3 +135,17 @@ def test_track_picture_marks_the_cut_and_names_the_wind(tmp_path):
     paths = write_outputs(record, tmp_path / "run")
     assert (tmp_path / "run" / "track.png") in paths and (tmp_path / "run" / "track.png").stat().st_size > 1000
     assert summary(record)["vision_cut"]["fix_back_s"] == pytest.approx(0.75)
+
+
+def test_gps_health_runs_its_average_from_the_first_update_and_reports_from_the_window():
+    """ArduPilot's running average runs from boot: a window that starts on a long interval (the pad fix's last to
+    the first camera fix) after a run of 100 ms updates is healthy, where an average started at the window would
+    take that one interval for it and call the next dozens of updates unhealthy; delays before the window are not
+    reported, those inside are."""
+    pad = [(0.1 * k, 100) for k in range(100)]
+    camera = [(10.0, 261)] + [(10.1 + 0.1 * k, 0 if k % 2 == 0 else 200) for k in range(200)]
+    assert gps_unhealthy(pad + camera, 10.0) == []
+    assert gps_unhealthy(camera, 10.0)[:1] == [(10.0, "average update interval 261 ms")]
+    stalled = pad[:50] + [(5.0, 400), (5.1, 300)] + pad[52:] + camera
+    assert gps_unhealthy(stalled, 10.0) == [] and gps_unhealthy(stalled)[:1] == [(5.1, "2 delayed updates in a row "
+                                                                                    "(300 ms)")]
