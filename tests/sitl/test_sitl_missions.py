@@ -223,9 +223,9 @@ def test_copter_mission_on_the_vision_fix(mission_sitl):
     assert len(errors) > 100
     rmse = float(np.sqrt(np.mean(errors ** 2)))
     assert rmse < 2 * 3.0 + 3.5 and errors.max() < 5 * 3.0 + 3.5, (rmse, errors.max())
-    # ArduPilot's own interval between GPS updates (GPA.Delta), from the EKF taking the fix to the end (a stall
-    # while the bridge starts up excluded), through its own health rule: never unhealthy (the fixes carry their
-    # frame's capture time, so a resend's interval is 0 and a frame's its camera interval, about 0.25 s)
+    # ArduPilot's own interval between GPS updates (GPA.Delta) through its own health rule, from arming (its
+    # pre-arm check gates arming on the same rule) to the end: never unhealthy in flight (the fixes carry their
+    # frame's capture time, so a resend's interval is 0 and a frame's its camera interval)
     assert len(r["gps_gaps_ms"]) > 100 and s["gps_unhealthy"] == 0, s["gps_fix_interval_ms"]
 
 
@@ -365,7 +365,7 @@ def test_plane_mission_on_the_vision_fix(mission_sitl):
     _plane_loop_and_landing(r, s)
     assert s["vision_fix_s"] > 130.0          # the loop (less the cut) and the approach on the camera fix
     # GPS_INPUT flows throughout, with no fix during the climb and the cut: ArduPilot's GPS health rule on its own
-    # update intervals never fails
+    # update intervals never fails in flight (from arming, which its pre-arm check gates on the same rule)
     assert len(r["gps_gaps_ms"]) > 500 and s["gps_unhealthy"] == 0, s["gps_fix_interval_ms"]
     # the failsafe timeline, seconds from the first fix withheld, from SITL's log
     cut = s["vision_cut"]
