@@ -57,6 +57,7 @@ def _damaged(data: bytes, damage: str) -> bytes:
 
 @pytest.mark.parametrize("damage", ["garbage_index", "truncated_index", "persistent_id_index", "garbage_data",
                                     "truncated_data"])
+@pytest.mark.slow
 def test_a_corrupt_cache_file_is_removed_and_compiled_again(tmp_path, damage):
     """One warning, on one line, whatever pickle makes of the bytes; then the kernel compiled and cached again."""
     out, warned = _run(tmp_path)
@@ -93,6 +94,7 @@ def test_a_cache_that_cannot_be_written_costs_a_compile_not_the_call(tmp_path):
                               "each process; free space there or set NUMBA_CACHE_DIR to a writable folder")
 
 
+@pytest.mark.slow
 def test_no_writable_cache_location_falls_back_to_a_temporary_folder(tmp_path):
     nowhere = """
         from numba.core import caching
