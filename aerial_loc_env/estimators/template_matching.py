@@ -227,9 +227,17 @@ class WindowMatchingAgent(Agent):
                                                   f" the {self.params.gate_sigma:g}-sigma gate ({limit:.0f} m)")
         self.gated_offsets = []
         self.has_fix = True
-        self.dr.anchor((fix.x_m, fix.y_m), np.eye(2) * self.params.fix_std_m ** 2)
+        self.dr.anchor((fix.x_m, fix.y_m), np.eye(2) * self.fix_std_now_m() ** 2)
         return Estimate(fix.x_m, fix.y_m, yaw_rad=obs.yaw_rad, cov_xy_m2=self.dr.cov.copy(), status="ok",
                         extras={"match": True, **fix.extras})
+
+    def fix_std_now_m(self) -> float:
+        """The 1-sigma this frame's fix is reported with: ``fix_std_m`` on the working level, scaled down by the
+        pixel on the fine level (a fix is as sharp as the pixels it is matched on), so that an autopilot fusing the
+        fix weighs a landing's last fixes as they deserve."""
+        if not self._on_fine:
+            return self.params.fix_std_m
+        return self.params.fix_std_m * max(self.level_gsd) / max(self._coarse["level_gsd"])
 
     def _gated_agree(self, altitude_m: float) -> bool:
         """Re-localize only after a fix (before it, a tracking prior is the authority) on ``regate_after``

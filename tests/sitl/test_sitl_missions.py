@@ -259,7 +259,8 @@ def test_template_matching_estimates_down_to_its_smallest_template():
 def test_template_matching_fine_level_tracks_a_final_below_the_working_floor():
     """A plane's final on PaperShadows-v2 (south at 22 m/s, crabbing 13 deg, 5 Hz, 60 m down to 12 m): the fine
     level (the map's 0.25 m pixels) keeps fixing below the working level's 40 m, each fix within a working
-    pixel (1 m) of the truth; a first frame below 40 m is not matched (no first fix from a small template)."""
+    pixel (1 m) of the truth and reported with fix_std_m scaled to the finer pixel (3 m x 0.25 / 1); a first
+    frame below 40 m is not matched (no first fix from a small template)."""
     gym = pytest.importorskip("gymnasium")
     import aerial_loc_env.env  # noqa: F401
     from aerial_loc_env.env.external import ExternalFlight, ExternalPose
@@ -276,15 +277,17 @@ def test_template_matching_fine_level_tracks_a_final_below_the_working_floor():
     poses = [ExternalPose(600.0, 900.0 - 4.4 * i, yaw, 60.0 - 48.0 * i / n, 0.2 * i) for i in range(n)]
     obs, _ = flight.reset(poses[0], seed=0)
     agent.reset(flight.briefing, seed=0)
-    low = []                                      # (fix, error m) below the working level's floor
+    low = []                                      # (fix, error m, reported sigma m) below the working floor
     for i, pose in enumerate(poses):
         if i:
             obs, _ = flight.observe(pose)
         est = agent.step(obs)
         if float(obs["altitude"][0]) < 40.0:
-            low.append((est.status == "ok", math.hypot(est.x_m - pose.x_m, est.y_m - pose.y_m)))
-    fixes = [e for ok, e in low if ok]
+            low.append((est.status == "ok", math.hypot(est.x_m - pose.x_m, est.y_m - pose.y_m),
+                        math.sqrt(float(np.max(np.linalg.eigvalsh(est.cov_xy_m2))))))
+    fixes = [e for ok, e, _ in low if ok]
     assert len(fixes) >= 10 and max(fixes) < 1.0, (len(fixes), fixes)
+    assert all(sigma == pytest.approx(0.75) for ok, _, sigma in low if ok)
     env.close()
 
 
