@@ -127,23 +127,31 @@ EDGE_M = 100.0
 MISSION_CAMERA_HZ = 5.0
 
 
+#: the map kinds that fly over files the user gives gym.make, which `aerial-loc sitl` has no option for
+USER_MAP_KINDS = {"file": "a map file given to gym.make (path=...)",
+                  "pair": "two image files given to gym.make (path_a=..., path_b=...)"}
+
+
 def check_scenario(scenario: str) -> str:
     """The registered id of ``scenario`` (id, short name or spec stem) if ``aerial-loc sitl`` can fly it, else
-    a clear error: an old version names the current id, a map-file scenario says which ids can be flown."""
+    a clear error: an old version names the current id; a scenario over the user's files (an old version's too)
+    says which ids can be flown."""
     import aerial_loc_env.env  # noqa: F401  (registers the scenarios)
-    from aerial_loc_env.env.scenarios import resolve, specs
+    from aerial_loc_env.env.scenarios import registered_version, resolve, specs
 
     try:
         _path, raw = resolve(scenario)
+        named = raw["id"]
     except ConfigError as exc:
-        raise ConfigError(f"--scenario: {exc}") from exc
-    sid = raw["id"]
-    if _map_kind(raw) == "file":
-        city = [s for s, (_p, r) in specs().items() if _map_kind(r) != "file"]
-        raise ConfigError(f"--scenario {sid}: flies over a map file given to gym.make (path=...), and "
-                          f"`aerial-loc sitl` takes no map file; it flies the procedural-city scenarios: "
-                          f"{', '.join(city)}")
-    return sid
+        current = registered_version(scenario)      # an old version: its current id is no use if sitl cannot fly it
+        if current is None or _map_kind(specs()[current][1]) not in USER_MAP_KINDS:
+            raise ConfigError(f"--scenario: {exc}") from exc
+        raw, named = specs()[current][1], f"{scenario} (now {current})"
+    if _map_kind(raw) in USER_MAP_KINDS:
+        city = [s for s, (_p, r) in specs().items() if _map_kind(r) not in USER_MAP_KINDS]
+        raise ConfigError(f"--scenario {named}: flies over {USER_MAP_KINDS[_map_kind(raw)]}, and `aerial-loc sitl` "
+                          f"takes no map file; it flies the procedural-city scenarios: {', '.join(city)}")
+    return raw["id"]
 
 
 def _map_kind(raw: dict) -> str:

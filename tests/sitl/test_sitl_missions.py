@@ -116,8 +116,8 @@ class _FlatMap:
 
 def test_scenario_is_checked_before_anything_starts():
     """An old version names the current id (gymnasium's DeprecatedEnv was a traceback); a map-file scenario
-    (RealMap: gym.make(id, path=...)) says that sitl takes no map file and which ids it flies; short names
-    resolve to the id."""
+    (RealMap: gym.make(id, path=...)), an old version of one too, says that sitl takes no map file and which ids
+    it flies; short names resolve to the id."""
     pytest.importorskip("gymnasium")
     assert check_scenario("small") == check_scenario("Small") == "AerialLoc/Small-v2"
     with pytest.raises(ConfigError, match="--scenario: scenario 'AerialLoc/Small-v0' is not registered: this "
@@ -128,7 +128,11 @@ def test_scenario_is_checked_before_anything_starts():
     msg = str(exc.value)
     assert "`aerial-loc sitl` takes no map file; it flies the procedural-city scenarios: " in msg
     flies = msg.rsplit(": ", 1)[1].split(", ")
-    assert {"AerialLoc/Small-v2", "AerialLoc/PaperShadows-v2"} <= set(flies) and "AerialLoc/RealMap-v2" not in flies
+    assert {"AerialLoc/Small-v2", "AerialLoc/PaperShadows-v2"} <= set(flies)
+    assert not {"AerialLoc/RealMap-v2", "AerialLoc/RealPair-v2"} & set(flies)     # both fly over the user's files
+    with pytest.raises(ConfigError, match=r"^--scenario AerialLoc/RealMap-v1 \(now AerialLoc/RealMap-v2\): flies over "
+                                          r"a map file .*takes no map file"):      # not 'use RealMap-v2'
+        check_scenario("AerialLoc/RealMap-v1")
 
 
 def test_map_too_small_for_the_flight_is_refused():
