@@ -75,8 +75,11 @@ MISSIONS = {
 # GPS quality checks (speed accuracy <= 1 m/s, horizontal <= 5 m, hdop) reject an image fix's first frames and its
 # differentiated speed (about 3 m/s accuracy at 22 m/s): with them on, EKF3 often never took the fix again
 # (XKF4.GPS 131, EKF_STATUS_REPORT without an absolute position) and the AHRS flew the loop on DCM
+# EK3_WIND_P_NSE 1 (ArduPilot's most; default 0.2): the wind weakens towards the ground, and on the final EKF3's
+# wind must follow it down while the fix lasts, for the dead reckoning below the camera's range starts from the
+# wind it learned last (docs/mavlink.md, the crosswind touchdown)
 PLANE_FLIGHT = {"EK3_SRC1_VELZ": 0, "RTL_ALTITUDE": 200, "RTL_AUTOLAND": 2, "EK3_GPS_CHECK": 0,
-                "LAND_DISARMDELAY": 5, "SCR_ENABLE": 1}
+                "LAND_DISARMDELAY": 5, "SCR_ENABLE": 1, "EK3_WIND_P_NSE": 1.0}
 # ArduPlane's own failsafes do not act on a lost fix in fixed-wing flight (its EKF failsafe only in VTOL modes;
 # AFS_WP_GPS_LOSS would also fire below the camera's range on every final): the plane runs this Lua script
 # (SCR_ENABLE 1), which loiters where the fix was lost and resumes the mission when it is back
@@ -326,7 +329,8 @@ def fly_mission(scenario: str, agent: str, *, ground_amsl_m: float, vehicle: str
     database = env.unwrapped.database
     scenario_alt_m = float(env.unwrapped.scenario.flight.altitude_m)
     altitude_m = scenario_alt_m if altitude_m is None else altitude_m
-    # the camera gives the agent frames within its own altitude range (follow mode), e.g. template-ncc down to 40 m
+    # the camera gives the agent frames within its own altitude range (follow mode), e.g. template-ncc down to 10 m
+    # on PaperShadows (its fine level)
     camera_min_alt_m = float(make_agent(agent).altitude_range_m(env.unwrapped.briefing)[0])
     check_map_fits(scenario, vehicle, database, leg_m)
     home_xy = None if vehicle == "copter" else (database.width_m / 2.0, PLANE_HOME_Y_M)
