@@ -141,7 +141,7 @@ def registration_curve(run_dir: str | os.PathLike, out_png: str | os.PathLike, *
         ax.plot(ppo["timesteps"], ppo["rmse_m"], "o-", label="pooled RMSE")
         ax.plot(ppo["timesteps"], ppo["median_episode_rmse_m"], "s--", label="median-episode RMSE")
         n = int(ppo["episodes"][0])
-        ax.set_title(f"closed loop on {n} validation episodes (0 = cloned policy)")
+        ax.set_title(f"closed loop, {n} validation episodes (0: cloned)")
     ax.set_xlabel("PPO timesteps")
     ax.set_ylabel("RMSE (m)")
     ax.set_ylim(bottom=0)

@@ -11,13 +11,13 @@ episodes at the preset's full-resolution camera (600 x 400). Validation flies th
    mixture of small offsets, as when tracking, and large ones, as at the start from the 15 m prior), and the
    policy's mean action is regressed on the correction that brings each back to the truth (``-offset``, over
    ``max_correction_m``), mean squared error, Adam. The offsets: ``small_offset_std_m`` per axis (tracking), and a
-   ``large_offset_share`` of them drawn as the prior's error (``prior_std_m``): the regression's answer to an
-   ambiguous surface is the mean correction under that mixture, a small one unless the peak stands out.
+   ``large_offset_share`` of them large (``large_offsets``: uniform over the surface's reach, or as the prior's
+   error): the regression's answer to an ambiguous surface is the mean correction under that mixture.
 2. **PPO** (``fine_tune``): SB3's PPO from the cloned weights on ``RegistrationEnv`` (closed loop: the policy's
    own corrections move the next prediction), reward the error reduction the correction achieved (as the
    local-registration wrapper's ``improvement``), with held-out validation episodes every ``eval_freq`` steps. The
-   critic has its own features extractor and learns alone for ``critic_warmup_timesteps`` (the cloned actor
-   frozen), so that the first updates' advantages come from a fitted value function.
+   critic learns alone for ``critic_warmup_timesteps`` (the cloned actor frozen), so that the first updates'
+   advantages come from a fitted value function.
 
 Both stages are scored on the same validation episodes (closed loop, the RMSE of the estimates); the one with the
 lower RMSE is exported as the shipped ``policy.npz`` (``learning.surface.SurfacePolicy``, NumPy inference).
@@ -82,7 +82,8 @@ class RegistrationRecipe:
     bc_frame_stride: int = field(default=2, metadata=rng(1, 1000, doc="every n-th frame of an episode"))
     n_offsets: int = field(default=6, metadata=rng(1, 256))
     small_offset_std_m: float = field(default=3.0, metadata=rng(0.0, 100.0))
-    large_offset_share: float = field(default=0.25, metadata=rng(0.0, 1.0))
+    large_offset_share: float = field(default=0.4, metadata=rng(0.0, 1.0))
+    large_offsets: str = field(default="uniform", metadata=rng(choices=("uniform", "prior")))
     bc_epochs: int = field(default=30, metadata=rng(0, 10000))
     bc_batch: int = field(default=256, metadata=rng(1, 65536))
     bc_learning_rate: float = field(default=0.002, metadata=rng(0.0, 1.0, lo_open=True))
@@ -97,6 +98,7 @@ class RegistrationRecipe:
     gae_lambda: float = field(default=0.9, metadata=rng(0.0, 1.0))
     clip_range: float = field(default=0.1, metadata=rng(0.0, 10.0, lo_open=True))
     log_std_init: float = field(default=-4.0, metadata=rng(-10.0, 2.0))
+    share_features_extractor: bool = True
     critic_warmup_timesteps: int = field(default=2048, metadata=rng(0, 10**9, doc=(
         "PPO's first timesteps train the value function only (the cloned actor frozen)")))
     reward_scale_m: float = field(default=4.0, metadata=rng(0.01, 1000.0))
@@ -185,12 +187,14 @@ class EpisodeMaker:
 
 
 def _offsets(recipe: RegistrationRecipe, g: np.random.Generator, n: int) -> np.ndarray:
-    """(n, 2) offsets of the prediction from the truth: small (tracking) or the prior's (the start), within the
-    surface's reach."""
+    """(n, 2) offsets of the prediction from the truth: small (tracking) or large (the start, a lost track):
+    uniform over the surface's reach, or as the prior's error (``large_offsets``)."""
     reach = recipe.max_correction_m * 0.95
     large = g.random(n) < recipe.large_offset_share
     out = g.normal(0.0, recipe.small_offset_std_m, (n, 2))
-    out[large] = g.normal(0.0, recipe.prior_std_m, (int(large.sum()), 2))
+    k = int(large.sum())
+    out[large] = g.uniform(-reach, reach, (k, 2)) if recipe.large_offsets == "uniform" \
+        else g.normal(0.0, recipe.prior_std_m, (k, 2))
     return np.clip(out, -reach, reach)
 
 
@@ -313,8 +317,9 @@ def evaluate(policy: Any, recipe: RegistrationRecipe, seeds: list[int], split: s
 
 # ---------------------------------------------------------------------- the SB3 model, cloning, export
 def make_model(recipe: RegistrationRecipe, env: Any) -> Any:
-    """SB3 PPO with ``SurfaceCNN`` as its features extractor and the recipe's hyperparameters. The critic has its
-    own extractor, so that its gradients never move the actor's cloned features."""
+    """SB3 PPO with ``SurfaceCNN`` as its features extractor and the recipe's hyperparameters (with
+    ``share_features_extractor = false`` the critic has its own extractor, whose gradients never move the actor's
+    cloned features)."""
     sb3 = require_extra("stable_baselines3", "rl", "Training the learned registration")
     th = require_extra("torch", "rl", "Training the learned registration")
     from aerial_loc_env.learning.networks import SurfaceCNN
@@ -324,7 +329,7 @@ def make_model(recipe: RegistrationRecipe, env: Any) -> Any:
               "features_extractor_kwargs": {"channels": tuple(r.conv_channels), "kernels": tuple(r.conv_kernels),
                                             "pool": r.pool},
               "net_arch": {"pi": list(r.net_arch), "vf": list(r.net_arch)}, "activation_fn": th.nn.Tanh,
-              "log_std_init": r.log_std_init, "share_features_extractor": False}
+              "log_std_init": r.log_std_init, "share_features_extractor": r.share_features_extractor}
     return sb3.PPO("MlpPolicy", env, policy_kwargs=kwargs, seed=r.seed, device="cpu", n_steps=r.n_steps,
                    batch_size=r.batch_size, n_epochs=r.n_epochs, learning_rate=r.learning_rate, gamma=r.gamma,
                    gae_lambda=r.gae_lambda, clip_range=r.clip_range, ent_coef=0.0, max_grad_norm=0.5, verbose=0)
