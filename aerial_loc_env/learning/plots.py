@@ -98,9 +98,13 @@ def learning_curve(run_dir: str | os.PathLike, out_png: str | os.PathLike, *, wi
     ax.set_ylim(bottom=0)
     ax.legend(fontsize=7, loc="lower right")
     ax.grid(alpha=0.3)
-    fig.suptitle(title or f"learning curves: {run_dir.name}")
+    return _save(plt, fig, title or f"learning curves: {run_dir.name}", out_png, 110)
+
+
+def _save(plt, fig, title: str, out_png: Path, dpi: int) -> Path:
+    fig.suptitle(title)
     out_png.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out_png, dpi=110)
+    fig.savefig(out_png, dpi=dpi)
     plt.close(fig)
     return out_png
 
@@ -147,8 +151,4 @@ def registration_curve(run_dir: str | os.PathLike, out_png: str | os.PathLike, *
     ax.set_ylim(bottom=0)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
-    fig.suptitle(title or f"learned registration: {run_dir.name}")
-    out_png.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out_png, dpi=90)
-    plt.close(fig)
-    return out_png
+    return _save(plt, fig, title or f"learned registration: {run_dir.name}", out_png, 90)

@@ -18,7 +18,6 @@ extractor and policy head it was trained as (``learning.networks.SurfaceCNN``), 
 
 from __future__ import annotations
 
-import hashlib
 import io
 import json
 import zipfile
@@ -31,7 +30,13 @@ import numpy as np
 from aerial_loc_env.config import rng
 from aerial_loc_env.errors import ConfigError
 from aerial_loc_env.estimators.dead_reckoning import DeadReckoningAgent
-from aerial_loc_env.estimators.mcl.learned import DEFAULT_WEIGHTS, LearnedConfig, LearnedModel
+from aerial_loc_env.estimators.mcl.learned import (
+    DEFAULT_WEIGHTS,
+    LearnedConfig,
+    LearnedModel,
+    archive_bytes,
+    read_archive,
+)
 from aerial_loc_env.estimators.protocol import Agent, Estimate, parse_observation, prior_estimate
 from aerial_loc_env.paths import find_model_file
 
@@ -208,15 +213,12 @@ def load_policy(path: str) -> SurfacePolicy:
     """Read and check a policy ``.npz`` (cached by path and content)."""
     file = find_model_file(path, "learned registration: params.policy", "train it with `aerial-loc train "
                            "ppo-learned-registration --out DIR` and point params.policy to DIR/policy.npz")
-    raw = file.read_bytes()
-    key = f"{file}:{hashlib.sha256(raw).hexdigest()[:16]}"
+    raw, _digest, key = archive_bytes(file)
     if key in _POLICIES:
         return _POLICIES[key]
     why = f"learned registration: policy file '{file}'"
     try:
-        with np.load(io.BytesIO(raw), allow_pickle=False) as z:
-            arrays = {name: z[name] for name in z.files}
-        meta = json.loads(str(arrays.pop("meta")))
+        arrays, meta = read_archive(raw)
         if meta.get("format") != POLICY_FORMAT:
             raise ValueError(f"format {meta.get('format')!r}, expected {POLICY_FORMAT}")
         policy = SurfacePolicy(arrays, meta)
