@@ -27,7 +27,8 @@ run: venv
 test: venv
 	$(PY) -m pytest -q
 
-# The developer's loop: the suite without the tests marked slow (statistical, training, long flights).
+# The developer's loop: the suite without the tests marked slow (statistical, training, long flights, the ones
+# that take seconds: fresh interpreters, worker processes, every id or agent, the behaviour digests).
 test-fast: venv
 	$(PY) -m pytest -q -m "not slow" -n 2
 

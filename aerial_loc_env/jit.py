@@ -66,6 +66,11 @@ def _warn_at(func, message: str, category: type[Warning]) -> None:
     warnings.warn_explicit(message, category, code.co_filename, code.co_firstlineno, module=func.__module__)
 
 
+def _in_words(exc: BaseException) -> str:
+    """An exception as ``Type: message`` on one line (pickle's messages may span two): a warning stays one line."""
+    return f"{type(exc).__name__}: {' '.join(str(exc).split())}"
+
+
 def _purge(cache: caching.Cache) -> list[str]:
     """Remove one function's index (.nbi) and data files (.nbc) from its numba cache folder; the names removed."""
     folder = cache.cache_path
@@ -101,7 +106,7 @@ def _load_overload(self, sig, target_context):
     except Exception as exc:        # UnpicklingError, EOFError, ValueError, ... whatever the bytes make pickle raise
         removed = _purge(self)
         _warn_at(self._py_func, f"numba's cache of {_kernel_name(self)} in {self.cache_path} is corrupt "
-                 f"({type(exc).__name__}: {exc}); removed {', '.join(removed) or 'nothing'} and compiling it again",
+                 f"({_in_words(exc)}); removed {', '.join(removed) or 'nothing'} and compiling it again",
                  CacheRebuiltWarning)
         return None
 
@@ -123,7 +128,7 @@ def _save_overload(self, sig, data):
         if self.cache_path not in _unsaved:
             _unsaved.add(self.cache_path)
             _warn_at(self._py_func, f"numba cannot write its cache of {_kernel_name(self)} in {self.cache_path} "
-                     f"({type(first).__name__}: {first}); the kernels are compiled again in each process; free space "
+                     f"({_in_words(first)}); the kernels are compiled again in each process; free space "
                      "there or set NUMBA_CACHE_DIR to a writable folder", CacheLocationWarning)
         return None
 

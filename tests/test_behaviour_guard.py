@@ -99,6 +99,7 @@ def test_every_agent_has_a_digest():
     assert sorted(_expected()["agents"]) == sorted(agent_names())
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", sorted(json.loads(DIGESTS.read_text())["agents"]) if DIGESTS.exists() else [])
 def test_agent_estimates_unchanged(name):
     assert agent_digest(name) == _expected()["agents"][name], (

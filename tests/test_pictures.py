@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import pytest
 from shared_helpers import crop_png
 
 
@@ -21,6 +22,7 @@ def test_pictures_take_crs_and_gsd(manila, tmp_path):
     assert rc == 0 and (tmp_path / "b" / "overview.png").is_file()
 
 
+@pytest.mark.slow
 def test_realism_pictures_fly_over_the_given_map(tmp_path, capsys):
     """``--realism --map FILE`` used to ignore the map and draw the procedural city: it now flies that map, with the
     kinds of gap that apply to it (no height model, no land cover: acquisition, camera, both) and names the others."""

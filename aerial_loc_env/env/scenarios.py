@@ -345,6 +345,15 @@ def _short_name(sid: str) -> str:
     return sid.split("/", 1)[1].rsplit("-v", 1)[0]
 
 
+def registered_version(scenario: str) -> str | None:
+    """The registered id of the scenario that ``scenario`` names in another version (``AerialLoc/Small-v2`` for
+    ``AerialLoc/Small-v0``); None when ``scenario`` is no versioned id of a registered name."""
+    if not (scenario.startswith(f"{NAMESPACE}/") and "-v" in scenario):
+        return None
+    asked = _short_name(scenario)
+    return next((sid for sid in specs() if _short_name(sid) == asked), None)
+
+
 def resolve(scenario: str) -> tuple[Path, dict]:
     """Find a spec by full id (``AerialLoc/Small-v2``), short name (``Small``) or file stem (``small``)."""
     table = specs()
@@ -353,13 +362,11 @@ def resolve(scenario: str) -> tuple[Path, dict]:
     for sid, (path, raw) in table.items():
         if scenario in (_short_name(sid), path.stem):
             return path, raw
-    if scenario.startswith(f"{NAMESPACE}/") and "-v" in scenario:
-        asked = _short_name(scenario)
-        for sid in table:
-            if _short_name(sid) == asked:
-                raise ConfigError(f"scenario {scenario!r} is not registered: this version of the package has {sid!r} "
-                                  "(an id's version changes when its frames change for the same seed; see "
-                                  "AerialLocEnv's Version History). Use that id; results of two versions differ.")
+    sid = registered_version(scenario)
+    if sid is not None:
+        raise ConfigError(f"scenario {scenario!r} is not registered: this version of the package has {sid!r} "
+                          "(an id's version changes when its frames change for the same seed; see "
+                          "AerialLocEnv's Version History). Use that id; results of two versions differ.")
     for bad in broken_specs():
         names = {bad.path.stem, bad.id}
         if bad.id and "/" in bad.id:

@@ -58,6 +58,8 @@ class WindowMatchingParams:
     regate_after: int = field(default=4, metadata=rng(1, 10000, doc="accept a gated fix after at least this "
                                                                      "many consecutive gated frames that agree "
                                                                      "over a footprint flown (re-localize)"))
+    fine_level: bool = False        # below the working level's lowest altitude, match on the map's own pixels
+    #                                 while tracking (a map held whole, finer than the working level)
 
 
 class Fix(NamedTuple):
@@ -109,6 +111,9 @@ class WindowMatchingAgent(Agent):
         self.world_to_level = to_level @ np.vstack([world_to_map_affine(m), [0, 0, 1.0]])
         self.level_to_world = invert_affine(self.world_to_level[:2])
         self.level_gsd = (m.gsd_x_m * sx, m.gsd_y_m * sy)
+        self._coarse = self._level_state()
+        self._fine = self._fine_state(m) if self.fine_level_floor_m(briefing) is not None else None
+        self._on_fine = False
         self.dr = DeadReckoningAgent()
         self.has_fix = False
         # consecutive gated matches: (match - prediction x, y, prediction x, y)
@@ -134,17 +139,65 @@ class WindowMatchingAgent(Agent):
 
     def altitude_range_m(self, briefing: Briefing) -> tuple[float, float]:
         """Down to where the footprint spans ``MIN_PX_ACROSS`` working pixels (the warp follows the measured
-        altitude; only the template shrinks); up to the default (the search window is sized at the nominal)."""
-        work_gsd_m = self.params.work_gsd_m or self.auto_work_gsd_m(briefing)
-        per_m = min(briefing.camera.footprint_m(1.0))         # footprint short side per metre of altitude
+        altitude; only the template shrinks), or with ``fine_level`` as many of the map's own pixels; up to the
+        default (the search window is sized at the nominal)."""
         hi = default_altitude_range_m(briefing)[1]
-        return min(hi, self.MIN_PX_ACROSS * work_gsd_m / per_m), hi
+        fine = self.fine_level_floor_m(briefing)
+        return min(hi, self.working_floor_m(briefing) if fine is None else fine), hi
+
+    def working_floor_m(self, briefing: Briefing) -> float:
+        """The lowest altitude the working level matches at: its footprint spans ``MIN_PX_ACROSS`` pixels."""
+        work_gsd_m = self.params.work_gsd_m or self.auto_work_gsd_m(briefing)
+        return self.MIN_PX_ACROSS * work_gsd_m / min(briefing.camera.footprint_m(1.0))
+
+    def fine_level_floor_m(self, briefing: Briefing) -> float | None:
+        """With ``fine_level``, on a map held whole whose pixels are finer than the working level's: the lowest
+        altitude matched on the map's own pixels (its footprint spans ``MIN_PX_ACROSS`` of them); else None.
+        The fine level serves a landing's last metres: it is used below ``working_floor_m`` and only while
+        tracking (a first fix needs the working level's larger footprint: a small template in a prior's
+        window finds false peaks)."""
+        m = briefing.orthomap
+        map_gsd_m = min(m.gsd_x_m, m.gsd_y_m)
+        work_gsd_m = self.params.work_gsd_m or self.auto_work_gsd_m(briefing)
+        if not self.params.fine_level or read_by_window(m) or map_gsd_m >= work_gsd_m:
+            return None
+        return self.MIN_PX_ACROSS * map_gsd_m / min(briefing.camera.footprint_m(1.0))
+
+    _LEVEL_KEYS = ("level", "level_nodata", "map_to_level", "world_to_level", "level_to_world", "level_gsd")
+
+    def _level_state(self) -> dict:
+        return {k: getattr(self, k) for k in self._LEVEL_KEYS}
+
+    def _fine_state(self, m: Any) -> dict:
+        """The map's own pixel grid as a level (its gray image made window by window in ``window``)."""
+        to_map = np.vstack([world_to_map_affine(m), [0, 0, 1.0]])
+        nodata = None if m.nodata is None or not np.any(m.nodata) else np.asarray(m.nodata, bool)
+        return {"level": np.zeros((0, 0), np.float32), "level_nodata": nodata,
+                "map_to_level": np.eye(3), "world_to_level": to_map, "level_to_world": invert_affine(to_map[:2]),
+                "level_gsd": (m.gsd_x_m, m.gsd_y_m)}
+
+    def _select_level(self, altitude_m: float) -> bool:
+        """Match this frame on the fine level (below the working floor, while tracking) or the working one;
+        False when the frame is below the working floor and the agent has no fix yet (no match)."""
+        fine = self._fine is not None and altitude_m < self.working_floor_m(self.briefing)
+        if fine and not self.has_fix:
+            return False
+        if fine != self._on_fine:
+            if not self._on_fine:
+                self._coarse = self._level_state()       # (a map read by window changes its level)
+            for k, v in (self._fine if fine else self._coarse).items():
+                setattr(self, k, v)
+            self._on_fine = fine
+        return True
 
     def step(self, observation: Mapping[str, np.ndarray], info: Mapping[str, Any] | None = None) -> Estimate:
         if self.dr is None:
             raise ConfigError(f"{type(self).__name__}.step called before reset(briefing, seed=...)")
         pred = self.dr.step(observation)
         obs = parse_observation(observation, self.briefing, self.altitude_range, type(self).__name__)
+        if not self._select_level(obs.altitude_m):
+            return self._dead_reckoning(pred, f"no fix: below {self.working_floor_m(self.briefing):.0f} m the "
+                                              "agent matches only while tracking")
         if self.has_fix or self.briefing.prior.kind == "gaussian" or not self.params.global_search:
             prior = self.briefing.prior
             radius = self.params.search_radius_m
@@ -174,9 +227,17 @@ class WindowMatchingAgent(Agent):
                                                   f" the {self.params.gate_sigma:g}-sigma gate ({limit:.0f} m)")
         self.gated_offsets = []
         self.has_fix = True
-        self.dr.anchor((fix.x_m, fix.y_m), np.eye(2) * self.params.fix_std_m ** 2)
+        self.dr.anchor((fix.x_m, fix.y_m), np.eye(2) * self.fix_std_now_m() ** 2)
         return Estimate(fix.x_m, fix.y_m, yaw_rad=obs.yaw_rad, cov_xy_m2=self.dr.cov.copy(), status="ok",
                         extras={"match": True, **fix.extras})
+
+    def fix_std_now_m(self) -> float:
+        """The 1-sigma this frame's fix is reported with: ``fix_std_m`` on the working level, scaled down by the
+        pixel on the fine level (a fix is as sharp as the pixels it is matched on), so that an autopilot fusing the
+        fix weighs a landing's last fixes as they deserve."""
+        if not self._on_fine:
+            return self.params.fix_std_m
+        return self.params.fix_std_m * max(self.level_gsd) / max(self._coarse["level_gsd"])
 
     def _gated_agree(self, altitude_m: float) -> bool:
         """Re-localize only after a fix (before it, a tracking prior is the authority) on ``regate_after``
@@ -206,8 +267,10 @@ class WindowMatchingAgent(Agent):
         box = self._window_box(center_xy_m, radius_m, obs)
         if box is None:
             return None
-        self._cover(box, obs.altitude_m)
         u0, v0, u1, v1 = box
+        if self._on_fine:                   # the map's own pixels, made gray for this window only
+            return Window(to_gray(np.asarray(self.orthomap.rgb[v0:v1, u0:u1])), u0, v0)
+        self._cover(box, obs.altitude_m)
         return Window(self.level[v0:v1, u0:u1], u0, v0)
 
     def _window_box(self, center_xy_m: tuple[float, float], radius_m: float,
@@ -216,7 +279,7 @@ class WindowMatchingAgent(Agent):
         half_m = radius_m + self.footprint_half_diagonal_m(obs.altitude_m)
         cu, cv = apply_affine(self.world_to_level[:2], np.array([center_xy_m]))[0]
         hu, hv = half_m / self.level_gsd[0], half_m / self.level_gsd[1]
-        lh, lw = self.level.shape
+        lh, lw = (self.orthomap.height_px, self.orthomap.width_px) if self._on_fine else self.level.shape
         u0, u1 = max(0, int(math.floor(cu - hu))), min(lw, int(math.ceil(cu + hu)) + 1)
         v0, v1 = max(0, int(math.floor(cv - hv))), min(lh, int(math.ceil(cv + hv)) + 1)
         if u1 - u0 < 2 or v1 - v0 < 2:

@@ -254,6 +254,14 @@ class ScenarioRun:
         started = False
         last_frame: Step | None = None
         min_alt, max_alt = self.camera_altitude_range_m()
+        # the first frame's costs (the map's image made, the whole-map shadows swept, the agent's levels built)
+        # paid before the stream starts: the first frame comes when the vehicle enters the camera's range, and a
+        # frame seconds late leaves the vehicle that far from where the agent's dead reckoning (one camera period
+        # per frame) puts it, beyond its search window
+        u = self.env.unwrapped
+        flight.reset(ExternalPose(u.orthomap.width_m / 2.0, u.orthomap.height_m / 2.0, 0.0,
+                                  float(u.scenario.flight.altitude_m), 0.0), seed=self.seed)
+        self.agent.reset(flight.briefing, seed=self.seed)
 
         def lost(pose: ExternalPose, altitude_m: float, source: str = "lost") -> Step:
             """No fix: the last frame's estimate flagged lost (a held position sent as valid told the EKF the

@@ -14,7 +14,6 @@ memory, which a child started by ``subprocess`` shares until it executes the int
 from __future__ import annotations
 
 import json
-import math
 import os
 import subprocess
 import sys
@@ -56,9 +55,9 @@ class SyntheticMap:
 
     @property
     def georef(self):
-        from aerial_loc_env.world.maps.geo import AffineGeoref
+        from aerial_loc_env.world.maps.geo import AffineGeoref, mercator_scale_factor
 
-        scale = 1.0 / math.cos(math.radians(47.37))     # web mercator metres per ground metre there
+        scale = float(mercator_scale_factor(47.37))     # web mercator metres per ground metre there
         return AffineGeoref.north_up("EPSG:3857", 950_000.0, 6_000_000.0, self.gsd_m * scale, self.gsd_m * scale)
 
     def read(self, u0_px: int, v0_px: int, width_px: int, height_px: int) -> tuple[np.ndarray, np.ndarray | None]:

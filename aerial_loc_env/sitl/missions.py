@@ -75,8 +75,11 @@ MISSIONS = {
 # GPS quality checks (speed accuracy <= 1 m/s, horizontal <= 5 m, hdop) reject an image fix's first frames and its
 # differentiated speed (about 3 m/s accuracy at 22 m/s): with them on, EKF3 often never took the fix again
 # (XKF4.GPS 131, EKF_STATUS_REPORT without an absolute position) and the AHRS flew the loop on DCM
+# EK3_WIND_P_NSE 1 (ArduPilot's most; default 0.2): the wind weakens towards the ground, and on the final EKF3's
+# wind must follow it down while the fix lasts, for the dead reckoning below the camera's range starts from the
+# wind it learned last (docs/mavlink.md, the crosswind touchdown)
 PLANE_FLIGHT = {"EK3_SRC1_VELZ": 0, "RTL_ALTITUDE": 200, "RTL_AUTOLAND": 2, "EK3_GPS_CHECK": 0,
-                "LAND_DISARMDELAY": 5, "SCR_ENABLE": 1}
+                "LAND_DISARMDELAY": 5, "SCR_ENABLE": 1, "EK3_WIND_P_NSE": 1.0}
 # ArduPlane's own failsafes do not act on a lost fix in fixed-wing flight (its EKF failsafe only in VTOL modes;
 # AFS_WP_GPS_LOSS would also fire below the camera's range on every final): the plane runs this Lua script
 # (SCR_ENABLE 1), which loiters where the fix was lost and resumes the mission when it is back
@@ -124,23 +127,31 @@ EDGE_M = 100.0
 MISSION_CAMERA_HZ = 5.0
 
 
+#: the map kinds that fly over files the user gives gym.make, which `aerial-loc sitl` has no option for
+USER_MAP_KINDS = {"file": "a map file given to gym.make (path=...)",
+                  "pair": "two image files given to gym.make (path_a=..., path_b=...)"}
+
+
 def check_scenario(scenario: str) -> str:
     """The registered id of ``scenario`` (id, short name or spec stem) if ``aerial-loc sitl`` can fly it, else
-    a clear error: an old version names the current id, a map-file scenario says which ids can be flown."""
+    a clear error: an old version names the current id; a scenario over the user's files (an old version's too)
+    says which ids can be flown."""
     import aerial_loc_env.env  # noqa: F401  (registers the scenarios)
-    from aerial_loc_env.env.scenarios import resolve, specs
+    from aerial_loc_env.env.scenarios import registered_version, resolve, specs
 
     try:
         _path, raw = resolve(scenario)
+        named = raw["id"]
     except ConfigError as exc:
-        raise ConfigError(f"--scenario: {exc}") from exc
-    sid = raw["id"]
-    if _map_kind(raw) == "file":
-        city = [s for s, (_p, r) in specs().items() if _map_kind(r) != "file"]
-        raise ConfigError(f"--scenario {sid}: flies over a map file given to gym.make (path=...), and "
-                          f"`aerial-loc sitl` takes no map file; it flies the procedural-city scenarios: "
-                          f"{', '.join(city)}")
-    return sid
+        current = registered_version(scenario)      # an old version: its current id is no use if sitl cannot fly it
+        if current is None or _map_kind(specs()[current][1]) not in USER_MAP_KINDS:
+            raise ConfigError(f"--scenario: {exc}") from exc
+        raw, named = specs()[current][1], f"{scenario} (now {current})"
+    if _map_kind(raw) in USER_MAP_KINDS:
+        city = [s for s, (_p, r) in specs().items() if _map_kind(r) not in USER_MAP_KINDS]
+        raise ConfigError(f"--scenario {named}: flies over {USER_MAP_KINDS[_map_kind(raw)]}, and `aerial-loc sitl` "
+                          f"takes no map file; it flies the procedural-city scenarios: {', '.join(city)}")
+    return raw["id"]
 
 
 def _map_kind(raw: dict) -> str:
@@ -318,7 +329,8 @@ def fly_mission(scenario: str, agent: str, *, ground_amsl_m: float, vehicle: str
     database = env.unwrapped.database
     scenario_alt_m = float(env.unwrapped.scenario.flight.altitude_m)
     altitude_m = scenario_alt_m if altitude_m is None else altitude_m
-    # the camera gives the agent frames within its own altitude range (follow mode), e.g. template-ncc down to 40 m
+    # the camera gives the agent frames within its own altitude range (follow mode), e.g. template-ncc down to 10 m
+    # on PaperShadows (its fine level)
     camera_min_alt_m = float(make_agent(agent).altitude_range_m(env.unwrapped.briefing)[0])
     check_map_fits(scenario, vehicle, database, leg_m)
     home_xy = None if vehicle == "copter" else (database.width_m / 2.0, PLANE_HOME_Y_M)

@@ -126,8 +126,10 @@ def touchdown(truth: list, ekf: list, steps: list, land_at: tuple[float, float],
     """Where and how the plane came down, on SITL's clock: the first truth sample of the landing sequence
     (from ``t_landing``) within 0.5 m of the ground height (the truth's median before take-off), the distance
     from there to the NAV_LAND point (along the final, south, and across it), the EKF's error at that moment and
-    the horizontal accuracy it claimed (sqrt of its north + east position variances, ``ekf_var_m2``: (t, m^2)),
-    where the vehicle stopped; the last camera frame before it (altitude, seconds of dead reckoning)."""
+    the horizontal accuracy it claimed on the dead reckoning before it (the largest sqrt of its north + east
+    position variances, ``ekf_var_m2``: (t, m^2), from the last camera frame to touchdown: EKF3 shrinks them as
+    it detects the landing, around touchdown), where the vehicle stopped; the last camera frame before it
+    (altitude, seconds of dead reckoning)."""
     if not truth or t_landing is None:
         return {}
     ground = float(np.median([r[3] for r in truth[:50]]))
@@ -139,11 +141,12 @@ def touchdown(truth: list, ekf: list, steps: list, land_at: tuple[float, float],
     at_down = [e for t, e in timed_horizontal_errors(truth, ekf) if abs(t - t_down) <= 0.5]
     rest = truth[-1]
     cam = [s for s in steps if s[1] == "camera" and s[0] <= t_down]
-    var = [v for t, v in (ekf_var_m2 or []) if t <= t_down]
+    t_fix = cam[-1][0] if cam else -math.inf
+    var = [v for t, v in (ekf_var_m2 or []) if t_fix <= t <= t_down]
     return {"landed": True, "t_s": t_down, "distance_m": math.hypot(north, east),
             "along_m": -north, "cross_m": east,     # the final runs south: along = beyond the point, cross = east
             "ekf_error_m": float(at_down[len(at_down) // 2]) if at_down else math.nan,
-            "ekf_sigma_m": math.sqrt(max(0.0, var[-1])) if var else math.nan,
+            "ekf_sigma_m": math.sqrt(max(0.0, max(var))) if var else math.nan,
             "rest_from_land_point_m": float(distance_m(land_at[0], land_at[1], rest[1], rest[2])),
             "last_fix_alt_m": float(cam[-1][5]) if cam else math.nan,
             "dead_reckoning_s": t_down - cam[-1][0] if cam else math.nan}

@@ -161,6 +161,7 @@ def _alive(pid: int) -> bool:
     return state[state.rindex(")") + 2] != "Z"
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not LINUX, reason="finds the worker processes through /proc (Linux)")
 def test_workers_exit_when_the_run_is_killed(tmp_path):
     (tmp_path / "slowmod.py").write_text(SLOW_AGENT)

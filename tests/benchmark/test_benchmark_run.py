@@ -96,6 +96,7 @@ def test_same_seed_same_rows_and_rows_rerun(tmp_path):
     assert _comparable([again]) == _comparable([a[0]])
 
 
+@pytest.mark.slow
 def test_parallel_workers_give_the_same_rows_and_resume_skips_done(tmp_path):
     grid = _tiny_grid(seeds=3)
     serial = run_grid(grid, str(tmp_path / "serial"), workers=1, progress=False)
@@ -126,6 +127,7 @@ def test_grid_growth_runs_only_the_missing_trials(tmp_path):
     assert (Path(out) / "trials.jsonl").read_bytes().startswith(before)  # nothing on disk rewritten
 
 
+@pytest.mark.slow
 def test_kill_mid_run_then_resume_loses_nothing(tmp_path):
     spec = _write_experiment(tmp_path / "tinyexp.toml", seeds=8, duration_s=6.0, n_particles=300)
     out = tmp_path / "killed"

@@ -85,6 +85,7 @@ def test_shipped_experiments_read_relative_map_paths_from_the_working_directory(
     assert [p for p in paths if p] == [str(tmp_path / "../shared/data/manila_pasig_river.tif")]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", available_experiments())
 def test_every_shipped_experiment_builds_its_scenarios_from_the_repository_root(name, monkeypatch):
     """What `aerial-loc bench NAME` checks before any trial: each scenario's env builds (spec, overrides, map)."""

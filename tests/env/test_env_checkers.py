@@ -21,6 +21,7 @@ USER_MAPS = ("AerialLoc/RealMap-v2", "AerialLoc/RealPair-v2")
 IDS = [sid for sid in specs() if sid not in USER_MAPS]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("sid", IDS)
 def test_checkers_pass_without_warnings(sid):
     check_env_silently(sid)
@@ -64,6 +65,7 @@ def _kwargs(sid: str, shared: bool) -> dict:
 ALL_IDS = sorted(specs())
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("sid", ALL_IDS)
 def test_same_seed_same_rollout_and_pickle_for_every_id(sid):
     kw = _kwargs(sid, shared=True)
@@ -91,6 +93,7 @@ def test_same_seed_same_rollout_and_pickle_for_every_id(sid):
     np.testing.assert_array_equal(a[0]["image"], b[0]["image"])
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("sid", ALL_IDS)
 def test_async_vector_env_for_every_id(sid):
     kw = _kwargs(sid, shared=True)

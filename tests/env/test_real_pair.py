@@ -68,6 +68,7 @@ def test_missing_paths_are_a_clear_error():
         gym.make(SID, path_a="A/x.png")
 
 
+@pytest.mark.slow
 def test_a_missing_image_a_misregistered_pair_and_an_epoch_are_refused(tmp_path, synthetic):
     with pytest.raises(MapError, match=r"map\.path_b '.*nowhere\.png' \(epoch B, the camera's ground\) does not "
                                        r"exist"):

@@ -131,6 +131,13 @@ def test_an_older_version_of_an_id_names_the_registered_one(old):
         gym.make(old)
 
 
+def test_registered_version_names_the_current_id_of_an_old_one():
+    assert scenarios.registered_version("AerialLoc/RealMap-v1") == "AerialLoc/RealMap-v2"
+    assert scenarios.registered_version("AerialLoc/Small-v2") == "AerialLoc/Small-v2"
+    assert scenarios.registered_version("AerialLoc/Nowhere-v1") is None
+    assert scenarios.registered_version("Small") is None
+
+
 def test_section_given_a_non_table_says_so():
     with pytest.raises(ConfigError, match=r"flight = 5: 'flight' is a section of fields, not one value") as err:
         scenarios.split_overrides({"flight": 5})

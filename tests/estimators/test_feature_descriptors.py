@@ -28,6 +28,7 @@ def test_opencv_is_the_contrib_build_with_every_trained_descriptor():
         assert hasattr(cv2.xfeatures2d, factory), name
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", sorted(DESCRIPTORS))
 def test_each_descriptor_describes_the_detectors_keypoints(name):
     rng = np.random.default_rng(0)

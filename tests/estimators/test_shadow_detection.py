@@ -247,6 +247,7 @@ def test_compiled_opening_and_closing_are_opencvs(radii):
         np.testing.assert_array_equal(binary, mask)          # the input is left as it was
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("index", ["c3_luminance", "c3", "luminance", "tsai"])
 @pytest.mark.parametrize("scale", [0.25, 0.7])
 def test_detector_kernels_keep_the_masks_of_the_numpy_path(index, scale):

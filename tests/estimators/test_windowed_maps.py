@@ -84,6 +84,7 @@ def _reads(agent) -> int:
     return policy.reads
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["mcl-shadow-aware", "template-ncc"])
 def test_the_same_estimates_as_on_the_map_loaded_whole_bit_for_bit(episode, name):
     frames, whole, windowed = episode
@@ -97,6 +98,7 @@ def test_the_same_estimates_as_on_the_map_loaded_whole_bit_for_bit(episode, name
 
 @pytest.mark.parametrize("name", ["mcl-ncc", "mcl-mi", "mcl-abbrief", "mcl-shadow-aware-map", "mcl-shadow-weighted",
                                   "features-orb"])
+@pytest.mark.slow
 def test_every_database_layer_equals_the_whole_maps(episode, name):
     """The models that downsample the database (patch levels, the map-ratio detector's luma, the feature
     matcher's working level): the same estimates over the first 100 frames."""
@@ -116,6 +118,7 @@ SHIPPED_NOT_RUN_HERE = {
 }
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", [n for n in spec_names() if n not in SHIPPED_NOT_RUN_HERE])
 def test_every_shipped_agent_runs_on_a_map_read_by_window(episode, name):
     frames, _, windowed = episode

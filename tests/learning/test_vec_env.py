@@ -39,6 +39,7 @@ def _without_episode_time(info: dict) -> dict:
     return {**info, "episode": {k: v for k, v in info["episode"].items() if k != "t"}}
 
 
+@pytest.mark.slow
 def test_shard_vec_env_steps_as_sb3s_vec_envs_across_episode_ends() -> None:
     ours, ref = ShardVecEnv(_fns(3), processes=2), DummyVecEnv(_fns(3))
     try:

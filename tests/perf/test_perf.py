@@ -88,6 +88,7 @@ def test_wall_clock_rows_and_their_rate_over_a_baseline(monkeypatch):
     assert cpu["median_s"] == pytest.approx(0.001) and with_baseline(cpu, rows)["vs_baseline"] is None
 
 
+@pytest.mark.slow
 def test_the_header_names_the_code_the_kernels_are_compiled_for(tmp_path):
     """``make bench``'s header says which instructions the kernels use (``sysinfo.isa``: the target CPU, its vector
     sets, the CPU-specific paths), and its JSON keeps it: AVX2 and AVX-512 figures are told apart."""

@@ -255,6 +255,7 @@ def test_flat_ground_keeps_the_affine_map_coordinates_and_the_roof_moves():
 
 @pytest.mark.parametrize(("tilt_rad", "size"), [((0.0, 0.0), (600, 400)), ((0.004, -0.003), (600, 400)),
                                                  ((0.004, -0.003), (301, 203))])   # partial 4 x 4 blocks
+@pytest.mark.slow
 def test_visible_point_is_the_first_hit_of_a_fine_ray_cast_away_from_edges(tilt_rad, size):
     """Against a brute-force ray cast (every ray probed every 10 cm from the top down: its point within 0.25 px):
     the coarse march (one ray per 4 x 4 block, 10 heights) plus the fixed-point steps give each non-facade pixel

@@ -27,6 +27,11 @@ CASES = {
     "old version": (["--scenario", "AerialLoc/Small-v0"], "this version of the package has 'AerialLoc/Small-v2'"),
     "map file": (["--scenario", "AerialLoc/RealMap-v2"], "`aerial-loc sitl` takes no map file; it flies the "
                                                           "procedural-city scenarios: AerialLoc/"),
+    "pair of files": (["--scenario", "AerialLoc/RealPair-v2"], "--scenario AerialLoc/RealPair-v2: flies over two "
+                      "image files given to gym.make (path_a=..., path_b=...), and `aerial-loc sitl` takes no map"),
+    "old map file": (["--scenario", "AerialLoc/RealMap-v1"], "--scenario AerialLoc/RealMap-v1 (now "
+                     "AerialLoc/RealMap-v2): flies over a map file given to gym.make (path=...), and `aerial-loc sitl` "
+                     "takes no map file"),
     "plane on a small map": (["--vehicle", "plane", "--scenario", "AerialLoc/Small-v2"],
                              "its map is 400 x 400 m, and the plane's flight"),
     "plane external-nav": (["--vehicle", "plane", "--mission", "external-nav"],

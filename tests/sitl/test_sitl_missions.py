@@ -116,8 +116,8 @@ class _FlatMap:
 
 def test_scenario_is_checked_before_anything_starts():
     """An old version names the current id (gymnasium's DeprecatedEnv was a traceback); a map-file scenario
-    (RealMap: gym.make(id, path=...)) says that sitl takes no map file and which ids it flies; short names
-    resolve to the id."""
+    (RealMap: gym.make(id, path=...)), an old version of one too, says that sitl takes no map file and which ids
+    it flies; short names resolve to the id."""
     pytest.importorskip("gymnasium")
     assert check_scenario("small") == check_scenario("Small") == "AerialLoc/Small-v2"
     with pytest.raises(ConfigError, match="--scenario: scenario 'AerialLoc/Small-v0' is not registered: this "
@@ -128,7 +128,11 @@ def test_scenario_is_checked_before_anything_starts():
     msg = str(exc.value)
     assert "`aerial-loc sitl` takes no map file; it flies the procedural-city scenarios: " in msg
     flies = msg.rsplit(": ", 1)[1].split(", ")
-    assert {"AerialLoc/Small-v2", "AerialLoc/PaperShadows-v2"} <= set(flies) and "AerialLoc/RealMap-v2" not in flies
+    assert {"AerialLoc/Small-v2", "AerialLoc/PaperShadows-v2"} <= set(flies)
+    assert not {"AerialLoc/RealMap-v2", "AerialLoc/RealPair-v2"} & set(flies)     # both fly over the user's files
+    with pytest.raises(ConfigError, match=r"^--scenario AerialLoc/RealMap-v1 \(now AerialLoc/RealMap-v2\): flies over "
+                                          r"a map file .*takes no map file"):      # not 'use RealMap-v2'
+        check_scenario("AerialLoc/RealMap-v1")
 
 
 def test_map_too_small_for_the_flight_is_refused():
@@ -232,23 +236,62 @@ def test_copter_mission_on_the_vision_fix(mission_sitl):
 
 
 def test_template_matching_estimates_down_to_its_smallest_template():
-    """template-ncc's altitudes: down to where the footprint's short side spans MIN_PX_ACROSS working pixels
-    (PaperShadows: 100 m footprint at 200 m, 1 m pixels: 40 m), up to twice the nominal; a frame outside is a
-    clear error naming the range; agents built for the nominal altitude (MCL) keep a factor 2 either way."""
+    """template-ncc's altitudes: down to where the footprint's short side spans MIN_PX_ACROSS pixels of the map's
+    own grid (its fine level, PaperShadows' 0.25 m pixels: 10 m; without it, 1 m working pixels: 40 m), up to
+    twice the nominal; a frame outside is a clear error naming the range; agents built for the nominal altitude
+    (MCL) keep a factor 2 either way."""
     gym = pytest.importorskip("gymnasium")
     import aerial_loc_env.env  # noqa: F401
     from aerial_loc_env.estimators.registry import make_agent
+    from aerial_loc_env.estimators.template_matching import TemplateMatchingAgent, TemplateMatchingParams
 
     env = gym.make("AerialLoc/PaperShadows-v2")
     obs, _ = env.reset(seed=0)
     briefing = env.unwrapped.briefing
     agent = make_agent("template-ncc")
-    assert agent.altitude_range_m(briefing) == pytest.approx((40.0, 400.0))
+    assert agent.altitude_range_m(briefing) == pytest.approx((10.0, 400.0))
+    coarse = TemplateMatchingAgent(TemplateMatchingParams(fine_level=False))
+    assert coarse.altitude_range_m(briefing) == pytest.approx((40.0, 400.0))
     assert make_agent("mcl-shadow-aware").altitude_range_m(briefing) == pytest.approx((100.0, 400.0))
     agent.reset(briefing, seed=0)
     agent.step({**obs, "altitude": np.array([45.0], np.float32)})           # in range: estimates
-    with pytest.raises(ConfigError, match=r"35.0 m is outside the 40.0-400.0 m"):
-        agent.step({**obs, "altitude": np.array([35.0], np.float32)})
+    with pytest.raises(ConfigError, match=r"8.0 m is outside the 10.0-400.0 m"):
+        agent.step({**obs, "altitude": np.array([8.0], np.float32)})
+    env.close()
+
+
+def test_template_matching_fine_level_tracks_a_final_below_the_working_floor():
+    """A plane's final on PaperShadows-v2 (south at 22 m/s, crabbing 13 deg, 5 Hz, 60 m down to 12 m): the fine
+    level (the map's 0.25 m pixels) keeps fixing below the working level's 40 m, each fix within a working
+    pixel (1 m) of the truth and reported with fix_std_m scaled to the finer pixel (3 m x 0.25 / 1); a first
+    frame below 40 m is not matched (no first fix from a small template)."""
+    gym = pytest.importorskip("gymnasium")
+    import aerial_loc_env.env  # noqa: F401
+    from aerial_loc_env.env.external import ExternalFlight, ExternalPose
+    from aerial_loc_env.estimators.registry import make_agent
+
+    env = gym.make("AerialLoc/PaperShadows-v2", flight={"rate_hz": 5.0})
+    flight, agent = ExternalFlight(env), make_agent("template-ncc")
+    yaw = -math.pi / 2 + math.radians(13.0)
+    obs, _ = flight.reset(ExternalPose(600.0, 700.0, yaw, 30.0, 0.0), seed=0)
+    agent.reset(flight.briefing, seed=0)
+    est = agent.step(obs)
+    assert est.status == "dead_reckoning" and "only while tracking" in est.extras["reason"], est
+    n = 100                                       # 440 m in 20 s
+    poses = [ExternalPose(600.0, 900.0 - 4.4 * i, yaw, 60.0 - 48.0 * i / n, 0.2 * i) for i in range(n)]
+    obs, _ = flight.reset(poses[0], seed=0)
+    agent.reset(flight.briefing, seed=0)
+    low = []                                      # (fix, error m, reported sigma m) below the working floor
+    for i, pose in enumerate(poses):
+        if i:
+            obs, _ = flight.observe(pose)
+        est = agent.step(obs)
+        if float(obs["altitude"][0]) < 40.0:
+            low.append((est.status == "ok", math.hypot(est.x_m - pose.x_m, est.y_m - pose.y_m),
+                        math.sqrt(float(np.max(np.linalg.eigvalsh(est.cov_xy_m2))))))
+    fixes = [e for ok, e, _ in low if ok]
+    assert len(fixes) >= 10 and max(fixes) < 1.0, (len(fixes), fixes)
+    assert all(sigma == pytest.approx(0.75) for ok, _, sigma in low if ok)
     env.close()
 
 
@@ -313,17 +356,18 @@ def _plane_loop(r: dict, s: dict) -> list[str]:
 def _plane_loop_and_landing(r: dict, s: dict) -> None:
     """What both plane missions must show: the loop on the established vision fix, the landing, touchdown.
 
-    The camera gives frames from the agent's lowest altitude (template-ncc on PaperShadows-v2: 40 m); the
-    take-off climbs on to 100 m and the first leg climbs out to the loop's 200 m (about 40 s in all): the agent's
-    acquisition from the scenario's 15 m prior (seed 0 puts it 20.5 m off, and before a first fix a match within 3
-    prior sigmas is taken, false ones too: its first estimates were up to 42-49 m off, and the EKF carried 13 m
-    of that into the first leg) happens there. The loop (from its first corner, at 200 m, to DO_LAND_START) is
+    The camera gives frames from the agent's lowest altitude (template-ncc on PaperShadows-v2: 10 m, its fine
+    level; a first fix only from the working level's 40 m); the take-off climbs on to 100 m and the first leg
+    climbs out to the loop's 200 m (about 40 s in all): the agent's acquisition from the scenario's 15 m prior
+    (seed 0 puts it 20.5 m off, and before a first fix a match within 3 prior sigmas is taken, false ones too:
+    its first estimates were up to 42-49 m off, and the EKF carried 13 m of that into the first leg) happens
+    there. The loop (from its first corner, at 200 m, to DO_LAND_START) is
     tracking, and its bound is the copter's: the agent's fix sigma (3 m) plus the fix's age at cruise speed (0.25
     s frame + 0.1 s tick at 22 m/s = 7.7 m): RMSE under 2 sigma + 7.7 m, max under 5 sigma + 7.7 m. (Until this
     mission the camera started at 120 m after a 15 s climb with no fix, the acquisition fell into the legs, and
     their max, 25-52 m against a bound of 3 prior sigmas + 7.7 m, was that start's error plus the EKF's drift
     over the climb: not a tracking figure, and not bounded by the prior's sigma.)
-    Touchdown, after about 25 s of dead reckoning below the camera's range: the EKF's error within 3 times the
+    Touchdown, after about 6 s of dead reckoning below the camera's range: the EKF's error within 3 times the
     horizontal accuracy it claims there (sqrt of its north + east position variances, XKV1: a consistent
     Gaussian error exceeds that with probability e^-9 = 0.01 % if circular, 0.27 % if all along one axis;
     measured 1-5 m against 7-10 m), and the touchdown within that of the final's line across it (the autopilot
@@ -346,9 +390,10 @@ def _plane_loop_and_landing(r: dict, s: dict) -> None:
 def test_plane_mission_on_the_vision_fix(mission_sitl):
     """ArduPlane, GPS_INPUT as GPS1, plane.parm's airframe (22 m/s cruise), the paper city at 200 m: arms in AUTO
     on the pad fix, takes off north with no fix from leaving the pad until the camera is in range (the agent's
-    lowest altitude, 40 m), flies a 600 m x 800 m loop over the map, then the landing sequence (DO_LAND_START, an
-    approach point 1 km north at 100 m, NAV_LAND at home heading south: the vision fix down to 40 m, about 25 s
-    of dead reckoning below) to touchdown and disarm; SITL at PLANE_SPEEDUP, every figure on its clock.
+    lowest altitude, 10 m, matching from 40 m), flies a 600 m x 800 m loop over the map, then the landing
+    sequence (DO_LAND_START, an approach point 1 km north at 100 m, NAV_LAND at home heading south: the vision
+    fix down to 10 m, about 6 s of dead reckoning below) to touchdown and disarm; SITL at PLANE_SPEEDUP, every
+    figure on its clock.
 
     With a vision cut in the loop (issue 27's target): 5 s into the loop's first leg the fix is withheld for 20 s
     of SITL's clock (GPS_INPUT: no fix). The plane's vision failsafe (the shipped Lua script) must act within 5 s,
@@ -403,8 +448,9 @@ def test_plane_crosswind_mission(wind, long_mission):
     SIM_WIND_TURB for the gusts), across the loop's long legs and the final: the plane crabs, the env's odometry
     carries the lateral speed (from SITL's stream), the agent keeps its track. The loop is held to the no-wind
     bounds (fix sigma 3 m, the fix's age at cruise speed: RMSE < 2 sigma + 7.7 m, max < 5 sigma + 7.7 m) and the
-    mission completes (touchdown, disarm); the touchdown's distance across the line, after about 25 s of dead
-    reckoning below the camera's range in the crosswind, is recorded, not bounded (docs/mavlink.md, Crosswind).
+    mission completes (touchdown, disarm), the camera fix going on below the working level's 40 m (the fine
+    level) so that the dead reckoning under SITL's wind gradient is short; the touchdown's distance across the
+    line is recorded, not bounded (docs/mavlink.md, the crosswind touchdown).
     About 2.4 min each at PLANE_SPEEDUP: in CI only with AERIAL_LOC_SITL_ALL=1."""
     sitl_dir = long_mission("arduplane", "2.4 min each")
     r = fly_mission("AerialLoc/PaperShadows-v2", "template-ncc", ground_amsl_m=30.0, sitl_dir=sitl_dir,
@@ -415,4 +461,5 @@ def test_plane_crosswind_mission(wind, long_mission):
     texts = _plane_loop(r, s)
     assert not any(x.startswith("Vision failsafe: fix lost, LOITER") for x in texts), texts
     assert any("Auto disarmed" in x for x in texts) and s["touchdown"]["landed"], s["touchdown"]
+    assert s["touchdown"]["last_fix_alt_m"] < 20.0, s["touchdown"]
 

@@ -30,8 +30,9 @@ def _at(lat0: float, lon0: float, east_m: float, north_m: float) -> tuple[float,
 def test_touchdown_is_the_first_ground_contact_of_the_landing():
     """Truth descending south onto a point (ground 30 m AMSL), touching 20 m short of it and rolling on: the
     touchdown is the first sample within 0.5 m of the ground after the landing began (not a bounce or the taxi
-    before take-off), measured in ground metres along the final (south) and across it; the EKF's error there;
-    the last camera frame's altitude and the dead reckoning after it."""
+    before take-off), measured in ground metres along the final (south) and across it; the EKF's error there and
+    the accuracy it claimed on the dead reckoning (its largest from the last camera frame to touchdown); the last
+    camera frame's altitude and the dead reckoning after it."""
     lat0, lon0 = -35.0, 149.0
     # on the ground before take-off (t < 10), then the final from 100 m north at 40 m to touchdown 21 m short,
     # 3 m east of the line; the EKF 2 m north of the truth
@@ -40,7 +41,8 @@ def test_touchdown_is_the_first_ground_contact_of_the_landing():
     ekf = [(t, *_at(la, lo, 0.0, 2.0), a) for t, la, lo, a in truth]
     steps = [(12.0, "camera", 1.0, 0.0, 0.0, 39.0), (14.0, "camera", 1.0, 0.0, 0.0, 30.5),
              (15.0, "lost", None, 0, 0, 28.0)]
-    var = [(0.0, 1.0), (17.0, 25.0), (17.95, 16.0 + 9.0), (18.5, 400.0)]     # the EKF's own: 5 m at touchdown
+    # the EKF's own: 0.5 m at the last fix, growing to 5 m on the dead reckoning, shrunk as it detects the landing
+    var = [(0.0, 1.0), (13.9, 0.25), (16.5, 16.0 + 9.0), (17.5, 0.64), (18.5, 400.0)]
     td = touchdown(truth, ekf, steps, (lat0, lon0), t_landing=10.0, ekf_var_m2=var)
     assert td["landed"] and td["t_s"] == pytest.approx(10.0 + 0.1 * 79)      # 40 - 0.5 k <= 0.5 first at k = 79
     assert td["ekf_sigma_m"] == pytest.approx(5.0)

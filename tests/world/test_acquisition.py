@@ -252,6 +252,7 @@ def test_database_cache_changed_field_builds_a_second_entry(cache_home, small_da
     assert not np.array_equal(a.rgb, b.rgb)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("damage", ["truncate_rgb", "garbage_meta", "foreign"])
 def test_database_cache_corrupt_or_foreign_entry_is_rebuilt_with_a_warning(cache_home, small_database, damage):
     from aerial_loc_env.world.city import default_city, small_city_config

@@ -131,6 +131,7 @@ def test_xdg_cache_home_a_file_falls_back_to_a_temporary_one(cache_homes, fresh)
     assert cache.read_text() == "not a folder"
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("full", ["cache", "cache_and_tmp"])
 def test_a_full_disk_while_writing_leaves_no_half_entry(cache_homes, fresh, monkeypatch, full):
     """np.save writes part of a layer, then the disk is full: no entry is left that a later call could use, the
@@ -177,6 +178,7 @@ def test_a_full_disk_while_writing_leaves_no_half_entry(cache_homes, fresh, monk
     assert again.bundle_path == path and _digest(again) == fresh
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("how", ["in_place", "new_file"])
 @pytest.mark.parametrize("layer", ["rgb", "dsm_m", "classes"])
 def test_a_layer_changed_at_the_same_size_is_rebuilt_with_a_warning(cache_homes, fresh, layer, how):

@@ -238,6 +238,7 @@ def test_cache_second_call_maps_the_bundle(cache_home, city):
     assert city_cache_path(small_city_config(1)) != path
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("damage", ["truncate_rgb", "garbage_meta", "partial_dir", "wrong_shape"])
 def test_damaged_cache_entry_is_regenerated(cache_home, city, damage):
     cfg = small_city_config(0)
@@ -268,6 +269,7 @@ def _race_worker(barrier, queue) -> None:
     queue.put(_digest(om))
 
 
+@pytest.mark.slow
 def test_concurrent_first_calls_do_not_corrupt_the_cache(cache_home, city):
     ctx = mp.get_context("spawn")
     barrier, queue = ctx.Barrier(2), ctx.Queue()
