@@ -40,6 +40,7 @@ SHORT_NAMES: dict[str, str] = {
     "TemplateMatchingAgent": "aerial_loc_env.estimators.template_matching:TemplateMatchingAgent",
     "FeatureMatchingAgent": "aerial_loc_env.estimators.feature_matching:FeatureMatchingAgent",
     "LearnedAgent": "aerial_loc_env.learning.agent:LearnedAgent",
+    "SurfaceRegistrationAgent": "aerial_loc_env.learning.surface:SurfaceRegistrationAgent",
 }
 _SPEC_KEYS = ("class", "description", "params")
 _EXTRA_SECTIONS = ("train",)

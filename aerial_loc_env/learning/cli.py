@@ -9,6 +9,8 @@ Examples::
     aerial-loc train --curve runs/ppo-local-registration         # training curves -> <run>/learning_curve.png
     aerial-loc train mcl-learned --out /tmp/w.npz                # the learned MCL model's encoder (--timesteps:
                                                                  # its steps)
+    aerial-loc train ppo-learned-registration --out /tmp/reg     # cloning then PPO on the encoder's surface
+                                                                 # (--timesteps: the PPO steps)
 """
 
 from __future__ import annotations
@@ -33,9 +35,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("-v", "--verbose", action="count", default=0)
     args = ap.parse_args(argv)
     if args.curve:
-        from aerial_loc_env.learning.plots import learning_curve
+        from aerial_loc_env.learning.plots import learning_curve, registration_curve
 
-        print(learning_curve(args.curve, args.png or Path(args.curve) / "learning_curve.png"))
+        plot = registration_curve if (Path(args.curve) / "ppo_curve.csv").is_file() else learning_curve
+        print(plot(args.curve, args.png or Path(args.curve) / "learning_curve.png"))
         return 0
     if not args.recipe:
         ap.error("a recipe is required (or --curve RUN_DIR)")
@@ -50,6 +53,19 @@ def main(argv: list[str] | None = None) -> int:
         res = train_embedding(recipe, out, overwrite=args.overwrite, verbose=args.verbose > 0)
         print(f"trained {res.figures['steps']} steps in {res.wall_s:.0f} s; weights: {res.path} "
               f"(temperature {res.temperature:.4g})")
+        return 0
+    from aerial_loc_env.learning.surface_train import is_registration_recipe
+
+    if is_registration_recipe(args.recipe):  # local registration on the learned encoder (learning/surface_train.py)
+        from aerial_loc_env.learning.surface_train import read_recipe as read_registration
+        from aerial_loc_env.learning.surface_train import train_registration
+
+        recipe = read_registration(args.recipe, **({"ppo_timesteps": args.timesteps}
+                                                   if args.timesteps is not None else {}))
+        out = Path(args.out) if args.out else Path("runs") / Path(args.recipe).stem
+        res = train_registration(recipe, out, overwrite=args.overwrite, verbose=args.verbose > 0)
+        print(f"trained in {res.wall_s:.0f} s ({res.figures['ppo_timesteps']} PPO timesteps); kept the {res.chosen} "
+              f"policy (validation RMSE {res.figures['chosen_val_rmse_m']:.2f} m): {res.path}")
         return 0
     from aerial_loc_env.learning.train import train
 

@@ -1,6 +1,9 @@
 """Feature extractors for the local-registration pair (camera image, database crop at the predicted pose).
 
 - ``PairedCNN`` stacks the two images channel-wise so the very first convolutions can compare them.
+- ``SurfaceCNN`` reads the learned MCL encoder's correlation surface around the prediction (``learning.surface``):
+  a small CNN, a soft-argmax of its output (the peak's position: the correction) and pooled features; its NumPy
+  twin is ``learning.surface.surface_features``.
 - ``CorrelationCNN`` encodes both with one shared (siamese) CNN, correlates the feature maps over a window of
   shifts (a FlowNet-C style cost volume, pooled over the image) and hands the head the scores plus their
   soft-argmax: the shift that best aligns camera and database, which is the correction up to a fixed linear
@@ -109,6 +112,41 @@ class CorrelationCNN(sb3_torch_layers.BaseFeaturesExtractor):
         weights = th.softmax(scores * self.log_temperature.exp() * 10.0, dim=1)
         soft = th.stack([(weights * self.shift_x).sum(dim=1), (weights * self.shift_y).sum(dim=1)], dim=1)
         return th.cat([self.head(scores * 10.0), soft], dim=1)
+
+
+class SurfaceCNN(sb3_torch_layers.BaseFeaturesExtractor):
+    """Features of a correlation surface (B, 1, side, side): convolutions (ReLU), one more to a logit per position,
+    its softmax's soft-argmax (east, north) in units of the half side, the peak probability, the surface's max,
+    mean and std, and the last hidden layer average-pooled to ``pool`` x ``pool``."""
+
+    def __init__(self, observation_space: gym.spaces.Box, channels: tuple[int, ...] = (8, 8),
+                 kernels: tuple[int, ...] = (5, 3), pool: int = 3):
+        side = int(observation_space.shape[-1])
+        super().__init__(observation_space, 6 + int(channels[-1]) * pool * pool)
+        layers, cin = [], 1
+        for c, k in zip(channels, kernels, strict=True):
+            layers.append(nn.Conv2d(cin, int(c), int(k), padding=int(k) // 2))
+            cin = int(c)
+        self.hidden = nn.ModuleList(layers)
+        self.out = nn.Conv2d(cin, 1, 3, padding=1)
+        self.pool, self.side = int(pool), side
+        self.register_buffer("grid", th.linspace(-1.0, 1.0, side), persistent=False)
+
+    def forward(self, obs: th.Tensor) -> th.Tensor:
+        from aerial_loc_env.learning.surface import SURFACE_GAIN
+
+        b = obs.shape[0]
+        h = obs.reshape(b, 1, self.side, self.side) * SURFACE_GAIN
+        for conv in self.hidden:
+            h = F.relu(conv(h))
+        p = th.softmax(self.out(h).reshape(b, -1), dim=1)
+        pm = p.reshape(b, self.side, self.side)
+        soft = th.stack([(pm.sum(1) * self.grid).sum(1), (pm.sum(2) * self.grid).sum(1)], dim=1)
+        flat = obs.reshape(b, -1)
+        stats = th.stack([p.max(1).values, flat.max(1).values, flat.mean(1), flat.std(1, unbiased=False)], dim=1)
+        q = self.side // self.pool
+        pooled = F.avg_pool2d(h[:, :, :q * self.pool, :q * self.pool], q).reshape(b, -1)
+        return th.cat([soft, stats, pooled], dim=1)
 
 
 EXTRACTORS = {"paired": PairedCNN, "correlation": CorrelationCNN}

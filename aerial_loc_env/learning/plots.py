@@ -98,8 +98,57 @@ def learning_curve(run_dir: str | os.PathLike, out_png: str | os.PathLike, *, wi
     ax.set_ylim(bottom=0)
     ax.legend(fontsize=7, loc="lower right")
     ax.grid(alpha=0.3)
-    fig.suptitle(title or f"learning curves: {run_dir.name}")
+    return _save(plt, fig, title or f"learning curves: {run_dir.name}", out_png, 110)
+
+
+def _save(plt, fig, title: str, out_png: Path, dpi: int) -> Path:
+    fig.suptitle(title)
     out_png.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out_png, dpi=110)
+    fig.savefig(out_png, dpi=dpi)
     plt.close(fig)
     return out_png
+
+
+def _csv_columns(path: Path) -> dict[str, np.ndarray]:
+    try:
+        with open(path, newline="", encoding="utf-8") as fh:
+            rows = list(csv.DictReader(fh))
+        return {k: np.array([float(r[k]) for r in rows]) for k in (rows[0] if rows else {})}
+    except (OSError, ValueError, UnicodeDecodeError, csv.Error) as exc:
+        raise ConfigError(f"'{path}': not a curve written by `aerial-loc train ppo-learned-registration` "
+                          f"({exc})") from None
+
+
+def registration_curve(run_dir: str | os.PathLike, out_png: str | os.PathLike, *, title: str | None = None) -> Path:
+    """The curves of a learned-registration run (``learning.surface_train``): behaviour cloning's losses per epoch
+    (RMS of the correction in metres, training and validation surfaces) and the closed-loop validation RMSE
+    before PPO (the cloned policy, at 0) and along PPO's timesteps."""
+    run_dir, out_png = Path(run_dir), Path(out_png)
+    bc, ppo = _csv_columns(run_dir / "bc_curve.csv"), _csv_columns(run_dir / "ppo_curve.csv")
+    mpl = require_extra("matplotlib", "plots", "Learning curves")
+    mpl.use("Agg")
+    plt = require_extra("matplotlib.pyplot", "plots", "Learning curves")
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.6), constrained_layout=True)
+    ax = axes[0]
+    if bc:
+        scale = np.sqrt(bc["train_mse"] / np.maximum(bc["val_mse"], 1e-12))     # the same metres per unit
+        ax.plot(bc["epoch"], bc["val_rms_m"] * scale, label="training surfaces")
+        ax.plot(bc["epoch"], bc["val_rms_m"], label="validation surfaces (val worlds)")
+    ax.set_xlabel("epoch")
+    ax.set_ylabel("RMS correction error (m)")
+    ax.set_title("behaviour cloning (open loop, one frame)")
+    ax.set_ylim(bottom=0)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    ax = axes[1]
+    if ppo:
+        ax.plot(ppo["timesteps"], ppo["rmse_m"], "o-", label="pooled RMSE")
+        ax.plot(ppo["timesteps"], ppo["median_episode_rmse_m"], "s--", label="median-episode RMSE")
+        n = int(ppo["episodes"][0])
+        ax.set_title(f"closed loop, {n} validation episodes (0: cloned)")
+    ax.set_xlabel("PPO timesteps")
+    ax.set_ylabel("RMSE (m)")
+    ax.set_ylim(bottom=0)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    return _save(plt, fig, title or f"learned registration: {run_dir.name}", out_png, 90)

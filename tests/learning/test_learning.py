@@ -103,13 +103,16 @@ def test_recipe_round_trips_through_its_dict() -> None:
 def test_shipped_recipes_are_valid() -> None:
     from aerial_loc_env.estimators.registry import list_specs
     from aerial_loc_env.learning.embedding import read_recipe
+    from aerial_loc_env.learning.surface_train import read_recipe as read_registration_recipe
     from aerial_loc_env.learning.train import recipe_of
 
     specs = [s for s in list_specs() if "train" in s.extra]
-    assert {s.name for s in specs} >= {"ppo-local-registration", "mcl-learned"}
+    assert {s.name for s in specs} >= {"ppo-local-registration", "mcl-learned", "ppo-learned-registration"}
     for s in specs:
         if s.extra["train"].get("kind") == "embedding":     # the learned MCL model's encoder (learning/embedding.py)
             read_recipe(s.name)
+        elif s.extra["train"].get("kind") == "learned_registration":     # learning/surface_train.py
+            read_registration_recipe(s.name)
         else:
             recipe_of(s)
 

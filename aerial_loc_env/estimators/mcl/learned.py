@@ -142,22 +142,32 @@ def resolve_weights(path: str) -> Path:
                            f"'{DEFAULT_WEIGHTS}'")
 
 
+def archive_bytes(file: Path) -> tuple[bytes, str, str]:
+    """A weights file's bytes, their digest (16 hex digits) and its cache key (the path and the digest)."""
+    raw = file.read_bytes()
+    digest = hashlib.sha256(raw).hexdigest()[:16]
+    return raw, digest, f"{file}:{digest}"
+
+
+def read_archive(raw: bytes) -> tuple[dict[str, np.ndarray], dict]:
+    """The arrays and the ``meta`` JSON of an ``.npz`` archive's bytes (no pickles allowed)."""
+    import io
+
+    with np.load(io.BytesIO(raw), allow_pickle=False) as z:
+        arrays = {name: z[name] for name in z.files}
+    return arrays, json.loads(str(arrays.pop("meta")))
+
+
 def load_weights(path: str) -> Weights:
     """Read and check a weights ``.npz`` (``layer{i}_w``, ``layer{i}_b``, ``meta`` JSON); cached by path and
     content."""
     file = resolve_weights(path)
-    raw = file.read_bytes()
-    digest = hashlib.sha256(raw).hexdigest()[:16]
-    key = f"{file}:{digest}"
+    raw, digest, key = archive_bytes(file)
     if key in _WEIGHTS:
         return _WEIGHTS[key]
     why = f"mcl-learned: weights file '{file}'"
     try:
-        import io
-
-        with np.load(io.BytesIO(raw), allow_pickle=False) as z:
-            arrays = {name: z[name] for name in z.files}
-        meta = json.loads(str(arrays.pop("meta")))
+        arrays, meta = read_archive(raw)
     except (OSError, ValueError, zipfile.BadZipFile, KeyError, json.JSONDecodeError) as exc:
         raise ConfigError(f"{why} is not a weights archive ({type(exc).__name__}: {exc}); write it again with "
                           "`python -m aerial_loc_env.learning.embedding`") from exc
