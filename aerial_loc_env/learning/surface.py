@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import io
 import json
-import zipfile
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -35,7 +34,7 @@ from aerial_loc_env.estimators.mcl.learned import (
     LearnedConfig,
     LearnedModel,
     archive_bytes,
-    read_archive,
+    checked_archive,
 )
 from aerial_loc_env.estimators.protocol import Agent, Estimate, parse_observation, prior_estimate
 from aerial_loc_env.paths import find_model_file
@@ -217,14 +216,15 @@ def load_policy(path: str) -> SurfacePolicy:
     if key in _POLICIES:
         return _POLICIES[key]
     why = f"learned registration: policy file '{file}'"
+    remedy = "`aerial-loc train ppo-learned-registration`"
+    arrays, meta = checked_archive(raw, why, "policy", remedy)
     try:
-        arrays, meta = read_archive(raw)
         if meta.get("format") != POLICY_FORMAT:
             raise ValueError(f"format {meta.get('format')!r}, expected {POLICY_FORMAT}")
         policy = SurfacePolicy(arrays, meta)
-    except (OSError, ValueError, KeyError, TypeError, zipfile.BadZipFile, json.JSONDecodeError) as exc:
+    except (ValueError, KeyError, TypeError) as exc:
         raise ConfigError(f"{why} is not a policy archive ({type(exc).__name__}: {exc}); write it again with "
-                          "`aerial-loc train ppo-learned-registration`") from exc
+                          f"{remedy}") from exc
     if not all(np.isfinite(a).all() for a in arrays.values()):
         raise ConfigError(f"{why}: the weights hold NaN or infinite values")
     _POLICIES[key] = policy

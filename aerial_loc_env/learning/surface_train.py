@@ -58,9 +58,11 @@ class RegistrationRecipe:
 
     kind: str = RECIPE_KIND
     seed: int = field(default=0, metadata=rng(0, 2**31 - 1))
+    # the worlds (the embedding's train / validation splits)
     n_train_worlds: int = field(default=16, metadata=rng(1, 10000))
     n_val_worlds: int = field(default=4, metadata=rng(1, 10000))
     city_size_m: float = field(default=400.0, metadata=rng(300.0, 8000.0))
+    # the flights over them
     altitude_min_m: float = field(default=150.0, metadata=rng(20.0, 2000.0))
     altitude_max_m: float = field(default=250.0, metadata=rng(20.0, 2000.0))
     speed_min_mps: float = field(default=5.0, metadata=rng(0.5, 100.0))

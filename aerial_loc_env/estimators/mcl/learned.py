@@ -158,6 +158,16 @@ def read_archive(raw: bytes) -> tuple[dict[str, np.ndarray], dict]:
     return arrays, json.loads(str(arrays.pop("meta")))
 
 
+def checked_archive(raw: bytes, why: str, kind: str, remedy: str) -> tuple[dict[str, np.ndarray], dict]:
+    """``read_archive``, a damaged or foreign file reported as a ``ConfigError`` naming it (``why``), what it should
+    be (``kind``) and how to write it again (``remedy``)."""
+    try:
+        return read_archive(raw)
+    except (OSError, ValueError, KeyError, TypeError, zipfile.BadZipFile, json.JSONDecodeError) as exc:
+        raise ConfigError(f"{why} is not a {kind} archive ({type(exc).__name__}: {exc}); write it again with "
+                          f"{remedy}") from exc
+
+
 def load_weights(path: str) -> Weights:
     """Read and check a weights ``.npz`` (``layer{i}_w``, ``layer{i}_b``, ``meta`` JSON); cached by path and
     content."""
@@ -166,11 +176,7 @@ def load_weights(path: str) -> Weights:
     if key in _WEIGHTS:
         return _WEIGHTS[key]
     why = f"mcl-learned: weights file '{file}'"
-    try:
-        arrays, meta = read_archive(raw)
-    except (OSError, ValueError, zipfile.BadZipFile, KeyError, json.JSONDecodeError) as exc:
-        raise ConfigError(f"{why} is not a weights archive ({type(exc).__name__}: {exc}); write it again with "
-                          "`python -m aerial_loc_env.learning.embedding`") from exc
+    arrays, meta = checked_archive(raw, why, "weights", "`python -m aerial_loc_env.learning.embedding`")
     missing = [k for k in META_KEYS if k not in meta]
     if missing or meta.get("format") != WEIGHTS_FORMAT:
         raise ConfigError(f"{why}: metadata lacks {missing} or has format {meta.get('format')!r} (expected "
