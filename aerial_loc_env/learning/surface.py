@@ -18,6 +18,7 @@ extractor and policy head it was trained as (``learning.networks.SurfaceCNN``), 
 
 from __future__ import annotations
 
+import dataclasses
 import io
 import json
 from collections.abc import Mapping
@@ -28,6 +29,7 @@ import numpy as np
 
 from aerial_loc_env.config import rng
 from aerial_loc_env.errors import ConfigError
+from aerial_loc_env.estimators.database import DatabaseWindow, WindowPolicy, read_by_window
 from aerial_loc_env.estimators.dead_reckoning import DeadReckoningAgent
 from aerial_loc_env.estimators.mcl.learned import (
     DEFAULT_WEIGHTS,
@@ -38,6 +40,7 @@ from aerial_loc_env.estimators.mcl.learned import (
 )
 from aerial_loc_env.estimators.protocol import Agent, Estimate, parse_observation, prior_estimate
 from aerial_loc_env.paths import find_model_file
+from aerial_loc_env.sensors.flight import footprint_radius_m
 
 DEFAULT_POLICY = "models/ppo-learned-registration/policy.npz"
 #: the policy file's format version (``meta["format"]``)
@@ -90,10 +93,31 @@ class SurfaceRegistration:
             raise ConfigError(f"learned registration: scenario {briefing.scenario_id} has a {briefing.prior.kind} "
                               "prior; this design tracks from a gaussian prior (episode.start = 'tracking')")
         self.briefing = briefing
-        self.model.reset(briefing, np.random.default_rng(0))
         self._dr.reset(briefing)
         if start_xy_m is not None:
             self._dr.anchor(start_xy_m)
+        self.window_policy, self._window = None, None
+        if read_by_window(briefing.orthomap):      # embed the window around the surface's reach, not the map
+            camera, reach_m = briefing.camera, self.params.half_cells * self.params.step_m
+            footprint = lambda alt: footprint_radius_m(*camera.footprint_m(alt))           # noqa: E731
+            # windows start on the whole map's cell grid (the encoder's stride at its sampling), so a window's
+            # cells sample the ground where the whole map's do
+            m, weights = briefing.orthomap, self.model.weights
+            cell_px = weights.encoder.stride * float(weights.meta["gsd_m"]) / min(m.gsd_x_m, m.gsd_y_m)
+            self.window_policy = WindowPolicy(m, footprint, radius_m=lambda alt: footprint(alt) + reach_m,
+                                              align_px=max(1, int(round(cell_px))))
+            self._read_window(briefing.altitude_m)
+        else:
+            self.model.reset(briefing, np.random.default_rng(0))
+
+    def _read_window(self, altitude_m: float) -> None:
+        """On a map read by window: embed a new window when the surface around the dead-reckoned position nears the
+        current one's edge."""
+        box = self.window_policy.update(self._dr.xy[None], altitude_m)
+        if box is not None:
+            self._window = DatabaseWindow(self.briefing.orthomap, box, where="learned registration",
+                                          previous=self._window)
+            self.model.reset(dataclasses.replace(self.briefing, orthomap=self._window), np.random.default_rng(0))
 
     def surfaces(self, centres_xy_m: np.ndarray) -> np.ndarray:
         """(n, side, side) float32 surfaces of the current frame around each of ``centres_xy_m`` (n, 2)."""
@@ -114,6 +138,8 @@ class SurfaceRegistration:
             raise ConfigError("SurfaceRegistration.observe called before reset(briefing)")
         self._dr.step(observation)
         self.predicted = self._dr.xy.copy()
+        if self.window_policy is not None:
+            self._read_window(parse_observation(observation).altitude_m)
         self.prepare(observation)
         return self.surfaces(self.predicted[None])
 

@@ -22,6 +22,7 @@ from aerial_loc_env.estimators.mcl.agent import MCLAgent, MCLParams
 from aerial_loc_env.estimators.mcl.measurement import MeasurementModel
 from aerial_loc_env.estimators.patches import PatchGeometry, PatchSampler, to_gray
 from aerial_loc_env.estimators.registry import make_agent, spec_names
+from aerial_loc_env.learning.surface import SurfaceRegistration
 from aerial_loc_env.perf.bigmap import SyntheticMap
 from aerial_loc_env.world.maps.cog import write_cog
 from aerial_loc_env.world.maps.io import open_map
@@ -239,3 +240,25 @@ def test_a_layer_of_the_whole_maps_grid_holds_memory_only_where_written():
     back = pickle.loads(pickle.dumps(layer))            # pickles as the written box, not the grid
     assert back.box == layer.box and np.array_equal(back.read(back.box), layer.read(layer.box))
     assert lazy_zeros((3, 5), np.float32).sum() == 0
+
+
+
+@pytest.mark.slow
+def test_the_learned_registration_embeds_windows_along_the_track(episode):
+    """ppo-learned-registration on a map read by window embeds the windows around its surface's reach as it flies
+    (windows on the whole map's cell grid), and sees the surfaces it sees on the map loaded whole: cosine
+    similarities that differ by resampling and the window's edge only, a small part of the frames' peak (about
+    0.5) and of the cosine's range."""
+    frames, whole, windowed = episode
+    agent, estimates = _run("ppo-learned-registration", windowed, frames)
+    assert agent.core.window_policy.reads >= 2 and all(np.isfinite([e.x_m, e.y_m]).all() for e in estimates)
+    cores = [SurfaceRegistration(), SurfaceRegistration()]
+    for core, briefing in zip(cores, (windowed, whole), strict=True):
+        core.reset(briefing)
+    diffs = []
+    for obs, _ in frames[:60]:
+        on_window, on_whole = (core.observe(obs)[0] for core in cores)
+        diffs.append(float(np.abs(on_window - on_whole).max()))
+        for core in cores:
+            core.correct(np.zeros(2))          # both dead-reckon the same track
+    assert max(diffs) < 0.1 and np.mean(diffs) < 0.05, diffs
