@@ -449,8 +449,10 @@ def test_plane_crosswind_mission(wind, long_mission):
     carries the lateral speed (from SITL's stream), the agent keeps its track. The loop is held to the no-wind
     bounds (fix sigma 3 m, the fix's age at cruise speed: RMSE < 2 sigma + 7.7 m, max < 5 sigma + 7.7 m) and the
     mission completes (touchdown, disarm), the camera fix going on below the working level's 40 m (the fine
-    level) so that the dead reckoning under SITL's wind gradient is short; the touchdown's distance across the
-    line is recorded, not bounded (docs/mavlink.md, the crosswind touchdown).
+    level) so that the dead reckoning under SITL's wind gradient is short. In the steady wind the touchdown lies
+    within issue 27's 5 m across the line; in the gusts it is recorded, not bounded: ArduPlane's own glide in
+    gusts can float the flare far past the point with the EKF on track (docs/mavlink.md, the crosswind
+    touchdown).
     About 2.4 min each at PLANE_SPEEDUP: in CI only with AERIAL_LOC_SITL_ALL=1."""
     sitl_dir = long_mission("arduplane", "2.4 min each")
     r = fly_mission("AerialLoc/PaperShadows-v2", "template-ncc", ground_amsl_m=30.0, sitl_dir=sitl_dir,
@@ -462,4 +464,6 @@ def test_plane_crosswind_mission(wind, long_mission):
     assert not any(x.startswith("Vision failsafe: fix lost, LOITER") for x in texts), texts
     assert any("Auto disarmed" in x for x in texts) and s["touchdown"]["landed"], s["touchdown"]
     assert s["touchdown"]["last_fix_alt_m"] < 20.0, s["touchdown"]
+    if len(wind) == 2:      # steady
+        assert abs(s["touchdown"]["cross_m"]) < 5.0, s["touchdown"]
 
