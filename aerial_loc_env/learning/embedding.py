@@ -24,7 +24,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -34,7 +33,7 @@ import numpy as np
 
 from aerial_loc_env.config import build_config, read_toml, rng
 from aerial_loc_env.errors import ConfigError, require_extra
-from aerial_loc_env.estimators.mcl.learned import WEIGHTS_FORMAT, local_normalize
+from aerial_loc_env.estimators.mcl.learned import WEIGHTS_FORMAT, local_normalize, write_archive
 from aerial_loc_env.learning.embedding_data import PairSet, PairSpec, load_pairs, make_pairs, save_pairs
 
 PURPOSE = "Training the learned MCL encoder (aerial_loc_env.learning.embedding)"
@@ -168,14 +167,7 @@ def _jsonable(d: dict) -> dict:
 
 def write_weights(arrays: dict, path: str | Path, overwrite: bool = False) -> Path:
     """Write the weights ``.npz``; an existing file is kept (an error) unless ``overwrite``."""
-    p = Path(path)
-    if p.exists() and not overwrite:
-        raise ConfigError(f"embedding: {p} exists; choose another --out or pass --overwrite to replace it")
-    p.parent.mkdir(parents=True, exist_ok=True)
-    tmp = p.with_name(p.name + ".partial.npz")
-    np.savez(tmp, **arrays)
-    os.replace(tmp, p)
-    return p
+    return write_archive(arrays, path, overwrite=overwrite, who="embedding")
 
 
 # ---------------------------------------------------------------------- batches and losses

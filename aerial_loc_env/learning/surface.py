@@ -19,7 +19,6 @@ extractor and policy head it was trained as (``learning.networks.SurfaceCNN``), 
 from __future__ import annotations
 
 import dataclasses
-import io
 import json
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -37,6 +36,7 @@ from aerial_loc_env.estimators.mcl.learned import (
     LearnedModel,
     archive_bytes,
     checked_archive,
+    write_archive,
 )
 from aerial_loc_env.estimators.protocol import Agent, Estimate, parse_observation, prior_estimate
 from aerial_loc_env.paths import find_model_file
@@ -215,20 +215,9 @@ class SurfacePolicy:
 
 
 def write_policy(arrays: Mapping[str, np.ndarray], meta: dict, path: Any, overwrite: bool = False) -> Any:
-    """Write a policy ``.npz`` (arrays and ``meta`` JSON); an existing file only with ``overwrite``."""
-    from pathlib import Path
-
-    path = Path(path)
-    if path.exists() and not overwrite:
-        raise ConfigError(f"learned registration: {path} exists; choose another --out or pass --overwrite")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    buf = io.BytesIO()
-    np.savez_compressed(buf, meta=np.array(json.dumps(meta)), **{k: np.asarray(v, np.float32)
-                                                                  for k, v in arrays.items()})
-    tmp = path.with_suffix(".tmp.npz")
-    tmp.write_bytes(buf.getvalue())
-    tmp.replace(path)
-    return path
+    """Write a policy ``.npz`` (float32 arrays and ``meta`` JSON); an existing file only with ``overwrite``."""
+    return write_archive({**{k: np.asarray(v, np.float32) for k, v in arrays.items()},
+                          "meta": np.array(json.dumps(meta))}, path, overwrite=overwrite, who="learned registration")
 
 
 _POLICIES: dict[str, SurfacePolicy] = {}

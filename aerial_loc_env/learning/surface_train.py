@@ -29,7 +29,6 @@ import argparse
 import csv
 import json
 import math
-import platform
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -48,6 +47,7 @@ from aerial_loc_env.learning.surface import (
     SurfaceRegistration,
     write_policy,
 )
+from aerial_loc_env.learning.train import training_machine, training_versions
 
 RECIPE_KIND = "learned_registration"
 
@@ -489,8 +489,8 @@ def train_registration(recipe: RegistrationRecipe, out: str | Path | None = None
         _write_csv(out_dir / "bc_curve.csv", bc_curve)
         _write_csv(out_dir / "ppo_curve.csv", ppo_curve)
         (out_dir / "training.json").write_text(json.dumps(
-            {"recipe": config_to_dict(r), "training": figures, "machine": platform.platform(),
-             "versions": _versions()}, indent=1, default=list))
+            {"recipe": config_to_dict(r), "training": figures, "machine": training_machine(),
+             "versions": training_versions()}, indent=1, default=list))
     return RegistrationResult(path, best[0], figures, bc_curve, ppo_curve, wall)
 
 
@@ -544,18 +544,6 @@ def _write_csv(path: Path, rows: list[dict]) -> None:
         w = csv.DictWriter(fh, fieldnames=keys)
         w.writeheader()
         w.writerows(rows)
-
-
-def _versions() -> dict:
-    import importlib.metadata as md
-
-    out = {}
-    for name in ("stable-baselines3", "torch", "numpy", "opencv-python-headless", "gymnasium"):
-        try:
-            out[name] = md.version(name)
-        except md.PackageNotFoundError:
-            pass
-    return out
 
 
 def main(argv: list[str] | None = None) -> int:

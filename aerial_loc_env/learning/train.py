@@ -298,7 +298,7 @@ def train(spec_name: str | os.PathLike, out_dir: str | os.PathLike | None = None
     (out / "scenario.json").write_text(json.dumps(scenario, indent=2, default=str))
     meta = {"spec": spec.name, "recipe": recipe_to_dict(recipe), "timesteps": int(model.num_timesteps),
             "resumed_from": str(resume) if resume else None, "resumed_at_timesteps": done,
-            "wall_time_s": round(wall, 1), "machine": _machine(), "versions": _versions(),
+            "wall_time_s": round(wall, 1), "machine": training_machine(), "versions": training_versions(),
             "best_eval_rmse_m": _best_so_far(out / "eval.csv"), "scenario": scenario}
     (out / "training.json").write_text(json.dumps(meta, indent=2, default=str))
     if (out / "best" / MODEL_FILE).is_file():  # the best model loads as an agent too
@@ -336,13 +336,15 @@ def scenario_spec(recipe: Recipe) -> dict:
     return scenario_spec_dict(recipe.scenario, **recipe.scenario_overrides)
 
 
-def _machine() -> str:
+def training_machine() -> str:
+    """The machine and torch's thread count, as a training run's record names them."""
     from aerial_loc_env.sysinfo import machine
 
     return f"{machine()}, torch threads {require_extra('torch', 'rl', 'Training').get_num_threads()}"
 
 
-def _versions() -> dict[str, str]:
+def training_versions() -> dict[str, str]:
+    """The versions a trained model depends on, as a training run's record names them."""
     import stable_baselines3
     import torch
 

@@ -158,6 +158,20 @@ def read_archive(raw: bytes) -> tuple[dict[str, np.ndarray], dict]:
     return arrays, json.loads(str(arrays.pop("meta")))
 
 
+def write_archive(arrays: Mapping[str, np.ndarray], path: str | Path, *, overwrite: bool, who: str) -> Path:
+    """Write an ``.npz`` archive (its arrays and a ``meta`` JSON array, what ``read_archive`` reads) through a
+    temporary file beside it; an existing file only with ``overwrite``: a user's model is never replaced by
+    accident."""
+    p = Path(path)
+    if p.exists() and not overwrite:
+        raise ConfigError(f"{who}: {p} exists; choose another --out or pass --overwrite to replace it")
+    p.parent.mkdir(parents=True, exist_ok=True)
+    tmp = p.with_name(p.name + ".partial.npz")
+    np.savez_compressed(tmp, **arrays)
+    tmp.replace(p)
+    return p
+
+
 def checked_archive(raw: bytes, why: str, kind: str, remedy: str) -> tuple[dict[str, np.ndarray], dict]:
     """``read_archive``, a damaged or foreign file reported as a ``ConfigError`` naming it (``why``), what it should
     be (``kind``) and how to write it again (``remedy``)."""
