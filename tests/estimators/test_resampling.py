@@ -120,3 +120,28 @@ def test_normalization_skips_the_mask_only_where_it_changes_nothing():
         np.testing.assert_array_equal(W, ref_W)
         assert lm == ref_lm or (np.isnan(lm) and np.isnan(ref_lm))
         assert log_mean_weight(lw) == lm or (np.isnan(lm) and np.isnan(log_mean_weight(lw)))
+
+
+def test_inverse_cdf_gives_numpys_searchsorted_indices() -> None:
+    """The compiled lookup against the NumPy expressions it replaced (cumsum, last value 1, searchsorted right,
+    clipped to N - 1), on keys that hit the cdf's own values, ties (zero weights), keys past 1, unsorted keys and a
+    NaN weight (NumPy sorts it after every number)."""
+    g = np.random.default_rng(7)
+    for n in (1, 2, 5, 700):
+        W = g.dirichlet(np.full(n, 0.5))
+        W[g.random(n) < 0.2] = 0.0                     # runs of equal cdf values
+        W = W / W.sum() if W.sum() > 0 else np.full(n, 1.0 / n)
+        cdf = np.cumsum(W)
+        cdf[-1] = 1.0
+        keys = np.concatenate([g.random(300), cdf, [0.0, 1.0, 1.5, -0.5]])
+        for su in (np.sort(keys), keys):
+            expected = np.minimum(np.searchsorted(cdf, su, side="right"), n - 1)
+            np.testing.assert_array_equal(resampling.inverse_cdf(su, W), expected)
+    W = np.array([0.2, np.nan, 0.3, 0.5])
+    cdf = np.cumsum(W)
+    cdf[-1] = 1.0
+    su = np.array([0.0, 0.1, 0.2, 0.4, 0.99, 1.0])
+    np.testing.assert_array_equal(resampling.inverse_cdf(su, W),
+                                  np.minimum(np.searchsorted(cdf, su, side="right"), 3))
+    with pytest.raises(ValueError, match="empty"):
+        resampling.inverse_cdf(np.zeros(3), np.zeros(0))

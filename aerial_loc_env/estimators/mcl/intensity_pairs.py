@@ -301,10 +301,11 @@ class IntensityPairsModel(MeasurementModel):
             return self._finish(pending, None)
         if cfg.detector == "oracle":
             return self._finish(pending, oracle_mask(info, (H, W)))
-        pending.small = self.detector.reduce(img)
         if cfg.detector == "map":
+            pending.small = self.detector.reduce(img)
             return pending
-        return self._finish(pending, self.detector.detect(img, small=pending.small))
+        pending.small, smask = self.detector.detect_reduced(img)
+        return self._finish(pending, smask)
 
     def _finish(self, p: _PendingPairs, smask: ShadowMask | None) -> PreparedPairs:
         cfg: IntensityPairsConfig = self.config

@@ -15,19 +15,20 @@ from collections.abc import Callable
 import numpy as np
 
 from aerial_loc_env.errors import ConfigError
+from aerial_loc_env.estimators.mcl.resampling_kernels import inverse_cdf_indices
 
 Resampler = Callable[[np.ndarray, int, np.random.Generator], np.ndarray]
 
 
-def _cdf(W: np.ndarray) -> np.ndarray:
-    cdf = np.cumsum(W)
-    cdf[-1] = 1.0  # guard against round-off so that searchsorted never returns N
-    return cdf
-
-
 def inverse_cdf(su: np.ndarray, W: np.ndarray) -> np.ndarray:
-    """Indices ``n`` with ``cdf[n-1] <= su < cdf[n]`` for sorted uniforms ``su`` in [0, 1)."""
-    return np.minimum(np.searchsorted(_cdf(W), su, side="right"), W.shape[0] - 1)
+    """Indices ``n`` with ``cdf[n-1] <= su < cdf[n]`` for sorted uniforms ``su`` in [0, 1), ``cdf`` the cumulative
+    sum of ``W`` with its last value set to 1 (a guard against round-off: never index N). One compiled pass with
+    the indices of ``np.minimum(np.searchsorted(cdf, su, side="right"), N - 1)`` (tests/estimators/test_resampling.py)."""
+    if W.shape[0] == 0:
+        raise ValueError("resampling: no weights to draw from (W is empty)")
+    W = np.ascontiguousarray(W, dtype=np.float64)
+    su = np.ascontiguousarray(su, dtype=np.float64)
+    return inverse_cdf_indices(W, su, np.empty(su.shape[0], np.intp))
 
 
 def multinomial(W: np.ndarray, M: int, rng: np.random.Generator) -> np.ndarray:
