@@ -23,7 +23,7 @@ Resampler = Callable[[np.ndarray, int, np.random.Generator], np.ndarray]
 def inverse_cdf(su: np.ndarray, W: np.ndarray) -> np.ndarray:
     """Indices ``n`` with ``cdf[n-1] <= su < cdf[n]`` for sorted uniforms ``su`` in [0, 1), ``cdf`` the cumulative
     sum of ``W`` with its last value set to 1 (a guard against round-off: never index N). One compiled pass with
-    the indices of ``np.minimum(np.searchsorted(cdf, su, side="right"), N - 1)`` (tests/estimators/test_resampling.py)."""
+    the indices of ``np.minimum(np.searchsorted(cdf, su, side="right"), N - 1)`` (test_resampling.py)."""
     if W.shape[0] == 0:
         raise ValueError("resampling: no weights to draw from (W is empty)")
     W = np.ascontiguousarray(W, dtype=np.float64)
