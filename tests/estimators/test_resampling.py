@@ -124,8 +124,8 @@ def test_normalization_skips_the_mask_only_where_it_changes_nothing():
 
 def test_inverse_cdf_gives_numpys_searchsorted_indices() -> None:
     """The compiled lookup against the NumPy expressions it replaced (cumsum, last value 1, searchsorted right,
-    clipped to N - 1), on keys that hit the cdf's own values, ties (zero weights), keys past 1, unsorted keys and a
-    NaN weight (NumPy sorts it after every number)."""
+    clipped to N - 1), on keys that hit the cdf's own values, ties (zero weights), keys past 1, unsorted keys, NaN
+    and infinite keys (NumPy sorts a NaN after every number)."""
     g = np.random.default_rng(7)
     for n in (1, 2, 5, 700):
         W = g.dirichlet(np.full(n, 0.5))
@@ -137,10 +137,10 @@ def test_inverse_cdf_gives_numpys_searchsorted_indices() -> None:
         for su in (np.sort(keys), keys):
             expected = np.minimum(np.searchsorted(cdf, su, side="right"), n - 1)
             np.testing.assert_array_equal(resampling.inverse_cdf(su, W), expected)
-    W = np.array([0.2, np.nan, 0.3, 0.5])
+    W = np.array([0.2, 0.0, 0.3, 0.5])
     cdf = np.cumsum(W)
     cdf[-1] = 1.0
-    su = np.array([0.0, 0.1, 0.2, 0.4, 0.99, 1.0])
+    su = np.array([0.0, 0.1, np.nan, 0.2, 0.4, np.nan, 0.99, 1.0, 0.2, np.inf, -np.inf])
     np.testing.assert_array_equal(resampling.inverse_cdf(su, W),
                                   np.minimum(np.searchsorted(cdf, su, side="right"), 3))
     with pytest.raises(ValueError, match="empty"):

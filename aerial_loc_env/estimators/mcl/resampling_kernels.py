@@ -12,8 +12,10 @@ from aerial_loc_env.jit import JIT
 def inverse_cdf_indices(W, su, out):
     """``out[j]`` = ``min(searchsorted(cdf, su[j], side="right"), N - 1)`` with ``cdf`` = ``np.cumsum(W)`` (its
     running sum, in order, as NumPy accumulates) and its last value set to 1: the NumPy expressions it replaces,
-    without their three calls' fixed costs. The binary search compares as NumPy's does (a NaN in ``cdf`` sorts
-    after every number), so any ``su`` gives NumPy's indices."""
+    without their three calls' fixed costs. ``W`` >= 0 (weights), so ``cdf`` is sorted. Each key's index is the
+    first whose cdf exceeds it (compared as NumPy compares: a NaN key after every number); a key not below the
+    previous one starts from the previous index and walks up (sorted keys, every scheme's: one pass over
+    ``cdf``), any other is searched by bisection."""
     n = W.shape[0]
     cdf = np.empty(n)
     acc = 0.0
@@ -21,15 +23,23 @@ def inverse_cdf_indices(W, su, out):
         acc += W[i]
         cdf[i] = acc
     cdf[n - 1] = 1.0
+    lo = 0
+    prev = -np.inf
     for j in range(su.shape[0]):
         x = su[j]
-        lo, hi = 0, n
-        while lo < hi:                        # the first index whose cdf is greater than x
-            mid = (lo + hi) >> 1
-            c = cdf[mid]
-            if x < c or (c != c and x == x):
-                hi = mid
-            else:
-                lo = mid + 1
+        if x >= prev:                         # walk up from the previous key's index
+            while lo < n and not (x < cdf[lo]):
+                lo += 1
+        else:
+            lo, hi = 0, n
+            while lo < hi:
+                mid = (lo + hi) >> 1
+                if x < cdf[mid]:
+                    hi = mid
+                else:
+                    lo = mid + 1
+        if x != x:                            # NaN: after every number
+            lo = n
+        prev = x
         out[j] = min(lo, n - 1)
     return out
