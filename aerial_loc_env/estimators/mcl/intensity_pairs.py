@@ -224,6 +224,7 @@ class PreparedPairs:
     log_scale: float         # multiplies log L (tempering by the activation; 1 otherwise)
     log_offset: float        # added to log L (the literal multiplied activation; 0 otherwise)
     pair_weights: np.ndarray | None = None   # (K,) soft allocation (shadow_pair_weight > 0), else None
+    pairs: np.ndarray | None = None          # the indices of the used pairs (``keep``'s), when at hand
 
     @property
     def n_pairs_used(self) -> float:
@@ -231,7 +232,9 @@ class PreparedPairs:
         if self.pair_weights is not None:
             w = self.pair_weights if self.keep is None else self.pair_weights[self.keep]
             return float(np.sum(w))
-        return float(self.cam_bits.shape[0] if self.keep is None else np.count_nonzero(self.keep))
+        if self.keep is None:
+            return float(self.cam_bits.shape[0])
+        return float(self.pairs.size if self.pairs is not None else np.count_nonzero(self.keep))
 
 
 @dataclass
@@ -314,7 +317,10 @@ class IntensityPairsModel(MeasurementModel):
         vals = np.empty((u.size, img.shape[2]), np.float32)                   # (2K, 3) the pixels
         uv = np.empty((u.size, 2))
         in_mask = np.zeros(u.size, np.bool_)                                   # (2K,) in shadow
-        camera_pairs(img, u, v, _NO_MASK if smask is None else smask.mask, vals, in_mask, uv)
+        cam_bits = np.empty((K, img.shape[2]), np.bool_)                       # (K, 3) eq. (2) on the pixels
+        kept = np.empty(K, np.intp)                                            # pairs not split by the mask
+        n_kept = camera_pairs(img, u, v, _NO_MASK if smask is None else smask.mask, vals, in_mask, uv, cam_bits,
+                              kept)
         mask_pts = None if smask is None else in_mask
         stats: dict[str, Any] = {"K": K, "num_pairs": K}
         if smask is not None:
@@ -326,17 +332,19 @@ class IntensityPairsModel(MeasurementModel):
                 lut = restoration_lut(small, sm, cfg.restoration)              # (3, 256)
                 restored = lut[np.arange(3)[None, :], vals.astype(np.int64)]       # (2K, 3)
                 vals = np.where(mask_pts[:, None], restored, vals)
+                cam_bits = vals[:K] > vals[K:]                                # (the restored pixels' bits)
         if cfg.channels == 1:
             vals = vals @ _LUMA[:, None]
-        cam_bits = vals[:K] > vals[K:]                                        # (K, c) eq. (2)
-        keep, log_scale, log_offset, pair_weights = None, 1.0, 0.0, None
+            cam_bits = vals[:K] > vals[K:]                                    # (K, 1) eq. (2)
+        keep, log_scale, log_offset, pair_weights, pairs = None, 1.0, 0.0, None, None
         if cfg.shadow == "drop":
             one_in_shadow = mask_pts[:K] ^ mask_pts[K:]
             if cfg.shadow_pair_weight > 0:   # soft allocation: keep them, with less weight
                 pair_weights = np.where(one_in_shadow, cfg.shadow_pair_weight, 1.0)
             else:                            # eq. (6): drop them
                 keep = ~one_in_shadow
-            lc = int(np.count_nonzero(one_in_shadow))
+                pairs = kept[:n_kept]
+            lc = K - n_kept
             act = activation(K, lc, cfg.activation_gain / K)
             stats.update(shadow_pairs=lc, kept_pairs=K - lc, activation=act)
             if cfg.activation == "multiply":
@@ -346,7 +354,7 @@ class IntensityPairsModel(MeasurementModel):
         elif mask_pts is not None:
             stats["shadow_pairs"] = int(np.count_nonzero(mask_pts[:K] ^ mask_pts[K:]))
         self.last_stats = stats
-        return PreparedPairs(uv, cam_bits, keep, log_scale, log_offset, pair_weights)
+        return PreparedPairs(uv, cam_bits, keep, log_scale, log_offset, pair_weights, pairs)
 
     def _finish_with_map(self, p: _PendingPairs, states: np.ndarray) -> PreparedPairs:
         """The map-ratio mask at the particles' mean pose when the cloud is tight, else the image-only one."""
@@ -400,7 +408,9 @@ class IntensityPairsModel(MeasurementModel):
         if isinstance(prepared, _PendingPairs):
             prepared = self._finish_with_map(prepared, states)
         keep = prepared.keep
-        pairs = np.arange(prepared.cam_bits.shape[0]) if keep is None else np.flatnonzero(keep)
+        pairs = prepared.pairs
+        if pairs is None:
+            pairs = np.arange(prepared.cam_bits.shape[0]) if keep is None else np.flatnonzero(keep)
         weights = prepared.pair_weights if prepared.pair_weights is None or keep is None else \
             prepared.pair_weights[keep]
         K, c = pairs.size, prepared.cam_bits.shape[1]
@@ -434,7 +444,9 @@ class IntensityPairsModel(MeasurementModel):
             log_l = -0.5 * ((xi - cfg.mu) / cfg.sigma) ** 2
         else:
             log_l = np.log(np.maximum(xi, 1e-12))
-        return prepared.log_scale * log_l + prepared.log_offset
+        if prepared.log_scale != 1.0:       # (1.0 x: the same floats)
+            log_l = prepared.log_scale * log_l
+        return log_l + prepared.log_offset
 
 
 register_model("intensity_pairs", IntensityPairsModel)

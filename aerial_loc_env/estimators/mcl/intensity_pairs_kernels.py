@@ -122,11 +122,13 @@ def pair_agreements(poses, cos, sin, terms, uv, pairs, width, height, db, pixel_
 
 
 @njit(**JIT)
-def camera_pairs(image, u, v, mask, vals, in_mask, uv):
+def camera_pairs(image, u, v, mask, vals, in_mask, uv, cam_bits, kept):
     """The frame's side of the pairs in one pass: ``vals[j]`` = the pixel (``u[j]``, ``v[j]``) of ``image``
     (H, W, C) uint8 as float32, ``uv[j]`` = (u, v) as float64 and, for a ``mask`` (h, w) bool at a reduced
     resolution (empty for none), ``in_mask[j]`` = its value there (``ShadowMask.at``: row ``v h // H`` and
-    column ``u w // W``, clipped)."""
+    column ``u w // W``, clipped). Then, for the K = ``cam_bits.shape[0]`` pairs (points j and K + j): their bits
+    ``cam_bits[j, c]`` = ``vals[j, c] > vals[K + j, c]`` (eq. (2) on the pixels as they are) and the pairs with no
+    or both points in the mask, in order, in ``kept``; returns how many were kept (K - lc)."""
     big_h, big_w = image.shape[0], image.shape[1]
     h, w = mask.shape
     for j in range(u.shape[0]):
@@ -136,3 +138,12 @@ def camera_pairs(image, u, v, mask, vals, in_mask, uv):
         uv[j, 0], uv[j, 1] = x, y
         if h > 0:
             in_mask[j] = mask[min((y * h) // big_h, h - 1), min((x * w) // big_w, w - 1)]
+    k = cam_bits.shape[0]
+    n_kept = 0
+    for j in range(k):
+        for c in range(cam_bits.shape[1]):
+            cam_bits[j, c] = vals[j, c] > vals[k + j, c]
+        if in_mask[j] == in_mask[k + j]:
+            kept[n_kept] = j
+            n_kept += 1
+    return n_kept
