@@ -59,16 +59,24 @@ def check_count(name: str, value: Any, where: str, example: str) -> int:
 
 
 # ------------------------------------------------------------------------------------ what a sub-env does
-def _put(space: spaces.Space, views: Any, slot: int, value: Any) -> None:
-    """Write one sub-env's observation into slot ``slot`` of the batched shared-memory views."""
+def _leaves(space: spaces.Space, views: Any, path: tuple = ()) -> list[tuple[tuple, Any]]:
+    """The batched shared-memory views of ``space``'s leaves (Dict and Tuple spaces walked once), each with the
+    keys that lead from an observation to its value: what one sub-env's observation is written through."""
     if isinstance(space, spaces.Dict):
-        for key, sub in space.spaces.items():
-            _put(sub, views[key], slot, value[key])
-    elif isinstance(space, spaces.Tuple):
-        for sub, view, item in zip(space.spaces, views, value, strict=True):
-            _put(sub, view, slot, item)
-    else:
-        views[slot] = value
+        return [leaf for key, sub in space.spaces.items() for leaf in _leaves(sub, views[key], (*path, key))]
+    if isinstance(space, spaces.Tuple):
+        return [leaf for k, (sub, view) in enumerate(zip(space.spaces, views, strict=True))
+                for leaf in _leaves(sub, view, (*path, k))]
+    return [(path, views)]
+
+
+def _put(leaves: list[tuple[tuple, Any]], slot: int, value: Any) -> None:
+    """Write one sub-env's observation into slot ``slot`` of the batched views (``_leaves``)."""
+    for path, view in leaves:
+        item = value
+        for key in path:
+            item = item[key]
+        view[slot] = item
 
 
 def _op_reset(env: gym.Env, put: Callable[[Any], None], seed: int | None, options: dict | None) -> dict:
@@ -117,11 +125,11 @@ _OPS: dict[str, Callable[..., Any]] = {"reset": _op_reset, "step": _op_step, "st
                                        "apply": _op_apply}
 
 
-def _run_block(envs: Sequence[gym.Env], slots: Sequence[int], space: spaces.Space, views: Any,
+def _run_block(envs: Sequence[gym.Env], slots: Sequence[int], leaves: list[tuple[tuple, Any]],
                commands: Sequence[tuple]) -> list:
     out = []
     for env, slot, (op, *args) in zip(envs, slots, commands, strict=True):
-        out.append(_OPS[op](env, lambda obs, slot=slot: _put(space, views, slot, obs), *args))
+        out.append(_OPS[op](env, lambda obs, slot=slot: _put(leaves, slot, obs), *args))
     return out
 
 
@@ -222,7 +230,7 @@ def _worker(channel: _Channel, fns: CloudpickleWrapper, slots: list[int], shm: A
             cv2.setNumThreads(1)
         envs = [fn() for fn in fns.fn]
         space = envs[0].observation_space
-        views = _views_of(space, shm, num_envs)
+        leaves = _leaves(space, _views_of(space, shm, num_envs))
         channel.send(False, ("ok", (space, envs[0].action_space)))
     except BaseException as exc:  # noqa: BLE001 - reported to the caller, which raises it
         channel.send(False, ("error", _RemoteError(exc, slots[len(envs)] if len(envs) < len(slots) else None)))
@@ -233,7 +241,7 @@ def _worker(channel: _Channel, fns: CloudpickleWrapper, slots: list[int], shm: A
             if commands is None:
                 break
             try:
-                channel.send(False, ("ok", _run_block(envs, slots, space, views, commands)))
+                channel.send(False, ("ok", _run_block(envs, slots, leaves, commands)))
             except Exception as exc:  # noqa: BLE001 - reported to the caller, which raises it
                 channel.send(False, ("error", _RemoteError(exc, None)))
     except (EOFError, OSError, KeyboardInterrupt):
@@ -287,6 +295,7 @@ class EnvShards:
         self._starting = True
         self._shm = create_shared_memory(self.observation_space, self.num_envs, ctx=ctx)
         self.views = _views_of(self.observation_space, self._shm, self.num_envs)
+        self._leaves = _leaves(self.observation_space, self.views)
         spin_s = _SPIN_S if processes <= usable_cores() else 0.0
         try:
             for slots in self._blocks:
@@ -316,7 +325,7 @@ class EnvShards:
 
     def put(self, slot: int, obs: Any) -> None:
         """Write sub-env ``slot``'s observation into the shared batch."""
-        _put(self.observation_space, self.views, slot, obs)
+        _put(self._leaves, slot, obs)
 
     def run(self, commands: Sequence[tuple]) -> list:
         """One command per sub-env (``(op, *args)``, ops in ``_OPS``); the workers run theirs while this process
@@ -337,7 +346,7 @@ class EnvShards:
                 raise AerialLocError(self._broken) from None
         error: BaseException | None = None
         try:
-            local = _run_block(self.local_envs, self.local_slots, self.observation_space, self.views,
+            local = _run_block(self.local_envs, self.local_slots, self._leaves,
                                [commands[i] for i in self.local_slots])
         except Exception as exc:  # noqa: BLE001 - raised once the workers have answered
             error, local = exc, []
@@ -410,18 +419,27 @@ class EnvShards:
 def batch_infos(num_envs: int, infos: Sequence[dict | None]) -> dict[str, Any] | None:
     """The sub-envs' infos (None: no info) as Gymnasium's ``VectorEnv._add_info`` batches them one after the
     other (one array per key, its dtype from the first sub-env that has the key, and the ``_key`` mask), in one
-    pass per key. None where a value is a dict or a key starts with '_' (``_add_info``'s own path applies)."""
+    pass per key; a key that every sub-env has with values of one type (numbers of one type, arrays of one shape
+    and dtype) is one array call (the same array). None where a value is a dict or a key starts with '_'
+    (``_add_info``'s own path applies)."""
     present = [(i, info) for i, info in enumerate(infos) if info]
     order: dict[str, None] = {}
     for _, info in present:
         order.update(dict.fromkeys(info))
+    everyone = len(present) == num_envs
     out: dict[str, Any] = {}
     for key in order:
+        if key.startswith("_") or key == "final_obs":
+            return None
         pairs = [(i, info[key]) for i, info in present if key in info]
         first = pairs[0][1]
         kind = type(first)
-        if key.startswith("_") or key == "final_obs":
-            return None
+        if everyone and len(pairs) == num_envs:
+            whole = _whole(kind, first, [value for _, value in pairs])
+            if whole is not None:
+                out[key] = whole
+                out[f"_{key}"] = np.ones(num_envs, dtype=np.bool_)
+                continue
         if kind in (int, float, bool) or issubclass(kind, np.number):
             array = np.zeros(num_envs, dtype=kind)
         elif isinstance(first, np.ndarray):
@@ -437,6 +455,20 @@ def batch_infos(num_envs: int, infos: Sequence[dict | None]) -> dict[str, Any] |
         out[key] = array
         out[f"_{key}"] = mask
     return out
+
+
+def _whole(kind: type, first: Any, values: list) -> np.ndarray | None:
+    """Every sub-env's value of one key as the array ``batch_infos`` would fill value by value, in one call: numbers
+    all of ``kind`` (``np.array`` with that dtype) or arrays all of ``first``'s shape and dtype (``np.stack``);
+    None for anything else."""
+    if kind in (int, float, bool) or issubclass(kind, np.number):
+        if all(type(v) is kind for v in values):
+            return np.array(values, dtype=kind)
+    elif kind is np.ndarray:
+        shape, dtype = first.shape, first.dtype
+        if all(type(v) is np.ndarray and v.shape == shape and v.dtype == dtype for v in values):
+            return np.stack(values)
+    return None
 
 
 def _copy(value: Any) -> Any:

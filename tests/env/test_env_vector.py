@@ -159,6 +159,13 @@ def test_infos_batch_as_gymnasium_does() -> None:
         [{"a": 1.5, "b": np.arange(2)}, None, {"b": np.ones(2, np.float32), "c": "x"}],
         [{"n": 1}, {"n": 2.7}, {"flag": True, "n": np.float32(3.0)}],
         [{"obj": (1, 2)}, {"obj": None}, {}],
+        # every sub-env with every key (the one-call path), and the values that keep it off that path
+        [{"t": 0.5, "s": 3, "f": False, "p": np.arange(3.0), "q": np.float32(1.5), "o": "a"},
+         {"t": 1.5, "s": 4, "f": True, "p": np.arange(3.0) + 1, "q": np.float32(2.5), "o": "b"},
+         {"t": -2.0, "s": 5, "f": True, "p": np.zeros(3), "q": np.float32(-1.0), "o": None}],
+        [{"m": 1, "a": np.zeros(3, np.float32), "b": np.zeros((2, 2))},
+         {"m": 2.5, "a": np.ones(3), "b": np.ones(2)},
+         {"m": True, "a": np.arange(3, dtype=np.int16), "b": 7.0}],
     ]
     for infos in cases:
         expected: dict = {}
