@@ -54,7 +54,9 @@ def pair_agreements(poses, cos, sin, terms, uv, pairs, width, height, db, pixel_
     their lookups hit the cache; particle-major lookups (NumPy's gather) roam over the whole footprint. Each
     pair's lines are prefetched while the previous pair's lookups run: a frame's pairs fall on map lines no step
     touched before (each step draws new pairs), and other work between steps evicts the rest (docs/perf-log.md
-    has the figures, and the prefetch distances that did no better)."""
+    has the figures, and the prefetch distances that did no better). The RGB lookups write each pair's counts
+    only; the particles' sums are added after all pairs, in a loop that vectorizes (a running sum per particle in
+    the lookups' loop was a load and a store more per lookup)."""
     n, k = poses.shape[0], cam_bits.shape[0]
     sums = np.zeros(n, np.int64)
     w = np.uint64(np.uint32(width))     # (zero-extended: the products are 32 x 32 -> 64-bit)
@@ -106,7 +108,6 @@ def pair_agreements(poses, cos, sin, terms, uv, pairs, width, height, db, pixel_
                 a = (np.int64((db[b1] > db[b2]) == g0) + np.int64((db[b1 + one] > db[b2 + one]) == g1)
                      + np.int64((db[b1 + two] > db[b2 + two]) == g2))
                 aj[m] = a
-                sums[m] += a
         else:
             for m in range(n):
                 b1, b2 = p1[m] * step, p2[m] * step
@@ -118,6 +119,11 @@ def pair_agreements(poses, cos, sin, terms, uv, pairs, width, height, db, pixel_
         if has_nodata:
             for m in range(n):
                 vj[m] = vj[m] and not nodata[p1[m]] and not nodata[p2[m]]
+    if rgb:                                    # the particles' sums in one vectorized pass over the rows
+        for j in range(used):
+            aj = agree[j]
+            for m in range(n):
+                sums[m] += aj[m]
     return sums, off != 0
 
 
