@@ -73,6 +73,7 @@ import numpy as np
 from aerial_loc_env.config import build_config, rng
 from aerial_loc_env.errors import ConfigError
 from aerial_loc_env.estimators.database import DatabaseWindow
+from aerial_loc_env.estimators.mcl.estimate import yaw_cos_sin
 from aerial_loc_env.estimators.mcl.intensity_pairs_kernels import camera_pairs, pair_agreements, pose_affines
 from aerial_loc_env.estimators.mcl.measurement import MeasurementModel, register_model
 from aerial_loc_env.estimators.protocol import parse_observation
@@ -421,8 +422,8 @@ class IntensityPairsModel(MeasurementModel):
         counts = np.empty((K, n), np.int8)
         valid = np.empty((K, n), np.bool_)
         nodata = _NO_NODATA if self._nodata is None else self._nodata
-        yaw = states[:, 2]                  # camera_to_map's cos and sin: NumPy's, of the same column
-        sums, outside = pair_agreements(states, np.cos(yaw), np.sin(yaw), self._affine_terms(altitude_m),
+        cos, sin = yaw_cos_sin(states)      # camera_to_map's cos and sin: NumPy's, of the same column
+        sums, outside = pair_agreements(states, cos, sin, self._affine_terms(altitude_m),
                                         prepared.uv, pairs, self._W, self._H, self._db, c, c, nodata,
                                         prepared.cam_bits, counts, valid)
         if not outside and self._nodata is None and weights is None:
