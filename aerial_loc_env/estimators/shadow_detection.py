@@ -174,8 +174,8 @@ class ShadowDetector:
         """(the reduced frame, its shadow mask) of ``image``; ``small`` may pass an already reduced copy.
 
         The reduction, the luminance, the index and its 8-bit quantization are one compiled pass at the default
-        scale (``_reduce_index8``; else ``reduce``, ``cvtColor`` and ``_index8``), then OpenCV's Otsu threshold,
-        then the two classes' statistics, the decision and the morphology in one more (``_classify``): the same
+        scale (``_reduce_index8``; else ``reduce``, ``cvtColor`` and ``_index8``), then Otsu's threshold (OpenCV's),
+        the two classes' statistics, the decision and the morphology in one more (``_classify``): the same
         floats as NumPy's element-wise float32 arithmetic, exact integer luminance sums, and NumPy's pairwise
         float32 sums for the c3 means (tests/estimators/test_shadow_detection.py checks the masks against the
         NumPy path over many frames)."""
@@ -193,9 +193,8 @@ class ShadowDetector:
                 idx8 = _index8(np.ascontiguousarray(small), lum8, _c3_table(), _INDEX_MODES[index], c3)
         if index not in ("c3_luminance", "c3"):
             c3 = _NO_C3
-        _, binary = cv2.threshold(idx8, 0, 1, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
         oc = self._open_close
-        mask = _classify(binary, lum8, c3, binary.size * 255 >= 2 ** 24, self.config.max_luminance_ratio,
+        mask = _classify(idx8, lum8, c3, idx8.size * 255 >= 2 ** 24, self.config.max_luminance_ratio,
                          self.config.min_blue_shift, oc.open_runs, oc.close_runs)
         return small, ShadowMask(mask.view(np.bool_), img.shape[:2])
 

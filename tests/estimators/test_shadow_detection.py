@@ -373,3 +373,33 @@ def test_fused_reduction_and_index_are_the_separate_passes(index):
         np.testing.assert_array_equal(got_small, ref_small)
         np.testing.assert_array_equal(mask.mask, det.detect(img, small=ref_small).mask)
         np.testing.assert_array_equal(mask.mask, _detect_reference(det, img))
+
+
+def test_compiled_otsu_threshold_is_opencvs():
+    """``_otsu`` against ``cv2.threshold(.., THRESH_OTSU)``'s threshold on 8-bit images of many sizes and
+    histograms: uniform noise, one or two Gaussian modes, a few levels, nearly constant images (a class under
+    FLT_EPSILON), and the detector's own index images."""
+    from aerial_loc_env.estimators.shadow_detection import _INDEX_MODES, _c3_table
+    from aerial_loc_env.estimators.shadow_detection_kernels import _otsu, _reduce_index8
+
+    g = np.random.default_rng(17)
+    for t in range(3000):
+        h, w = (100, 150) if t % 3 else (int(v) for v in g.integers(1, 200, 2))
+        kind = t % 6
+        if kind == 0:
+            img = g.integers(0, 256, (h, w)).astype(np.uint8)
+        elif kind == 1:
+            img = np.clip(g.normal(g.uniform(50, 200), g.uniform(1, 60), (h, w)), 0, 255).astype(np.uint8)
+        elif kind == 2:
+            img = np.clip(g.normal(g.uniform(50, 120), 10, (h, w)), 0, 255).astype(np.uint8)
+            img[: h // 2] += np.uint8(g.integers(0, 100))
+        elif kind == 3:
+            img = g.choice(g.integers(0, 256, int(g.integers(1, 5))).astype(np.uint8), (h, w))
+        elif kind == 4:
+            img = np.full((h, w), g.integers(0, 256), np.uint8)
+            img[g.random((h, w)) < g.uniform(0, 1e-3)] = g.integers(0, 256)
+        else:
+            frame = np.clip(cv2.GaussianBlur(g.normal(120, 40, (400, 600, 3)), (0, 0), 2), 0, 255).astype(np.uint8)
+            frame[100:260, 50:400] = (frame[100:260, 50:400] * np.array([0.4, 0.45, 0.6])).astype(np.uint8)
+            img = _reduce_index8(frame, _c3_table(), _INDEX_MODES["c3_luminance"])[3]
+        assert _otsu(img) == cv2.threshold(img, 0, 1, cv2.THRESH_BINARY + cv2.THRESH_OTSU)[0], (t, kind)
