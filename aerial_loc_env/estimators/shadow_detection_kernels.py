@@ -285,17 +285,18 @@ def _otsu(img):
 
 @njit(**_JIT)
 def _pairwise_sum(a, lo, n):
-    """NumPy's float32 pairwise summation of ``a[lo:lo + n]`` as ``np.add.reduce`` does it (its
+    """NumPy's pairwise summation of ``a[lo:lo + n]`` (float32 or float64, summed in that type) as
+    ``np.add.reduce`` does it (its
     ``pairwise_sum``: blocks of at most 128 added by ``_block_sum``, longer runs halved at a multiple of 8 and
     the halves' sums added), walked with an explicit stack: numba's on-disk cache does not keep recursive
     functions (a cached recursive version crashed)."""
     if n <= 128:
         return _block_sum(a, lo, n)
     f_lo, f_n = np.empty(64, np.int64), np.empty(64, np.int64)
-    f_left, f_stage = np.empty(64, np.float32), np.empty(64, np.int64)
+    f_left, f_stage = np.empty(64, a.dtype), np.empty(64, np.int64)
     f_lo[0], f_n[0], f_stage[0] = lo, n, 0
     top = 1
-    val = np.float32(0.0)
+    val = f_left[0]                               # (its type; always set by a block before it is read)
     while True:
         f = top - 1
         half = f_n[f] // 2
@@ -322,10 +323,10 @@ def _pairwise_sum(a, lo, n):
 
 @njit(**_JIT)
 def _block_sum(a, lo, n):
-    """NumPy's float32 sum of a run of at most 128: in order below 8, else eight running sums combined as
-    ``((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))`` and the rest added in order."""
+    """NumPy's sum of a run of at most 128 (in ``a``'s float type): in order from zero below 8, else eight running
+    sums combined as ``((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))`` and the rest added in order."""
     if n < 8:
-        res = np.float32(0.0)
+        res = np.zeros(1, a.dtype)[0]
         for i in range(lo, lo + n):
             res += a[i]
         return res

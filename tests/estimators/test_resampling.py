@@ -145,3 +145,45 @@ def test_inverse_cdf_gives_numpys_searchsorted_indices() -> None:
                                   np.minimum(np.searchsorted(cdf, su, side="right"), 3))
     with pytest.raises(ValueError, match="empty"):
         resampling.inverse_cdf(np.zeros(3), np.zeros(0))
+
+
+def _normalize_reference(log_w: np.ndarray) -> tuple[np.ndarray, float]:
+    """normalize_log_weights as NumPy expressions (before its compiled passes)."""
+    m = float(np.max(log_w))
+    lw = log_w
+    if not np.isfinite(m):
+        lw = np.where(np.isfinite(log_w), log_w, -np.inf)
+        m = float(np.max(lw))
+        if not np.isfinite(m):
+            return np.full(log_w.shape[0], 1.0 / log_w.shape[0]), -np.inf
+    w = np.exp(lw - m)
+    s = float(w.sum())
+    return w / s, m + float(np.log(s / log_w.shape[0]))
+
+
+def test_normalization_gives_the_numpy_expressions_floats():
+    """The compiled maximum, shift, pairwise sum and division around NumPy's exp against the NumPy expressions,
+    bit for bit: sizes across the pairwise sum's blocks and halvings (1 to 5000), spreads from flat to one
+    dominant weight, and -inf / +inf / NaN log-weights; the float64 pairwise sum against NumPy's ``sum``."""
+    from aerial_loc_env.estimators.shadow_detection_kernels import _pairwise_sum
+
+    g = np.random.default_rng(11)
+    for t in range(400):
+        n = int(g.integers(1, 300)) if t % 2 else int(g.integers(300, 5000))
+        log_w = g.normal(0.0, 10 ** g.uniform(-3, 3), n) + g.uniform(-1e3, 1e3)
+        if t % 7 == 0:
+            log_w[g.random(n) < 0.3] = -np.inf
+        if t % 11 == 0:
+            log_w[g.integers(0, n)] = np.inf
+        if t % 13 == 0:
+            log_w[g.integers(0, n)] = np.nan
+        W, lm = resampling.normalize_log_weights(log_w)
+        W_ref, lm_ref = _normalize_reference(log_w)
+        np.testing.assert_array_equal(W, W_ref)
+        assert lm == lm_ref or (np.isnan(lm) and np.isnan(lm_ref))
+        assert resampling.log_mean_weight(log_w) == lm or np.isnan(lm)
+        a = g.random(n) * 10 ** g.uniform(-5, 5)
+        assert _pairwise_sum(a, 0, n) == a.sum()
+    W, lm = resampling.normalize_log_weights(np.full(5, -np.inf))
+    np.testing.assert_array_equal(W, np.full(5, 0.2))
+    assert lm == -np.inf

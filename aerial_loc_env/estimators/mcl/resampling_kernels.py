@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from aerial_loc_env.estimators.shadow_detection_kernels import _pairwise_sum
 from aerial_loc_env.jit import JIT
 
 
@@ -43,3 +44,32 @@ def inverse_cdf_indices(W, su, out):
         prev = x
         out[j] = min(lo, n - 1)
     return out
+
+
+@njit(**JIT)
+def max_and_shift(log_w, out):
+    """NumPy's ``np.max(log_w)`` (NaN if any is NaN) and, when it is finite, ``out`` = ``log_w - max`` (the
+    subtraction NumPy does); ``out`` untouched otherwise."""
+    m = -np.inf
+    nan = False
+    for i in range(log_w.shape[0]):
+        x = log_w[i]
+        if x != x:
+            nan = True
+        elif x > m:
+            m = x
+    if nan:
+        return np.nan
+    if np.isfinite(m):
+        for i in range(log_w.shape[0]):
+            out[i] = log_w[i] - m
+    return m
+
+
+@njit(**JIT)
+def sum_and_divide(w, out):
+    """``s = w.sum()`` (NumPy's pairwise float64 sum) and ``out`` = ``w / s``; returns ``s``."""
+    s = _pairwise_sum(w, 0, w.shape[0])
+    for i in range(w.shape[0]):
+        out[i] = w[i] / s
+    return s
