@@ -419,27 +419,18 @@ class EnvShards:
 def batch_infos(num_envs: int, infos: Sequence[dict | None]) -> dict[str, Any] | None:
     """The sub-envs' infos (None: no info) as Gymnasium's ``VectorEnv._add_info`` batches them one after the
     other (one array per key, its dtype from the first sub-env that has the key, and the ``_key`` mask), in one
-    pass per key; a key that every sub-env has with values of one type (numbers of one type, arrays of one shape
-    and dtype) is one array call (the same array). None where a value is a dict or a key starts with '_'
-    (``_add_info``'s own path applies)."""
+    pass per key. None where a value is a dict or a key starts with '_' (``_add_info``'s own path applies)."""
     present = [(i, info) for i, info in enumerate(infos) if info]
     order: dict[str, None] = {}
     for _, info in present:
         order.update(dict.fromkeys(info))
-    everyone = len(present) == num_envs
     out: dict[str, Any] = {}
     for key in order:
-        if key.startswith("_") or key == "final_obs":
-            return None
         pairs = [(i, info[key]) for i, info in present if key in info]
         first = pairs[0][1]
         kind = type(first)
-        if everyone and len(pairs) == num_envs:
-            whole = _whole(kind, first, [value for _, value in pairs])
-            if whole is not None:
-                out[key] = whole
-                out[f"_{key}"] = np.ones(num_envs, dtype=np.bool_)
-                continue
+        if key.startswith("_") or key == "final_obs":
+            return None
         if kind in (int, float, bool) or issubclass(kind, np.number):
             array = np.zeros(num_envs, dtype=kind)
         elif isinstance(first, np.ndarray):
@@ -455,20 +446,6 @@ def batch_infos(num_envs: int, infos: Sequence[dict | None]) -> dict[str, Any] |
         out[key] = array
         out[f"_{key}"] = mask
     return out
-
-
-def _whole(kind: type, first: Any, values: list) -> np.ndarray | None:
-    """Every sub-env's value of one key as the array ``batch_infos`` would fill value by value, in one call: numbers
-    all of ``kind`` (``np.array`` with that dtype) or arrays all of ``first``'s shape and dtype (``np.stack``);
-    None for anything else."""
-    if kind in (int, float, bool) or issubclass(kind, np.number):
-        if all(type(v) is kind for v in values):
-            return np.array(values, dtype=kind)
-    elif kind is np.ndarray:
-        shape, dtype = first.shape, first.dtype
-        if all(type(v) is np.ndarray and v.shape == shape and v.dtype == dtype for v in values):
-            return np.stack(values)
-    return None
 
 
 def _copy(value: Any) -> Any:
