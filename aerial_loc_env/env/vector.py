@@ -157,6 +157,10 @@ class _RemoteError:
 #: within about one block's step, and waking a sleeping process costs more (a system call and, in a VM, an
 #: interrupt between cores); only where every process has a core of its own
 _SPIN_S = 0.002
+#: after two spins in a row ran out (the other process had no core: the machine is busier than its cores, or the
+#: caller's own work between steps is long), the waits that sleep at once before a spin is tried again: spinning
+#: then only took the core the answer needed (one spin that runs out, as while a sub-env resets, changes nothing)
+_SLEEP_AFTER_MISSES = 64
 #: bytes of shared buffer per direction and worker; a longer message (a big final observation, rendered frames)
 #: goes through the pipe
 _CAPACITY = 1 << 18
@@ -166,13 +170,17 @@ _IN_PIPE = 0xFFFFFFFF
 class _Channel:
     """The messages between the caller and one worker, both ways: a message is pickled into a shared buffer (or
     the pipe, when it does not fit) and announced by a semaphore, on which the receiver spins for ``spin_s``
-    before it sleeps. Requests and answers alternate, so each direction holds at most one message."""
+    before it sleeps (and, once two spins in a row have run out, sleeps at once for the next
+    ``_SLEEP_AFTER_MISSES`` waits: on a machine busier than its cores the spinner held the core the answer
+    needed). Requests and answers alternate, so each direction holds at most one message."""
 
     def __init__(self, ctx: Any, spin_s: float) -> None:
         self.sems = (ctx.Semaphore(0), ctx.Semaphore(0))            # to the worker, to the caller
         self.bufs = (ctx.RawArray("B", _CAPACITY), ctx.RawArray("B", _CAPACITY))
         self.pipe = ctx.Pipe()                                        # (the caller's end, the worker's end)
         self.spin_s = spin_s
+        self._misses = 0              # spins in a row that ran out
+        self._sleep_next = 0          # waits left that sleep at once (after two spins in a row ran out)
         self._views: tuple | None = None
 
     def __getstate__(self) -> dict:
@@ -200,14 +208,25 @@ class _Channel:
         """The next message; EOFError when ``alive()`` turns false while waiting."""
         k = 0 if in_worker else 1
         sem = self.sems[k]
-        if not sem.acquire(False):
-            end = time.perf_counter() + self.spin_s
+        if sem.acquire(False):        # already there: the other process keeps up
+            self._misses = 0
+        else:
+            spin_s = self.spin_s if self._sleep_next == 0 else 0.0
+            self._sleep_next = max(0, self._sleep_next - 1)
+            end = time.perf_counter() + spin_s
             while not sem.acquire(False):
                 if time.perf_counter() >= end:
+                    if spin_s > 0:
+                        self._misses += 1
+                        if self._misses >= 2:
+                            self._sleep_next = _SLEEP_AFTER_MISSES
                     while not sem.acquire(timeout=_POLL_S):
                         if not alive():
                             raise EOFError
                     break
+            else:
+                if spin_s > 0:
+                    self._misses = 0
         buf = self._buf(k)
         size = int.from_bytes(buf[:4], "little")
         return pickle.loads(self.pipe[1 - k].recv_bytes() if size == _IN_PIPE else bytes(buf[4:4 + size]))

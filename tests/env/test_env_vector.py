@@ -241,3 +241,34 @@ def test_the_readmes_example_runs_as_written(tmp_path: Path) -> None:
     done = subprocess.run([sys.executable, "example.py"], cwd=tmp_path, capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr
     assert done.stdout == "AerialLocVectorEnv (4, 64, 64, 3)\n"
+
+
+def test_a_receiver_stops_spinning_after_two_spins_in_a_row_ran_out() -> None:
+    """The channel's wait: a message that comes within the spin keeps spinning on; one late message (a sub-env's
+    reset) changes nothing; two in a row make the next ``_SLEEP_AFTER_MISSES`` waits sleep at once (a machine
+    busier than its cores), after which a spin is tried again. The messages arrive intact either way."""
+    import multiprocessing as mp
+    import threading
+
+    from aerial_loc_env.env import vector
+
+    channel = vector._Channel(mp.get_context("fork"), spin_s=0.001)
+
+    def late(message: int) -> None:
+        timer = threading.Timer(0.05, channel.send, args=(True, message))    # well past the 1 ms spin
+        timer.start()
+        assert channel.receive(True, lambda: True) == message
+        timer.join()
+
+    channel.send(True, 1)
+    assert channel.receive(True, lambda: True) == 1 and channel._misses == 0
+    late(2)
+    assert channel._misses == 1 and channel._sleep_next == 0                  # one late answer: still spinning
+    late(3)
+    assert channel._sleep_next == vector._SLEEP_AFTER_MISSES                  # two in a row: sleep at once
+    for k in range(vector._SLEEP_AFTER_MISSES):
+        late(10 + k)
+    assert channel._sleep_next == 0 and channel._misses == 2                  # slept through; no spin counted
+    channel.send(True, 99)
+    assert channel.receive(True, lambda: True) == 99 and channel._misses == 0  # an answer in time: reset
+    channel.close()
