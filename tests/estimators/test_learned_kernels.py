@@ -1,7 +1,8 @@
 """The learned model's compiled kernels (``estimators/mcl/learned_kernels.py``) against plain NumPy: the encoder
 (any odd kernel, stride and channel count, the outputs and terms padded to the kernel's groups) equals a direct
 zero-padded convolution in float64, and the particles' scores (the surface computed at the cells their lookups
-read) equal a dense surface over the particles' box read by the same bilinear lookups.
+read, or over the box by ``cv2.matchTemplate``) equal a dense surface over the particles' box read by the same
+bilinear lookups.
 
 Tolerances: float32 sums of at most a few hundred products of unit-scale terms (relative error about
 sqrt(terms) * 2^-24, below 1e-5); the scores are means of cosines (|value| <= 1) over the frame's cells."""
@@ -95,8 +96,11 @@ def prepared_model():
     return model, model.prepare(observation(render_frame(m, *truth), yaw=truth[2]), np.random.default_rng(0)), truth
 
 
+@pytest.mark.parametrize("path", ["cells", "box"])
 @pytest.mark.parametrize("cloud", ["spread", "one", "a row", "a column", "at the edge", "with NaN"])
-def test_scores_equal_a_dense_surface(prepared_model, cloud: str) -> None:
+def test_scores_equal_a_dense_surface(prepared_model, cloud: str, path: str, monkeypatch) -> None:
+    """Either way of computing the surface: at the particles' cells by the kernel, or over the box by OpenCV."""
+    monkeypatch.setattr(learned, "CELLS_PER_REGION_CELL", 1e12 if path == "cells" else 0)
     model, prepared, truth = prepared_model
     g = np.random.default_rng(11)
     states = np.column_stack([truth[0] + g.normal(0, 12, 300), truth[1] + g.normal(0, 12, 300),

@@ -18,7 +18,8 @@ The model, per episode and per frame:
   the map's level), embedded once; cells outside the footprint are masked out;
 - **the particles** (``log_likelihood``): one correlation surface of the frame's embedding over the map's, over
   the box that holds the particles, computed at the cells the particles' lookups read only (summed over the
-  channels and the footprint's cells: ``learned_kernels.correlate_cells``), normalized by the frame's valid cells
+  channels and the footprint's cells: ``learned_kernels.correlate_cells``), or over the whole box by
+  ``cv2.matchTemplate`` where most of it is read (``CELLS_PER_REGION_CELL``), normalized by the frame's valid cells
   (the mean cosine similarity, in [-1, 1]); each particle reads it at its position by a bilinear lookup.
   The log-likelihood is ``score / temperature``, the temperature calibrated on simulated validation worlds and
   stored with the weights (``temperature`` overrides it).
@@ -305,6 +306,11 @@ class MapEmbedding(NamedTuple):
     pixel_m: tuple[float, float]  # the level's ground size of a pixel (east, north)
 
 
+#: the surface is summed directly at the particles' cells while (cells x the frame's valid cells) stays below this
+#: times the box's region (in cells), else correlated over the whole box by ``cv2.matchTemplate``: about where the
+#: two cost the same (docs/perf-log.md)
+CELLS_PER_REGION_CELL = 100
+
 #: map embeddings by (weights digest, map key), least recently used dropped first
 _MAP_CACHE: OrderedDict[tuple, MapEmbedding] = OrderedDict()
 MAP_CACHE_SIZE = 4
@@ -352,6 +358,22 @@ def embed_map(weights: Weights, orthomap, pad: int) -> MapEmbedding:
     _MAP_CACHE[key] = out
     while len(_MAP_CACHE) > MAP_CACHE_SIZE:
         _MAP_CACHE.popitem(last=False)
+    return out
+
+
+def correlate(region: np.ndarray, template: np.ndarray) -> np.ndarray:
+    """Sum over channels of the cross-correlation (``TM_CCORR``) of ``template`` (h, w, C) over ``region``."""
+    out = None
+    for c0 in range(0, template.shape[2], 4):
+        c1 = min(c0 + 4, template.shape[2])
+        if c1 - c0 == 2:      # matchTemplate takes 1, 3 or 4 channels
+            parts = [(c0, c0 + 1), (c0 + 1, c1)]
+        else:
+            parts = [(c0, c1)]
+        for a, b in parts:
+            r = cv2.matchTemplate(np.ascontiguousarray(region[:, :, a:b]), np.ascontiguousarray(template[:, :, a:b]),
+                                  cv2.TM_CCORR)
+            out = r if out is None else out + r
     return out
 
 
@@ -461,7 +483,8 @@ class LearnedModel(MeasurementModel):
         b1 = min(mh - th, int(math.ceil(sy[finite].max())) + 1)
         if a1 < a0 or b1 < b0:
             return out
-        # the surface over the box, computed at the cells the particles' bilinear lookups read only
+        # the surface over the box, at the cells the particles' bilinear lookups read (a sum over the template's
+        # valid cells each), or over the whole box where that costs more (matchTemplate's cost grows with the box)
         h, w = b1 - b0 + 1, a1 - a0 + 1
         x, y = np.where(finite, sx - a0, -1.0), np.where(finite, sy - b0, -1.0)
         ok, x0, y0, x1, y1, _, _ = _corners((max(h, 2), max(w, 2)), x, y)   # on the edge-padded surface
@@ -470,11 +493,15 @@ class LearnedModel(MeasurementModel):
             for xx in (x0[ok], x1[ok]):
                 need[np.minimum(yy, h - 1), np.minimum(xx, w - 1)] = True
         rows, cols = np.nonzero(need)
-        values = np.empty(len(rows), np.float32)
-        _kern.correlate_cells(emb.cells, prepared.template, prepared.first, prepared.stop, rows + b0, cols + a0,
-                              values)
-        surface = np.zeros((h, w), np.float32)
-        surface[rows, cols] = values / np.float32(prepared.n_valid)
+        if len(rows) * prepared.n_valid <= CELLS_PER_REGION_CELL * (h + th - 1) * (w + tw - 1):
+            values = np.empty(len(rows), np.float32)
+            _kern.correlate_cells(emb.cells, prepared.template, prepared.first, prepared.stop, rows + b0,
+                                  cols + a0, values)
+            surface = np.zeros((h, w), np.float32)
+            surface[rows, cols] = values / np.float32(prepared.n_valid)
+        else:       # most of a box read (a grid of positions): the whole surface by OpenCV's transform
+            region = emb.cells[b0:b1 + th, a0:a1 + tw]
+            surface = correlate(region, prepared.template) / np.float32(prepared.n_valid)
         if h < 2 or w < 2:
             surface = np.pad(surface, ((0, max(0, 2 - h)), (0, max(0, 2 - w))), mode="edge")
         v = bilinear(surface.astype(np.float64), x, y, -1.0)
