@@ -147,24 +147,11 @@ def test_inverse_cdf_gives_numpys_searchsorted_indices() -> None:
         resampling.inverse_cdf(np.zeros(3), np.zeros(0))
 
 
-def _normalize_reference(log_w: np.ndarray) -> tuple[np.ndarray, float]:
-    """normalize_log_weights as NumPy expressions (before its compiled passes)."""
-    m = float(np.max(log_w))
-    lw = log_w
-    if not np.isfinite(m):
-        lw = np.where(np.isfinite(log_w), log_w, -np.inf)
-        m = float(np.max(lw))
-        if not np.isfinite(m):
-            return np.full(log_w.shape[0], 1.0 / log_w.shape[0]), -np.inf
-    w = np.exp(lw - m)
-    s = float(w.sum())
-    return w / s, m + float(np.log(s / log_w.shape[0]))
-
-
 def test_normalization_gives_the_numpy_expressions_floats():
-    """The compiled maximum, shift, pairwise sum and division around NumPy's exp against the NumPy expressions,
-    bit for bit: sizes across the pairwise sum's blocks and halvings (1 to 5000), spreads from flat to one
-    dominant weight, and -inf / +inf / NaN log-weights; the float64 pairwise sum against NumPy's ``sum``."""
+    """The compiled maximum, shift, pairwise sum and division around NumPy's exp against the NumPy expressions
+    (``_normalize_reference``), bit for bit: sizes across the pairwise sum's blocks and halvings (1 to 5000),
+    spreads from flat to one dominant weight, and -inf / +inf / NaN log-weights; the float64 pairwise sum against
+    NumPy's ``sum``."""
     from aerial_loc_env.estimators.shadow_detection_kernels import _pairwise_sum
 
     g = np.random.default_rng(11)
