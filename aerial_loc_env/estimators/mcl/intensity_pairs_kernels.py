@@ -153,3 +153,26 @@ def camera_pairs(image, u, v, mask, vals, in_mask, uv, cam_bits, kept):
             kept[n_kept] = j
             n_kept += 1
     return n_kept
+
+
+@njit(**JIT)
+def bounded_pairs(raw, width, height, u, v):
+    """``u`` = ``rng.integers(0, width, n)`` then ``v`` = ``rng.integers(0, height, n)`` (n = ``u.shape[0]``, even)
+    from ``raw``, the n 64-bit words PCG64 gives next (``random_raw``), as NumPy draws them: each value from the next
+    32-bit half (the low half of a word first, NumPy's buffered ``next_uint32``) by Lemire's multiply-shift,
+    ``(half * bound) >> 32``. Returns False where NumPy would reject a half (``(half * bound) mod 2^32`` below
+    ``(2^32 - bound) mod bound``, about one half in 10^7) and draw another: the caller then draws with NumPy."""
+    n = u.shape[0]
+    for k in range(2):
+        bound = np.uint64(width if k == 0 else height)
+        threshold = (np.uint64(0xFFFFFFFF) - (bound - np.uint64(1))) % bound
+        out = u if k == 0 else v
+        for j in range(n):
+            h = k * n + j                              # the half's index: word h // 2, low half first
+            word = raw[h >> 1]
+            half = word & np.uint64(0xFFFFFFFF) if h % 2 == 0 else word >> np.uint64(32)
+            m = half * bound
+            if (m & np.uint64(0xFFFFFFFF)) < threshold:
+                return False
+            out[j] = np.int64(m >> np.uint64(32))
+    return True
