@@ -58,6 +58,10 @@ class _OpenCVRenderer(CameraRenderer):
         elif isinstance(src, render_mod._MapWarp):
             facades = src.shade_px, src.shade_gain
             src = _remap_box(src.box, src.map_x, src.map_y)
+        elif isinstance(src, render_mod._LevelWarp):    # the level's warp, then the grid's (replicated border)
+            occ = cv2.warpAffine(src.grid, src.grid_matrix, (src.width_px, src.height_px),
+                                 flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REPLICATE)
+            src = _warp_box(src.box, src.matrix, src.width_px, src.height_px)
         h, w, cn = src.shape
         image = cv2.cvtColor(src, cv2.COLOR_RGBA2RGB) if cn == 4 else src.copy()
         if facades is not None:
