@@ -349,8 +349,12 @@ def level_finish(box, m, grid, mg, shade, h_px, w_px, lut, out, sensor, vig, ban
     gflat = grid.reshape(gh * gw)
     gumax, gvmax, gstride = np.float32(gw - 1), np.float32(gh - 1), np.uint32(gw)
     l0, l1, l2, tabs = _tone_tables(lut)
-    s0, s1, s2 = shade[0], shade[1], shade[2]
-    lit_same = s0[0] == 255 and s1[0] == 255 and s2[0] == 255
+    table8 = np.full(1024, 255, np.uint8)     # the shading gains of each level as one 32-bit pixel (memory order)
+    for q in range(256):
+        for c in range(3):
+            table8[4 * q + c] = shade[c, q]
+    table = table8.view(np.uint32)
+    gains = np.empty(4 * w_px, np.uint8)
     fu = np.empty(w_px, np.float32)
     fv = np.empty(w_px, np.float32)
     gu = np.empty(w_px, np.float32)
@@ -359,8 +363,8 @@ def level_finish(box, m, grid, mg, shade, h_px, w_px, lut, out, sensor, vig, ban
     gb = np.empty(w_px, np.float32)
     gidx = np.empty(w_px, np.uint32)
     occ = np.empty(w_px, np.float32)
-    no_alpha = np.empty(1, np.uint8)
-    fa, fb, idx, q00, q01, q10, q11, c00, c01, c10, c11, rgba, o, _ = _row_buffers(w_px)
+    qrow = np.empty(w_px, np.uint8)     # the quantized occlusion (and the tone pass's alpha row after it)
+    fa, fb, idx, q00, q01, q10, q11, c00, c01, c10, c11, rgba, o, no_occ = _row_buffers(w_px)
     ahead = np.int64(np.rint(8.0 * m[1, 1])) * bw + np.int64(np.rint(8.0 * m[0, 1]))   # 8 frame rows down
     g_ahead = np.int64(np.rint(8.0 * mg[1, 1])) * gw + np.int64(np.rint(8.0 * mg[0, 1]))
     count = 0
@@ -384,8 +388,31 @@ def level_finish(box, m, grid, mg, shade, h_px, w_px, lut, out, sensor, vig, ban
             _sample_f32_row(gflat, gidx, gstride, ga, gb, occ)
         else:
             _replicate_row(grid, gu, gv, occ)
-        count += _scene_row(rgba, o, no_alpha, occ, 4, w_px, OCC_FLOAT, l0, l1, l2, s0, s1, s2, lit_same, tabs)
+        count += _shade_rgba_row(rgba, occ, qrow, gains, table)
+        _scene_row(rgba, o, qrow, no_occ, 4, w_px, OCC_ALPHA, l0, l1, l2, l0, l1, l2, False, tabs)
         _sensor_row(o, out[w3 * y:w3 * (y + 1)], y, h_px, sensor, vig, bank, dy, dx3, sigma_mode, a32, b32, a64, b64)
+    return count
+
+
+@nb.njit(inline="always", **_JIT)
+def _shade_rgba_row(rgba, occ, qrow, gains, table):
+    """A row's RGBA samples shaded in place by the float occlusion ``occ`` (``finish``'s ``OCC_FLOAT`` arithmetic:
+    ``mul255`` by channel c's gain at the quantized occlusion q), so that its tone lookups are those of a baked
+    row; returns the shadowed pixels (occlusion >= 0.5). ``table`` (256,) uint32: the three gains of each level as
+    a pixel's bytes (alpha 255); ``qrow`` (W,) uint8 and ``gains`` (4 W,) uint8 are row buffers. Branch-free: the
+    count and the levels (vectorized), one 32-bit lookup a pixel (scalar), then every byte's multiply (vectorized,
+    ``_vignetted``'s float32 form of ``mul255``, the same integers; a gain of 255 leaves a byte as it is)."""
+    w_px = occ.shape[0]
+    count = 0
+    for x in range(w_px):
+        count += np.int32(occ[x] >= np.float32(0.5))
+    for x in range(w_px):
+        qrow[x] = np.uint8(_quantize(occ[x]))
+    g32 = gains.view(np.uint32)
+    for x in range(w_px):
+        g32[x] = table[qrow[x]]
+    for j in range(4 * w_px):
+        rgba[j] = np.uint8(np.int32(_vignetted(np.float32(rgba[j]), gains[j])))
     return count
 
 
