@@ -432,6 +432,47 @@ def test_box_warp_equals_opencv_warp_affine_over_random_affines(size):
 
 
 @pytest.mark.parametrize("size", [(600, 400), (120, 80), (37, 9)])
+def test_level_warp_equals_opencv_warps_then_shading_over_random_affines(size):
+    """``level_finish`` against ``cv2.warpAffine`` of the level (8UC4, zero border) and of the shadow grid (32FC1,
+    replicated border), then the float occlusion's shading (``shade``) and its count (occlusion >= 0.5): rotations,
+    scales, footprints inside, across and beyond the edges (the grid's replicated border read far out), a grid
+    with levels 0, 1 and between, shadings that leave level 0 alone and that do not. Equal where OpenCV runs its
+    AVX2 kernels, as for ``warp_finish``."""
+    w, h = size
+    rng = np.random.default_rng(w + 1)
+    level = rng.integers(0, 256, (300, 380, 4), dtype=np.uint8)
+    level[40:70, 50:90] = 255
+    box32 = level.view(np.uint32).reshape(300, 380)
+    grid = np.clip(2.0 * cv2.resize(rng.random((15, 19), dtype=np.float32), (190, 150)) - 0.5, 0.0, 1.0)
+    ident = np.tile(np.arange(256, dtype=np.uint8), (3, 1))
+    exact = cv2.checkHardwareSupport(13)
+    flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+    for t in range(30):
+        angle, scale = rng.uniform(-np.pi, np.pi), rng.uniform(0.5, 2.0)
+        m = scale * np.array([[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]])
+        centre = rng.uniform(-150.0, 530.0, 2) if t % 3 == 0 else rng.uniform(100.0, 250.0, 2)
+        matrix = np.hstack([m, (centre - m @ (np.array([w, h]) / 2.0 + rng.uniform(0.0, 1.0, 2)))[:, None]])
+        gm = matrix / 2.0
+        gm[:, 2] += 0.25 - 0.5
+        lut = shading_lut(0.9) if t % 2 else shading_lut(0.7, shadow_ratio=0.4, sky_tint_rgb=(0.2, 0.3, 0.9))
+        lut = lut.copy() if t % 4 == 1 else lut
+        if t % 4 == 1:
+            lut[:, 0] = (250, 255, 240)        # level 0 shaded too
+        out = np.empty(h * w * 3, np.uint8)
+        count = fk.level_finish(box32, matrix, grid, gm, lut, h, w, ident, out, False, render_mod._NO_VIG,
+                                render_mod._NO_BANK, 0, 0, fk.NOISE_OFF, np.float32(0), np.float32(0), 0.0, 0.0)
+        occ = cv2.warpAffine(grid, gm, (w, h), flags=flags, borderMode=cv2.BORDER_REPLICATE)
+        ref = np.ascontiguousarray(_warp_box(box32, matrix, w, h)[..., :3])
+        shade(ref, cv2.convertScaleAbs(occ, alpha=255.0), lut, out=ref)
+        got = out.reshape(h, w, 3)
+        if exact:
+            np.testing.assert_array_equal(got, ref)
+            assert count == np.count_nonzero(occ >= 0.5)
+        else:
+            assert np.abs(got.astype(int) - ref).max() <= 2 and (got != ref).mean() < 0.01
+
+
+@pytest.mark.parametrize("size", [(600, 400), (120, 80), (37, 9)])
 def test_map_warp_equals_opencv_remap_then_facades_over_random_maps(size):
     """``remap_finish`` against ``cv2.remap`` (8UC4, INTER_LINEAR, zero border) then the facades' gains: maps of
     random rotations and scales with per-pixel jitter (as relief displaces a view's points), inside the box, across
