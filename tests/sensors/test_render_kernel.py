@@ -682,6 +682,7 @@ import hashlib, sys
 import numpy as np
 from aerial_loc_env import jit
 from aerial_loc_env.sensors import render_kernels as fk
+# _level_frame
 print(jit.FAST_LUT, jit.FAST_GATHER)
 rng = np.random.default_rng(4)
 w = 45
@@ -691,7 +692,27 @@ o, m = np.zeros(3 * w, np.uint8), np.zeros(w, np.uint8)
 count = fk._scene_row(src, o, m, np.zeros(1, np.float32), 4, w, fk.OCC_ALPHA, tabs[:256], tabs[256:512], tabs[512:],
                       tabs[:256], tabs[256:512], tabs[512:], False, tabs)
 print(count, hashlib.sha1(o.tobytes() + m.tobytes()).hexdigest())
+print(*_level_frame(fk))
 """
+
+
+def _level_frame(fk):
+    """``level_finish`` of a fixed random level, grid and affine (across the edges) with a random tone table:
+    (count, digest of the frame), compared between the host's code and the AVX2 code."""
+    import hashlib
+
+    rng = np.random.default_rng(5)
+    box = rng.integers(0, 256, (90, 130, 4), dtype=np.uint8).view(np.uint32).reshape(90, 130)
+    grid = rng.random((45, 65), dtype=np.float32)
+    shade_lut = rng.integers(0, 256, (3, 256), dtype=np.uint8)
+    matrix = np.array([[0.83, -0.41, 20.3], [0.39, 0.87, -12.6]])
+    gm = matrix / 2.0
+    gm[:, 2] -= 0.25
+    out = np.empty(47 * 150 * 3, np.uint8)
+    count = fk.level_finish(box, matrix, grid, gm, shade_lut, 47, 150, rng.integers(0, 256, (3, 256), dtype=np.uint8),
+                            out, False, np.zeros((1, 1), np.uint8), np.zeros((1, 1), np.int16), 0, 0, fk.NOISE_OFF,
+                            np.float32(0), np.float32(0), 0.0, 0.0)
+    return count, hashlib.sha1(out.tobytes()).hexdigest()
 
 
 def test_the_kernels_compiled_for_an_avx2_cpu_give_the_same_bytes(tmp_path):
@@ -700,6 +721,7 @@ def test_the_kernels_compiled_for_an_avx2_cpu_give_the_same_bytes(tmp_path):
     lookups of whole 32-bit pixels) and give the bytes of this process's path (the byte permutes where the host
     has VBMI)."""
     import hashlib
+    import inspect
     import os
     import platform
     import subprocess
@@ -711,10 +733,11 @@ def test_the_kernels_compiled_for_an_avx2_cpu_give_the_same_bytes(tmp_path):
     env.update(NUMBA_CACHE_DIR=str(tmp_path / "numba"), NUMBA_CPU_FEATURES="",
                NUMBA_CPU_NAME="znver3" if x86 else "generic")
     repo = Path(__file__).resolve().parents[2]
-    r = subprocess.run([sys.executable, "-c", _AVX2_RUN], env=env, cwd=repo, capture_output=True, text=True,
+    script = _AVX2_RUN.replace("# _level_frame\n", inspect.getsource(_level_frame))
+    r = subprocess.run([sys.executable, "-c", script], env=env, cwd=repo, capture_output=True, text=True,
                        timeout=600)
     assert r.returncode == 0, r.stderr
-    flags, result = r.stdout.splitlines()
+    flags, result, level = r.stdout.splitlines()
     assert flags == "False False"
     rng = np.random.default_rng(4)
     w = 45
@@ -724,6 +747,7 @@ def test_the_kernels_compiled_for_an_avx2_cpu_give_the_same_bytes(tmp_path):
     count = fk._scene_row(src, o, m, np.zeros(1, np.float32), 4, w, fk.OCC_ALPHA, tabs[:256], tabs[256:512],
                           tabs[512:], tabs[:256], tabs[256:512], tabs[512:], False, tabs)
     assert result == f"{count} {hashlib.sha1(o.tobytes() + m.tobytes()).hexdigest()}"
+    assert level == " ".join(str(v) for v in _level_frame(fk))
     rgba = src.reshape(w, 4)
     np.testing.assert_array_equal(o.reshape(w, 3), tabs.reshape(3, 256)[np.arange(3), rgba[:, :3]])
     assert count == np.count_nonzero(rgba[:, 3] > 127)
