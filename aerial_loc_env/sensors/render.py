@@ -15,8 +15,11 @@ Why it is built this way:
   frame is then ONE warp of the pre-shaded map plus the photometry, instead of the map warp, a float occlusion
   warp and three shading passes. Shading before interpolation differs from shading after it only at shadow edges
   (tests/sensors/test_render_bake.py derives the bound); cloud shadows drift and keep the per-frame path, and so do
-  frames the bake cannot serve (pyramid level > 0, a footprint leaving the box). After the warp a baked frame is one
-  compiled pass (below) that also copies the alpha out (the quantized occlusion) and counts the shadowed pixels;
+  frames the bake cannot serve (pyramid level > 0, a footprint leaving the box). Such a frame with a shadow grid
+  warps the map level and the grid inside its finishing pass (``render_kernels.level_finish``, row by row: bit for
+  bit the two ``warpAffine`` calls and the float occlusion's shading, without a warped RGBA frame or a float
+  occlusion frame in memory); the float occlusion is warped only if a caller reads it. After the warp a baked frame
+  is one compiled pass (below) that also copies the alpha out (the quantized occlusion) and counts the shadowed pixels;
   the shadow mask and the float occlusion are made only if a caller reads them (the env and the estimators do
   not). The baked box's warp itself is done inside that pass (``render_kernels.warp_finish``, row by row: no warped
   RGBA frame in memory, and the box stays in cache between frames), bit for bit OpenCV's ``warpAffine``.

@@ -2,7 +2,8 @@
 
 ``finish`` turns the warped map (RGBA or RGB uint8) into the final uint8 RGB frame, row by row, each row
 through both stages while it sits in L1 (``warp_finish``: the same, with the baked box's bilinear warp of the row
-done first, bit for bit OpenCV's):
+done first, bit for bit OpenCV's; ``level_finish``: a map level's warp and the shadow grid's, for the frames the
+bake does not serve):
 
 1. scene: the shadow mask (from the baked alpha, or from a float occlusion, which is also shaded here), then the
    frame's composed tone LUT (gamma and the white-balance/exposure gains, one byte table per channel);
@@ -394,14 +395,21 @@ def level_finish(box, m, grid, mg, shade, h_px, w_px, lut, out, sensor, vig, ban
     return count
 
 
+#: pixels per block of ``_shade_rgba_row``'s multiplies (a block whose gains are all 255 is skipped)
+_SHADE_BLOCK_PX = 16
+_NO_GAIN = np.uint32(0xFFFFFFFF)     # a pixel's gains word that leaves it as it is
+
+
 @nb.njit(inline="always", **_JIT)
 def _shade_rgba_row(rgba, occ, qrow, gains, table):
     """A row's RGBA samples shaded in place by the float occlusion ``occ`` (``finish``'s ``OCC_FLOAT`` arithmetic:
     ``mul255`` by channel c's gain at the quantized occlusion q), so that its tone lookups are those of a baked
     row; returns the shadowed pixels (occlusion >= 0.5). ``table`` (256,) uint32: the three gains of each level as
-    a pixel's bytes (alpha 255); ``qrow`` (W,) uint8 and ``gains`` (4 W,) uint8 are row buffers. Branch-free: the
-    count and the levels (vectorized), one 32-bit lookup a pixel (scalar), then every byte's ``mul255`` (vectorized,
-    in 16-bit lanes: at most 255 * 255 + 128 + 254, no overflow; a gain of 255 leaves a byte as it is)."""
+    a pixel's bytes (alpha 255); ``qrow`` (W,) uint8 and ``gains`` (4 W,) uint8 are row buffers. The count and the
+    levels (vectorized loops), one 32-bit gains lookup a pixel (scalar), then every byte's ``mul255`` (vectorized,
+    in 16-bit lanes: at most 255 * 255 + 128 + 254, no overflow) in blocks of ``_SHADE_BLOCK_PX`` pixels, skipping
+    the blocks whose gains are all 255 (``mul255(v, 255) = v``: sunlit ground where the shading leaves level 0
+    alone)."""
     w_px = occ.shape[0]
     count = 0
     for x in range(w_px):
@@ -411,10 +419,26 @@ def _shade_rgba_row(rgba, occ, qrow, gains, table):
     g32 = gains.view(np.uint32)
     for x in range(w_px):
         g32[x] = table[qrow[x]]
-    for j in range(4 * w_px):
-        p = np.uint16(rgba[j]) * np.uint16(gains[j]) + np.uint16(128)
-        rgba[j] = np.uint8((p + (p >> np.uint16(8))) >> np.uint16(8))
+    n = _SHADE_BLOCK_PX
+    body = w_px - w_px % n
+    for blk in range(0, body, n):
+        if g32[blk] == _NO_GAIN and g32[blk + n - 1] == _NO_GAIN:
+            same = _NO_GAIN
+            for i in range(n):
+                same &= g32[blk + i]
+            if same == _NO_GAIN:
+                continue
+        _mul255_bytes(rgba[4 * blk:4 * blk + 4 * n], gains[4 * blk:4 * blk + 4 * n])
+    _mul255_bytes(rgba[4 * body:], gains[4 * body:])
     return count
+
+
+@nb.njit(inline="always", **_JIT)
+def _mul255_bytes(values, gains):
+    """``values[j] = mul255(values[j], gains[j])`` (uint8 arrays of one length) in 16-bit arithmetic."""
+    for j in range(values.shape[0]):
+        p = np.uint16(values[j]) * np.uint16(gains[j]) + np.uint16(128)
+        values[j] = np.uint8((p + (p >> np.uint16(8))) >> np.uint16(8))
 
 
 @nb.njit(inline="always", **_JIT)
