@@ -101,6 +101,36 @@ def bootstrap_ratio(sim: Sequence[float], real_by_pair: Sequence[Sequence[float]
     return float(lo), float(hi)
 
 
+def bootstrap_tau(real: Sequence[Mapping[Any, Mapping[Any, float]]], sim: Sequence[Mapping[Any, float]], *,
+                  resamples: int = BOOTSTRAP_RESAMPLES, seed: int = 0) -> tuple[float, float]:
+    """The 95 % bootstrap interval of Kendall's tau-b between the agents' real and simulated median-trial RMSEs.
+
+    ``real[i]`` holds agent i's real trials as ``{pair: {seed: rmse}}``, ``sim[i]`` its preset's as ``{seed:
+    rmse}``. The agents fly the same episodes, so their errors are paired: each resample draws the pairs with
+    replacement, then each chosen pair's seeds, then the preset's seeds, once for all agents (a trial an agent
+    lacks is left out of its median)."""
+    if len(real) != len(sim) or len(real) < 2:
+        raise ConfigError(f"fidelity: tau's interval needs the same >= 2 agents on both sides, got {len(real)} "
+                          f"and {len(sim)}")
+    gen = np.random.default_rng(seed)
+    pairs = sorted({p for agent in real for p in agent}, key=str)
+    seeds_of = {p: sorted({s for agent in real for s in agent.get(p, {})}, key=str) for p in pairs}
+    sim_seeds = sorted({s for agent in sim for s in agent}, key=str)
+    taus = []
+    for _ in range(resamples):
+        keys = [(p, seeds_of[p][j]) for p in (pairs[i] for i in gen.integers(0, len(pairs), len(pairs)))
+                for j in gen.integers(0, len(seeds_of[p]), len(seeds_of[p]))]
+        sim_keys = [sim_seeds[j] for j in gen.integers(0, len(sim_seeds), len(sim_seeds))]
+        real_med = [[agent[p][s] for p, s in keys if s in agent.get(p, {})] for agent in real]
+        sim_med = [[agent[s] for s in sim_keys if s in agent] for agent in sim]
+        if all(real_med) and all(sim_med):
+            taus.append(kendall_tau([float(np.median(v)) for v in real_med], [float(np.median(v)) for v in sim_med]))
+    if not taus:
+        raise ConfigError("fidelity: no bootstrap resample held a trial of every agent on both sides")
+    lo, hi = np.percentile(taus, [2.5, 97.5])
+    return float(lo), float(hi)
+
+
 @dataclass(frozen=True)
 class AgentFidelity:
     """One agent's figures: real pairs against one preset."""
@@ -126,11 +156,19 @@ class Fidelity:
     real_order: tuple[str, ...]
     sim_order: tuple[str, ...]
     tau: float
+    tau_lo: float                # its 95 % bootstrap interval (bootstrap_tau)
+    tau_hi: float
 
     @property
     def meets_targets(self) -> bool:
         lo, hi = TARGET_RATIO
         return self.tau >= TARGET_TAU and all(lo <= a.ratio <= hi for a in self.agents)
+
+
+def _by_seed(rows: Sequence[Mapping[str, Any]], agent: str, scenario: str) -> dict[Any, float]:
+    """An agent's trials on one scenario as {seed: RMSE} (rows without a seed: keyed by their order)."""
+    mine = (r for r in rows if r["agent"] == agent and r["scenario"] == scenario)
+    return {r.get("seed", i): float(r["rmse_m"]) for i, r in enumerate(mine)}
 
 
 def fidelity(rows: Sequence[Mapping[str, Any]], real_labels: Sequence[str], sim_label: str,
@@ -156,8 +194,13 @@ def fidelity(rows: Sequence[Mapping[str, Any]], real_labels: Sequence[str], sim_
                                  sim_med / max(real_med, 1e-9), lo, hi))
     real_order = tuple(a.agent for a in sorted(out, key=lambda a: a.real_median_m))
     sim_order = tuple(a.agent for a in sorted(out, key=lambda a: a.sim_median_m))
+    if len(out) < 2:             # one agent: no order to compare
+        return Fidelity(sim_label, tuple(out), real_order, sim_order, math.nan, math.nan, math.nan)
     tau = kendall_tau([a.real_median_m for a in out], [a.sim_median_m for a in out])
-    return Fidelity(sim_label, tuple(out), real_order, sim_order, tau)
+    real_trials = [{label: _by_seed(rows, agent, label) for label in real_labels} for agent in agents]
+    sim_trials = [_by_seed(rows, agent, sim_label) for agent in agents]
+    tau_lo, tau_hi = bootstrap_tau(real_trials, sim_trials)
+    return Fidelity(sim_label, tuple(out), real_order, sim_order, tau, tau_lo, tau_hi)
 
 
 def fidelity_table(result: Fidelity, real_name: str = "real pairs") -> str:
@@ -175,7 +218,9 @@ def fidelity_table(result: Fidelity, real_name: str = "real pairs") -> str:
                      f"{a.sim_median_m:.2f} m ({a.sim_converged:.0%} of {a.sim_trials}) | {a.ratio:.2f} "
                      f"({a.ratio_lo:.2f}-{a.ratio_hi:.2f}){mark} | {i} | {rank_sim[name]} |")
     lines += ["", f"real order: {' < '.join(result.real_order)}", f"sim order:  {' < '.join(result.sim_order)}",
-              f"Kendall tau-b: {result.tau:+.2f} (target >= {TARGET_TAU:g}); ratios outside "
+              (f"Kendall tau-b: {result.tau:+.2f} (95 % interval {result.tau_lo:+.2f} to {result.tau_hi:+.2f}; "
+               if math.isfinite(result.tau) else "Kendall tau-b: none with one agent (") +
+              f"target >= {TARGET_TAU:g}); ratios outside "
               f"[{lo_t:g}, {hi_t:g}] marked (!)"]
     return "\n".join(lines)
 
@@ -302,7 +347,8 @@ def main(argv: list[str] | None = None) -> int:
     data = {"flight": flight, "overrides": extra, "seeds": args.seeds, "sim_seeds": args.sim_seeds, "pairs": {
         s.label: {"path_a": str(s.path_a), "path_b": str(s.path_b), "gsd_m": s.gsd_m, "extent_m": extents[s.label],
                   "registration": registrations[s.label]} for s in sources},
-        "results": [asdict(r) for r in results], "machine": machine()}
+        "results": [{k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in asdict(r).items()}
+                    for r in results], "machine": machine()}
     atomic_write_bytes(out / "fidelity.json", (json.dumps(data, indent=1, default=str) + "\n").encode())
     return 1 if missing else 0
 

@@ -43,6 +43,32 @@ def test_bootstrap_interval_holds_the_ratio_and_is_reproducible():
     assert 1.0 < lo and hi < 2.5
 
 
+def test_tau_interval_follows_how_far_apart_the_agents_are():
+    """Agents far apart (medians 1 m apart, trial noise 0.05 m) keep their order in every resample: the interval is
+    the point; identical agents have no order, so tau's bootstrap spreads on both sides of 0; the same draw twice
+    gives the same interval; one agent has no interval."""
+    gen = np.random.default_rng(2)
+    apart = [({p: {s: m + gen.normal(0, 0.05) for s in range(4)} for p in "abcde"},
+              {s: m + gen.normal(0, 0.05) for s in range(8)}) for m in (1.0, 2.0, 3.0, 4.0)]
+    real, sim = [a for a, _ in apart], [b for _, b in apart]
+    assert fidelity.bootstrap_tau(real, sim) == (1.0, 1.0)
+    assert fidelity.bootstrap_tau(real, sim[::-1]) == (-1.0, -1.0)
+    alike = [({p: {s: gen.normal(2.0, 0.5) for s in range(4)} for p in "abcde"},
+              {s: gen.normal(2.0, 0.5) for s in range(8)}) for _ in range(5)]
+    lo, hi = fidelity.bootstrap_tau([a for a, _ in alike], [b for _, b in alike])
+    assert lo < 0.0 < hi and (lo, hi) == fidelity.bootstrap_tau([a for a, _ in alike], [b for _, b in alike])
+    with pytest.raises(ConfigError, match=">= 2 agents"):
+        fidelity.bootstrap_tau(real[:1], sim[:1])
+
+
+def test_one_agent_has_no_order():
+    """fidelity with one agent: its figures, and no tau (the report says so instead of failing)."""
+    rows = _rows("A", "p1", [1.0, 1.2]) + _rows("A", "sim", [2.0])
+    res = fidelity.fidelity(rows, ["p1"], "sim", ["A"])
+    assert res.agents[0].ratio == pytest.approx(2.0 / 1.1) and np.isnan(res.tau) and not res.meets_targets
+    assert "Kendall tau-b: none with one agent" in fidelity.fidelity_table(res)
+
+
 def _rows(agent: str, scenario: str, rmses, converged=True):
     return [{"agent": agent, "scenario": scenario, "rmse_m": r, "converged": converged} for r in rmses]
 
@@ -58,7 +84,8 @@ def test_the_comparison_from_rows():
     assert a["A"].ratio == pytest.approx(2.1 / 1.1) and a["B"].sim_converged == 0.0 and a["C"].real_trials == 2
     table = fidelity.fidelity_table(res)
     assert "| A | 1.10 m (100% of 3) | 2.10 m (100% of 2) | 1.91 (" in table and "(!) | 1 | 2 |" in table
-    assert "real order: A < B < C" in table and "Kendall tau-b: +0.33" in table
+    assert "real order: A < B < C" in table and "Kendall tau-b: +0.33 (95 % interval " in table
+    assert -1.0 <= res.tau_lo <= res.tau_hi <= 1.0
     assert not res.meets_targets
     with pytest.raises(ConfigError, match="agent 'D' has 0 real and 0 simulated trials"):
         fidelity.fidelity(rows, ["p1", "p2"], "sim", ["D"])

@@ -4,8 +4,9 @@ correlation (``mcl-learned``).
 A small convolutional encoder (trained contrastively on simulated two-epoch pairs, ``learning.embedding``) maps
 a gray image, resampled to a fixed ground sampling and locally normalized, to a dense field of unit vectors (a
 few channels, one per ``stride`` pixels) in which the same ground at two epochs, under two suns or from two
-sensors has similar vectors. Inference needs NumPy and OpenCV only: the weights are a small ``.npz`` (shipped as
-package data) and the convolutions run as im2col products (``Encoder``); torch is for training only.
+sensors has similar vectors. Inference needs NumPy, OpenCV and numba only: the weights are a small ``.npz`` (shipped
+as package data) and the convolutions and correlations run as compiled kernels (``learned_kernels``); torch is for
+training only.
 
 The model, per episode and per frame:
 
@@ -16,8 +17,10 @@ The model, per episode and per frame:
   measured heading and altitude onto the map level's pixel grid (``frame_canvas``: the same ground per pixel as
   the map's level), embedded once; cells outside the footprint are masked out;
 - **the particles** (``log_likelihood``): one correlation surface of the frame's embedding over the map's, over
-  the box that holds the particles (``cv2.matchTemplate``, summed over channels), normalized by the frame's valid
-  cells (the mean cosine similarity, in [-1, 1]); each particle reads it at its position by a bilinear lookup.
+  the box that holds the particles, computed at the cells the particles' lookups read only (summed over the
+  channels and the footprint's cells: ``learned_kernels.correlate_cells``), or over the whole box by
+  ``cv2.matchTemplate`` where most of it is read (``CELLS_PER_REGION_CELL``), normalized by the frame's valid cells
+  (the mean cosine similarity, in [-1, 1]); each particle reads it at its position by a bilinear lookup.
   The log-likelihood is ``score / temperature``, the temperature calibrated on simulated validation worlds and
   stored with the weights (``temperature`` overrides it).
 
@@ -44,6 +47,7 @@ import numpy as np
 from aerial_loc_env.config import rng
 from aerial_loc_env.errors import ConfigError
 from aerial_loc_env.estimators.database import DatabaseWindow
+from aerial_loc_env.estimators.mcl import learned_kernels as _kern
 from aerial_loc_env.estimators.mcl.measurement import MeasurementModel, register_model
 from aerial_loc_env.estimators.patches import to_gray
 from aerial_loc_env.estimators.protocol import parse_observation
@@ -75,53 +79,93 @@ def local_normalize(gray: np.ndarray, sigma_px: float, mask: np.ndarray | None =
     return d / np.sqrt(var + np.float32(1e-4))
 
 
+class _Layer(NamedTuple):
+    """One convolution as ``learned_kernels.conv_terms`` sums it: a term per (input channel, tap), read from the
+    input's phase plane ``plane`` (``ci s^2 + (dy % s) s + dx % s``) at the row / column shift (``dy // s``,
+    ``dx // s``); weights (outputs padded to ``OUT_GROUP``, terms to ``TERM_GROUP``, padding 0)."""
+
+    weight: np.ndarray      # (O, T) float32
+    bias: np.ndarray        # (O,) float32
+    plane: np.ndarray       # (T,) int64
+    shift: np.ndarray       # (T, 2) int64: (row, column) in phase-plane cells
+    k: int
+    stride: int
+    cin: int
+    cout: int
+
+
 class Encoder:
-    """The encoder's forward pass in NumPy: zero-padded convolutions (``padding = k // 2``) as im2col products,
-    ReLU between layers, none after the last, then unit vectors along the channels (torch's ``Conv2d`` /
-    ``F.normalize`` layout: weights (out, in, k, k)). Input (H, W) float32; output (h, w, C) float32."""
+    """The encoder's forward pass: zero-padded convolutions (``padding = k // 2``), ReLU between layers, none
+    after the last, then unit vectors along the channels (torch's ``Conv2d`` / ``F.normalize`` layout: weights
+    (out, in, k, k)). Input (H, W) float32; output (h, w, C) float32.
+
+    Each layer runs as one compiled pass (``learned_kernels.conv_terms``) over channel planes: the padded input
+    split into its ``stride**2`` phases (every ``stride``-th row and column from each offset), all planes on the
+    output's row pitch plus the kernel's reach, so that each tap is a shift of one plane."""
 
     def __init__(self, weights: list[np.ndarray], biases: list[np.ndarray], strides: list[int]) -> None:
         if not (len(weights) == len(biases) == len(strides) > 0):
             raise ConfigError("Encoder: weights, biases and strides must have the same positive length")
-        self.layers = []
+        self.layers: list[_Layer] = []
         for w, b, s in zip(weights, biases, strides, strict=True):
             w = np.asarray(w, np.float32)
             if w.ndim != 4 or w.shape[2] != w.shape[3] or w.shape[2] % 2 != 1 or b.shape != (w.shape[0],):
                 raise ConfigError(f"Encoder: a layer's weights {w.shape} / bias {b.shape} are not (out, in, k, k) "
                                   "with an odd k and (out,)")
-            # im2col columns are (kh, kw, in): the weight matrix (k * k * in, out)
-            wm = w.transpose(2, 3, 1, 0).reshape(-1, w.shape[0])
-            self.layers.append((np.ascontiguousarray(wm), np.asarray(b, np.float32), int(w.shape[2]), int(s),
-                                int(w.shape[1])))
-        for (_, _, _, _, cin), (wm, *_rest) in zip(self.layers[1:], self.layers[:-1], strict=True):
-            if wm.shape[1] != cin:
+            if int(s) < 1:
+                raise ConfigError(f"Encoder: strides must be >= 1, got {s}")
+            self.layers.append(self._layer(w, np.asarray(b, np.float32), int(s)))
+        for prev, layer in zip(self.layers[:-1], self.layers[1:], strict=True):
+            if layer.cin != prev.cout:
                 raise ConfigError("Encoder: a layer's input channels differ from the previous layer's outputs")
-        if self.layers[0][4] != 1:
+        if self.layers[0].cin != 1:
             raise ConfigError("Encoder: the first layer must take one (gray) channel")
         self.stride = int(np.prod(strides))
-        self.channels = int(self.layers[-1][0].shape[1])
+        self.channels = self.layers[-1].cout
+
+    @staticmethod
+    def _layer(w: np.ndarray, b: np.ndarray, s: int) -> _Layer:
+        cout, cin, k, _ = w.shape
+        ci, dy, dx = (a.ravel() for a in np.meshgrid(np.arange(cin), np.arange(k), np.arange(k), indexing="ij"))
+        n_out = -(-cout // _kern.OUT_GROUP) * _kern.OUT_GROUP
+        n_terms = -(-len(ci) // _kern.TERM_GROUP) * _kern.TERM_GROUP
+        weight = np.zeros((n_out, n_terms), np.float32)
+        weight[:cout, :len(ci)] = w.reshape(cout, -1)             # (ci, dy, dx) order, as ci, dy, dx above
+        bias = np.zeros(n_out, np.float32)
+        bias[:cout] = b
+        plane = np.zeros(n_terms, np.int64)
+        plane[:len(ci)] = ci * s * s + (dy % s) * s + dx % s
+        shift = np.zeros((n_terms, 2), np.int64)
+        shift[:len(ci)] = np.stack([dy // s, dx // s], axis=1)
+        return _Layer(weight, bias, plane, shift, int(k), s, int(cin), int(cout))
 
     def __call__(self, image: np.ndarray) -> np.ndarray:
-        x = np.asarray(image, np.float32)[:, :, None]
+        x = np.asarray(image, np.float32)[None]
         last = len(self.layers) - 1
-        for i, (wm, b, k, s, cin) in enumerate(self.layers):
+        for i, layer in enumerate(self.layers):
+            k, s, cin = layer.k, layer.stride, layer.cin
             p = k // 2
-            h, w = x.shape[:2]
+            h, w = x.shape[1:]
             ho, wo = (h - 1) // s + 1, (w - 1) // s + 1
-            if k == 1:
-                cols = x[::s, ::s].reshape(ho * wo, cin)
+            q = (k - 1) // s                       # the farthest shift in phase-plane cells
+            rows, pitch = ho + q, wo + q
+            src = np.zeros((cin * s * s, rows * pitch + q), np.float32)
+            phases = src[:, :rows * pitch].reshape(cin, s, s, rows, pitch)
+            if s == 1:
+                phases[:, 0, 0, p:p + h, p:p + w] = x
             else:
-                xp = np.pad(x, ((p, p), (p, p), (0, 0)))
-                # the k * k shifted (strided) views side by side along the channels: one product per layer
-                cols = np.concatenate([xp[dy:dy + s * (ho - 1) + 1:s, dx:dx + s * (wo - 1) + 1:s]
-                                       for dy in range(k) for dx in range(k)], axis=2).reshape(ho * wo, k * k * cin)
-            y = cols @ wm
-            y += b
-            if i < last:
-                np.maximum(y, 0.0, out=y)
-            x = y.reshape(ho, wo, -1)
-        norm = np.sqrt(np.einsum("hwc,hwc->hw", x, x))[:, :, None]
-        return x / np.maximum(norm, np.float32(1e-6))
+                xp = np.zeros((cin, max(s * rows, p + h), max(s * pitch, p + w)), np.float32)
+                xp[:, p:p + h, p:p + w] = x
+                for a in range(s):
+                    for c in range(s):
+                        phases[:, a, c] = xp[:, a::s, c::s][:, :rows, :pitch]
+            offset = layer.shift[:, 0] * pitch + layer.shift[:, 1]
+            out = np.empty((len(layer.bias), ho * pitch), np.float32)
+            _kern.conv_terms(src, layer.plane, offset, layer.weight, layer.bias, ho * pitch, i < last, out)
+            x = out[:layer.cout].reshape(layer.cout, ho, pitch)[:, :, :wo]
+        e = np.empty((ho, wo, self.channels), np.float32)
+        _kern.unit_cells(out, self.channels, ho, wo, pitch, e)
+        return e
 
 
 class Weights(NamedTuple):
@@ -262,6 +306,11 @@ class MapEmbedding(NamedTuple):
     pixel_m: tuple[float, float]  # the level's ground size of a pixel (east, north)
 
 
+#: the surface is summed directly at the particles' cells while (cells x the frame's valid cells) stays below this
+#: times the box's region (in cells), else correlated over the whole box by ``cv2.matchTemplate``: about where the
+#: two cost the same (docs/perf-log.md)
+CELLS_PER_REGION_CELL = 100
+
 #: map embeddings by (weights digest, map key), least recently used dropped first
 _MAP_CACHE: OrderedDict[tuple, MapEmbedding] = OrderedDict()
 MAP_CACHE_SIZE = 4
@@ -328,15 +377,21 @@ def correlate(region: np.ndarray, template: np.ndarray) -> np.ndarray:
     return out
 
 
-def bilinear(surface: np.ndarray, x: np.ndarray, y: np.ndarray, outside: float) -> np.ndarray:
-    """``surface`` read at (x, y) (col, row; centres at integers), ``outside`` beyond its last cells."""
-    h, w = surface.shape
+def _corners(shape: tuple[int, int], x: np.ndarray, y: np.ndarray):
+    """What ``bilinear`` reads of a (h, w) surface at (x, y): inside, the corner cells (x0, y0, x1, y1) and the
+    fractions (fx, fy)."""
+    h, w = shape
     ok = (x >= 0) & (y >= 0) & (x <= w - 1) & (y <= h - 1)
     xc, yc = np.clip(x, 0, w - 1), np.clip(y, 0, h - 1)
     x0 = np.minimum(np.floor(xc).astype(np.intp), max(w - 2, 0))
     y0 = np.minimum(np.floor(yc).astype(np.intp), max(h - 2, 0))
     x1, y1 = np.minimum(x0 + 1, w - 1), np.minimum(y0 + 1, h - 1)
-    fx, fy = xc - x0, yc - y0
+    return ok, x0, y0, x1, y1, xc - x0, yc - y0
+
+
+def bilinear(surface: np.ndarray, x: np.ndarray, y: np.ndarray, outside: float) -> np.ndarray:
+    """``surface`` read at (x, y) (col, row; centres at integers), ``outside`` beyond its last cells."""
+    ok, x0, y0, x1, y1, fx, fy = _corners(surface.shape, x, y)
     v = ((surface[y0, x0] * (1 - fx) + surface[y0, x1] * fx) * (1 - fy)
          + (surface[y1, x0] * (1 - fx) + surface[y1, x1] * fx) * fy)
     return np.where(ok, v, outside)
@@ -358,6 +413,8 @@ class FramePrepared(NamedTuple):
     template: np.ndarray       # (h, w, C) the frame's embedding, zero on invalid cells
     n_valid: int
     centre_cell: tuple[float, float]   # the vehicle's (col, row) in template cells
+    first: np.ndarray          # (h,) each template row's first valid column (int64) ...
+    stop: np.ndarray           # (h,) ... and one past its last (first = stop = 0: none)
 
 
 class LearnedModel(MeasurementModel):
@@ -398,7 +455,11 @@ class LearnedModel(MeasurementModel):
                                              self.map.pixel_m, s)
         template = embed(self.weights, img, mask)
         valid = np.einsum("hwc,hwc->hw", template, template) > 0.5
-        return FramePrepared(np.ascontiguousarray(template), int(valid.sum()), (ccx / s, ccy / s))
+        any_valid = valid.any(axis=1)
+        first = np.where(any_valid, np.argmax(valid, axis=1), 0)
+        stop = np.where(any_valid, valid.shape[1] - np.argmax(valid[:, ::-1], axis=1), 0)
+        return FramePrepared(np.ascontiguousarray(template), int(valid.sum()), (ccx / s, ccy / s),
+                             first.astype(np.int64), stop.astype(np.int64))
 
     def scores(self, prepared: FramePrepared, states: np.ndarray) -> np.ndarray:
         """The mean cosine similarity (N,) of the frame's embedding with the map's at each particle's position
@@ -422,13 +483,28 @@ class LearnedModel(MeasurementModel):
         b1 = min(mh - th, int(math.ceil(sy[finite].max())) + 1)
         if a1 < a0 or b1 < b0:
             return out
-        region = emb.cells[b0:b1 + th, a0:a1 + tw]
-        surface = correlate(region, prepared.template) / np.float32(prepared.n_valid)
-        if surface.shape[0] < 2 or surface.shape[1] < 2:
-            surface = np.pad(surface, ((0, max(0, 2 - surface.shape[0])), (0, max(0, 2 - surface.shape[1]))),
-                             mode="edge")
-        v = bilinear(surface.astype(np.float64), np.where(finite, sx - a0, -1.0), np.where(finite, sy - b0, -1.0),
-                     -1.0)
+        # the surface over the box, at the cells the particles' bilinear lookups read (a sum over the template's
+        # valid cells each), or over the whole box where that costs more (matchTemplate's cost grows with the box)
+        h, w = b1 - b0 + 1, a1 - a0 + 1
+        x, y = np.where(finite, sx - a0, -1.0), np.where(finite, sy - b0, -1.0)
+        ok, x0, y0, x1, y1, _, _ = _corners((max(h, 2), max(w, 2)), x, y)   # on the edge-padded surface
+        need = np.zeros((h, w), bool)
+        for yy in (y0[ok], y1[ok]):
+            for xx in (x0[ok], x1[ok]):
+                need[np.minimum(yy, h - 1), np.minimum(xx, w - 1)] = True
+        rows, cols = np.nonzero(need)
+        if len(rows) * prepared.n_valid <= CELLS_PER_REGION_CELL * (h + th - 1) * (w + tw - 1):
+            values = np.empty(len(rows), np.float32)
+            _kern.correlate_cells(emb.cells, prepared.template, prepared.first, prepared.stop, rows + b0,
+                                  cols + a0, values)
+            surface = np.zeros((h, w), np.float32)
+            surface[rows, cols] = values / np.float32(prepared.n_valid)
+        else:       # most of a box read (a grid of positions): the whole surface by OpenCV's transform
+            region = emb.cells[b0:b1 + th, a0:a1 + tw]
+            surface = correlate(region, prepared.template) / np.float32(prepared.n_valid)
+        if h < 2 or w < 2:
+            surface = np.pad(surface, ((0, max(0, 2 - h)), (0, max(0, 2 - w))), mode="edge")
+        v = bilinear(surface.astype(np.float64), x, y, -1.0)
         # beyond the surface's box (clipped at the padded map's edge): the worst score
         return np.clip(v, -1.0, 1.0)
 
