@@ -287,7 +287,7 @@ def warp_finish(box, m, lut, out, alpha, sensor, vig, bank, dy, dx3, sigma_mode,
     _wide_vectors()
     h_px, w_px = alpha.shape
     w3 = 3 * w_px
-    flat, bw, umax, vmax, stride = _box_layout(box)
+    flat, bw, _, _, _ = _box_layout(box)
     l0, l1, l2, tabs = _tone_tables(lut)
     fu = np.empty(w_px, np.float32)
     fv = np.empty(w_px, np.float32)
@@ -296,18 +296,29 @@ def warp_finish(box, m, lut, out, alpha, sensor, vig, bank, dy, dx3, sigma_mode,
     count = 0
     for y in range(h_px):
         _affine_row(m, y, fu, fv)
-        if _weights_row(fu, fv, fa, fb, idx, stride, umax, vmax) == 0:
-            for x in range(0, w_px, 4):     # the box's rows that row y + 8 will read (frames start cold there)
-                k = np.int64(idx[x]) + ahead
-                _prefetch(flat, k)
-                _prefetch(flat, k + bw)
-            _sample_row(flat, idx, stride, fa, fb, rgba, q00, q01, q10, q11, c00, c01, c10, c11)
-        else:
-            _border_row(box, fu, fv, fa, fb, q00, q01, q10, q11)
-            _blend_row(c00, c01, c10, c11, fa, fb, rgba, 0)
+        _warp_row(box, flat, ahead, fu, fv, fa, fb, idx, rgba, q00, q01, q10, q11, c00, c01, c10, c11)
         count += _scene_row(rgba, o, alpha[y], no_occ, 4, w_px, OCC_ALPHA, l0, l1, l2, l0, l1, l2, False, tabs)
         _sensor_row(o, out[w3 * y:w3 * (y + 1)], y, h_px, sensor, vig, bank, dy, dx3, sigma_mode, a32, b32, a64, b64)
     return count
+
+
+@nb.njit(inline="always", **_JIT)
+def _warp_row(box, flat, ahead, fu, fv, fa, fb, idx, rgba, q00, q01, q10, q11, c00, c01, c10, c11):
+    """The bilinear samples of a box (uint32 RGBA pixels, ``flat`` its pixels in one row) at a row's source points
+    (``fu``, ``fv``) into ``rgba``, zero outside the box, bit for bit ``cv2.warpAffine``'s: the row inside takes
+    ``_sample_row`` after prefetching the box lines that the row ``ahead`` (a flat offset) will read (a frame starts
+    with the box out of cache after the step's other work), a row across the edge ``_border_row``."""
+    bh, bw = box.shape
+    stride, umax, vmax = np.uint32(bw), np.float32(bw - 1), np.float32(bh - 1)
+    if _weights_row(fu, fv, fa, fb, idx, stride, umax, vmax) == 0:
+        for x in range(0, fu.shape[0], 4):
+            k = np.int64(idx[x]) + ahead
+            _prefetch(flat, k)
+            _prefetch(flat, k + bw)
+        _sample_row(flat, idx, stride, fa, fb, rgba, q00, q01, q10, q11, c00, c01, c10, c11)
+    else:
+        _border_row(box, fu, fv, fa, fb, q00, q01, q10, q11)
+        _blend_row(c00, c01, c10, c11, fa, fb, rgba, 0)
 
 
 @nb.njit(inline="always", **_JIT)
@@ -345,7 +356,7 @@ def level_finish(box, m, grid, mg, shade, h_px, w_px, lut, out, sensor, vig, ban
     ``finish``; returns the number of shadowed pixels (occlusion >= 0.5)."""
     _wide_vectors()
     w3 = 3 * w_px
-    flat, bw, umax, vmax, stride = _box_layout(box)
+    flat, bw, _, _, _ = _box_layout(box)
     gh, gw = grid.shape
     gflat = grid.reshape(gh * gw)
     gumax, gvmax, gstride = np.float32(gw - 1), np.float32(gh - 1), np.uint32(gw)
@@ -372,15 +383,7 @@ def level_finish(box, m, grid, mg, shade, h_px, w_px, lut, out, sensor, vig, ban
     for y in range(h_px):
         _affine_row(m, y, fu, fv)
         _affine_row(mg, y, gu, gv)
-        if _weights_row(fu, fv, fa, fb, idx, stride, umax, vmax) == 0:
-            for x in range(0, w_px, 4):     # the level's rows that row y + 8 will read
-                k = np.int64(idx[x]) + ahead
-                _prefetch(flat, k)
-                _prefetch(flat, k + bw)
-            _sample_row(flat, idx, stride, fa, fb, rgba, q00, q01, q10, q11, c00, c01, c10, c11)
-        else:
-            _border_row(box, fu, fv, fa, fb, q00, q01, q10, q11)
-            _blend_row(c00, c01, c10, c11, fa, fb, rgba, 0)
+        _warp_row(box, flat, ahead, fu, fv, fa, fb, idx, rgba, q00, q01, q10, q11, c00, c01, c10, c11)
         if _weights_row(gu, gv, ga, gb, gidx, gstride, gumax, gvmax) == 0:
             for x in range(0, w_px, 16):     # the grid's rows that row y + 8 will read
                 k = np.int64(gidx[x]) + g_ahead
@@ -467,14 +470,7 @@ def _replicate_row(grid, fu, fv, out):
     weight, so the values are those of the unclamped points."""
     gh, gw = grid.shape
     for x in range(fu.shape[0]):
-        u, v = fu[x], fv[x]
-        cu = u if u > np.float32(-2.0) else np.float32(-2.0)
-        cv = v if v > np.float32(-2.0) else np.float32(-2.0)
-        cu = cu if cu < np.float32(gw + 1) else np.float32(gw + 1)
-        cv = cv if cv < np.float32(gh + 1) else np.float32(gh + 1)
-        x0, y0 = np.int32(cu), np.int32(cv)
-        x0 -= np.int32(np.float32(x0) > cu)
-        y0 -= np.int32(np.float32(y0) > cv)
+        cu, cv, x0, y0 = _clamped_floor(fu[x], fv[x], gw, gh)
         a = cu - np.float32(x0)
         b = cv - np.float32(y0)
         xa, xb = min(max(x0, 0), gw - 1), min(max(x0 + 1, 0), gw - 1)
@@ -672,6 +668,20 @@ def _blend_row(c00, c01, c10, c11, fa, fb, rgba, start):
             rgba[j] = np.uint8(np.int32(np.rint(_fma32(b, v1 - v0, v0))))
 
 
+@nb.njit(inline="always", **_JIT)
+def _clamped_floor(u, v, w, h):
+    """A point (float32) clamped to [-2, w + 1] x [-2, h + 1] (any point beyond, or NaN (-> -2), reads what a point
+    there reads, and the conversion stays defined), and the floor of the clamped point (int32): (cu, cv, x0, y0)."""
+    cu = u if u > np.float32(-2.0) else np.float32(-2.0)
+    cv = v if v > np.float32(-2.0) else np.float32(-2.0)
+    cu = cu if cu < np.float32(w + 1) else np.float32(w + 1)
+    cv = cv if cv < np.float32(h + 1) else np.float32(h + 1)
+    x0, y0 = np.int32(cu), np.int32(cv)
+    x0 -= np.int32(np.float32(x0) > cu)
+    y0 -= np.int32(np.float32(y0) > cv)
+    return cu, cv, x0, y0
+
+
 @nb.njit(**_JIT)
 def _border_row(box, fu, fv, fa, fb, q00, q01, q10, q11):
     """The general path of a ``warp_finish`` row: the floor (clamped to [-2, size + 1]: any point beyond, or NaN,
@@ -681,13 +691,7 @@ def _border_row(box, fu, fv, fa, fb, q00, q01, q10, q11):
     zero = np.uint32(0)
     for x in range(fu.shape[0]):
         u, v = fu[x], fv[x]
-        cu = u if u > np.float32(-2.0) else np.float32(-2.0)      # NaN -> -2: outside (as cv2.remap reads it)
-        cv = v if v > np.float32(-2.0) else np.float32(-2.0)
-        cu = cu if cu < np.float32(bw + 1) else np.float32(bw + 1)
-        cv = cv if cv < np.float32(bh + 1) else np.float32(bh + 1)
-        x0, y0 = np.int32(cu), np.int32(cv)
-        x0 -= np.int32(np.float32(x0) > cu)
-        y0 -= np.int32(np.float32(y0) > cv)
+        _, _, x0, y0 = _clamped_floor(u, v, bw, bh)
         fa[x] = u - np.float32(x0)
         fb[x] = v - np.float32(y0)
         in_x0, in_x1, in_y0, in_y1 = 0 <= x0 < bw, 0 <= x0 + 1 < bw, 0 <= y0 < bh, 0 <= y0 + 1 < bh
