@@ -703,9 +703,11 @@ class CameraRenderer:
         if not self._rgba or not isinstance(occlusion, (ShadowGrid, np.ndarray)):
             return None
         data, factor = self._grid(occlusion)
+        rgba = self.map_level(level)
+        if rgba.shape[0] * rgba.shape[1] >= 1 << 32:    # (the pass indexes the level with uint32)
+            return None
         a = affine / factor
         a[:, 2] += 0.5 / factor - 0.5
-        rgba = self.map_level(level)
         box = rgba.view(np.uint32).reshape(rgba.shape[:2])
         return _LevelWarp(box, affine / (1 << level), np.ascontiguousarray(data), a, _shading_lut(shading_params),
                           camera.height_px, camera.width_px)
