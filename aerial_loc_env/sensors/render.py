@@ -15,8 +15,11 @@ Why it is built this way:
   frame is then ONE warp of the pre-shaded map plus the photometry, instead of the map warp, a float occlusion
   warp and three shading passes. Shading before interpolation differs from shading after it only at shadow edges
   (tests/sensors/test_render_bake.py derives the bound); cloud shadows drift and keep the per-frame path, and so do
-  frames the bake cannot serve (pyramid level > 0, a footprint leaving the box). After the warp a baked frame is one
-  compiled pass (below) that also copies the alpha out (the quantized occlusion) and counts the shadowed pixels;
+  frames the bake cannot serve (pyramid level > 0, a footprint leaving the box). Such a frame with a shadow grid
+  warps the map level and the grid inside its finishing pass (``render_kernels.level_finish``, row by row: bit for
+  bit the two ``warpAffine`` calls and the float occlusion's shading, without a warped RGBA frame or a float
+  occlusion frame in memory); the float occlusion is warped only if a caller reads it. After the warp a baked frame
+  is one compiled pass (below) that also copies the alpha out (the quantized occlusion) and counts the shadowed pixels;
   the shadow mask and the float occlusion are made only if a caller reads them (the env and the estimators do
   not). The baked box's warp itself is done inside that pass (``render_kernels.warp_finish``, row by row: no warped
   RGBA frame in memory, and the box stays in cache between frames), bit for bit OpenCV's ``warpAffine``.
@@ -130,7 +133,8 @@ class Frame:
 
     ``occlusion`` is (H, W) float32 in [0, 1] in the camera frame, None without shadows. Frames from baked
     shadows carry it quantized (``occlusion_q``: the warped alpha, ``round(255 occ)``) and make the float32
-    image on first read; ``shadow_mask`` (bool, True where the occlusion is >= 0.5, i.e. ``occlusion_q`` >= 128)
+    image on first read; frames whose pass warped a shadow grid itself carry how to warp it (``occlusion_of``,
+    called on first read); ``shadow_mask`` (bool, True where the occlusion is >= 0.5, i.e. ``occlusion_q`` >= 128)
     is made from them on first read when not given: the env and the estimators never read them, so a frame costs
     no pass for them (``shadow_fraction`` is counted in the renderer's pass).
     """
@@ -144,12 +148,13 @@ class Frame:
 
     def __init__(self, image: np.ndarray, shadow_mask: np.ndarray | None, shadow_fraction: float, valid: bool,
                  status: FootprintStatus, pose: Pose, occlusion: np.ndarray | None = None, pyramid_level: int = 0,
-                 *, occlusion_q: np.ndarray | None = None) -> None:
-        if occlusion is not None and occlusion_q is not None:
-            raise ValueError("Frame: give occlusion or occlusion_q, not both")
+                 *, occlusion_q: np.ndarray | None = None,
+                 occlusion_of: Callable[[], np.ndarray] | None = None) -> None:
+        if sum(o is not None for o in (occlusion, occlusion_q, occlusion_of)) > 1:
+            raise ValueError("Frame: give one of occlusion, occlusion_q or occlusion_of")
         for name, value in (("image", image), ("_shadow_mask", shadow_mask), ("shadow_fraction", shadow_fraction),
                             ("valid", valid), ("status", status), ("pose", pose), ("pyramid_level", pyramid_level),
-                            ("_occlusion", occlusion), ("occlusion_q", occlusion_q)):
+                            ("_occlusion", occlusion), ("occlusion_q", occlusion_q), ("_occlusion_of", occlusion_of)):
             object.__setattr__(self, name, value)
 
     @property
@@ -158,8 +163,8 @@ class Frame:
         if self._shadow_mask is None:
             if self.occlusion_q is not None:
                 mask = self.occlusion_q > 127
-            elif self._occlusion is not None:
-                mask = self._occlusion >= 0.5
+            elif self.occlusion is not None:
+                mask = self.occlusion >= 0.5
             else:
                 mask = np.zeros(self.image.shape[:2], dtype=bool)
             object.__setattr__(self, "_shadow_mask", mask)
@@ -170,6 +175,9 @@ class Frame:
         if self._occlusion is None and self.occlusion_q is not None:
             object.__setattr__(self, "_occlusion", np.multiply(self.occlusion_q, np.float32(1.0 / 255.0),
                                                                dtype=np.float32))
+        elif self._occlusion is None and self._occlusion_of is not None:
+            object.__setattr__(self, "_occlusion", self._occlusion_of())
+            object.__setattr__(self, "_occlusion_of", None)
         return self._occlusion
 
 
@@ -239,6 +247,28 @@ class _MapWarp:
     def finish(self, fk: Any, *args: Any) -> int:
         """``remap_finish`` of this warp with the finishing arguments ``args``."""
         return fk.remap_finish(self.box, self.map_x, self.map_y, self.shade_px, self.shade_gain, *args)
+
+
+@dataclass(frozen=True, eq=False)
+class _LevelWarp:
+    """A map level's warp and the shadow grid's, done row by row inside the finishing pass
+    (``render_kernels.level_finish``: bit for bit ``cv2.warpAffine`` of the level (zero border) and of the grid
+    (replicated border), then the float occlusion's shading): the frames a bake does not serve. ``box``: the
+    level's RGBA pixels as uint32 (h, w); ``matrix``: frame pixel -> level pixel; ``grid`` (float32) and
+    ``grid_matrix``: the occlusion and frame pixel -> grid pixel; ``shade``: the shading LUT (``_shading_lut``)."""
+
+    box: np.ndarray
+    matrix: np.ndarray
+    grid: np.ndarray
+    grid_matrix: np.ndarray
+    shade: np.ndarray
+    height_px: int
+    width_px: int
+
+    def finish(self, fk: Any, lut: np.ndarray, out: np.ndarray, alpha: np.ndarray, *args: Any) -> int:
+        """``level_finish`` of this warp with the finishing arguments (``alpha`` unused: the occlusion is float)."""
+        return fk.level_finish(self.box, self.matrix, self.grid, self.grid_matrix, self.shade, self.height_px,
+                               self.width_px, lut, out, *args)
 
 
 @dataclass(frozen=True, eq=False)
@@ -641,6 +671,15 @@ class CameraRenderer:
             self._bake_tiles(baked, corners)
             return self._render_baked(baked, affine, pose, rng, speed_mps, status, pre_sensor, view, sun_deg)
         if view is None:
+            warp = self._level_warp(occlusion, shading_params, affine, level, camera)
+            if warp is not None:
+                image, _, count = self._finish(warp, None, shading_params, rng, speed_mps, pose,
+                                               [] if pre_sensor is None else [pre_sensor])
+                grid = occlusion     # the float occlusion, warped as the per-frame path warps it, if a caller reads it
+                return Frame(image=image, shadow_mask=None, shadow_fraction=count / (warp.width_px * warp.height_px),
+                             valid=status == "valid", status=status, pose=pose, pyramid_level=level,
+                             occlusion_of=lambda: np.ascontiguousarray(self._occlusion(grid, affine, pose, t_s,
+                                                                                       camera)))
             image = self._warp_raw(affine, level, camera.width_px, camera.height_px)
         else:
             image = view.sample(self.map_level(level), level)
@@ -653,6 +692,25 @@ class CameraRenderer:
                                        [] if pre_sensor is None else [pre_sensor])
         return Frame(image=image, shadow_mask=None, shadow_fraction=count / (camera.width_px * camera.height_px),
                      valid=status == "valid", status=status, pose=pose, occlusion=occ_cam, pyramid_level=level)
+
+    def _level_warp(self, occlusion: Any, shading_params: Mapping[str, Any] | None, affine: np.ndarray, level: int,
+                    camera: CameraModel) -> _LevelWarp | None:
+        """The frame's warp of map level ``level`` and of the shadow grid ``occlusion`` for the finishing pass, or
+        None where the pass does not take it (an RGB-held map, no occlusion, a cloud field or several occluders):
+        the same matrices as ``_warp_raw`` and ``_occlusion``."""
+        from aerial_loc_env.world.shadows import ShadowGrid  # layer 1, imported late (as in ``_occlusion``)
+
+        if not self._rgba or not isinstance(occlusion, (ShadowGrid, np.ndarray)):
+            return None
+        data, factor = self._grid(occlusion)
+        rgba = self.map_level(level)
+        if rgba.shape[0] * rgba.shape[1] >= 1 << 32:    # (the pass indexes the level with uint32)
+            return None
+        a = affine / factor
+        a[:, 2] += 0.5 / factor - 0.5
+        box = rgba.view(np.uint32).reshape(rgba.shape[:2])
+        return _LevelWarp(box, affine / (1 << level), np.ascontiguousarray(data), a, _shading_lut(shading_params),
+                          camera.height_px, camera.width_px)
 
     def _render_baked(self, baked: BakedShadows, affine: np.ndarray, pose: Pose, rng: np.random.Generator,
                       speed_mps: float, status: FootprintStatus,
@@ -681,7 +739,7 @@ class CameraRenderer:
                      status=status, pose=pose, pyramid_level=0, occlusion_q=alpha)
 
     # ------------------------------------------------------------------ photometry
-    def _finish(self, src: np.ndarray | _BoxWarp | _MapWarp, occ: np.ndarray | None,
+    def _finish(self, src: np.ndarray | _BoxWarp | _MapWarp | _LevelWarp, occ: np.ndarray | None,
                 shading_params: Mapping[str, Any] | None, rng: np.random.Generator, speed_mps: float, pose: Pose,
                 mid: list[Callable[[np.ndarray], np.ndarray]]) -> tuple[np.ndarray, np.ndarray, int]:
         """The frame from the warped map ``src`` (a fresh (H, W, 3 or 4) uint8 array, which becomes the frame's
@@ -696,7 +754,7 @@ class CameraRenderer:
         ``photometry_draws``, then the noise bank offsets."""
         fk = _kernels()
         p = self.photometry
-        warp = src if isinstance(src, (_BoxWarp, _MapWarp)) else None
+        warp = src if isinstance(src, (_BoxWarp, _MapWarp, _LevelWarp)) else None
         if warp is not None:   # the warp is done in the first pass, into the frame's memory
             h, w, cn = warp.height_px, warp.width_px, 4
             src = np.empty((h, w, 3), np.uint8)

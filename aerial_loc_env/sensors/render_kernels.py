@@ -2,7 +2,8 @@
 
 ``finish`` turns the warped map (RGBA or RGB uint8) into the final uint8 RGB frame, row by row, each row
 through both stages while it sits in L1 (``warp_finish``: the same, with the baked box's bilinear warp of the row
-done first, bit for bit OpenCV's):
+done first, bit for bit OpenCV's; ``level_finish``: a map level's warp and the shadow grid's, for the frames the
+bake does not serve):
 
 1. scene: the shadow mask (from the baked alpha, or from a float occlusion, which is also shaded here), then the
    frame's composed tone LUT (gamma and the white-balance/exposure gains, one byte table per channel);
@@ -46,12 +47,14 @@ import sys
 import numba as nb
 import numpy as np
 
+from aerial_loc_env.jit import BILINEAR_LANES as _BILINEAR_LANES
 from aerial_loc_env.jit import BILINEAR_PIXELS as _BILINEAR_PIXELS
 from aerial_loc_env.jit import FAST_GATHER as _FAST_GATHER
 from aerial_loc_env.jit import FAST_LUT as _FAST_LUT
 from aerial_loc_env.jit import GATHER_LANES as _GATHER_LANES
 from aerial_loc_env.jit import JIT as _JIT
 from aerial_loc_env.jit import LUT_PIXELS as _LUT_PIXELS
+from aerial_loc_env.jit import bilinear_f32x8 as _bilinear_f32x8
 from aerial_loc_env.jit import bilinear_rgba8 as _bilinear_rgba8
 from aerial_loc_env.jit import fma32 as _fma32
 from aerial_loc_env.jit import gather_pairs16 as _gather_pairs16
@@ -284,38 +287,198 @@ def warp_finish(box, m, lut, out, alpha, sensor, vig, bank, dy, dx3, sigma_mode,
     _wide_vectors()
     h_px, w_px = alpha.shape
     w3 = 3 * w_px
-    flat, bw, umax, vmax, stride = _box_layout(box)
+    flat, bw, _, _, _ = _box_layout(box)
     l0, l1, l2, tabs = _tone_tables(lut)
-    m0, m1, m2 = np.float32(m[0, 0]), np.float32(m[0, 1]), np.float32(m[0, 2])
-    m3, m4, m5 = np.float32(m[1, 0]), np.float32(m[1, 1]), np.float32(m[1, 2])
     fu = np.empty(w_px, np.float32)
     fv = np.empty(w_px, np.float32)
     fa, fb, idx, q00, q01, q10, q11, c00, c01, c10, c11, rgba, o, no_occ = _row_buffers(w_px)
-    x_tail = w_px - w_px % WARP_STEP_PX
     ahead = np.int64(np.rint(8.0 * m[1, 1])) * bw + np.int64(np.rint(8.0 * m[0, 1]))   # 8 frame rows down
     count = 0
     for y in range(h_px):
-        yf = np.float32(y)
-        bu, bv = m1 * yf + m2, m4 * yf + m5
-        for x in range(w_px):       # (x through int32: a vector conversion without AVX-512, the same float)
-            fu[x] = _fma32(m0, np.float32(np.int32(x)), bu)
-            fv[x] = _fma32(m3, np.float32(np.int32(x)), bv)
-        pu, pv = m1 * yf, m4 * yf
-        for x in range(x_tail, w_px):
-            fu[x] = _fma32(m0, np.float32(np.int32(x)), pu) + m2
-            fv[x] = _fma32(m3, np.float32(np.int32(x)), pv) + m5
-        if _weights_row(fu, fv, fa, fb, idx, stride, umax, vmax) == 0:
-            for x in range(0, w_px, 4):     # the box's rows that row y + 8 will read (frames start cold there)
-                k = np.int64(idx[x]) + ahead
-                _prefetch(flat, k)
-                _prefetch(flat, k + bw)
-            _sample_row(flat, idx, stride, fa, fb, rgba, q00, q01, q10, q11, c00, c01, c10, c11)
-        else:
-            _border_row(box, fu, fv, fa, fb, q00, q01, q10, q11)
-            _blend_row(c00, c01, c10, c11, fa, fb, rgba, 0)
+        _affine_row(m, y, fu, fv)
+        _warp_row(box, flat, ahead, fu, fv, fa, fb, idx, rgba, q00, q01, q10, q11, c00, c01, c10, c11)
         count += _scene_row(rgba, o, alpha[y], no_occ, 4, w_px, OCC_ALPHA, l0, l1, l2, l0, l1, l2, False, tabs)
         _sensor_row(o, out[w3 * y:w3 * (y + 1)], y, h_px, sensor, vig, bank, dy, dx3, sigma_mode, a32, b32, a64, b64)
     return count
+
+
+@nb.njit(inline="always", **_JIT)
+def _warp_row(box, flat, ahead, fu, fv, fa, fb, idx, rgba, q00, q01, q10, q11, c00, c01, c10, c11):
+    """The bilinear samples of a box (uint32 RGBA pixels, ``flat`` its pixels in one row) at a row's source points
+    (``fu``, ``fv``) into ``rgba``, zero outside the box, bit for bit ``cv2.warpAffine``'s: the row inside takes
+    ``_sample_row`` after prefetching the box lines that the row ``ahead`` (a flat offset) will read (a frame starts
+    with the box out of cache after the step's other work), a row across the edge ``_border_row``."""
+    bh, bw = box.shape
+    stride, umax, vmax = np.uint32(bw), np.float32(bw - 1), np.float32(bh - 1)
+    if _weights_row(fu, fv, fa, fb, idx, stride, umax, vmax) == 0:
+        for x in range(0, fu.shape[0], 4):
+            k = np.int64(idx[x]) + ahead
+            _prefetch(flat, k)
+            _prefetch(flat, k + bw)
+        _sample_row(flat, idx, stride, fa, fb, rgba, q00, q01, q10, q11, c00, c01, c10, c11)
+    else:
+        _border_row(box, fu, fv, fa, fb, q00, q01, q10, q11)
+        _blend_row(c00, c01, c10, c11, fa, fb, rgba, 0)
+
+
+@nb.njit(inline="always", **_JIT)
+def _affine_row(m, y, fu, fv):
+    """Row y's float32 source points under the inverse affine ``m`` (2, 3) float64 as OpenCV 5's ``warpAffine``
+    (INTER_LINEAR, 8UC4 and 32FC1 alike) computes them: ``fma(m00, x, m01 y + m02)`` with float32 coefficients, and
+    ``fma(m00, x, m01 y) + m02`` in the row's last ``W mod WARP_STEP_PX`` pixels (its scalar tail)."""
+    w_px = fu.shape[0]
+    m0, m1, m2 = np.float32(m[0, 0]), np.float32(m[0, 1]), np.float32(m[0, 2])
+    m3, m4, m5 = np.float32(m[1, 0]), np.float32(m[1, 1]), np.float32(m[1, 2])
+    yf = np.float32(y)
+    bu, bv = m1 * yf + m2, m4 * yf + m5
+    for x in range(w_px):       # (x through int32: a vector conversion without AVX-512, the same float)
+        fu[x] = _fma32(m0, np.float32(np.int32(x)), bu)
+        fv[x] = _fma32(m3, np.float32(np.int32(x)), bv)
+    pu, pv = m1 * yf, m4 * yf
+    for x in range(w_px - w_px % WARP_STEP_PX, w_px):
+        fu[x] = _fma32(m0, np.float32(np.int32(x)), pu) + m2
+        fv[x] = _fma32(m3, np.float32(np.int32(x)), pv) + m5
+
+
+@nb.njit(**_JIT)
+def level_finish(box, m, grid, mg, shade, h_px, w_px, lut, out, sensor, vig, bank, dy, dx3, sigma_mode, a32, b32,
+                 a64, b64):
+    """``finish`` (``OCC_FLOAT``) of a map level's bilinear warp with the cast shadows' grid warped beside it, each
+    row warped, shaded and finished while it sits in L1: the frames a bake does not serve (a pyramid level above 0),
+    without a warped RGBA frame and a float occlusion frame going through memory and without their two OpenCV calls.
+
+    ``box`` (bh, bw) uint32: the level's RGBA pixels, warped by ``m`` as ``warp_finish`` warps its box (bit for bit
+    ``cv2.warpAffine`` INTER_LINEAR | WARP_INVERSE_MAP, zero border); ``grid`` (gh, gw) float32: the occlusion at
+    the points of ``mg`` (frame pixel -> grid pixel, (2, 3) float64), bit for bit that warp of a float32 image with
+    a replicated border (the same source points, ``_affine_row``; the value the fma chain of
+    ``jit.bilinear_f32x8``, unrounded, the neighbours clamped to the grid); ``shade`` (3, 256) uint8: the shading
+    gains at the quantized occlusion; ``out`` receives the (``h_px``, ``w_px``, 3) frame, flat; the rest as
+    ``finish``; returns the number of shadowed pixels (occlusion >= 0.5)."""
+    _wide_vectors()
+    w3 = 3 * w_px
+    flat, bw, _, _, _ = _box_layout(box)
+    gh, gw = grid.shape
+    gflat = grid.reshape(gh * gw)
+    gumax, gvmax, gstride = np.float32(gw - 1), np.float32(gh - 1), np.uint32(gw)
+    l0, l1, l2, tabs = _tone_tables(lut)
+    table8 = np.full(1024, 255, np.uint8)     # the shading gains of each level as one 32-bit pixel (memory order)
+    for q in range(256):
+        for c in range(3):
+            table8[4 * q + c] = shade[c, q]
+    table = table8.view(np.uint32)
+    gains = np.empty(4 * w_px, np.uint8)
+    fu = np.empty(w_px, np.float32)
+    fv = np.empty(w_px, np.float32)
+    gu = np.empty(w_px, np.float32)
+    gv = np.empty(w_px, np.float32)
+    ga = np.empty(w_px, np.float32)
+    gb = np.empty(w_px, np.float32)
+    gidx = np.empty(w_px, np.uint32)
+    occ = np.empty(w_px, np.float32)
+    qrow = np.empty(w_px, np.uint8)     # the quantized occlusion (and the tone pass's alpha row after it)
+    fa, fb, idx, q00, q01, q10, q11, c00, c01, c10, c11, rgba, o, no_occ = _row_buffers(w_px)
+    ahead = np.int64(np.rint(8.0 * m[1, 1])) * bw + np.int64(np.rint(8.0 * m[0, 1]))   # 8 frame rows down
+    g_ahead = np.int64(np.rint(8.0 * mg[1, 1])) * gw + np.int64(np.rint(8.0 * mg[0, 1]))
+    count = 0
+    for y in range(h_px):
+        _affine_row(m, y, fu, fv)
+        _affine_row(mg, y, gu, gv)
+        _warp_row(box, flat, ahead, fu, fv, fa, fb, idx, rgba, q00, q01, q10, q11, c00, c01, c10, c11)
+        if _weights_row(gu, gv, ga, gb, gidx, gstride, gumax, gvmax) == 0:
+            for x in range(0, w_px, 16):     # the grid's rows that row y + 8 will read
+                k = np.int64(gidx[x]) + g_ahead
+                _prefetch(gflat, k)
+                _prefetch(gflat, k + gw)
+            _sample_f32_row(gflat, gidx, gstride, ga, gb, occ)
+        else:
+            _replicate_row(grid, gu, gv, occ)
+        count += _shade_rgba_row(rgba, occ, qrow, gains, table)
+        _scene_row(rgba, o, qrow, no_occ, 4, w_px, OCC_ALPHA, l0, l1, l2, l0, l1, l2, False, tabs)
+        _sensor_row(o, out[w3 * y:w3 * (y + 1)], y, h_px, sensor, vig, bank, dy, dx3, sigma_mode, a32, b32, a64, b64)
+    return count
+
+
+#: pixels per block of ``_shade_rgba_row``'s multiplies (a block whose gains are all 255 is skipped)
+_SHADE_BLOCK_PX = 16
+_NO_GAIN = np.uint32(0xFFFFFFFF)     # a pixel's gains word that leaves it as it is
+
+
+@nb.njit(inline="always", **_JIT)
+def _shade_rgba_row(rgba, occ, qrow, gains, table):
+    """A row's RGBA samples shaded in place by the float occlusion ``occ`` (``finish``'s ``OCC_FLOAT`` arithmetic:
+    ``mul255`` by channel c's gain at the quantized occlusion q), so that its tone lookups are those of a baked
+    row; returns the shadowed pixels (occlusion >= 0.5). ``table`` (256,) uint32: the three gains of each level as
+    a pixel's bytes (alpha 255); ``qrow`` (W,) uint8 and ``gains`` (4 W,) uint8 are row buffers. The count and the
+    levels (vectorized loops), one 32-bit gains lookup a pixel (scalar), then every byte's ``mul255`` (vectorized,
+    in 16-bit lanes: at most 255 * 255 + 128 + 254, no overflow) in blocks of ``_SHADE_BLOCK_PX`` pixels, skipping
+    the blocks whose gains are all 255 (``mul255(v, 255) = v``: sunlit ground where the shading leaves level 0
+    alone)."""
+    w_px = occ.shape[0]
+    count = 0
+    for x in range(w_px):
+        count += np.int32(occ[x] >= np.float32(0.5))
+    for x in range(w_px):
+        qrow[x] = np.uint8(_quantize(occ[x]))
+    g32 = gains.view(np.uint32)
+    for x in range(w_px):
+        g32[x] = table[qrow[x]]
+    n = _SHADE_BLOCK_PX
+    body = w_px - w_px % n
+    for blk in range(0, body, n):
+        if g32[blk] == _NO_GAIN and g32[blk + n - 1] == _NO_GAIN:
+            same = _NO_GAIN
+            for i in range(n):
+                same &= g32[blk + i]
+            if same == _NO_GAIN:
+                continue
+        _mul255_bytes(rgba[4 * blk:4 * blk + 4 * n], gains[4 * blk:4 * blk + 4 * n])
+    _mul255_bytes(rgba[4 * body:], gains[4 * body:])
+    return count
+
+
+@nb.njit(inline="always", **_JIT)
+def _mul255_bytes(values, gains):
+    """``values[j] = mul255(values[j], gains[j])`` (uint8 arrays of one length) in 16-bit arithmetic."""
+    for j in range(values.shape[0]):
+        p = np.uint16(values[j]) * np.uint16(gains[j]) + np.uint16(128)
+        values[j] = np.uint8((p + (p >> np.uint16(8))) >> np.uint16(8))
+
+
+@nb.njit(inline="always", **_JIT)
+def _sample_f32_row(plane, idx, stride, fa, fb, out):
+    """The bilinear values (unrounded float32) of a row's points inside a float32 plane: ``jit.bilinear_f32x8`` 8
+    points a call, the same fma chain on the rest."""
+    n = idx.shape[0]
+    body = n - n % _BILINEAR_LANES
+    for x in range(0, body, _BILINEAR_LANES):
+        _bilinear_f32x8(plane, idx, stride, fa, fb, out, x)
+    one = np.uint32(1)
+    for x in range(body, n):
+        k = idx[x]
+        a, b = fa[x], fb[x]
+        p00, p01, p10, p11 = plane[k], plane[k + one], plane[k + stride], plane[k + stride + one]
+        v0 = _fma32(a, p01 - p00, p00)
+        v1 = _fma32(a, p11 - p10, p10)
+        out[x] = _fma32(b, v1 - v0, v0)
+
+
+@nb.njit(**_JIT)
+def _replicate_row(grid, fu, fv, out):
+    """The general path of ``level_finish``'s occlusion row: the floor, the weights, the four neighbours clamped to
+    the grid (a replicated border), the fma chain. Points are clamped to [-2, size + 1] first (the conversion stays
+    defined): beyond that both neighbours on an axis are the same edge pixel, whose difference is 0 whatever the
+    weight, so the values are those of the unclamped points."""
+    gh, gw = grid.shape
+    for x in range(fu.shape[0]):
+        cu, cv, x0, y0 = _clamped_floor(fu[x], fv[x], gw, gh)
+        a = cu - np.float32(x0)
+        b = cv - np.float32(y0)
+        xa, xb = min(max(x0, 0), gw - 1), min(max(x0 + 1, 0), gw - 1)
+        ya, yb = min(max(y0, 0), gh - 1), min(max(y0 + 1, 0), gh - 1)
+        p00, p01, p10, p11 = grid[ya, xa], grid[ya, xb], grid[yb, xa], grid[yb, xb]
+        v0 = _fma32(a, p01 - p00, p00)
+        v1 = _fma32(a, p11 - p10, p10)
+        out[x] = _fma32(b, v1 - v0, v0)
 
 
 @nb.njit(**_JIT)
@@ -505,6 +668,20 @@ def _blend_row(c00, c01, c10, c11, fa, fb, rgba, start):
             rgba[j] = np.uint8(np.int32(np.rint(_fma32(b, v1 - v0, v0))))
 
 
+@nb.njit(inline="always", **_JIT)
+def _clamped_floor(u, v, w, h):
+    """A point (float32) clamped to [-2, w + 1] x [-2, h + 1] (any point beyond, or NaN (-> -2), reads what a point
+    there reads, and the conversion stays defined), and the floor of the clamped point (int32): (cu, cv, x0, y0)."""
+    cu = u if u > np.float32(-2.0) else np.float32(-2.0)
+    cv = v if v > np.float32(-2.0) else np.float32(-2.0)
+    cu = cu if cu < np.float32(w + 1) else np.float32(w + 1)
+    cv = cv if cv < np.float32(h + 1) else np.float32(h + 1)
+    x0, y0 = np.int32(cu), np.int32(cv)
+    x0 -= np.int32(np.float32(x0) > cu)
+    y0 -= np.int32(np.float32(y0) > cv)
+    return cu, cv, x0, y0
+
+
 @nb.njit(**_JIT)
 def _border_row(box, fu, fv, fa, fb, q00, q01, q10, q11):
     """The general path of a ``warp_finish`` row: the floor (clamped to [-2, size + 1]: any point beyond, or NaN,
@@ -514,13 +691,7 @@ def _border_row(box, fu, fv, fa, fb, q00, q01, q10, q11):
     zero = np.uint32(0)
     for x in range(fu.shape[0]):
         u, v = fu[x], fv[x]
-        cu = u if u > np.float32(-2.0) else np.float32(-2.0)      # NaN -> -2: outside (as cv2.remap reads it)
-        cv = v if v > np.float32(-2.0) else np.float32(-2.0)
-        cu = cu if cu < np.float32(bw + 1) else np.float32(bw + 1)
-        cv = cv if cv < np.float32(bh + 1) else np.float32(bh + 1)
-        x0, y0 = np.int32(cu), np.int32(cv)
-        x0 -= np.int32(np.float32(x0) > cu)
-        y0 -= np.int32(np.float32(y0) > cv)
+        _, _, x0, y0 = _clamped_floor(u, v, bw, bh)
         fa[x] = u - np.float32(x0)
         fb[x] = v - np.float32(y0)
         in_x0, in_x1, in_y0, in_y1 = 0 <= x0 < bw, 0 <= x0 + 1 < bw, 0 <= y0 < bh, 0 <= y0 + 1 < bh

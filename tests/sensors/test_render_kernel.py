@@ -58,6 +58,10 @@ class _OpenCVRenderer(CameraRenderer):
         elif isinstance(src, render_mod._MapWarp):
             facades = src.shade_px, src.shade_gain
             src = _remap_box(src.box, src.map_x, src.map_y)
+        elif isinstance(src, render_mod._LevelWarp):    # the level's warp, then the grid's (replicated border)
+            occ = cv2.warpAffine(src.grid, src.grid_matrix, (src.width_px, src.height_px),
+                                 flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REPLICATE)
+            src = _warp_box(src.box, src.matrix, src.width_px, src.height_px)
         h, w, cn = src.shape
         image = cv2.cvtColor(src, cv2.COLOR_RGBA2RGB) if cn == 4 else src.copy()
         if facades is not None:
@@ -175,6 +179,10 @@ def test_baked_per_frame_and_unshadowed_frames_equal_the_opencv_passes(name):
             _render_both(new_r, ref_r, pose, None, i, speed_mps=speed_mps)
         frame = _render_both(new_r, ref_r, HIGH, grid, i)
         assert frame.pyramid_level == 1 and 0.05 < frame.shadow_fraction < 0.95
+        np.testing.assert_array_equal(frame.occlusion >= 0.5, frame.shadow_mask)   # warped on first read
+        # the level pass split around a scene step and a 1.3 px motion blur (300 m/s)
+        _render_both(new_r, ref_r, HIGH, grid, i, speed_mps=300.0,
+                     pre_sensor=lambda image: cv2.convertScaleAbs(image, alpha=0.8))
     if name == "saturating gains":                           # the gains do clip, both ways
         assert (frame.image == 255).mean() > 0.05 and (frame.image == 0).any()
 
@@ -428,6 +436,47 @@ def test_box_warp_equals_opencv_warp_affine_over_random_affines(size):
 
 
 @pytest.mark.parametrize("size", [(600, 400), (120, 80), (37, 9)])
+def test_level_warp_equals_opencv_warps_then_shading_over_random_affines(size):
+    """``level_finish`` against ``cv2.warpAffine`` of the level (8UC4, zero border) and of the shadow grid (32FC1,
+    replicated border), then the float occlusion's shading (``shade``) and its count (occlusion >= 0.5): rotations,
+    scales, footprints inside, across and beyond the edges (the grid's replicated border read far out), a grid
+    with levels 0, 1 and between, shadings that leave level 0 alone and that do not. Equal where OpenCV runs its
+    AVX2 kernels, as for ``warp_finish``."""
+    w, h = size
+    rng = np.random.default_rng(w + 1)
+    level = rng.integers(0, 256, (300, 380, 4), dtype=np.uint8)
+    level[40:70, 50:90] = 255
+    box32 = level.view(np.uint32).reshape(300, 380)
+    grid = np.clip(2.0 * cv2.resize(rng.random((15, 19), dtype=np.float32), (190, 150)) - 0.5, 0.0, 1.0)
+    ident = np.tile(np.arange(256, dtype=np.uint8), (3, 1))
+    exact = cv2.checkHardwareSupport(13)
+    flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+    for t in range(30):
+        angle, scale = rng.uniform(-np.pi, np.pi), rng.uniform(0.5, 2.0)
+        m = scale * np.array([[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]])
+        centre = rng.uniform(-150.0, 530.0, 2) if t % 3 == 0 else rng.uniform(100.0, 250.0, 2)
+        matrix = np.hstack([m, (centre - m @ (np.array([w, h]) / 2.0 + rng.uniform(0.0, 1.0, 2)))[:, None]])
+        gm = matrix / 2.0
+        gm[:, 2] += 0.25 - 0.5
+        lut = shading_lut(0.9) if t % 2 else shading_lut(0.7, shadow_ratio=0.4, sky_tint_rgb=(0.2, 0.3, 0.9))
+        lut = lut.copy() if t % 4 == 1 else lut
+        if t % 4 == 1:
+            lut[:, 0] = (250, 255, 240)        # level 0 shaded too
+        out = np.empty(h * w * 3, np.uint8)
+        count = fk.level_finish(box32, matrix, grid, gm, lut, h, w, ident, out, False, render_mod._NO_VIG,
+                                render_mod._NO_BANK, 0, 0, fk.NOISE_OFF, np.float32(0), np.float32(0), 0.0, 0.0)
+        occ = cv2.warpAffine(grid, gm, (w, h), flags=flags, borderMode=cv2.BORDER_REPLICATE)
+        ref = np.ascontiguousarray(_warp_box(box32, matrix, w, h)[..., :3])
+        shade(ref, cv2.convertScaleAbs(occ, alpha=255.0), lut, out=ref)
+        got = out.reshape(h, w, 3)
+        if exact:
+            np.testing.assert_array_equal(got, ref)
+            assert count == np.count_nonzero(occ >= 0.5)
+        else:
+            assert np.abs(got.astype(int) - ref).max() <= 2 and (got != ref).mean() < 0.01
+
+
+@pytest.mark.parametrize("size", [(600, 400), (120, 80), (37, 9)])
 def test_map_warp_equals_opencv_remap_then_facades_over_random_maps(size):
     """``remap_finish`` against ``cv2.remap`` (8UC4, INTER_LINEAR, zero border) then the facades' gains: maps of
     random rotations and scales with per-pixel jitter (as relief displaces a view's points), inside the box, across
@@ -637,6 +686,7 @@ import hashlib, sys
 import numpy as np
 from aerial_loc_env import jit
 from aerial_loc_env.sensors import render_kernels as fk
+# _level_frame
 print(jit.FAST_LUT, jit.FAST_GATHER)
 rng = np.random.default_rng(4)
 w = 45
@@ -646,7 +696,27 @@ o, m = np.zeros(3 * w, np.uint8), np.zeros(w, np.uint8)
 count = fk._scene_row(src, o, m, np.zeros(1, np.float32), 4, w, fk.OCC_ALPHA, tabs[:256], tabs[256:512], tabs[512:],
                       tabs[:256], tabs[256:512], tabs[512:], False, tabs)
 print(count, hashlib.sha1(o.tobytes() + m.tobytes()).hexdigest())
+print(*_level_frame(fk))
 """
+
+
+def _level_frame(fk):
+    """``level_finish`` of a fixed random level, grid and affine (across the edges) with a random tone table:
+    (count, digest of the frame), compared between the host's code and the AVX2 code."""
+    import hashlib
+
+    rng = np.random.default_rng(5)
+    box = rng.integers(0, 256, (90, 130, 4), dtype=np.uint8).view(np.uint32).reshape(90, 130)
+    grid = rng.random((45, 65), dtype=np.float32)
+    shade_lut = rng.integers(0, 256, (3, 256), dtype=np.uint8)
+    matrix = np.array([[0.83, -0.41, 20.3], [0.39, 0.87, -12.6]])
+    gm = matrix / 2.0
+    gm[:, 2] -= 0.25
+    out = np.empty(47 * 150 * 3, np.uint8)
+    count = fk.level_finish(box, matrix, grid, gm, shade_lut, 47, 150, rng.integers(0, 256, (3, 256), dtype=np.uint8),
+                            out, False, np.zeros((1, 1), np.uint8), np.zeros((1, 1), np.int16), 0, 0, fk.NOISE_OFF,
+                            np.float32(0), np.float32(0), 0.0, 0.0)
+    return count, hashlib.sha1(out.tobytes()).hexdigest()
 
 
 def test_the_kernels_compiled_for_an_avx2_cpu_give_the_same_bytes(tmp_path):
@@ -655,6 +725,7 @@ def test_the_kernels_compiled_for_an_avx2_cpu_give_the_same_bytes(tmp_path):
     lookups of whole 32-bit pixels) and give the bytes of this process's path (the byte permutes where the host
     has VBMI)."""
     import hashlib
+    import inspect
     import os
     import platform
     import subprocess
@@ -666,10 +737,11 @@ def test_the_kernels_compiled_for_an_avx2_cpu_give_the_same_bytes(tmp_path):
     env.update(NUMBA_CACHE_DIR=str(tmp_path / "numba"), NUMBA_CPU_FEATURES="",
                NUMBA_CPU_NAME="znver3" if x86 else "generic")
     repo = Path(__file__).resolve().parents[2]
-    r = subprocess.run([sys.executable, "-c", _AVX2_RUN], env=env, cwd=repo, capture_output=True, text=True,
+    script = _AVX2_RUN.replace("# _level_frame\n", inspect.getsource(_level_frame))
+    r = subprocess.run([sys.executable, "-c", script], env=env, cwd=repo, capture_output=True, text=True,
                        timeout=600)
     assert r.returncode == 0, r.stderr
-    flags, result = r.stdout.splitlines()
+    flags, result, level = r.stdout.splitlines()
     assert flags == "False False"
     rng = np.random.default_rng(4)
     w = 45
@@ -679,6 +751,7 @@ def test_the_kernels_compiled_for_an_avx2_cpu_give_the_same_bytes(tmp_path):
     count = fk._scene_row(src, o, m, np.zeros(1, np.float32), 4, w, fk.OCC_ALPHA, tabs[:256], tabs[256:512],
                           tabs[512:], tabs[:256], tabs[256:512], tabs[512:], False, tabs)
     assert result == f"{count} {hashlib.sha1(o.tobytes() + m.tobytes()).hexdigest()}"
+    assert level == " ".join(str(v) for v in _level_frame(fk))
     rgba = src.reshape(w, 4)
     np.testing.assert_array_equal(o.reshape(w, 3), tabs.reshape(3, 256)[np.arange(3), rgba[:, :3]])
     assert count == np.count_nonzero(rgba[:, 3] > 127)
