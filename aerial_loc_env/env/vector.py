@@ -59,16 +59,24 @@ def check_count(name: str, value: Any, where: str, example: str) -> int:
 
 
 # ------------------------------------------------------------------------------------ what a sub-env does
-def _put(space: spaces.Space, views: Any, slot: int, value: Any) -> None:
-    """Write one sub-env's observation into slot ``slot`` of the batched shared-memory views."""
+def _leaves(space: spaces.Space, views: Any, path: tuple = ()) -> list[tuple[tuple, Any]]:
+    """The batched shared-memory views of ``space``'s leaves (Dict and Tuple spaces walked once), each with the
+    keys that lead from an observation to its value: what one sub-env's observation is written through."""
     if isinstance(space, spaces.Dict):
-        for key, sub in space.spaces.items():
-            _put(sub, views[key], slot, value[key])
-    elif isinstance(space, spaces.Tuple):
-        for sub, view, item in zip(space.spaces, views, value, strict=True):
-            _put(sub, view, slot, item)
-    else:
-        views[slot] = value
+        return [leaf for key, sub in space.spaces.items() for leaf in _leaves(sub, views[key], (*path, key))]
+    if isinstance(space, spaces.Tuple):
+        return [leaf for k, (sub, view) in enumerate(zip(space.spaces, views, strict=True))
+                for leaf in _leaves(sub, view, (*path, k))]
+    return [(path, views)]
+
+
+def _put(leaves: list[tuple[tuple, Any]], slot: int, value: Any) -> None:
+    """Write one sub-env's observation into slot ``slot`` of the batched views (``_leaves``)."""
+    for path, view in leaves:
+        item = value
+        for key in path:
+            item = item[key]
+        view[slot] = item
 
 
 def _op_reset(env: gym.Env, put: Callable[[Any], None], seed: int | None, options: dict | None) -> dict:
@@ -117,11 +125,11 @@ _OPS: dict[str, Callable[..., Any]] = {"reset": _op_reset, "step": _op_step, "st
                                        "apply": _op_apply}
 
 
-def _run_block(envs: Sequence[gym.Env], slots: Sequence[int], space: spaces.Space, views: Any,
+def _run_block(envs: Sequence[gym.Env], slots: Sequence[int], leaves: list[tuple[tuple, Any]],
                commands: Sequence[tuple]) -> list:
     out = []
     for env, slot, (op, *args) in zip(envs, slots, commands, strict=True):
-        out.append(_OPS[op](env, lambda obs, slot=slot: _put(space, views, slot, obs), *args))
+        out.append(_OPS[op](env, lambda obs, slot=slot: _put(leaves, slot, obs), *args))
     return out
 
 
@@ -149,6 +157,10 @@ class _RemoteError:
 #: within about one block's step, and waking a sleeping process costs more (a system call and, in a VM, an
 #: interrupt between cores); only where every process has a core of its own
 _SPIN_S = 0.002
+#: after two spins in a row ran out (the other process had no core: the machine is busier than its cores, or the
+#: caller's own work between steps is long), the waits that sleep at once before a spin is tried again: spinning
+#: then only took the core the answer needed (one spin that runs out, as while a sub-env resets, changes nothing)
+_SLEEP_AFTER_MISSES = 64
 #: bytes of shared buffer per direction and worker; a longer message (a big final observation, rendered frames)
 #: goes through the pipe
 _CAPACITY = 1 << 18
@@ -158,13 +170,17 @@ _IN_PIPE = 0xFFFFFFFF
 class _Channel:
     """The messages between the caller and one worker, both ways: a message is pickled into a shared buffer (or
     the pipe, when it does not fit) and announced by a semaphore, on which the receiver spins for ``spin_s``
-    before it sleeps. Requests and answers alternate, so each direction holds at most one message."""
+    before it sleeps (and, once two spins in a row have run out, sleeps at once for the next
+    ``_SLEEP_AFTER_MISSES`` waits: on a machine busier than its cores the spinner held the core the answer
+    needed). Requests and answers alternate, so each direction holds at most one message."""
 
     def __init__(self, ctx: Any, spin_s: float) -> None:
         self.sems = (ctx.Semaphore(0), ctx.Semaphore(0))            # to the worker, to the caller
         self.bufs = (ctx.RawArray("B", _CAPACITY), ctx.RawArray("B", _CAPACITY))
         self.pipe = ctx.Pipe()                                        # (the caller's end, the worker's end)
         self.spin_s = spin_s
+        self._misses = 0              # spins in a row that ran out
+        self._sleep_next = 0          # waits left that sleep at once (after two spins in a row ran out)
         self._views: tuple | None = None
 
     def __getstate__(self) -> dict:
@@ -192,14 +208,25 @@ class _Channel:
         """The next message; EOFError when ``alive()`` turns false while waiting."""
         k = 0 if in_worker else 1
         sem = self.sems[k]
-        if not sem.acquire(False):
-            end = time.perf_counter() + self.spin_s
+        if sem.acquire(False):        # already there: the other process keeps up
+            self._misses = 0
+        else:
+            spin_s = self.spin_s if self._sleep_next == 0 else 0.0
+            self._sleep_next = max(0, self._sleep_next - 1)
+            end = time.perf_counter() + spin_s
             while not sem.acquire(False):
                 if time.perf_counter() >= end:
+                    if spin_s > 0:
+                        self._misses += 1
+                        if self._misses >= 2:
+                            self._sleep_next = _SLEEP_AFTER_MISSES
                     while not sem.acquire(timeout=_POLL_S):
                         if not alive():
                             raise EOFError
                     break
+            else:
+                if spin_s > 0:
+                    self._misses = 0
         buf = self._buf(k)
         size = int.from_bytes(buf[:4], "little")
         return pickle.loads(self.pipe[1 - k].recv_bytes() if size == _IN_PIPE else bytes(buf[4:4 + size]))
@@ -222,7 +249,7 @@ def _worker(channel: _Channel, fns: CloudpickleWrapper, slots: list[int], shm: A
             cv2.setNumThreads(1)
         envs = [fn() for fn in fns.fn]
         space = envs[0].observation_space
-        views = _views_of(space, shm, num_envs)
+        leaves = _leaves(space, _views_of(space, shm, num_envs))
         channel.send(False, ("ok", (space, envs[0].action_space)))
     except BaseException as exc:  # noqa: BLE001 - reported to the caller, which raises it
         channel.send(False, ("error", _RemoteError(exc, slots[len(envs)] if len(envs) < len(slots) else None)))
@@ -233,7 +260,7 @@ def _worker(channel: _Channel, fns: CloudpickleWrapper, slots: list[int], shm: A
             if commands is None:
                 break
             try:
-                channel.send(False, ("ok", _run_block(envs, slots, space, views, commands)))
+                channel.send(False, ("ok", _run_block(envs, slots, leaves, commands)))
             except Exception as exc:  # noqa: BLE001 - reported to the caller, which raises it
                 channel.send(False, ("error", _RemoteError(exc, None)))
     except (EOFError, OSError, KeyboardInterrupt):
@@ -287,6 +314,7 @@ class EnvShards:
         self._starting = True
         self._shm = create_shared_memory(self.observation_space, self.num_envs, ctx=ctx)
         self.views = _views_of(self.observation_space, self._shm, self.num_envs)
+        self._leaves = _leaves(self.observation_space, self.views)
         spin_s = _SPIN_S if processes <= usable_cores() else 0.0
         try:
             for slots in self._blocks:
@@ -316,7 +344,7 @@ class EnvShards:
 
     def put(self, slot: int, obs: Any) -> None:
         """Write sub-env ``slot``'s observation into the shared batch."""
-        _put(self.observation_space, self.views, slot, obs)
+        _put(self._leaves, slot, obs)
 
     def run(self, commands: Sequence[tuple]) -> list:
         """One command per sub-env (``(op, *args)``, ops in ``_OPS``); the workers run theirs while this process
@@ -337,7 +365,7 @@ class EnvShards:
                 raise AerialLocError(self._broken) from None
         error: BaseException | None = None
         try:
-            local = _run_block(self.local_envs, self.local_slots, self.observation_space, self.views,
+            local = _run_block(self.local_envs, self.local_slots, self._leaves,
                                [commands[i] for i in self.local_slots])
         except Exception as exc:  # noqa: BLE001 - raised once the workers have answered
             error, local = exc, []

@@ -93,7 +93,9 @@ def parse_observation(observation: Mapping[str, np.ndarray], briefing: Briefing 
                           f"(the v2 layout), got shape {odo.shape}{old}")
     yaw = float(np.asarray(observation["yaw"], dtype=np.float64).reshape(-1)[0])
     alt = float(np.asarray(observation["altitude"], dtype=np.float64).reshape(-1)[0])
-    if not (np.all(np.isfinite(odo)) and math.isfinite(yaw) and math.isfinite(alt) and alt > 0):
+    speed, rate, lateral = odo.tolist()
+    if not (math.isfinite(speed) and math.isfinite(rate) and math.isfinite(lateral) and math.isfinite(yaw)
+            and math.isfinite(alt) and alt > 0):
         raise ConfigError(f"observation: odometry {odo}, yaw {yaw}, altitude {alt} "
                           "must be finite (altitude > 0)")
     image = np.asarray(observation["image"])
@@ -101,7 +103,7 @@ def parse_observation(observation: Mapping[str, np.ndarray], briefing: Briefing 
         raise ConfigError(f"observation['image'] must be (H, W, 3) uint8, got {image.shape} {image.dtype}")
     if briefing is not None:
         check_against_briefing(image, alt, briefing, altitude_range_m, agent)
-    return Observation(image, float(odo[0]), float(odo[1]), yaw, alt, float(odo[2]))
+    return Observation(image, speed, rate, yaw, alt, lateral)
 
 
 #: measured altitude beyond this factor of the briefing's nominal altitude: not the briefed flight

@@ -37,10 +37,11 @@ from aerial_loc_env.config import rng
 from aerial_loc_env.errors import ConfigError
 from aerial_loc_env.estimators.database import DatabaseWindow
 from aerial_loc_env.estimators.shadow_detection_kernels import (
+    _classify,
     _index8,
     _open_close,
     _quarter,
-    _split_stats,
+    _reduce_index8,
 )
 
 INDICES = ("c3_luminance", "c3", "luminance", "tsai")
@@ -152,41 +153,50 @@ class ShadowDetector:
         s = self.config.scale
         if s >= 1.0:
             return np.ascontiguousarray(image)
-        H, W = image.shape[:2]
-        if s == 0.25 and H % 4 == 0 and W % 4 == 0 and image.shape[2:] == (3,) and image.dtype == np.uint8 \
-                and image.flags.c_contiguous:
+        if self._quarters(image):
             return _quarter(image)                   # the default scale: cv2.resize's bytes, without its set-up
+        H, W = image.shape[:2]
         # bilinear, not area: much faster, and shadows are large compared with the 1/scale pixels it skips
         return cv2.resize(image, (max(1, round(W * s)), max(1, round(H * s))), interpolation=cv2.INTER_LINEAR)
 
-    def detect(self, image: np.ndarray, small: np.ndarray | None = None) -> ShadowMask:
-        """The shadow mask of ``image``; ``small`` may pass an already reduced copy.
+    def _quarters(self, image: np.ndarray) -> bool:
+        """Whether ``reduce`` takes the compiled quarter (the default scale on a contiguous RGB frame whose sides
+        are multiples of 4)."""
+        H, W = image.shape[:2]
+        return self.config.scale == 0.25 and H % 4 == 0 and W % 4 == 0 and image.shape[2:] == (3,) \
+            and image.dtype == np.uint8 and image.flags.c_contiguous
 
-        The index, its 8-bit quantization and the two classes' statistics after Otsu are two compiled passes
-        (``_index8``, ``_split_stats``) around OpenCV's threshold: the same floats as NumPy's element-wise
-        float32 arithmetic, exact integer luminance sums, and NumPy's pairwise float32 sums for the c3 means
-        (tests/estimators/test_shadow_detection.py checks the masks against the NumPy path over many frames)."""
+    def detect(self, image: np.ndarray, small: np.ndarray | None = None) -> ShadowMask:
+        """The shadow mask of ``image``; ``small`` may pass an already reduced copy."""
+        return self.detect_reduced(image, small)[1]
+
+    def detect_reduced(self, image: np.ndarray, small: np.ndarray | None = None) -> tuple[np.ndarray, ShadowMask]:
+        """(the reduced frame, its shadow mask) of ``image``; ``small`` may pass an already reduced copy.
+
+        The reduction, the luminance, the index and its 8-bit quantization are one compiled pass at the default
+        scale (``_reduce_index8``; else ``reduce``, ``cvtColor`` and ``_index8``), then Otsu's threshold (OpenCV's),
+        the two classes' statistics, the decision and the morphology in one more (``_classify``): the same
+        floats as NumPy's element-wise float32 arithmetic, exact integer luminance sums, and NumPy's pairwise
+        float32 sums for the c3 means (tests/estimators/test_shadow_detection.py checks the masks against the
+        NumPy path over many frames)."""
         img = _rgb8(image, "frame")
-        small = self.reduce(img) if small is None else _rgb8(small, "reduced frame")   # (the c3 table: bytes only)
         index = self.config.index
-        lum8 = cv2.cvtColor(small, cv2.COLOR_RGB2GRAY)
-        c3 = np.empty(lum8.shape, np.float32) if index in ("c3_luminance", "c3") else _NO_C3
-        if index == "tsai":
-            idx8 = np.clip(shadow_index(small, index)[0] * 255.0, 0, 255).astype(np.uint8)
+        if small is None and index != "tsai" and self._quarters(img):
+            small, lum8, c3, idx8 = _reduce_index8(img, _c3_table(), _INDEX_MODES[index])
         else:
-            idx8 = _index8(np.ascontiguousarray(small), lum8, _c3_table(), _INDEX_MODES[index], c3)
-        _, binary = cv2.threshold(idx8, 0, 1, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
-        n_in, lum_in, lum_out, c3_in, c3_out = _split_stats(binary, lum8, c3, binary.size * 255 >= 2 ** 24)
-        n_out = binary.size - n_in
-        if n_in == 0 or n_out == 0:
-            return ShadowMask(np.zeros(binary.shape, bool), img.shape[:2])
-        # NumPy's float32 means: the float32 sum divided by the count in float32
-        ratio = _mean32(lum_in, n_in) / max(_mean32(lum_out, n_out), 1e-6)
-        bluer = index not in ("c3_luminance", "c3") or \
-            _mean32(c3_in, n_in) - _mean32(c3_out, n_out) >= self.config.min_blue_shift
-        if ratio > self.config.max_luminance_ratio or not bluer:
-            return ShadowMask(np.zeros(binary.shape, bool), img.shape[:2])
-        return ShadowMask(self._open_close(binary), img.shape[:2])
+            small = self.reduce(img) if small is None else _rgb8(small, "reduced frame")   # (c3 table: bytes)
+            lum8 = cv2.cvtColor(small, cv2.COLOR_RGB2GRAY)
+            c3 = np.empty(lum8.shape, np.float32) if index in ("c3_luminance", "c3") else _NO_C3
+            if index == "tsai":
+                idx8 = np.clip(shadow_index(small, index)[0] * 255.0, 0, 255).astype(np.uint8)
+            else:
+                idx8 = _index8(np.ascontiguousarray(small), lum8, _c3_table(), _INDEX_MODES[index], c3)
+        if index not in ("c3_luminance", "c3"):
+            c3 = _NO_C3
+        oc = self._open_close
+        mask = _classify(idx8, lum8, c3, idx8.size * 255 >= 2 ** 24, self.config.max_luminance_ratio,
+                         self.config.min_blue_shift, oc.open_runs, oc.close_runs)
+        return small, ShadowMask(mask.view(np.bool_), img.shape[:2])
 
 
 def _rgb8(image: np.ndarray, what: str) -> np.ndarray:
@@ -198,11 +208,6 @@ def _rgb8(image: np.ndarray, what: str) -> np.ndarray:
         raise ConfigError(f"shadow detector: the {what} is empty ({a.shape[1]} x {a.shape[0]} px); pass an image "
                           "of at least 1 x 1 px (a camera frame, or its reduced copy)")
     return a
-
-
-def _mean32(total: float, count: int) -> float:
-    """NumPy's float32 mean from its float32 sum: ``float32(sum) / count`` in float32."""
-    return float(np.float32(total) / np.float32(count))
 
 
 _NO_C3 = np.zeros((0, 0), np.float32)

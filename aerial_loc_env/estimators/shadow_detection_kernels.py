@@ -84,30 +84,63 @@ def _pad(buf, h, w, rad, stride, value):
 def _index8(small, lum8, c3_table, mode, c3):
     """``clip(index * 255, 0, 255)`` truncated to uint8, the index in float32 as ``shadow_index`` writes it:
     ``0.5 (c3 + 1 - lum / 255)`` (mode 0), ``c3`` (1) or ``1 - lum / 255`` (2); ``c3`` (h, w) receives the
-    colour invariant (modes 0 and 1) from ``c3_table``. A row's table lookups in one loop, its arithmetic in
-    another, one per mode: that one vectorizes (with the lookups or the mode's branches in it, the whole row stayed
-    scalar)."""
+    colour invariant (modes 0 and 1) from ``c3_table``."""
     h, w = lum8.shape
     out = np.empty((h, w), np.uint8)
-    one, half, k255, zero = np.float32(1.0), np.float32(0.5), np.float32(255.0), np.float32(0.0)
     for y in range(h):
-        s_row, l_row, o_row = small[y], lum8[y], out[y]
-        if mode == 2:
-            for x in range(w):
-                t = one - np.float32(l_row[x]) / k255
-                o_row[x] = np.uint8(min(max(t * k255, zero), k255))
-            continue
-        c_row = c3[y]
-        for x in range(w):
-            c_row[x] = c3_table[s_row[x, 2], max(s_row[x, 0], s_row[x, 1])]
-        if mode == 0:
-            for x in range(w):
-                t = half * ((c_row[x] + one) - np.float32(l_row[x]) / k255)
-                o_row[x] = np.uint8(min(max(t * k255, zero), k255))
-        else:
-            for x in range(w):
-                o_row[x] = np.uint8(min(max(c_row[x] * k255, zero), k255))
+        _index8_row(small[y], lum8[y], c3, y, out[y], c3_table, mode, w)
     return out
+
+
+@njit(inline="always", **_JIT)
+def _index8_row(s_row, l_row, c3, y, o_row, c3_table, mode, w):
+    """Row ``y`` of ``_index8`` (``c3``'s row ``y`` written in modes 0 and 1): the table lookups in one loop, the
+    arithmetic in another, one per mode: that one vectorizes (with the lookups or the mode's branches in it, the
+    whole row stayed scalar)."""
+    one, half, k255, zero = np.float32(1.0), np.float32(0.5), np.float32(255.0), np.float32(0.0)
+    if mode == 2:
+        for x in range(w):
+            t = one - np.float32(l_row[x]) / k255
+            o_row[x] = np.uint8(min(max(t * k255, zero), k255))
+        return
+    c_row = c3[y]
+    for x in range(w):
+        c_row[x] = c3_table[s_row[x, 2], max(s_row[x, 0], s_row[x, 1])]
+    if mode == 0:
+        for x in range(w):
+            t = half * ((c_row[x] + one) - np.float32(l_row[x]) / k255)
+            o_row[x] = np.uint8(min(max(t * k255, zero), k255))
+    else:
+        for x in range(w):
+            o_row[x] = np.uint8(min(max(c_row[x] * k255, zero), k255))
+
+
+@njit(**_JIT)
+def _reduce_index8(image, c3_table, mode):
+    """``_quarter``, ``cv2.cvtColor(.., COLOR_RGB2GRAY)`` and ``_index8`` in one pass over the frame's rows (an
+    (H, W, 3) uint8 frame, H and W multiples of 4): (small, lum8, c3, idx8), each reduced row turned into its
+    luminance and index while it is in the cache, without two more calls' fixed costs. The luminance is
+    OpenCV's fixed-point sum ``(9798 R + 19235 G + 3735 B + 2^14) >> 15`` (equal to ``cvtColor`` on every 8-bit
+    colour, tested); ``c3`` is (0, 0) in mode 2 (no colour invariant)."""
+    big_h, big_w = image.shape[0], image.shape[1]
+    h, w = big_h // 4, big_w // 4
+    small = np.empty((h, w, 3), np.uint8)
+    lum8 = np.empty((h, w), np.uint8)
+    c3 = np.empty((h, w) if mode != 2 else (0, 0), np.float32)
+    out = np.empty((h, w), np.uint8)
+    rows, flat_small = image.reshape(big_h, big_w * 3), small.reshape(h, w * 3)
+    pair = np.empty(big_w * 3, np.int16)
+    lum = np.empty(w, np.int32)
+    for y in range(h):
+        _quarter_row(rows[4 * y + 1], rows[4 * y + 2], flat_small[y], pair, w)
+        s_row, l_row = small[y], lum8[y]
+        for x in range(w):
+            lum[x] = (np.int32(9798) * np.int32(s_row[x, 0]) + np.int32(19235) * np.int32(s_row[x, 1])
+                      + np.int32(3735) * np.int32(s_row[x, 2]) + np.int32(16384)) >> np.int32(15)
+        for x in range(w):
+            l_row[x] = np.uint8(lum[x])
+        _index8_row(s_row, l_row, c3, y, out[y], c3_table, mode, w)
+    return small, lum8, c3, out
 
 
 @njit(**_JIT)
@@ -122,17 +155,22 @@ def _quarter(image):
     out = np.empty((h, w, 3), np.uint8)
     rows, flat_out = image.reshape(big_h, big_w * 3), out.reshape(h, w * 3)
     pair = np.empty(big_w * 3, np.int16)
-    two = np.int16(2)
     for y in range(h):
-        a, b, o = rows[4 * y + 1], rows[4 * y + 2], flat_out[y]
-        for i in range(big_w * 3):
-            pair[i] = np.int16(a[i]) + np.int16(b[i])
-        for x in range(w):
-            k = 12 * x + 3
-            o[3 * x] = np.uint8((pair[k] + pair[k + 3] + two) >> two)
-            o[3 * x + 1] = np.uint8((pair[k + 1] + pair[k + 4] + two) >> two)
-            o[3 * x + 2] = np.uint8((pair[k + 2] + pair[k + 5] + two) >> two)
+        _quarter_row(rows[4 * y + 1], rows[4 * y + 2], flat_out[y], pair, w)
     return out
+
+
+@njit(inline="always", **_JIT)
+def _quarter_row(a, b, o, pair, w):
+    """One output row of ``_quarter`` from the frame's rows ``a`` (4y + 1) and ``b`` (4y + 2), flat bytes."""
+    two = np.int16(2)
+    for i in range(pair.shape[0]):
+        pair[i] = np.int16(a[i]) + np.int16(b[i])
+    for x in range(w):
+        k = 12 * x + 3
+        o[3 * x] = np.uint8((pair[k] + pair[k + 3] + two) >> two)
+        o[3 * x + 1] = np.uint8((pair[k + 1] + pair[k + 4] + two) >> two)
+        o[3 * x + 2] = np.uint8((pair[k + 2] + pair[k + 5] + two) >> two)
 
 
 @njit(**_JIT)
@@ -181,18 +219,84 @@ def _split_stats(binary, lum8, c3, lum_pairwise):
 
 
 @njit(**_JIT)
+def _classify(idx8, lum8, c3, lum_pairwise, max_luminance_ratio, min_blue_shift, open_runs, close_runs):
+    """The detector's work after the index ``idx8`` (h, w) uint8 in one call: Otsu's split (``_otsu``: 1 above the
+    threshold), the decision and the morphology. Returns the mask (h, w) uint8 (``_open_close`` of the split), or
+    zeros when a class is empty, the shadow class is not darker than ``max_luminance_ratio`` times the rest, or
+    (``c3`` not empty) not bluer by ``min_blue_shift``. The means are NumPy's float32 means from ``_split_stats``'
+    sums (``float32(sum) / float32(count)``), the ratio and the difference in float64, as
+    ``ShadowDetector.detect`` computed them."""
+    h, w = idx8.shape
+    threshold = _otsu(idx8)
+    binary = np.empty((h, w), np.uint8)
+    for y in range(h):
+        src, dst = idx8[y], binary[y]
+        for x in range(w):
+            dst[x] = np.uint8(src[x] > threshold)
+    n_in, lum_in, lum_out, c3_in, c3_out = _split_stats(binary, lum8, c3, lum_pairwise)
+    n_out = binary.size - n_in
+    if n_in == 0 or n_out == 0:
+        return np.zeros(binary.shape, np.uint8)
+    mean_in = np.float64(np.float32(lum_in) / np.float32(n_in))
+    mean_out = np.float64(np.float32(lum_out) / np.float32(n_out))
+    ratio = mean_in / max(mean_out, 1e-6)
+    bluer = True
+    if c3.shape[0] > 0:
+        shift = np.float64(np.float32(c3_in) / np.float32(n_in)) - np.float64(np.float32(c3_out) / np.float32(n_out))
+        bluer = shift >= min_blue_shift
+    if ratio > max_luminance_ratio or not bluer:
+        return np.zeros(binary.shape, np.uint8)
+    return _open_close(binary, open_runs, close_runs)
+
+
+@njit(**_JIT)
+def _otsu(img):
+    """Otsu's threshold of an 8-bit image as OpenCV computes it (``cv2.threshold(.., THRESH_OTSU)``'s
+    ``getThreshVal_Otsu``: the histogram's mean and the classes' running means in float64, the first level of
+    the largest between-class variance, levels where a class holds less than FLT_EPSILON skipped; tests compare
+    it with OpenCV over many images): pixels above it are the upper class."""
+    h, w = img.shape
+    hist = np.zeros(256, np.int64)
+    for y in range(h):
+        row = img[y]
+        for x in range(w):
+            hist[row[x]] += 1
+    scale = 1.0 / (h * w)
+    mu = 0.0
+    for i in range(256):
+        mu += i * np.float64(hist[i])
+    mu *= scale
+    eps = np.float64(np.finfo(np.float32).eps)
+    mu1, q1, max_sigma, max_val = 0.0, 0.0, 0.0, 0
+    for i in range(256):
+        p_i = hist[i] * scale
+        mu1 *= q1
+        q1 += p_i
+        q2 = 1.0 - q1
+        if min(q1, q2) < eps or max(q1, q2) > 1.0 - eps:
+            continue
+        mu1 = (mu1 + i * p_i) / q1
+        mu2 = (mu - q1 * mu1) / q2
+        sigma = q1 * q2 * (mu1 - mu2) * (mu1 - mu2)
+        if sigma > max_sigma:
+            max_sigma, max_val = sigma, i
+    return max_val
+
+
+@njit(**_JIT)
 def _pairwise_sum(a, lo, n):
-    """NumPy's float32 pairwise summation of ``a[lo:lo + n]`` as ``np.add.reduce`` does it (its
+    """NumPy's pairwise summation of ``a[lo:lo + n]`` (float32 or float64, summed in that type) as
+    ``np.add.reduce`` does it (its
     ``pairwise_sum``: blocks of at most 128 added by ``_block_sum``, longer runs halved at a multiple of 8 and
     the halves' sums added), walked with an explicit stack: numba's on-disk cache does not keep recursive
     functions (a cached recursive version crashed)."""
     if n <= 128:
         return _block_sum(a, lo, n)
     f_lo, f_n = np.empty(64, np.int64), np.empty(64, np.int64)
-    f_left, f_stage = np.empty(64, np.float32), np.empty(64, np.int64)
+    f_left, f_stage = np.empty(64, a.dtype), np.empty(64, np.int64)
     f_lo[0], f_n[0], f_stage[0] = lo, n, 0
     top = 1
-    val = np.float32(0.0)
+    val = f_left[0]                               # (its type; always set by a block before it is read)
     while True:
         f = top - 1
         half = f_n[f] // 2
@@ -219,10 +323,10 @@ def _pairwise_sum(a, lo, n):
 
 @njit(**_JIT)
 def _block_sum(a, lo, n):
-    """NumPy's float32 sum of a run of at most 128: in order below 8, else eight running sums combined as
-    ``((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))`` and the rest added in order."""
+    """NumPy's sum of a run of at most 128 (in ``a``'s float type): in order from zero below 8, else eight running
+    sums combined as ``((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))`` and the rest added in order."""
     if n < 8:
-        res = np.float32(0.0)
+        res = np.zeros(1, a.dtype)[0]
         for i in range(lo, lo + n):
             res += a[i]
         return res

@@ -159,6 +159,13 @@ def test_infos_batch_as_gymnasium_does() -> None:
         [{"a": 1.5, "b": np.arange(2)}, None, {"b": np.ones(2, np.float32), "c": "x"}],
         [{"n": 1}, {"n": 2.7}, {"flag": True, "n": np.float32(3.0)}],
         [{"obj": (1, 2)}, {"obj": None}, {}],
+        # every sub-env with every key (the one-call path), and the values that keep it off that path
+        [{"t": 0.5, "s": 3, "f": False, "p": np.arange(3.0), "q": np.float32(1.5), "o": "a"},
+         {"t": 1.5, "s": 4, "f": True, "p": np.arange(3.0) + 1, "q": np.float32(2.5), "o": "b"},
+         {"t": -2.0, "s": 5, "f": True, "p": np.zeros(3), "q": np.float32(-1.0), "o": None}],
+        [{"m": 1, "a": np.zeros(3, np.float32), "b": np.zeros((2, 2))},
+         {"m": 2.5, "a": np.ones(3), "b": np.ones(2)},
+         {"m": True, "a": np.arange(3, dtype=np.int16), "b": 7.0}],
     ]
     for infos in cases:
         expected: dict = {}
@@ -234,3 +241,34 @@ def test_the_readmes_example_runs_as_written(tmp_path: Path) -> None:
     done = subprocess.run([sys.executable, "example.py"], cwd=tmp_path, capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr
     assert done.stdout == "AerialLocVectorEnv (4, 64, 64, 3)\n"
+
+
+def test_a_receiver_stops_spinning_after_two_spins_in_a_row_ran_out() -> None:
+    """The channel's wait: a message that comes within the spin keeps spinning on; one late message (a sub-env's
+    reset) changes nothing; two in a row make the next ``_SLEEP_AFTER_MISSES`` waits sleep at once (a machine
+    busier than its cores), after which a spin is tried again. The messages arrive intact either way."""
+    import multiprocessing as mp
+    import threading
+
+    from aerial_loc_env.env import vector
+
+    channel = vector._Channel(mp.get_context("fork"), spin_s=0.001)
+
+    def late(message: int) -> None:
+        timer = threading.Timer(0.05, channel.send, args=(True, message))    # well past the 1 ms spin
+        timer.start()
+        assert channel.receive(True, lambda: True) == message
+        timer.join()
+
+    channel.send(True, 1)
+    assert channel.receive(True, lambda: True) == 1 and channel._misses == 0
+    late(2)
+    assert channel._misses == 1 and channel._sleep_next == 0                  # one late answer: still spinning
+    late(3)
+    assert channel._sleep_next == vector._SLEEP_AFTER_MISSES                  # two in a row: sleep at once
+    for k in range(vector._SLEEP_AFTER_MISSES):
+        late(10 + k)
+    assert channel._sleep_next == 0 and channel._misses == 2                  # slept through; no spin counted
+    channel.send(True, 99)
+    assert channel.receive(True, lambda: True) == 99 and channel._misses == 0  # an answer in time: reset
+    channel.close()

@@ -20,3 +20,26 @@ def test_closed_form_spread_matches_eigvalsh():
     for cov in covs:
         ref = float(np.sqrt(max(np.linalg.eigvalsh(cov)[-1], 0.0)))
         assert max_std_m(cov) == pytest.approx(ref, rel=1e-15 * 8 / 2, abs=1e-300)
+
+
+def test_yaw_cos_sin_is_numpys_and_follows_the_particles():
+    """The kept cosines and sines are given again only for the same array with the same yaws: moved particles
+    (in place) and another array with equal yaws get NumPy's own of their column; the circular mean from them is
+    ``circular_mean``'s float."""
+    from aerial_loc_env.estimators.mcl.estimate import circular_mean, circular_mean_of_yaws, yaw_cos_sin
+
+    g = np.random.default_rng(5)
+    states = np.column_stack([g.normal(size=(700, 2)), g.uniform(-np.pi, np.pi, 700)])
+    W = g.dirichlet(np.ones(700))
+    for _ in range(3):
+        cos, sin = yaw_cos_sin(states)
+        np.testing.assert_array_equal(cos, np.cos(states[:, 2]))
+        np.testing.assert_array_equal(sin, np.sin(states[:, 2]))
+        assert yaw_cos_sin(states)[0] is cos                       # the same particles: kept
+        assert circular_mean_of_yaws(states, W) == circular_mean(states[:, 2], W)
+        other = states.copy()
+        assert yaw_cos_sin(other)[0] is not cos                    # another array: its own
+        states[g.integers(0, 700), 2] += 0.25                      # one particle turned, in place
+        np.testing.assert_array_equal(yaw_cos_sin(states)[0], np.cos(states[:, 2]))
+    states[3, 2] = np.nan
+    assert np.isnan(yaw_cos_sin(states)[1][3]) and yaw_cos_sin(states)[0] is not yaw_cos_sin(states.copy())[0]

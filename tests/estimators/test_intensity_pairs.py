@@ -90,3 +90,33 @@ def test_database_words_are_converted_once_per_map_and_read_only():
     c = IntensityPairsModel(IntensityPairsConfig(channels=1))
     c.reset(briefing_standin(other), np.random.default_rng(0))
     assert c._db is not a._db and c._nodata is not None and c._nodata[:1200].all() and not c._nodata[1200:].any()
+
+
+def test_pair_pixels_are_numpys_integers_and_leave_the_generator_as_they_do(monkeypatch):
+    """``pair_pixels`` against two ``rng.integers`` calls: the same values and the same generator afterwards (its
+    next draws of every kind equal), over many seeds and frame sizes; with a 32-bit half kept from an earlier odd
+    draw, an odd count, another bit generator, and where the compiled pass meets a rejected half (forced), NumPy
+    draws itself."""
+    from aerial_loc_env.estimators.mcl import intensity_pairs
+    from aerial_loc_env.estimators.mcl.intensity_pairs import pair_pixels
+    from aerial_loc_env.estimators.mcl.intensity_pairs_kernels import bounded_pairs
+
+    def same(a: np.random.Generator, b: np.random.Generator, w: int, h: int, n: int) -> None:
+        u, v = pair_pixels(a, w, h, n)
+        np.testing.assert_array_equal(u, b.integers(0, w, n))
+        np.testing.assert_array_equal(v, b.integers(0, h, n))
+        assert u.dtype == v.dtype == np.int64
+        assert a.integers(0, 7, 3).tolist() == b.integers(0, 7, 3).tolist() and a.random() == b.random()
+
+    for seed in range(300):
+        w, h = [(600, 400), (64, 64), (2, 3), (4000, 3000), (2 ** 31 + 5, 7)][seed % 5]
+        same(np.random.default_rng(seed), np.random.default_rng(seed), w, h, 2 * (1 + seed % 90))
+    a, b = np.random.default_rng(5), np.random.default_rng(5)
+    a.integers(0, 600, 1), b.integers(0, 600, 1)                  # a half kept in the generator
+    same(a, b, 600, 400, 140)
+    same(np.random.default_rng(6), np.random.default_rng(6), 600, 400, 141)
+    same(np.random.Generator(np.random.MT19937(7)), np.random.Generator(np.random.MT19937(7)), 600, 400, 140)
+    monkeypatch.setattr(intensity_pairs, "bounded_pairs", lambda *args: False)
+    same(np.random.default_rng(8), np.random.default_rng(8), 600, 400, 140)
+    raw = np.array([0, 1 << 40], np.uint64)                      # a zero half: a rejection for bound 600
+    assert not bounded_pairs(raw, 600, 400, np.empty(2, np.int64), np.empty(2, np.int64))

@@ -54,3 +54,21 @@ def test_one_normal_draw_moves_the_particles_as_one_call_per_term(state, jitter,
         _propagate_reference(ref, b, obs, rb)
         np.testing.assert_array_equal(a, b)
     assert ra.random() == rb.random()        # the same number of draws: later draws are unchanged too
+
+
+def test_mid_heading_gives_the_floats_of_numpys_wrap():
+    """mid_heading wraps Python floats (no NumPy scalars): the same floats as ``float(wrap(...))`` of the
+    expressions it computes, across the wrap and at its edges (+-pi, zeros of either sign, tiny and large
+    angles)."""
+    g = np.random.default_rng(4)
+    angles = np.concatenate([g.uniform(-7.0, 7.0, 400), [np.pi, -np.pi, 0.0, -0.0, 1e-17, -1e-300,
+                                                          np.nextafter(np.pi, 0), 3 * np.pi, -3 * np.pi, 1e6]])
+    for prev in angles[::7]:
+        for yaw in angles:
+            expected = float(wrap(float(prev) + 0.5 * float(wrap(float(yaw) - float(prev)))))
+            got = mid_heading(float(prev), float(yaw), 0.3, 0.25)
+            assert got == expected and np.signbit(got) == np.signbit(expected), (prev, yaw)
+    for yaw in angles:
+        for rate in (-0.4, 0.0, 0.7):
+            expected = float(wrap(float(yaw) - 0.5 * rate * 0.25))
+            assert mid_heading(None, float(yaw), rate, 0.25) == expected

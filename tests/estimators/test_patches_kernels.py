@@ -221,7 +221,8 @@ def test_pair_kernel_is_bit_identical_to_the_numpy_path(params, with_nodata):
 
 @pytest.mark.parametrize("with_mask", [False, True])
 def test_camera_pairs_kernel_reads_the_pixels_and_the_mask_as_numpy_does(with_mask):
-    """The frame's side of the pairs: the pixels by fancy indexing, the reduced mask by ``ShadowMask.at``."""
+    """The frame's side of the pairs: the pixels by fancy indexing, the reduced mask by ``ShadowMask.at``, the
+    pairs' bits as ``vals[:K] > vals[K:]`` and the kept pairs as ``np.flatnonzero(~(in[:K] ^ in[K:]))``."""
     from aerial_loc_env.estimators.mcl.intensity_pairs_kernels import camera_pairs
     from aerial_loc_env.estimators.shadow_detection import ShadowMask
 
@@ -231,8 +232,13 @@ def test_camera_pairs_kernel_reads_the_pixels_and_the_mask_as_numpy_does(with_ma
         u, v = g.integers(0, h_w[1], 500), g.integers(0, h_w[0], 500)
         mask = ShadowMask(g.random((max(1, h_w[0] // 4), max(1, h_w[1] // 3))) < 0.4, h_w)
         vals, in_mask, uv = np.empty((500, 3), np.float32), np.zeros(500, bool), np.empty((500, 2))
-        camera_pairs(img, u, v, mask.mask if with_mask else np.zeros((0, 0), bool), vals, in_mask, uv)
+        bits, kept = np.empty((250, 3), bool), np.empty(250, np.intp)
+        n_kept = camera_pairs(img, u, v, mask.mask if with_mask else np.zeros((0, 0), bool), vals, in_mask, uv,
+                              bits, kept)
         np.testing.assert_array_equal(vals, img[v, u].astype(np.float32))
+        np.testing.assert_array_equal(bits, vals[:250] > vals[250:])
+        np.testing.assert_array_equal(kept[:n_kept], np.flatnonzero(~(in_mask[:250] ^ in_mask[250:])))
+        assert 0 < n_kept < 250 if with_mask else n_kept == 250
         np.testing.assert_array_equal(uv, np.column_stack([u, v]).astype(float))
         np.testing.assert_array_equal(in_mask, mask.at(u, v) if with_mask else np.zeros(500, bool))
 

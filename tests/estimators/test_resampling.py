@@ -120,3 +120,57 @@ def test_normalization_skips_the_mask_only_where_it_changes_nothing():
         np.testing.assert_array_equal(W, ref_W)
         assert lm == ref_lm or (np.isnan(lm) and np.isnan(ref_lm))
         assert log_mean_weight(lw) == lm or (np.isnan(lm) and np.isnan(log_mean_weight(lw)))
+
+
+def test_inverse_cdf_gives_numpys_searchsorted_indices() -> None:
+    """The compiled lookup against the NumPy expressions it replaced (cumsum, last value 1, searchsorted right,
+    clipped to N - 1), on keys that hit the cdf's own values, ties (zero weights), keys past 1, unsorted keys, NaN
+    and infinite keys (NumPy sorts a NaN after every number)."""
+    g = np.random.default_rng(7)
+    for n in (1, 2, 5, 700):
+        W = g.dirichlet(np.full(n, 0.5))
+        W[g.random(n) < 0.2] = 0.0                     # runs of equal cdf values
+        W = W / W.sum() if W.sum() > 0 else np.full(n, 1.0 / n)
+        cdf = np.cumsum(W)
+        cdf[-1] = 1.0
+        keys = np.concatenate([g.random(300), cdf, [0.0, 1.0, 1.5, -0.5]])
+        for su in (np.sort(keys), keys):
+            expected = np.minimum(np.searchsorted(cdf, su, side="right"), n - 1)
+            np.testing.assert_array_equal(resampling.inverse_cdf(su, W), expected)
+    W = np.array([0.2, 0.0, 0.3, 0.5])
+    cdf = np.cumsum(W)
+    cdf[-1] = 1.0
+    su = np.array([0.0, 0.1, np.nan, 0.2, 0.4, np.nan, 0.99, 1.0, 0.2, np.inf, -np.inf])
+    np.testing.assert_array_equal(resampling.inverse_cdf(su, W),
+                                  np.minimum(np.searchsorted(cdf, su, side="right"), 3))
+    with pytest.raises(ValueError, match="empty"):
+        resampling.inverse_cdf(np.zeros(3), np.zeros(0))
+
+
+def test_normalization_gives_the_numpy_expressions_floats():
+    """The compiled maximum, shift, pairwise sum and division around NumPy's exp against the NumPy expressions
+    (``_normalize_reference``), bit for bit: sizes across the pairwise sum's blocks and halvings (1 to 5000),
+    spreads from flat to one dominant weight, and -inf / +inf / NaN log-weights; the float64 pairwise sum against
+    NumPy's ``sum``."""
+    from aerial_loc_env.estimators.shadow_detection_kernels import _pairwise_sum
+
+    g = np.random.default_rng(11)
+    for t in range(400):
+        n = int(g.integers(1, 300)) if t % 2 else int(g.integers(300, 5000))
+        log_w = g.normal(0.0, 10 ** g.uniform(-3, 3), n) + g.uniform(-1e3, 1e3)
+        if t % 7 == 0:
+            log_w[g.random(n) < 0.3] = -np.inf
+        if t % 11 == 0:
+            log_w[g.integers(0, n)] = np.inf
+        if t % 13 == 0:
+            log_w[g.integers(0, n)] = np.nan
+        W, lm = resampling.normalize_log_weights(log_w)
+        W_ref, lm_ref = _normalize_reference(log_w)
+        np.testing.assert_array_equal(W, W_ref)
+        assert lm == lm_ref or (np.isnan(lm) and np.isnan(lm_ref))
+        assert resampling.log_mean_weight(log_w) == lm or np.isnan(lm)
+        a = g.random(n) * 10 ** g.uniform(-5, 5)
+        assert _pairwise_sum(a, 0, n) == a.sum()
+    W, lm = resampling.normalize_log_weights(np.full(5, -np.inf))
+    np.testing.assert_array_equal(W, np.full(5, 0.2))
+    assert lm == -np.inf

@@ -322,3 +322,84 @@ def test_restoration_lut_is_bit_identical_to_the_reference(method):
             img //= np.uint8(g.integers(2, 40))            # dark, narrow histograms
         mask = g.random((h, w)) < g.random()
         np.testing.assert_array_equal(restoration_lut(img, mask, method), restoration_lut_reference(img, mask, method))
+
+
+def test_luminance_formula_is_cvtcolors_on_every_colour():
+    """The fused pass's fixed-point luminance ``(9798 R + 19235 G + 3735 B + 2^14) >> 15`` against
+    ``cv2.cvtColor(COLOR_RGB2GRAY)`` on all 2^24 8-bit colours (and the compiled pass's own bytes on a frame of
+    them)."""
+    from aerial_loc_env.estimators.shadow_detection_kernels import _reduce_index8
+
+    c = np.arange(2 ** 24, dtype=np.uint32)
+    img = np.stack([(c >> 16) & 255, (c >> 8) & 255, c & 255], axis=-1).astype(np.uint8).reshape(4096, 4096, 3)
+    rgb = img.astype(np.int64)
+    formula = (9798 * rgb[..., 0] + 19235 * rgb[..., 1] + 3735 * rgb[..., 2] + (1 << 14)) >> 15
+    np.testing.assert_array_equal(cv2.cvtColor(img, cv2.COLOR_RGB2GRAY), formula)
+    small, lum8, _, _ = _reduce_index8(img[:2048], _c3_table_for_tests(), 2)
+    np.testing.assert_array_equal(lum8, cv2.cvtColor(small, cv2.COLOR_RGB2GRAY))
+
+
+def _c3_table_for_tests() -> np.ndarray:
+    from aerial_loc_env.estimators.shadow_detection import _c3_table
+
+    return _c3_table()
+
+
+@pytest.mark.parametrize("index", ["c3_luminance", "c3", "luminance"])
+def test_fused_reduction_and_index_are_the_separate_passes(index):
+    """``_reduce_index8`` (one pass) against ``_quarter``, ``cvtColor`` and ``_index8`` over random and smooth
+    frames of several sizes, and the detector's mask with and without a reduced frame passed in (the two paths)."""
+    from aerial_loc_env.estimators.shadow_detection import _INDEX_MODES, _c3_table
+    from aerial_loc_env.estimators.shadow_detection_kernels import _index8, _quarter, _reduce_index8
+
+    g = np.random.default_rng(21)
+    mode = _INDEX_MODES[index]
+    det = ShadowDetector(ShadowDetectorConfig(index=index))
+    for k, (h, w) in enumerate([(400, 600), (4, 4), (8, 12), (36, 4), (400, 600), (120, 160)]):
+        img = g.integers(0, 256, (h, w, 3)).astype(np.uint8)
+        if k % 2:
+            img = np.clip(cv2.GaussianBlur(img.astype(np.float32), (0, 0), 3) * 1.5 - 60, 0, 255).astype(np.uint8)
+            img[: h // 2, : w // 3] = (img[: h // 2, : w // 3] * np.array([0.4, 0.45, 0.6])).astype(np.uint8)
+        small, lum8, c3, idx8 = _reduce_index8(img, _c3_table(), mode)
+        ref_small = _quarter(img)
+        ref_lum = cv2.cvtColor(ref_small, cv2.COLOR_RGB2GRAY)
+        ref_c3 = np.empty(ref_lum.shape, np.float32)
+        np.testing.assert_array_equal(small, ref_small)
+        np.testing.assert_array_equal(lum8, ref_lum)
+        np.testing.assert_array_equal(idx8, _index8(ref_small, ref_lum, _c3_table(), mode, ref_c3))
+        if mode != 2:
+            np.testing.assert_array_equal(c3, ref_c3)
+        got_small, mask = det.detect_reduced(img)
+        np.testing.assert_array_equal(got_small, ref_small)
+        np.testing.assert_array_equal(mask.mask, det.detect(img, small=ref_small).mask)
+        np.testing.assert_array_equal(mask.mask, _detect_reference(det, img))
+
+
+def test_compiled_otsu_threshold_is_opencvs():
+    """``_otsu`` against ``cv2.threshold(.., THRESH_OTSU)``'s threshold on 8-bit images of many sizes and
+    histograms: uniform noise, one or two Gaussian modes, a few levels, nearly constant images (a class under
+    FLT_EPSILON), and the detector's own index images."""
+    from aerial_loc_env.estimators.shadow_detection import _INDEX_MODES, _c3_table
+    from aerial_loc_env.estimators.shadow_detection_kernels import _otsu, _reduce_index8
+
+    g = np.random.default_rng(17)
+    for t in range(3000):
+        h, w = (100, 150) if t % 3 else (int(v) for v in g.integers(1, 200, 2))
+        kind = t % 6
+        if kind == 0:
+            img = g.integers(0, 256, (h, w)).astype(np.uint8)
+        elif kind == 1:
+            img = np.clip(g.normal(g.uniform(50, 200), g.uniform(1, 60), (h, w)), 0, 255).astype(np.uint8)
+        elif kind == 2:
+            img = np.clip(g.normal(g.uniform(50, 120), 10, (h, w)), 0, 255).astype(np.uint8)
+            img[: h // 2] += np.uint8(g.integers(0, 100))
+        elif kind == 3:
+            img = g.choice(g.integers(0, 256, int(g.integers(1, 5))).astype(np.uint8), (h, w))
+        elif kind == 4:
+            img = np.full((h, w), g.integers(0, 256), np.uint8)
+            img[g.random((h, w)) < g.uniform(0, 1e-3)] = g.integers(0, 256)
+        else:
+            frame = np.clip(cv2.GaussianBlur(g.normal(120, 40, (400, 600, 3)), (0, 0), 2), 0, 255).astype(np.uint8)
+            frame[100:260, 50:400] = (frame[100:260, 50:400] * np.array([0.4, 0.45, 0.6])).astype(np.uint8)
+            img = _reduce_index8(frame, _c3_table(), _INDEX_MODES["c3_luminance"])[3]
+        assert _otsu(img) == cv2.threshold(img, 0, 1, cv2.THRESH_BINARY + cv2.THRESH_OTSU)[0], (t, kind)

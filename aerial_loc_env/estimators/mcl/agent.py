@@ -18,7 +18,13 @@ import numpy as np
 from aerial_loc_env.config import rng
 from aerial_loc_env.errors import ConfigError
 from aerial_loc_env.estimators.mcl.core import FilterConfig, ParticleFilter
-from aerial_loc_env.estimators.mcl.estimate import circular_mean, max_std_m, mean_shift, weighted_cov, weighted_mean
+from aerial_loc_env.estimators.mcl.estimate import (
+    circular_mean_of_yaws,
+    max_std_m,
+    mean_shift,
+    weighted_cov,
+    weighted_mean,
+)
 from aerial_loc_env.estimators.mcl.measurement import make_model
 from aerial_loc_env.estimators.mcl.motion import OdometryMotionModel
 from aerial_loc_env.estimators.protocol import Agent, Estimate, prior_estimate
@@ -98,5 +104,5 @@ class MCLAgent(Agent):
         if p.particles_in_extras:
             extras["particles"] = states.astype(np.float32)
             extras["weights"] = W.astype(np.float32)
-        return Estimate(float(center[0]), float(center[1]), yaw_rad=circular_mean(states[:, 2], W),
+        return Estimate(float(center[0]), float(center[1]), yaw_rad=circular_mean_of_yaws(states, W),
                         cov_xy_m2=cov, status=status, extras=extras)

@@ -112,6 +112,7 @@ class ParticleFilter:
         self.states = np.zeros((config.n_particles, 3))
         self.log_w = np.zeros(config.n_particles)
         self.W = np.full(config.n_particles, 1.0 / config.n_particles)
+        self._uniform_log_w = True
         self.t = 0
 
     # ---------------------------------------------------------------- initialization
@@ -133,6 +134,7 @@ class ParticleFilter:
             self.states[:, :2] = self.region.sample(n, rng)
         self.yaw_initialized = False
         self.log_w = np.zeros(n)
+        self._uniform_log_w = True       # log_w all zeros (step: its log-mean is then the likelihoods')
         self.W = np.full(n, 1.0 / n)
         self.log_w_slow = self.log_w_fast = None
         self.motion.reset()
@@ -187,10 +189,13 @@ class ParticleFilter:
             self._read_window(obs.altitude_m)
         prepared = self.measurement.prepare(observation, rng, info)
         ll = self.measurement.log_likelihood(prepared, self.states, obs.altitude_m)
-        ll = ll + self.motion.compass_log_likelihood(self.states, obs.yaw_rad)
+        if self.motion.state != "xy":     # (the "xy" layout's compass factor is zero)
+            ll = ll + self.motion.compass_log_likelihood(self.states, obs.yaw_rad)
+        uniform = self._uniform_log_w
         self.log_w = self.log_w + ll
-        self.W, _ = resampling.normalize_log_weights(self.log_w)
-        log_mean_lik = resampling.log_mean_weight(ll)
+        self.W, log_mean_w = resampling.normalize_log_weights(self.log_w)
+        # after a resampling the log-weights were zeros, so log_w holds ll's values: their log-mean is at hand
+        log_mean_lik = log_mean_w if uniform else resampling.log_mean_weight(ll)
         ess = resampling.ess(self.W)
         n_inject = self._injection_count(log_mean_lik)
         resampled = cfg.resample == "always" or ess < cfg.ess_threshold * self.W.shape[0] or n_inject > 0
@@ -204,6 +209,7 @@ class ParticleFilter:
                 self._inject(n_inject, obs.yaw_rad)
         else:
             self.log_w = self.log_w - float(np.max(self.log_w))  # keep log-weights bounded
+        self._uniform_log_w = resampled
         return StepResult(states_est, W_est, ess, log_mean_lik, resampled, n_inject, dict(self.measurement.last_stats))
 
     def _injection_count(self, log_mean_lik: float) -> int:

@@ -34,6 +34,30 @@ def circular_mean(angles_rad: np.ndarray, W: np.ndarray) -> float:
     return float(np.arctan2(W @ np.sin(angles_rad), W @ np.cos(angles_rad)))
 
 
+def circular_mean_of_yaws(states: np.ndarray, W: np.ndarray) -> float:
+    """``circular_mean(states[:, 2], W)`` with the yaws' cosines and sines from ``yaw_cos_sin`` (the same floats)."""
+    cos, sin = yaw_cos_sin(states)
+    return float(np.arctan2(W @ sin, W @ cos))
+
+
+#: the last yaw_cos_sin: (the states array, a copy of its yaw column, their cosines, their sines)
+_YAW_TRIG: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None] = [None]
+
+
+def yaw_cos_sin(states: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """NumPy's ``cos`` and ``sin`` of the yaw column ``states[:, 2]``, kept for the last states array asked about:
+    an MCL step takes them of the same particles twice (the measurement model's affines, the point estimate's
+    circular mean). Given again only for the same array whose yaws still equal the kept copy (moved particles,
+    or another array, get new ones), so the floats are those of computing them again."""
+    yaw = states[:, 2]
+    last = _YAW_TRIG[0]
+    if last is not None and last[0] is states and bool((last[1] == yaw).all()):
+        return last[2], last[3]
+    cos, sin = np.cos(yaw), np.sin(yaw)
+    _YAW_TRIG[0] = (states, yaw.copy(), cos, sin)
+    return cos, sin
+
+
 def mean_shift(xy: np.ndarray, W: np.ndarray, bandwidth_m: float, *, n_seeds: int = 8, max_iter: int = 30,
                tol_m: float = 0.01, rng: np.random.Generator | None = None) -> np.ndarray:
     """The highest-density mode (2,) of the weighted cloud under a Gaussian kernel of ``bandwidth_m``.

@@ -73,7 +73,13 @@ import numpy as np
 from aerial_loc_env.config import build_config, rng
 from aerial_loc_env.errors import ConfigError
 from aerial_loc_env.estimators.database import DatabaseWindow
-from aerial_loc_env.estimators.mcl.intensity_pairs_kernels import camera_pairs, pair_agreements, pose_affines
+from aerial_loc_env.estimators.mcl.estimate import yaw_cos_sin
+from aerial_loc_env.estimators.mcl.intensity_pairs_kernels import (
+    bounded_pairs,
+    camera_pairs,
+    pair_agreements,
+    pose_affines,
+)
 from aerial_loc_env.estimators.mcl.measurement import MeasurementModel, register_model
 from aerial_loc_env.estimators.protocol import parse_observation
 from aerial_loc_env.estimators.shadow_detection import (
@@ -214,6 +220,23 @@ def _convert_database(rgb: np.ndarray, nodata: np.ndarray | None,
     return words, flat_nodata
 
 
+def pair_pixels(rng: np.random.Generator, width: int, height: int, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """``rng.integers(0, width, n)`` and then ``rng.integers(0, height, n)``: the same numbers and the generator left
+    as they leave it. For NumPy's default PCG64 with no 32-bit half kept from an earlier draw, and an even ``n``,
+    the values come from ``n`` raw words by NumPy's own arithmetic in one compiled pass (``bounded_pairs``), without
+    the two calls' fixed costs; where that pass meets a half NumPy rejects, the generator is set back and NumPy
+    draws (tests/estimators/test_intensity_pairs.py compares both over many seeds and sizes)."""
+    bitgen = rng.bit_generator
+    if type(bitgen) is np.random.PCG64 and n % 2 == 0 and 1 < width < 2 ** 32 and 1 < height < 2 ** 32:
+        state = bitgen.state
+        if not state["has_uint32"]:
+            u, v = np.empty(n, np.int64), np.empty(n, np.int64)
+            if bounded_pairs(bitgen.random_raw(n), width, height, u, v):
+                return u, v
+            bitgen.state = state
+    return rng.integers(0, width, n), rng.integers(0, height, n)
+
+
 @dataclass(frozen=True)
 class PreparedPairs:
     """What one frame leaves for all particles."""
@@ -224,6 +247,7 @@ class PreparedPairs:
     log_scale: float         # multiplies log L (tempering by the activation; 1 otherwise)
     log_offset: float        # added to log L (the literal multiplied activation; 0 otherwise)
     pair_weights: np.ndarray | None = None   # (K,) soft allocation (shadow_pair_weight > 0), else None
+    pairs: np.ndarray | None = None          # the indices of the used pairs (``keep``'s), when at hand
 
     @property
     def n_pairs_used(self) -> float:
@@ -231,7 +255,9 @@ class PreparedPairs:
         if self.pair_weights is not None:
             w = self.pair_weights if self.keep is None else self.pair_weights[self.keep]
             return float(np.sum(w))
-        return float(self.cam_bits.shape[0] if self.keep is None else np.count_nonzero(self.keep))
+        if self.keep is None:
+            return float(self.cam_bits.shape[0])
+        return float(self.pairs.size if self.pairs is not None else np.count_nonzero(self.keep))
 
 
 @dataclass
@@ -294,17 +320,17 @@ class IntensityPairsModel(MeasurementModel):
         img = obs.image
         H, W = img.shape[:2]
         K = cfg.n_pairs
-        u = rng.integers(0, W, 2 * K)
-        v = rng.integers(0, H, 2 * K)
+        u, v = pair_pixels(rng, W, H, 2 * K)
         pending = _PendingPairs(img, u, v, obs.altitude_m)
         if cfg.shadow == "ignore":
             return self._finish(pending, None)
         if cfg.detector == "oracle":
             return self._finish(pending, oracle_mask(info, (H, W)))
-        pending.small = self.detector.reduce(img)
         if cfg.detector == "map":
+            pending.small = self.detector.reduce(img)
             return pending
-        return self._finish(pending, self.detector.detect(img, small=pending.small))
+        pending.small, smask = self.detector.detect_reduced(img)
+        return self._finish(pending, smask)
 
     def _finish(self, p: _PendingPairs, smask: ShadowMask | None) -> PreparedPairs:
         cfg: IntensityPairsConfig = self.config
@@ -313,7 +339,10 @@ class IntensityPairsModel(MeasurementModel):
         vals = np.empty((u.size, img.shape[2]), np.float32)                   # (2K, 3) the pixels
         uv = np.empty((u.size, 2))
         in_mask = np.zeros(u.size, np.bool_)                                   # (2K,) in shadow
-        camera_pairs(img, u, v, _NO_MASK if smask is None else smask.mask, vals, in_mask, uv)
+        cam_bits = np.empty((K, img.shape[2]), np.bool_)                       # (K, 3) eq. (2) on the pixels
+        kept = np.empty(K, np.intp)                                            # pairs not split by the mask
+        n_kept = camera_pairs(img, u, v, _NO_MASK if smask is None else smask.mask, vals, in_mask, uv, cam_bits,
+                              kept)
         mask_pts = None if smask is None else in_mask
         stats: dict[str, Any] = {"K": K, "num_pairs": K}
         if smask is not None:
@@ -325,17 +354,19 @@ class IntensityPairsModel(MeasurementModel):
                 lut = restoration_lut(small, sm, cfg.restoration)              # (3, 256)
                 restored = lut[np.arange(3)[None, :], vals.astype(np.int64)]       # (2K, 3)
                 vals = np.where(mask_pts[:, None], restored, vals)
+                cam_bits = vals[:K] > vals[K:]                                # (the restored pixels' bits)
         if cfg.channels == 1:
             vals = vals @ _LUMA[:, None]
-        cam_bits = vals[:K] > vals[K:]                                        # (K, c) eq. (2)
-        keep, log_scale, log_offset, pair_weights = None, 1.0, 0.0, None
+            cam_bits = vals[:K] > vals[K:]                                    # (K, 1) eq. (2)
+        keep, log_scale, log_offset, pair_weights, pairs = None, 1.0, 0.0, None, None
         if cfg.shadow == "drop":
             one_in_shadow = mask_pts[:K] ^ mask_pts[K:]
             if cfg.shadow_pair_weight > 0:   # soft allocation: keep them, with less weight
                 pair_weights = np.where(one_in_shadow, cfg.shadow_pair_weight, 1.0)
             else:                            # eq. (6): drop them
                 keep = ~one_in_shadow
-            lc = int(np.count_nonzero(one_in_shadow))
+                pairs = kept[:n_kept]
+            lc = K - n_kept
             act = activation(K, lc, cfg.activation_gain / K)
             stats.update(shadow_pairs=lc, kept_pairs=K - lc, activation=act)
             if cfg.activation == "multiply":
@@ -345,7 +376,7 @@ class IntensityPairsModel(MeasurementModel):
         elif mask_pts is not None:
             stats["shadow_pairs"] = int(np.count_nonzero(mask_pts[:K] ^ mask_pts[K:]))
         self.last_stats = stats
-        return PreparedPairs(uv, cam_bits, keep, log_scale, log_offset, pair_weights)
+        return PreparedPairs(uv, cam_bits, keep, log_scale, log_offset, pair_weights, pairs)
 
     def _finish_with_map(self, p: _PendingPairs, states: np.ndarray) -> PreparedPairs:
         """The map-ratio mask at the particles' mean pose when the cloud is tight, else the image-only one."""
@@ -399,7 +430,9 @@ class IntensityPairsModel(MeasurementModel):
         if isinstance(prepared, _PendingPairs):
             prepared = self._finish_with_map(prepared, states)
         keep = prepared.keep
-        pairs = np.arange(prepared.cam_bits.shape[0]) if keep is None else np.flatnonzero(keep)
+        pairs = prepared.pairs
+        if pairs is None:
+            pairs = np.arange(prepared.cam_bits.shape[0]) if keep is None else np.flatnonzero(keep)
         weights = prepared.pair_weights if prepared.pair_weights is None or keep is None else \
             prepared.pair_weights[keep]
         K, c = pairs.size, prepared.cam_bits.shape[1]
@@ -410,8 +443,8 @@ class IntensityPairsModel(MeasurementModel):
         counts = np.empty((K, n), np.int8)
         valid = np.empty((K, n), np.bool_)
         nodata = _NO_NODATA if self._nodata is None else self._nodata
-        yaw = states[:, 2]                  # camera_to_map's cos and sin: NumPy's, of the same column
-        sums, outside = pair_agreements(states, np.cos(yaw), np.sin(yaw), self._affine_terms(altitude_m),
+        cos, sin = yaw_cos_sin(states)      # camera_to_map's cos and sin: NumPy's, of the same column
+        sums, outside = pair_agreements(states, cos, sin, self._affine_terms(altitude_m),
                                         prepared.uv, pairs, self._W, self._H, self._db, c, c, nodata,
                                         prepared.cam_bits, counts, valid)
         if not outside and self._nodata is None and weights is None:
@@ -433,7 +466,9 @@ class IntensityPairsModel(MeasurementModel):
             log_l = -0.5 * ((xi - cfg.mu) / cfg.sigma) ** 2
         else:
             log_l = np.log(np.maximum(xi, 1e-12))
-        return prepared.log_scale * log_l + prepared.log_offset
+        if prepared.log_scale != 1.0:       # (1.0 x: the same floats)
+            log_l = prepared.log_scale * log_l
+        return log_l + prepared.log_offset
 
 
 register_model("intensity_pairs", IntensityPairsModel)

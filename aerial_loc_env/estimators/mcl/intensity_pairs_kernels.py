@@ -54,7 +54,9 @@ def pair_agreements(poses, cos, sin, terms, uv, pairs, width, height, db, pixel_
     their lookups hit the cache; particle-major lookups (NumPy's gather) roam over the whole footprint. Each
     pair's lines are prefetched while the previous pair's lookups run: a frame's pairs fall on map lines no step
     touched before (each step draws new pairs), and other work between steps evicts the rest (docs/perf-log.md
-    has the figures, and the prefetch distances that did no better)."""
+    has the figures, and the prefetch distances that did no better). The RGB lookups write each pair's counts
+    only; the particles' sums are added after all pairs, in a loop that vectorizes (a running sum per particle in
+    the lookups' loop was a load and a store more per lookup)."""
     n, k = poses.shape[0], cam_bits.shape[0]
     sums = np.zeros(n, np.int64)
     w = np.uint64(np.uint32(width))     # (zero-extended: the products are 32 x 32 -> 64-bit)
@@ -106,7 +108,6 @@ def pair_agreements(poses, cos, sin, terms, uv, pairs, width, height, db, pixel_
                 a = (np.int64((db[b1] > db[b2]) == g0) + np.int64((db[b1 + one] > db[b2 + one]) == g1)
                      + np.int64((db[b1 + two] > db[b2 + two]) == g2))
                 aj[m] = a
-                sums[m] += a
         else:
             for m in range(n):
                 b1, b2 = p1[m] * step, p2[m] * step
@@ -118,15 +119,22 @@ def pair_agreements(poses, cos, sin, terms, uv, pairs, width, height, db, pixel_
         if has_nodata:
             for m in range(n):
                 vj[m] = vj[m] and not nodata[p1[m]] and not nodata[p2[m]]
+    if rgb:                                    # the particles' sums in one vectorized pass over the rows
+        for j in range(used):
+            aj = agree[j]
+            for m in range(n):
+                sums[m] += aj[m]
     return sums, off != 0
 
 
 @njit(**JIT)
-def camera_pairs(image, u, v, mask, vals, in_mask, uv):
+def camera_pairs(image, u, v, mask, vals, in_mask, uv, cam_bits, kept):
     """The frame's side of the pairs in one pass: ``vals[j]`` = the pixel (``u[j]``, ``v[j]``) of ``image``
     (H, W, C) uint8 as float32, ``uv[j]`` = (u, v) as float64 and, for a ``mask`` (h, w) bool at a reduced
     resolution (empty for none), ``in_mask[j]`` = its value there (``ShadowMask.at``: row ``v h // H`` and
-    column ``u w // W``, clipped)."""
+    column ``u w // W``, clipped). Then, for the K = ``cam_bits.shape[0]`` pairs (points j and K + j): their bits
+    ``cam_bits[j, c]`` = ``vals[j, c] > vals[K + j, c]`` (eq. (2) on the pixels as they are) and the pairs with no
+    or both points in the mask, in order, in ``kept``; returns how many were kept (K - lc)."""
     big_h, big_w = image.shape[0], image.shape[1]
     h, w = mask.shape
     for j in range(u.shape[0]):
@@ -136,3 +144,35 @@ def camera_pairs(image, u, v, mask, vals, in_mask, uv):
         uv[j, 0], uv[j, 1] = x, y
         if h > 0:
             in_mask[j] = mask[min((y * h) // big_h, h - 1), min((x * w) // big_w, w - 1)]
+    k = cam_bits.shape[0]
+    n_kept = 0
+    for j in range(k):
+        for c in range(cam_bits.shape[1]):
+            cam_bits[j, c] = vals[j, c] > vals[k + j, c]
+        if in_mask[j] == in_mask[k + j]:
+            kept[n_kept] = j
+            n_kept += 1
+    return n_kept
+
+
+@njit(**JIT)
+def bounded_pairs(raw, width, height, u, v):
+    """``u`` = ``rng.integers(0, width, n)`` then ``v`` = ``rng.integers(0, height, n)`` (n = ``u.shape[0]``, even)
+    from ``raw``, the n 64-bit words PCG64 gives next (``random_raw``), as NumPy draws them: each value from the next
+    32-bit half (the low half of a word first, NumPy's buffered ``next_uint32``) by Lemire's multiply-shift,
+    ``(half * bound) >> 32``. Returns False where NumPy would reject a half (``(half * bound) mod 2^32`` below
+    ``(2^32 - bound) mod bound``, about one half in 10^7) and draw another: the caller then draws with NumPy."""
+    n = u.shape[0]
+    for k in range(2):
+        bound = np.uint64(width if k == 0 else height)
+        threshold = (np.uint64(0xFFFFFFFF) - (bound - np.uint64(1))) % bound
+        out = u if k == 0 else v
+        for j in range(n):
+            h = k * n + j                              # the half's index: word h // 2, low half first
+            word = raw[h >> 1]
+            half = word & np.uint64(0xFFFFFFFF) if h % 2 == 0 else word >> np.uint64(32)
+            m = half * bound
+            if (m & np.uint64(0xFFFFFFFF)) < threshold:
+                return False
+            out[j] = np.int64(m >> np.uint64(32))
+    return True

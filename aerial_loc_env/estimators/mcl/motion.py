@@ -41,11 +41,17 @@ def wrap(a: np.ndarray | float) -> np.ndarray | float:
     return (np.asarray(a) + math.pi) % (2.0 * math.pi) - math.pi
 
 
+def _wrap_float(a: float) -> float:
+    """``wrap`` of one float without NumPy's scalar overhead: Python's float remainder is NumPy's (fmod, then the
+    divisor added when the signs differ), so the same float."""
+    return (a + math.pi) % (2.0 * math.pi) - math.pi
+
+
 def mid_heading(prev_yaw_rad: float | None, yaw_rad: float, yaw_rate_radps: float, dt_s: float) -> float:
     """The heading over the last step: mean of the two measured headings, or yaw - omega dt / 2 at the start."""
     if prev_yaw_rad is None:
-        return float(wrap(yaw_rad - 0.5 * yaw_rate_radps * dt_s))
-    return float(wrap(prev_yaw_rad + 0.5 * float(wrap(yaw_rad - prev_yaw_rad))))
+        return _wrap_float(float(yaw_rad) - 0.5 * yaw_rate_radps * dt_s)
+    return _wrap_float(float(prev_yaw_rad) + 0.5 * _wrap_float(float(yaw_rad) - float(prev_yaw_rad)))
 
 
 class OdometryMotionModel:

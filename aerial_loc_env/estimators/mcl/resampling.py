@@ -15,19 +15,20 @@ from collections.abc import Callable
 import numpy as np
 
 from aerial_loc_env.errors import ConfigError
+from aerial_loc_env.estimators.mcl.resampling_kernels import inverse_cdf_indices, max_and_shift, sum_and_divide
 
 Resampler = Callable[[np.ndarray, int, np.random.Generator], np.ndarray]
 
 
-def _cdf(W: np.ndarray) -> np.ndarray:
-    cdf = np.cumsum(W)
-    cdf[-1] = 1.0  # guard against round-off so that searchsorted never returns N
-    return cdf
-
-
 def inverse_cdf(su: np.ndarray, W: np.ndarray) -> np.ndarray:
-    """Indices ``n`` with ``cdf[n-1] <= su < cdf[n]`` for sorted uniforms ``su`` in [0, 1)."""
-    return np.minimum(np.searchsorted(_cdf(W), su, side="right"), W.shape[0] - 1)
+    """Indices ``n`` with ``cdf[n-1] <= su < cdf[n]`` for sorted uniforms ``su`` in [0, 1), ``cdf`` the cumulative
+    sum of ``W`` with its last value set to 1 (a guard against round-off: never index N). One compiled pass with
+    the indices of ``np.minimum(np.searchsorted(cdf, su, side="right"), N - 1)`` (test_resampling.py)."""
+    if W.shape[0] == 0:
+        raise ValueError("resampling: no weights to draw from (W is empty)")
+    W = np.ascontiguousarray(W, dtype=np.float64)
+    su = np.ascontiguousarray(su, dtype=np.float64)
+    return inverse_cdf_indices(W, su, np.empty(su.shape[0], np.intp))
 
 
 def multinomial(W: np.ndarray, M: int, rng: np.random.Generator) -> np.ndarray:
@@ -86,14 +87,17 @@ def normalize_log_weights(log_w: np.ndarray) -> tuple[np.ndarray, float]:
     """Normalized weights W and log of the mean unnormalized weight (log-sum-exp, never overflows).
 
     Non-finite log-weights (-inf for impossible particles, NaN never expected) count as weight 0; if every
-    weight is 0 the result is uniform and the log-mean is -inf, which the core treats as a collapse.
+    weight is 0 the result is uniform and the log-mean is -inf, which the core treats as a collapse. The maximum,
+    the shift, the sum and the division are compiled passes around NumPy's ``exp`` (its floats: NumPy's pairwise
+    sum, tests/estimators/test_resampling.py).
     """
     w, m = _exp_below_max(log_w)
     if w is None:
         n = log_w.shape[0]
         return np.full(n, 1.0 / n), -np.inf
-    s = float(w.sum())
-    return w / s, m + float(np.log(s / log_w.shape[0]))
+    W = np.empty_like(w)
+    s = float(sum_and_divide(w, W))
+    return W, m + float(np.log(s / log_w.shape[0]))
 
 
 def log_mean_weight(log_w: np.ndarray) -> float:
@@ -109,14 +113,15 @@ def _exp_below_max(log_w: np.ndarray) -> tuple[np.ndarray | None, float]:
     """``exp(lw - max(lw))`` and that maximum, ``lw`` = ``log_w`` with its non-finite values as -inf; (None, -inf)
     when none is finite. A finite maximum of ``log_w`` itself means it holds no NaN (the maximum would be NaN) nor
     +inf: then ``lw`` is ``log_w`` (its -inf stay -inf), and the masking pass is skipped."""
-    m = float(np.max(log_w))
-    lw = log_w
+    log_w = np.ascontiguousarray(log_w, dtype=np.float64)
+    shifted = np.empty_like(log_w)
+    m = float(max_and_shift(log_w, shifted))
     if not math.isfinite(m):
         lw = np.where(np.isfinite(log_w), log_w, -np.inf)
-        m = float(np.max(lw))
+        m = float(max_and_shift(lw, shifted))
         if not math.isfinite(m):
             return None, -np.inf
-    return np.exp(lw - m), m
+    return np.exp(shifted, out=shifted), m
 
 
 def ess(W: np.ndarray) -> float:
