@@ -39,6 +39,7 @@ Why it is built this way:
 
 from __future__ import annotations
 
+import functools
 import math
 import sys
 from collections.abc import Callable, Mapping, Sequence
@@ -678,8 +679,8 @@ class CameraRenderer:
                 grid = occlusion     # the float occlusion, warped as the per-frame path warps it, if a caller reads it
                 return Frame(image=image, shadow_mask=None, shadow_fraction=count / (warp.width_px * warp.height_px),
                              valid=status == "valid", status=status, pose=pose, pyramid_level=level,
-                             occlusion_of=lambda: np.ascontiguousarray(self._occlusion(grid, affine, pose, t_s,
-                                                                                       camera)))
+                             occlusion_of=functools.partial(_contiguous_occlusion, self, grid, affine, pose, t_s,
+                                                            camera))
             image = self._warp_raw(affine, level, camera.width_px, camera.height_px)
         else:
             image = view.sample(self.map_level(level), level)
@@ -815,6 +816,12 @@ class CameraRenderer:
         cos2 = f_px ** 2 / (f_px ** 2 + u ** 2 + v ** 2)
         gain = (1.0 - strength * (1.0 - cos2 ** 2)).astype(np.float32)
         return cv2.merge([gain, gain, gain])
+
+
+def _contiguous_occlusion(renderer: CameraRenderer, *args: Any) -> np.ndarray:
+    """A frame's float occlusion computed on first read (a module-level function, so that a frame, and an env
+    holding it, pickles)."""
+    return np.ascontiguousarray(renderer._occlusion(*args))
 
 
 def _shading_lut(shading_params: Mapping[str, Any] | None) -> np.ndarray:
