@@ -50,6 +50,21 @@ search margin):
     1 when S's peak lies within ``success_radius_m`` (2 m) of the true shift (the centre of S), else 0; its
     mean over windows is the fraction of frames on which template matching would find the truth.
 
+Two more statistics describe the camera window alone, in colour (``camera_colour_stats``), because the image
+shadow detectors of the MCL models (``estimators.shadow_detection``) decide from them whether a frame holds a
+shadow: the paper's shadow index (c3 and luminance) quantized to 8 bits and split in two classes by Otsu's
+threshold, as the detector splits a frame,
+
+``dark_c3_shift``
+    mean c3 = ``arctan(B / max(R, G))`` (scaled to [0, 1]) of the dark class minus that of the lit class: how
+    much bluer the dark part of the view is (shadow lit by the sky is bluer; dark vegetation and warm soil are
+    not). The detector sees no shadow in a frame whose shift is below its ``min_blue_shift``.
+``dark_luma_ratio``
+    mean luminance of the dark class / that of the lit class.
+
+Both are NaN for a grey camera window. They are reported beside the gap statistics, and are not part of the
+presets' calibration (``STATS``).
+
 Summaries (``summarize``) give the median, the quartiles and the mean of each statistic over windows. The
 **spread of the real pairs** is the range (min..max) over pairs of each pair's median (of its mean, for
 ``template_within``); ``aerial-loc gap`` marks a scenario's statistic that lies inside it. How far a headline
@@ -76,13 +91,19 @@ from aerial_loc_env.config import build_config, parse_assignments, rng
 from aerial_loc_env.errors import ConfigError, MapError
 from aerial_loc_env.estimators.feature_matching import make_detector
 from aerial_loc_env.estimators.patches import to_gray
+from aerial_loc_env.estimators.shadow_detection import shadow_index
 from aerial_loc_env.world.maps.pairs import DEFAULT_MAX_SHIFT_M
 
 #: the statistics of one window, in table order
 STATS = ("ncc", "bit_agreement", "psr", "peak_margin", "orb_inlier_ratio", "template_within")
+#: the camera window's own colour statistics (reported, not calibrated)
+CAMERA_STATS = ("dark_c3_shift", "dark_luma_ratio")
+#: every statistic of a window, in table order
+ALL_STATS = STATS + CAMERA_STATS
 #: column titles of the printed table
 TITLES = {"ncc": "NCC", "bit_agreement": "bit agreement", "psr": "PSR", "peak_margin": "peak margin",
-          "orb_inlier_ratio": "ORB inliers", "template_within": "template <= 2 m"}
+          "orb_inlier_ratio": "ORB inliers", "template_within": "template <= 2 m",
+          "dark_c3_shift": "dark c3 shift", "dark_luma_ratio": "dark / lit luma"}
 
 
 @dataclass(frozen=True)
@@ -163,6 +184,25 @@ def surface_stats(surface: np.ndarray, gsd_m: float, radius_m: float) -> dict[st
             "peak_margin": peak - float(side.max()), "template_within": float(within)}
 
 
+def camera_colour_stats(camera: np.ndarray) -> dict[str, float]:
+    """The camera window's dark-class statistics (module docstring): the c3 shift and luminance ratio of the
+    two Otsu classes of the paper's shadow index; NaN for a grey window or one Otsu cannot split."""
+    arr = np.asarray(camera)
+    nan = {s: math.nan for s in CAMERA_STATS}
+    if arr.ndim != 3 or arr.shape[2] != 3:
+        return nan
+    rgb = np.ascontiguousarray(arr if arr.dtype == np.uint8 else np.clip(np.rint(arr), 0, 255).astype(np.uint8))
+    index, lum, c3 = shadow_index(rgb, "c3_luminance")
+    _, classes = cv2.threshold(np.clip(index * 255.0, 0, 255).astype(np.uint8), 0, 1,
+                               cv2.THRESH_BINARY + cv2.THRESH_OTSU)
+    dark = classes.astype(bool)
+    if dark.all() or not dark.any():
+        return nan
+    lit_lum = float(lum[~dark].mean())
+    return {"dark_c3_shift": float(c3[dark].mean() - c3[~dark].mean()),
+            "dark_luma_ratio": float(lum[dark].mean()) / lit_lum if lit_lum > 0 else math.nan}
+
+
 def orb_inlier_ratio(camera: np.ndarray, database: np.ndarray, cfg: GapConfig) -> float:
     """RANSAC-similarity inliers / ratio-test matches of ORB features (0 without 4 matches or a model)."""
     detector, norm = make_detector("orb", cfg.orb_features)
@@ -184,7 +224,7 @@ def window_stats(camera: np.ndarray, database: np.ndarray, cfg: GapConfig, gsd_m
                  ) -> dict[str, float]:
     """The statistics of one window: ``camera`` (h, w) and ``database`` (h + 2m, w + 2m) with the search
     margin m = ``cfg.margin_px(gsd_m)`` on every side, both at ``gsd_m`` (default ``cfg.gsd_m``) metres per
-    pixel, RGB or grey."""
+    pixel, RGB or grey (the camera's colour statistics need RGB)."""
     gsd = cfg.gsd_m if gsd_m is None else gsd_m
     cam, db = _luma(camera), _luma(database)
     m = cfg.margin_px(gsd)
@@ -201,15 +241,20 @@ def window_stats(camera: np.ndarray, database: np.ndarray, cfg: GapConfig, gsd_m
     core = db[m:m + h, m:m + w]
     return {"ncc": ncc(cam, core), "bit_agreement": bit_agreement(cam, core, cfg.n_bits, cfg.seed),
             **surface_stats(ncc_surface(cam, db), gsd, cfg.success_radius_m),
-            "orb_inlier_ratio": orb_inlier_ratio(cam, db, cfg)}
+            "orb_inlier_ratio": orb_inlier_ratio(cam, db, cfg), **camera_colour_stats(camera)}
 
 
 # ------------------------------------------------------------------------------------------ summaries
 def summarize(windows: Sequence[Mapping[str, float]]) -> dict[str, dict[str, float]]:
-    """Per statistic over windows: median, p25, p75, mean and the count."""
+    """Per statistic over windows: median, p25, p75, mean and the count of windows that have it (the colour
+    statistics are NaN on grey windows: left out; all NaN when none has them)."""
     out = {}
-    for s in STATS:
-        v = np.asarray([w[s] for w in windows], dtype=float)
+    for s in ALL_STATS:
+        v = np.asarray([w.get(s, math.nan) for w in windows], dtype=float)
+        v = v[np.isfinite(v)]
+        if v.size == 0:
+            out[s] = {"median": math.nan, "p25": math.nan, "p75": math.nan, "mean": math.nan, "n": 0}
+            continue
         out[s] = {"median": float(np.median(v)), "p25": float(np.percentile(v, 25)),
                   "p75": float(np.percentile(v, 75)), "mean": float(v.mean()), "n": int(v.size)}
     return out
@@ -271,11 +316,16 @@ def headline_interval(windows: Sequence[Mapping[str, float]], stat: str, confide
 
 
 def spread(summaries: Iterable[Mapping[str, Mapping[str, float]]]) -> dict[str, tuple[float, float]]:
-    """The spread of several sources (the real pairs): min..max of their headline figures per statistic."""
+    """The spread of several sources (the real pairs): min..max of their headline figures per statistic (NaN
+    where no source has it)."""
     items = list(summaries)
     if not items:
         raise ConfigError("gap: no real pairs to take a spread over")
-    return {s: (min(headline(x, s) for x in items), max(headline(x, s) for x in items)) for s in STATS}
+    out = {}
+    for s in ALL_STATS:
+        v = [headline(x, s) for x in items if s in x and math.isfinite(headline(x, s))]
+        out[s] = (min(v), max(v)) if v else (math.nan, math.nan)
+    return out
 
 
 # ------------------------------------------------------------------------------------------ real pairs
@@ -434,11 +484,27 @@ def _frame_stats(image: np.ndarray, pose: Any, camera: Any, renderer: Any, cfg: 
 
 
 # ------------------------------------------------------------------------------------------ report
+def _finite_or_null(value: Any) -> Any:
+    """``value`` with every non-finite float as None (JSON has no NaN)."""
+    if isinstance(value, dict):
+        return {k: _finite_or_null(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_finite_or_null(v) for v in value]
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
 def _cell(summary: Mapping[str, Mapping[str, float]], stat: str, inside: bool | None) -> str:
-    s = summary[stat]
+    s = summary.get(stat)
+    if s is None or not math.isfinite(s["median"]):
+        return "-"
     mark = "" if inside is None else (" *" if inside else "")
     if stat == "template_within":
         return f"{s['mean']:.0%}{mark}"
+    if stat == "dark_c3_shift":          # signed: "to" between the quartiles
+        q = [round(s[k], 3) + 0.0 for k in ("median", "p25", "p75")]     # + 0.0: no "-0.000"
+        return f"{q[0]:+.3f} ({q[1]:+.3f} to {q[2]:+.3f}){mark}"
     digits = 1 if stat == "psr" else 2
     return f"{s['median']:.{digits}f} ({s['p25']:.{digits}f}-{s['p75']:.{digits}f}){mark}"
 
@@ -449,20 +515,24 @@ def gap_table(rows: Sequence[tuple[str, Mapping[str, Mapping[str, float]]]],
     for template matching); with ``real`` (the real pairs' spread) a spread row, and '*' marks a figure
     inside it (except on the ``unmarked`` rows: the real pairs themselves)."""
     unmarked = set(unmarked)
-    head = "| source | windows | " + " | ".join(TITLES[s] for s in STATS) + " |"
-    lines = [head, "|" + "---|" * (len(STATS) + 2)]
+    head = "| source | windows | " + " | ".join(TITLES[s] for s in ALL_STATS) + " |"
+    lines = [head, "|" + "---|" * (len(ALL_STATS) + 2)]
     for label, summary in rows:
         cells = []
-        for s in STATS:
-            inside = None if real is None or label in unmarked else \
+        for s in ALL_STATS:
+            inside = None if real is None or label in unmarked or s not in summary else \
                 real[s][0] <= headline(summary, s) <= real[s][1]
             cells.append(_cell(summary, s, inside))
         lines.append(f"| {label} | {summary[STATS[0]]['n']} | " + " | ".join(cells) + " |")
     if real is not None:
         def rng_cell(s: str) -> str:
             lo, hi = real[s]
+            if not math.isfinite(lo):
+                return "-"
+            if s == "dark_c3_shift":
+                return f"{lo:+.3f} to {hi:+.3f}"
             return f"{lo:.0%}-{hi:.0%}" if s == "template_within" else f"{lo:.2f}-{hi:.2f}"
-        lines.append("| **real pairs: spread** | | " + " | ".join(rng_cell(s) for s in STATS) + " |")
+        lines.append("| **real pairs: spread** | | " + " | ".join(rng_cell(s) for s in ALL_STATS) + " |")
     return "\n".join(lines)
 
 
@@ -590,11 +660,13 @@ def main(argv: list[str] | None = None) -> int:
         result["real_spread"] = {s: list(v) for s, v in real.items()}
     print(gap_table(rows, real, unmarked=result["pairs"]))
     print(f"\nmedian (p25-p75) over windows {sampling_note(gsds)}, +-{cfg.search_m:g} m search; "
-          "template <= 2 m: fraction of windows" + ("; * = inside the real pairs' spread" if real else ""))
+          "template <= 2 m: fraction of windows; dark c3 shift and dark / lit luma: the camera window alone, "
+          "the two Otsu classes of the shadow index (not calibrated)"
+          + ("; * = inside the real pairs' spread" if real else ""))
     for label, info in result["pairs"].items():
         print(f"{label}: {info['registration']}")
     if args.json:
-        text = json.dumps(result, indent=1, sort_keys=True)
+        text = json.dumps(_finite_or_null(result), indent=1, sort_keys=True)
         if args.json == "-":
             print(text)
         else:

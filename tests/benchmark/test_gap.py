@@ -111,6 +111,47 @@ def test_windows_with_non_finite_pixels_are_refused_not_scored(where: str, fill:
         gap.window_stats(cam, db, cfg)
 
 
+def _c3(rgb: tuple[int, int, int]) -> float:
+    return math.atan2(rgb[2], max(rgb[0], rgb[1], 1)) * 2.0 / math.pi
+
+
+def _luminance(rgb: tuple[int, int, int]) -> float:
+    return float(cv2.cvtColor(np.uint8([[rgb]]), cv2.COLOR_RGB2GRAY)[0, 0])
+
+
+@pytest.mark.parametrize(("lit", "dark"), [((150, 140, 110), (40, 45, 60)),     # bluish shadow on warm ground
+                                           ((120, 130, 140), (30, 60, 40))])    # dark vegetation on grey
+def test_camera_colour_statistics_of_a_known_two_class_window(lit, dark):
+    """Half the window one colour, half another: Otsu splits the halves, the dark half is the class of the
+    higher shadow index, and the statistics are the two colours' c3 difference and luminance ratio."""
+    img = np.empty((40, 60, 3), np.uint8)
+    img[:, :30], img[:, 30:] = lit, dark
+    got = gap.camera_colour_stats(img)
+    assert got["dark_c3_shift"] == pytest.approx(_c3(dark) - _c3(lit), abs=1e-6)
+    assert got["dark_luma_ratio"] == pytest.approx(_luminance(dark) / _luminance(lit), abs=1e-9)
+    assert (got["dark_c3_shift"] > 0) == (lit == (150, 140, 110))      # only the sky-lit shadow is bluer
+    assert got == gap.camera_colour_stats(img.astype(np.float32))      # float windows as their bytes
+
+
+def test_camera_colour_statistics_need_a_colour_window_with_two_classes():
+    cfg = gap.GapConfig()
+    img = texture(200, 300, seed=5)
+    m = cfg.margin_px(cfg.gsd_m)
+    database = cv2.copyMakeBorder(img, m, m, m, m, cv2.BORDER_REFLECT)
+    grey = gap.window_stats(cv2.cvtColor(img, cv2.COLOR_RGB2GRAY), database, cfg)
+    colour = gap.window_stats(img, database, cfg)
+    assert all(math.isnan(grey[s]) for s in gap.CAMERA_STATS)
+    assert all(math.isfinite(colour[s]) for s in gap.CAMERA_STATS)
+    assert {s: grey[s] for s in gap.STATS} == {s: colour[s] for s in gap.STATS}    # the gap itself is on luma
+    assert all(math.isnan(v) for v in gap.camera_colour_stats(np.full((20, 30, 3), 90, np.uint8)).values())
+    summary = gap.summarize([grey, colour])
+    assert summary["ncc"]["n"] == 2 and summary["dark_c3_shift"]["n"] == 1
+    assert summary["dark_c3_shift"]["median"] == colour["dark_c3_shift"]
+    assert gap.summarize([grey])["dark_luma_ratio"]["n"] == 0
+    table = gap.gap_table([("grey", gap.summarize([grey]))])
+    assert table.splitlines()[-1].endswith("| - | - |")
+
+
 def test_pairs_from_files_and_the_command(tmp_path, capsys):
     """Real PNG files on disk, found as A/ and B/, through ``aerial-loc gap`` with --json."""
     for sub in ("A", "B"):
@@ -126,6 +167,7 @@ def test_pairs_from_files_and_the_command(tmp_path, capsys):
     assert "| pairs/x.png | 4 | 1.00 (1.00-1.00) | 1.00 (1.00-1.00)" in text
     data = json.loads(out.read_text())
     assert data["real_spread"]["template_within"] == [1.0, 1.0]
+    assert set(data["real_spread"]) == set(gap.ALL_STATS)
     before = out.read_bytes()
     assert main(["gap", "--pairs-dir", str(tmp_path / "pairs"), "--pair-gsd", "0.5", "--json", str(out)]) == 2
     assert out.read_bytes() == before and "exists" in capsys.readouterr().err
