@@ -49,6 +49,7 @@ from aerial_loc_env.benchmark.pair_scenarios import (
     sim_overrides,
 )
 from aerial_loc_env.benchmark.report import BOOTSTRAP_RESAMPLES, two_stage_resample
+from aerial_loc_env.benchmark.store import finite_or_null
 from aerial_loc_env.errors import ConfigError, MapError
 
 #: the agents of issue 24's table: (spec, label)
@@ -347,8 +348,7 @@ def main(argv: list[str] | None = None) -> int:
     data = {"flight": flight, "overrides": extra, "seeds": args.seeds, "sim_seeds": args.sim_seeds, "pairs": {
         s.label: {"path_a": str(s.path_a), "path_b": str(s.path_b), "gsd_m": s.gsd_m, "extent_m": extents[s.label],
                   "registration": registrations[s.label]} for s in sources},
-        "results": [{k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in asdict(r).items()}
-                    for r in results], "machine": machine()}
+        "results": [finite_or_null(asdict(r)) for r in results], "machine": machine()}
     atomic_write_bytes(out / "fidelity.json", (json.dumps(data, indent=1, default=str) + "\n").encode())
     return 1 if missing else 0
 

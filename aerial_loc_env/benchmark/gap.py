@@ -87,6 +87,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from aerial_loc_env.benchmark.store import finite_or_null
 from aerial_loc_env.config import build_config, parse_assignments, rng
 from aerial_loc_env.errors import ConfigError, MapError
 from aerial_loc_env.estimators.feature_matching import make_detector
@@ -484,17 +485,6 @@ def _frame_stats(image: np.ndarray, pose: Any, camera: Any, renderer: Any, cfg: 
 
 
 # ------------------------------------------------------------------------------------------ report
-def _finite_or_null(value: Any) -> Any:
-    """``value`` with every non-finite float as None (JSON has no NaN)."""
-    if isinstance(value, dict):
-        return {k: _finite_or_null(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_finite_or_null(v) for v in value]
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    return value
-
-
 def _cell(summary: Mapping[str, Mapping[str, float]], stat: str, inside: bool | None) -> str:
     s = summary.get(stat)
     if s is None or not math.isfinite(s["median"]):
@@ -666,7 +656,7 @@ def main(argv: list[str] | None = None) -> int:
     for label, info in result["pairs"].items():
         print(f"{label}: {info['registration']}")
     if args.json:
-        text = json.dumps(_finite_or_null(result), indent=1, sort_keys=True)
+        text = json.dumps(finite_or_null(result), indent=1, sort_keys=True)
         if args.json == "-":
             print(text)
         else:

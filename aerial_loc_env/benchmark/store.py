@@ -36,13 +36,14 @@ def trial_key(agent: Mapping[str, Any], scenario: Mapping[str, Any], seed: int) 
     return hashlib.sha256(blob.encode()).hexdigest()[:20]
 
 
-def _clean(value: Any) -> Any:
+def finite_or_null(value: Any) -> Any:
+    """``value`` (dicts, lists and tuples walked) with every non-finite float as None: JSON has no NaN."""
     if isinstance(value, float) and not math.isfinite(value):
         return None
     if isinstance(value, dict):
-        return {k: _clean(v) for k, v in value.items()}
+        return {k: finite_or_null(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
-        return [_clean(v) for v in value]
+        return [finite_or_null(v) for v in value]
     return value
 
 
@@ -256,7 +257,7 @@ def _pid_alive(pid: int) -> bool:  # pragma: no cover (the portable fallback)
 
 
 def _append_line(path: Path, record: Mapping[str, Any]) -> None:
-    line = json.dumps(_clean(dict(record)), sort_keys=True) + "\n"
+    line = json.dumps(finite_or_null(dict(record)), sort_keys=True) + "\n"
     # A torn line left by a killed run must not glue onto the next row.
     needs_newline = path.exists() and path.stat().st_size > 0 and not _ends_with_newline(path)
     with open(path, "a", encoding="utf-8") as fh:
