@@ -1,7 +1,8 @@
 """The appearance gap: how unlike are the camera frame and the map database at the true pose?
 
 A benchmark ranks localization methods the way a real flight would only if its map and camera differ as much
-as real acquisitions do. This module measures that difference with five statistics, on
+as real acquisitions do. This module measures that difference with six statistics (and the camera window's
+colours with two more), on
 
 - a scenario (``scenario_gap``): the env's camera frame against the database patch rendered at the frame's
   *true* pose (the estimators' map, ``briefing.orthomap``), at every ``stride``-th frame of several seeds. Like
