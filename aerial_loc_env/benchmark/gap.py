@@ -64,7 +64,8 @@ threshold, as the detector splits a frame,
     mean luminance of the dark class / that of the lit class.
 
 Both are NaN for a grey camera window. They are reported beside the gap statistics, and are not part of the
-presets' calibration (``STATS``).
+presets' calibration (``STATS``). A single real image (``image_colour_windows``, ``aerial-loc gap --image``: no
+second epoch, so these two only) shows them for imagery of other places and sensors than the pairs'.
 
 Summaries (``summarize``) give the median, the quartiles and the mean of each statistic over windows. The
 **spread of the real pairs** is the range (min..max) over pairs of each pair's median (of its mean, for
@@ -404,6 +405,42 @@ def pair_gap(earlier: str | Path, later: str | Path, cfg: GapConfig | None = Non
     return measure_pair(earlier, later, cfg, gsd_m=gsd_m, max_shift_m=max_shift_m).windows
 
 
+def image_colour_windows(path: str | Path, cfg: GapConfig | None = None, *, gsd_m: float | None = None
+                         ) -> tuple[list[dict[str, float]], float]:
+    """(the camera colour statistics of every window, the analysis sampling) of one real image given by path: read
+    through its georeference (``gsd_m`` only for an image without one), its pixels squared at the analysis sampling
+    (the coarser of ``cfg.gsd_m`` and its own), tiled into ``cfg.window_m`` windows on a regular grid; windows
+    touching no-data are left out."""
+    from aerial_loc_env.world.maps.io import load_orthomap
+
+    cfg = cfg or GapConfig()
+    p = Path(path).expanduser()
+    if not p.is_file():
+        raise ConfigError(f"gap: --image {p}: no such image file")
+    try:
+        om = load_orthomap(p, mmap=False)
+    except MapError as exc:
+        if gsd_m is None or "no georeference" not in str(exc):
+            raise
+        om = load_orthomap(p, gsd_m=gsd_m, mmap=False)
+    gsd = max(cfg.gsd_m, om.gsd_x_m, om.gsd_y_m)
+    size = (max(1, round(om.width_px * om.gsd_x_m / gsd)), max(1, round(om.height_px * om.gsd_y_m / gsd)))
+    valid = np.full(om.rgb.shape[:2], 255, np.uint8) if om.nodata is None else np.where(om.nodata, 0, 255)
+    img = cv2.resize(np.dstack([om.rgb[..., :3], valid.astype(np.uint8)]), size, interpolation=cv2.INTER_AREA)
+    w, h = round(cfg.window_m[0] / gsd), round(cfg.window_m[1] / gsd)
+    nx, ny = size[0] // w, size[1] // h
+    if nx < 1 or ny < 1:
+        raise ConfigError(f"gap: --image {p.name} covers {size[0] * gsd:.0f} x {size[1] * gsd:.0f} m, too small "
+                          f"for one {cfg.window_m[0]:g} x {cfg.window_m[1]:g} m window; use a smaller window "
+                          "(aerial-loc gap --window-m W H)")
+    x0, y0 = (size[0] - nx * w) // 2, (size[1] - ny * h) // 2
+    windows = [img[y:y + h, x:x + w] for y in range(y0, y0 + ny * h, h) for x in range(x0, x0 + nx * w, w)]
+    out = [camera_colour_stats(win[..., :3]) for win in windows if win[..., 3].min() == 255]
+    if not out:
+        raise MapError(f"gap: every window of {p} touches no-data")
+    return out, gsd
+
+
 def pairs_in(folder: str | Path) -> list[tuple[Path, Path]]:
     """The pairs of a folder laid out as ``A/<name>`` (earlier) and ``B/<name>`` (later), sorted by name
     (``world.maps.pairs.pairs_in``)."""
@@ -514,7 +551,8 @@ def gap_table(rows: Sequence[tuple[str, Mapping[str, Mapping[str, float]]]],
             inside = None if real is None or label in unmarked or s not in summary else \
                 real[s][0] <= headline(summary, s) <= real[s][1]
             cells.append(_cell(summary, s, inside))
-        lines.append(f"| {label} | {summary[STATS[0]]['n']} | " + " | ".join(cells) + " |")
+        n = max(summary[s]["n"] for s in ALL_STATS if s in summary)
+        lines.append(f"| {label} | {n} | " + " | ".join(cells) + " |")
     if real is not None:
         def rng_cell(s: str) -> str:
             lo, hi = real[s]
@@ -542,8 +580,12 @@ def _parser() -> argparse.ArgumentParser:
                     help="ground metres per pixel of pair images without a georeference and without their own GSD "
                          "after --pair/--pairs-dir (LEVIR-CD: 0.5); images with a georeference (GeoTIFF tags, "
                          "world file + .prj) are always read at their own")
+    ap.add_argument("--image", nargs="+", action="append", default=[], metavar="PATH",
+                    help="a single real image by path: PATH [GSD] (repeatable; GSD as for --pair): the camera "
+                         "window's colour statistics only (no second epoch), for imagery of other places")
     ap.add_argument("--window-m", type=float, nargs=2, metavar=("W", "H"), default=None,
-                    help="pairs: window width and height in metres (default 150 100, the paper's footprint)")
+                    help="pairs and images: window width and height in metres (default 150 100, the paper's "
+                         "footprint)")
     ap.add_argument("--max-shift-m", type=float, default=DEFAULT_MAX_SHIFT_M, metavar="M",
                     help="refuse a pair whose residual misregistration (measured at load) exceeds this, metres "
                          f"(default {DEFAULT_MAX_SHIFT_M:g}; 0: measure and report only)")
@@ -590,6 +632,18 @@ def _pair_sources(args: argparse.Namespace) -> list[tuple[Path, Path, float | No
     return out
 
 
+def _image_sources(args: argparse.Namespace) -> list[tuple[Path, float | None]]:
+    """(path, GSD for an image without a georeference) of every --image."""
+    out = []
+    for item in args.image:
+        if len(item) not in (1, 2):
+            raise ConfigError(f"gap: --image {' '.join(item)}: give PATH [GSD] (an image path, then optionally its "
+                              "ground metres per pixel)")
+        gsd = _gsd_arg(item[1], f"--image {item[0]} GSD") if len(item) == 2 else args.pair_gsd
+        out.append((Path(item[0]), gsd))
+    return out
+
+
 def scenario_gsd_m(scenario: str, overrides: Mapping[str, Any], cfg: GapConfig) -> float:
     """The analysis sampling of a scenario's frames at its nominal altitude (``_frame_stats``: never finer than
     the camera's pixels)."""
@@ -616,15 +670,16 @@ def main(argv: list[str] | None = None) -> int:
     if args.json and args.json != "-" and Path(args.json).exists():    # before any measuring
         raise ConfigError(f"gap: --json {args.json} exists; give a new path (results are never overwritten)")
     pairs = _pair_sources(args)
-    if not args.scenarios and not pairs:
-        ap.error("give at least one SCENARIO, --pair or --pairs-dir "
+    images = _image_sources(args)
+    if not args.scenarios and not pairs and not images:
+        ap.error("give at least one SCENARIO, --pair, --pairs-dir or --image "
                  "(e.g. aerial-loc gap AerialLoc/PaperShadows-v2 --pairs-dir ../shared/data/pairs/levir-cd 0.5)")
     if args.seeds < 1:
         ap.error("--seeds must be >= 1")
     extra = {} if args.window_m is None else {"window_m": tuple(args.window_m)}
     cfg = gap_config(gsd_m=args.gsd, **extra)
     max_shift = args.max_shift_m if args.max_shift_m > 0 else None
-    result: dict[str, Any] = {"config": asdict(cfg), "pairs": {}, "scenarios": {}}
+    result: dict[str, Any] = {"config": asdict(cfg), "pairs": {}, "images": {}, "scenarios": {}}
     rows: list[tuple[str, Mapping]] = []
     gsds: dict[str, float] = {}
     for a, b, pair_gsd in pairs:
@@ -636,6 +691,13 @@ def main(argv: list[str] | None = None) -> int:
                                   "registration": measured.registration}
         rows.append((label, summary))
         gsds[label] = measured.gsd_m
+    for path, image_gsd in images:
+        windows, gsd = image_colour_windows(path, cfg, gsd_m=image_gsd)
+        label = f"{path.name} (image)"
+        summary = summarize(windows)
+        result["images"][label] = {"path": str(path), "summary": summary, "windows": windows, "analysis_gsd_m": gsd}
+        rows.append((label, summary))
+        gsds[label] = gsd
     real = spread(s["summary"] for s in result["pairs"].values()) if pairs else None
     overrides = _overrides(args.set)
     for sid in args.scenarios:
@@ -649,7 +711,7 @@ def main(argv: list[str] | None = None) -> int:
         rows.append((sid, summary))
     if real is not None:
         result["real_spread"] = {s: list(v) for s, v in real.items()}
-    print(gap_table(rows, real, unmarked=result["pairs"]))
+    print(gap_table(rows, real, unmarked=[*result["pairs"], *result["images"]]))
     print(f"\nmedian (p25-p75) over windows {sampling_note(gsds)}, +-{cfg.search_m:g} m search; "
           "template <= 2 m: fraction of windows; dark c3 shift and dark / lit luma: the camera window alone, "
           "the two Otsu classes of the shadow index (not calibrated)"

@@ -12,6 +12,7 @@ import pytest
 from shared_helpers import SHARED_DATA
 
 from aerial_loc_env.benchmark import gap
+from aerial_loc_env.benchmark.store import finite_or_null
 from aerial_loc_env.errors import ConfigError
 
 PAIRS = SHARED_DATA / "pairs" / "levir-cd"
@@ -150,6 +151,34 @@ def test_camera_colour_statistics_need_a_colour_window_with_two_classes():
     assert gap.summarize([grey])["dark_luma_ratio"]["n"] == 0
     table = gap.gap_table([("grey", gap.summarize([grey]))])
     assert table.splitlines()[-1].endswith("| - | - |")
+
+
+def test_a_single_image_gives_its_colour_statistics_window_by_window(tmp_path, capsys):
+    """``--image PATH GSD``: a 400 x 300 m image at 1 m/px in 150 x 100 m windows (2 x 3 of them, centred), each
+    scored by ``camera_colour_stats`` on the windows cut from the image; the gap columns stay empty."""
+    img = texture(300, 400, seed=7)
+    img[:, 200:] //= 3                                    # a dark half: both classes in the windows that cross it
+    path = tmp_path / "tile.png"
+    cv2.imwrite(str(path), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
+    cfg = gap.GapConfig(gsd_m=1.0)
+    windows, gsd = gap.image_colour_windows(path, cfg, gsd_m=1.0)
+    assert gsd == 1.0 and len(windows) == 6
+    expected = [gap.camera_colour_stats(img[y:y + 100, x:x + 150]) for y in (0, 100, 200) for x in (50, 200)]
+    assert windows == expected
+    out = tmp_path / "gap.json"
+    from aerial_loc_env.cli import main
+
+    assert main(["gap", "--gsd", "1", "--image", str(path), "1.0", "--json", str(out)]) == 0
+    row = next(line for line in capsys.readouterr().out.splitlines() if line.startswith("| tile.png"))
+    assert row.startswith("| tile.png (image) | 6 | - | - | - | - | - | - | ")
+    data = json.loads(out.read_text())
+    assert data["images"]["tile.png (image)"]["windows"] == json.loads(json.dumps(finite_or_null(expected)))
+    assert main(["gap", "--image", str(path), "1.0", "--window-m", "500", "100"]) == 2    # wider than the image
+    assert "--window-m" in capsys.readouterr().err
+    assert main(["gap", "--image", str(tmp_path / "none.png"), "1.0"]) == 2
+    assert "no such image file" in capsys.readouterr().err
+    assert main(["gap", "--image", str(path), "1.0", "extra"]) == 2
+    assert "PATH [GSD]" in capsys.readouterr().err
 
 
 def test_pairs_from_files_and_the_command(tmp_path, capsys):
