@@ -40,7 +40,7 @@ bench: venv
 # forbids copies in the repository)
 LEVIR  := ../shared/data/pairs/levir-cd
 pictures: venv
-	$(VENV)/bin/aerial-loc pictures --out docs/img --realism
+	$(VENV)/bin/aerial-loc pictures --out results/pictures --realism --readme-dir docs/img
 	$(if $(wildcard $(LEVIR)/A/test_1.png),$(VENV)/bin/aerial-loc pictures --out results/pictures --frames 1 --realism \
 		--pair $(LEVIR)/A/test_1.png $(LEVIR)/B/test_1.png --pair-gsd 0.5)
 

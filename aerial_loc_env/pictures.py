@@ -14,6 +14,10 @@ Writes, into ``--out``:
   the map's own sensor) and all together (``AerialLoc/RealisticPaper-v2``); with ``--map``, the kinds that apply
   to that map (its acquisition by another sensor, the realistic camera, both), flown over it; with ``--pair``
   also ``gap_real_pair.png``, a real two-epoch pair in the same layout (what the simulated gap should look like).
+
+``--readme-dir DIR`` (with ``--realism``, the default map and seed) also writes the README's pictures into ``DIR``
+(``README_PICTURES``: smaller copies, the gap pictures as JPEG, so that the repository stays small); ``make
+pictures`` redraws ``docs/img`` that way.
 """
 
 from __future__ import annotations
@@ -31,6 +35,13 @@ from aerial_loc_env.sensors.camera import CameraModel, Pose
 from aerial_loc_env.sensors.render import CameraRenderer, Frame, Photometry
 
 _OVERVIEW_MAX_PX = 1600
+#: the README's pictures: (its file, the pictures' file it is made from, its width in px or None for the same);
+#: a ``.jpg`` name is written as JPEG (``_README_JPEG_QUALITY``)
+README_PICTURES = (("frames_0.png", "frame_00_pair.png", 1200), ("frames_2.png", "frame_02_pair.png", 1200),
+                   ("overview.png", "overview.png", 860),
+                   *((f"gap_{s}.jpg", f"gap_{s}.png", None)
+                     for s in ("epoch", "relief", "database_sun", "acquisition", "realistic")))
+_README_JPEG_QUALITY = 85
 _TRACK_RGB = (255, 40, 40)
 _FOOTPRINT_RGB = (255, 230, 0)
 
@@ -55,6 +66,9 @@ def _parser() -> argparse.ArgumentParser:
                     help="--realism: also gap_real_pair.png, a real two-epoch pair flown as RealPair-v2 (map = "
                          "EARLIER, camera over LATER) in the same layout, to set beside the simulated gap")
     ap.add_argument("--pair-gsd", type=float, help="--pair: ground metres per pixel of images without georeference")
+    ap.add_argument("--readme-dir", metavar="DIR",
+                    help="--realism: also write the README's pictures into DIR (smaller copies of some of --out's, "
+                         "the gap pictures as JPEG; `make pictures`: docs/img)")
     return ap
 
 
@@ -67,18 +81,49 @@ def main(argv: list[str] | None = None) -> int:
             raise ConfigError("pictures: --pair and --pair-gsd add a picture to --realism; give --realism too")
         if args.pair_gsd is not None and not args.pair:
             raise ConfigError("pictures: --pair-gsd describes the images given with --pair; give --pair too")
+        if args.readme_dir and (not args.realism or args.map or args.frames < 3):
+            raise ConfigError("pictures: --readme-dir draws the README's pictures: give --realism, the default map "
+                              "(no --map) and at least 3 --frames")
         written = write_pictures(Path(args.out), map_path=args.map, seed=args.seed, altitude_m=args.altitude,
                                  n_frames=args.frames, map_crs=args.crs, map_gsd_m=args.gsd)
         if args.realism:
             written += write_realism_pictures(Path(args.out), seed=args.seed, map_path=args.map, map_crs=args.crs,
                                               map_gsd_m=args.gsd, altitude_m=args.altitude,
                                               pair=None if not args.pair else (*args.pair, args.pair_gsd))
+        if args.readme_dir:
+            written += write_readme_pictures(Path(args.out), Path(args.readme_dir))
     except AerialLocError as exc:
         print(f"aerial-loc pictures: {exc}", file=sys.stderr)
         return 2
     for path in written:
         print(path)
     return 0
+
+
+def write_readme_pictures(src: Path, dst: Path) -> list[Path]:
+    """The README's pictures (``README_PICTURES``) in ``dst``, made from the pictures in ``src`` (those of
+    ``write_pictures`` and ``write_realism_pictures``): resized to their width (area interpolation), the ``.jpg``
+    ones as JPEG. Returns the written paths."""
+    missing = [made_from for _, made_from, _ in README_PICTURES if not (Path(src) / made_from).is_file()]
+    if missing:
+        raise ConfigError(f"pictures: {src} lacks {', '.join(missing)}, which the README's pictures are made "
+                          "from; write them first (aerial-loc pictures --out DIR --realism --frames 3 or more)")
+    try:
+        Path(dst).mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ConfigError(f"pictures: cannot create the README's picture folder {dst}: {exc.strerror}") from exc
+    written = []
+    for name, made_from, width in README_PICTURES:
+        bgr = cv2.imread(str(Path(src) / made_from), cv2.IMREAD_COLOR)
+        if width is not None and bgr.shape[1] != width:
+            height = round(bgr.shape[0] * width / bgr.shape[1])
+            bgr = cv2.resize(bgr, (width, height), interpolation=cv2.INTER_AREA)
+        path = Path(dst) / name
+        params = [cv2.IMWRITE_JPEG_QUALITY, _README_JPEG_QUALITY] if name.endswith(".jpg") else []
+        if not cv2.imwrite(str(path), bgr, params):
+            raise ConfigError(f"pictures: could not write {path} (check the folder is writable)")
+        written.append(path)
+    return written
 
 
 def write_pictures(out: Path, *, map_path: str | None = None, seed: int = 0, altitude_m: float = 200.0,

@@ -66,3 +66,55 @@ def test_a_real_pair_picture_in_the_same_layout_as_the_simulated_gap(tmp_path, c
     assert picture.shape[1] == 2 * 600 + 6
     half = picture.shape[1] // 2
     assert picture[60:, :half].std() > 5 and picture[60:, half + 6:].std() > 5      # both sides hold the ground
+
+
+def test_readme_pictures_are_smaller_copies_of_the_pictures(tmp_path, capsys):
+    """``write_readme_pictures``: each README picture from its source file, resized to its width (aspect kept) or
+    kept, the ``.jpg`` ones JPEG-encoded; a missing source names itself; ``--readme-dir`` without ``--realism``
+    (or with another map, or too few frames for frame 2) is refused before anything is drawn."""
+    import cv2
+    import numpy as np
+
+    from aerial_loc_env.errors import ConfigError
+    from aerial_loc_env.pictures import README_PICTURES, main, write_readme_pictures
+
+    src = tmp_path / "pictures"
+    src.mkdir()
+    gen = np.random.default_rng(0)
+    for _, made_from, _ in README_PICTURES:
+        cv2.imwrite(str(src / made_from), gen.integers(0, 256, (300, 1800, 3), dtype=np.uint8))
+    written = write_readme_pictures(src, tmp_path / "img")
+    assert [p.name for p in written] == [name for name, _, _ in README_PICTURES]
+    for (name, _, width), path in zip(README_PICTURES, written, strict=True):
+        out = cv2.imread(str(path))
+        assert out.shape == ((200, 1200, 3) if width == 1200 else (143, 860, 3) if width == 860 else (300, 1800, 3))
+        assert path.read_bytes()[:3] == (b"\xff\xd8\xff" if name.endswith(".jpg") else b"\x89PN")
+    (src / "gap_relief.png").unlink()
+    with pytest.raises(ConfigError, match="gap_relief.png"):
+        write_readme_pictures(src, tmp_path / "img2")
+    for args in (["--readme-dir", "d"], ["--realism", "--frames", "2", "--readme-dir", "d"]):
+        assert main(["--out", str(tmp_path / "o"), *args]) == 2
+        assert "--readme-dir" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists() and not (tmp_path / "d").exists()
+
+
+@pytest.mark.slow
+def test_the_readmes_pictures_are_what_the_code_draws(tmp_path):
+    """docs/img is current: ``make pictures``'s command redraws the README's pictures with the same pixels (the
+    PNGs exactly; the JPEGs within a grey level, as another libjpeg build may encode them differently)."""
+    from pathlib import Path
+
+    import cv2
+    import numpy as np
+
+    from aerial_loc_env.pictures import README_PICTURES, main
+
+    docs = Path(__file__).resolve().parents[1] / "docs" / "img"
+    assert main(["--out", str(tmp_path / "all"), "--realism", "--readme-dir", str(tmp_path / "img")]) == 0
+    for name, _, _ in README_PICTURES:
+        drawn, kept = (cv2.imread(str(d / name)).astype(np.int16) for d in (tmp_path / "img", docs))
+        assert drawn.shape == kept.shape, name
+        if name.endswith(".png"):
+            assert np.array_equal(drawn, kept), f"{name}: run `make pictures` and commit docs/img"
+        else:
+            assert np.abs(drawn - kept).mean() < 1.0, f"{name}: run `make pictures` and commit docs/img"
