@@ -353,16 +353,32 @@ def pair_windows(earlier: np.ndarray, later: np.ndarray, cfg: GapConfig, src_gsd
     w, h = round(cfg.window_m[0] / gsd), round(cfg.window_m[1] / gsd)
     m = cfg.margin_px(gsd)
     H, W = a.shape[:2]
-    nx, ny = (W - 2 * m) // w, (H - 2 * m) // h
-    if nx < 1 or ny < 1:
+    origins = _window_origins(W, H, w, h, m)
+    if not origins:
         raise ConfigError(f"gap: the pair covers {W * gsd:.0f} x {H * gsd:.0f} m, too small for one "
                           f"{cfg.window_m[0]:g} x {cfg.window_m[1]:g} m window plus the +-{cfg.search_m:g} m "
                           f"search; use a smaller window (aerial-loc gap --window-m W H, at most "
                           f"{max(0.0, W * gsd - 2 * cfg.search_m):.0f} x {max(0.0, H * gsd - 2 * cfg.search_m):.0f} m "
                           "here; GapConfig.window_m in Python)")
+    return [(b[y:y + h, x:x + w], a[y - m:y + h + m, x - m:x + w + m]) for x, y in origins]
+
+
+def _window_origins(W: int, H: int, w: int, h: int, margin: int = 0) -> list[tuple[int, int]]:
+    """The top-left corners (x, y) of non-overlapping w x h windows on a regular grid centred in a W x H image,
+    every window with ``margin`` px of the image around it (row by row; empty when not one fits)."""
+    nx, ny = (W - 2 * margin) // w, (H - 2 * margin) // h
+    if nx < 1 or ny < 1:
+        return []
     x0, y0 = (W - nx * w) // 2, (H - ny * h) // 2
-    return [(b[y:y + h, x:x + w], a[y - m:y + h + m, x - m:x + w + m])
-            for y in range(y0, y0 + ny * h, h) for x in range(x0, x0 + nx * w, w)]
+    return [(x, y) for y in range(y0, y0 + ny * h, h) for x in range(x0, x0 + nx * w, w)]
+
+
+def _with_valid_channel(om: Any) -> np.ndarray:
+    """An orthomap's RGB with its no-data as a fourth channel (255 = valid), so that resampling and tiling carry
+    it exactly like the pixels."""
+    valid = np.full(om.rgb.shape[:2], 255, np.uint8) if om.nodata is None else \
+        np.where(om.nodata, 0, 255).astype(np.uint8)
+    return np.dstack([om.rgb[..., :3], valid])
 
 
 @dataclass(frozen=True)
@@ -388,9 +404,7 @@ def measure_pair(earlier: str | Path, later: str | Path, cfg: GapConfig | None =
     a, b = Path(earlier), Path(later)
     pair = load_pair(a, b, gsd_m=gsd_m, max_shift_m=max_shift_m, where=f"gap: pair {a} / {b}")
     src = pair.grid.gsd_m
-    # no-data rides along as a fourth channel (255 = valid), so it is tiled exactly like the pixels
-    imgs = [np.dstack([om.rgb, np.where(om.nodata, 0, 255).astype(np.uint8) if om.nodata is not None
-                       else np.full(om.rgb.shape[:2], 255, np.uint8)]) for om in (pair.surveyed, pair.ground)]
+    imgs = [_with_valid_channel(om) for om in (pair.surveyed, pair.ground)]
     valid = [(c[..., :3], d[..., :3]) for c, d in pair_windows(imgs[0], imgs[1], cfg, src)
              if c[..., 3].min() == 255 and d[..., 3].min() == 255]
     if not valid:
@@ -411,30 +425,23 @@ def image_colour_windows(path: str | Path, cfg: GapConfig | None = None, *, gsd_
     through its georeference (``gsd_m`` only for an image without one), its pixels squared at the analysis sampling
     (the coarser of ``cfg.gsd_m`` and its own), tiled into ``cfg.window_m`` windows on a regular grid; windows
     touching no-data are left out."""
-    from aerial_loc_env.world.maps.io import load_orthomap
+    from aerial_loc_env.world.maps.pairs import read_image
 
     cfg = cfg or GapConfig()
     p = Path(path).expanduser()
     if not p.is_file():
         raise ConfigError(f"gap: --image {p}: no such image file")
-    try:
-        om = load_orthomap(p, mmap=False)
-    except MapError as exc:
-        if gsd_m is None or "no georeference" not in str(exc):
-            raise
-        om = load_orthomap(p, gsd_m=gsd_m, mmap=False)
+    om = read_image(p, gsd_m)
     gsd = max(cfg.gsd_m, om.gsd_x_m, om.gsd_y_m)
     size = (max(1, round(om.width_px * om.gsd_x_m / gsd)), max(1, round(om.height_px * om.gsd_y_m / gsd)))
-    valid = np.full(om.rgb.shape[:2], 255, np.uint8) if om.nodata is None else np.where(om.nodata, 0, 255)
-    img = cv2.resize(np.dstack([om.rgb[..., :3], valid.astype(np.uint8)]), size, interpolation=cv2.INTER_AREA)
+    img = cv2.resize(_with_valid_channel(om), size, interpolation=cv2.INTER_AREA)
     w, h = round(cfg.window_m[0] / gsd), round(cfg.window_m[1] / gsd)
-    nx, ny = size[0] // w, size[1] // h
-    if nx < 1 or ny < 1:
+    origins = _window_origins(size[0], size[1], w, h)
+    if not origins:
         raise ConfigError(f"gap: --image {p.name} covers {size[0] * gsd:.0f} x {size[1] * gsd:.0f} m, too small "
                           f"for one {cfg.window_m[0]:g} x {cfg.window_m[1]:g} m window; use a smaller window "
                           "(aerial-loc gap --window-m W H)")
-    x0, y0 = (size[0] - nx * w) // 2, (size[1] - ny * h) // 2
-    windows = [img[y:y + h, x:x + w] for y in range(y0, y0 + ny * h, h) for x in range(x0, x0 + nx * w, w)]
+    windows = [img[y:y + h, x:x + w] for x, y in origins]
     out = [camera_colour_stats(win[..., :3]) for win in windows if win[..., 3].min() == 255]
     if not out:
         raise MapError(f"gap: every window of {p} touches no-data")

@@ -130,8 +130,6 @@ def load_pair(path_a: str | os.PathLike, path_b: str | os.PathLike, *, gsd_m: fl
     max_shift_m: refuse a residual misregistration beyond this (None: never refuse, only measure).
     correct_shift: remove a constant misregistration from A (checked against ``max_shift_m`` afterwards).
     """
-    from aerial_loc_env.world.maps.io import load_orthomap
-
     pa, pb = Path(path_a).expanduser(), Path(path_b).expanduser()
     for label, p in (("A (the map database's epoch)", pa), ("B (the camera's epoch)", pb)):
         if not p.is_file():
@@ -140,16 +138,7 @@ def load_pair(path_a: str | os.PathLike, path_b: str | os.PathLike, *, gsd_m: fl
     if max_shift_m is not None and not (math.isfinite(max_shift_m) and max_shift_m > 0):
         raise MapError(f"{where}: max_shift_m = {max_shift_m!r} must be a positive number of metres (or None)")
 
-    def read(p: Path, gsd: float | None) -> Orthomap:
-        kw = {"crs": crs} if crs is not None else {}
-        try:
-            return load_orthomap(p, mmap=False, **kw)
-        except MapError as exc:
-            if gsd is None or "no georeference" not in str(exc):
-                raise
-        return load_orthomap(p, gsd_m=gsd, mmap=False, **kw)
-
-    a, b = read(pa, gsd_m), read(pb, gsd_b_m if gsd_b_m is not None else gsd_m)
+    a, b = read_image(pa, gsd_m, crs), read_image(pb, gsd_b_m if gsd_b_m is not None else gsd_m, crs)
     georeferenced = [not _nominal(m) for m in (a, b)]
     if georeferenced[0] != georeferenced[1]:
         which, other = (pa, pb) if georeferenced[0] else (pb, pa)
@@ -192,6 +181,20 @@ def load_pair(path_a: str | os.PathLike, path_b: str | os.PathLike, *, gsd_m: fl
                       nodata=_mask(a_bad[box] | b_bad[box]), name=f"{label}_B",
                       source=f"{pb} [pair epoch B; {note}]")
     return Pair(surveyed, ground, grid, registration)
+
+
+def read_image(path: Path, gsd_m: float | None = None, crs: str | int | None = None) -> Orthomap:
+    """One real image, whole, through its georeference; ``gsd_m`` (ground metres per pixel) only where the file
+    has none (else that file's own error is raised)."""
+    from aerial_loc_env.world.maps.io import load_orthomap
+
+    kw = {"crs": crs} if crs is not None else {}
+    try:
+        return load_orthomap(path, mmap=False, **kw)
+    except MapError as exc:
+        if gsd_m is None or "no georeference" not in str(exc):
+            raise
+    return load_orthomap(path, gsd_m=gsd_m, mmap=False, **kw)
 
 
 def _nominal(m: Orthomap) -> bool:
