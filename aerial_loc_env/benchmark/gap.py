@@ -94,7 +94,7 @@ from aerial_loc_env.config import build_config, parse_assignments, rng
 from aerial_loc_env.errors import ConfigError, MapError
 from aerial_loc_env.estimators.feature_matching import make_detector
 from aerial_loc_env.estimators.patches import to_gray
-from aerial_loc_env.estimators.shadow_detection import shadow_index
+from aerial_loc_env.estimators.shadow_detection import dark_class
 from aerial_loc_env.world.maps.pairs import DEFAULT_MAX_SHIFT_M
 
 #: the statistics of one window, in table order
@@ -189,21 +189,16 @@ def surface_stats(surface: np.ndarray, gsd_m: float, radius_m: float) -> dict[st
 
 def camera_colour_stats(camera: np.ndarray) -> dict[str, float]:
     """The camera window's dark-class statistics (module docstring): the c3 shift and luminance ratio of the
-    two Otsu classes of the paper's shadow index; NaN for a grey window or one Otsu cannot split."""
+    two Otsu classes of the paper's shadow index, as the detector computes them (``shadow_detection.dark_class``);
+    NaN for a grey window or one Otsu cannot split."""
     arr = np.asarray(camera)
-    nan = {s: math.nan for s in CAMERA_STATS}
     if arr.ndim != 3 or arr.shape[2] != 3:
-        return nan
-    rgb = np.ascontiguousarray(arr if arr.dtype == np.uint8 else np.clip(np.rint(arr), 0, 255).astype(np.uint8))
-    index, lum, c3 = shadow_index(rgb, "c3_luminance")
-    _, classes = cv2.threshold(np.clip(index * 255.0, 0, 255).astype(np.uint8), 0, 1,
-                               cv2.THRESH_BINARY + cv2.THRESH_OTSU)
-    dark = classes.astype(bool)
-    if dark.all() or not dark.any():
-        return nan
-    lit_lum = float(lum[~dark].mean())
-    return {"dark_c3_shift": float(c3[dark].mean() - c3[~dark].mean()),
-            "dark_luma_ratio": float(lum[dark].mean()) / lit_lum if lit_lum > 0 else math.nan}
+        return {s: math.nan for s in CAMERA_STATS}
+    figures = dark_class(arr if arr.dtype == np.uint8 else np.clip(np.rint(arr), 0, 255).astype(np.uint8))
+    if figures is None:
+        return {s: math.nan for s in CAMERA_STATS}
+    ratio, shift = figures
+    return {"dark_c3_shift": shift, "dark_luma_ratio": ratio}
 
 
 def orb_inlier_ratio(camera: np.ndarray, database: np.ndarray, cfg: GapConfig) -> float:

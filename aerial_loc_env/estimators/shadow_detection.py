@@ -42,6 +42,7 @@ from aerial_loc_env.estimators.shadow_detection_kernels import (
     _open_close,
     _quarter,
     _reduce_index8,
+    _split_figures,
 )
 
 INDICES = ("c3_luminance", "c3", "luminance", "tsai")
@@ -197,6 +198,18 @@ class ShadowDetector:
         mask = _classify(idx8, lum8, c3, idx8.size * 255 >= 2 ** 24, self.config.max_luminance_ratio,
                          self.config.min_blue_shift, oc.open_runs, oc.close_runs)
         return small, ShadowMask(mask.view(np.bool_), img.shape[:2])
+
+
+def dark_class(image: np.ndarray) -> tuple[float, float] | None:
+    """(the dark class's mean luminance over the lit one's, its mean c3 minus the lit one's) of the two classes the
+    detector's ``c3_luminance`` index splits ``image`` (RGB uint8, taken as already reduced) into: the figures its
+    decision compares with ``max_luminance_ratio`` and ``min_blue_shift``; None when Otsu leaves a class empty."""
+    small = np.ascontiguousarray(_rgb8(image, "image"))
+    lum8 = cv2.cvtColor(small, cv2.COLOR_RGB2GRAY)
+    c3 = np.empty(lum8.shape, np.float32)
+    idx8 = _index8(small, lum8, _c3_table(), _INDEX_MODES["c3_luminance"], c3)
+    _, split, ratio, shift = _split_figures(idx8, lum8, c3, idx8.size * 255 >= 2 ** 24)
+    return (float(ratio), float(shift)) if split else None
 
 
 def _rgb8(image: np.ndarray, what: str) -> np.ndarray:

@@ -219,12 +219,11 @@ def _split_stats(binary, lum8, c3, lum_pairwise):
 
 
 @njit(**_JIT)
-def _classify(idx8, lum8, c3, lum_pairwise, max_luminance_ratio, min_blue_shift, open_runs, close_runs):
-    """The detector's work after the index ``idx8`` (h, w) uint8 in one call: Otsu's split (``_otsu``: 1 above the
-    threshold), the decision and the morphology. Returns the mask (h, w) uint8 (``_open_close`` of the split), or
-    zeros when a class is empty, the shadow class is not darker than ``max_luminance_ratio`` times the rest, or
-    (``c3`` not empty) not bluer by ``min_blue_shift``. The means are NumPy's float32 means from ``_split_stats``'
-    sums (``float32(sum) / float32(count)``), the ratio and the difference in float64, as
+def _split_figures(idx8, lum8, c3, lum_pairwise):
+    """Otsu's split of the index ``idx8`` (h, w) uint8 (``_otsu``: 1 above the threshold) and the two figures the
+    detector decides on: (split, both classes non-empty, the shadow class's mean luminance over the rest's, its
+    mean ``c3`` minus the rest's: 0 where ``c3`` is empty). The means are NumPy's float32 means from
+    ``_split_stats``' sums (``float32(sum) / float32(count)``), the ratio and the difference in float64, as
     ``ShadowDetector.detect`` computed them."""
     h, w = idx8.shape
     threshold = _otsu(idx8)
@@ -236,15 +235,24 @@ def _classify(idx8, lum8, c3, lum_pairwise, max_luminance_ratio, min_blue_shift,
     n_in, lum_in, lum_out, c3_in, c3_out = _split_stats(binary, lum8, c3, lum_pairwise)
     n_out = binary.size - n_in
     if n_in == 0 or n_out == 0:
-        return np.zeros(binary.shape, np.uint8)
+        return binary, False, 0.0, 0.0
     mean_in = np.float64(np.float32(lum_in) / np.float32(n_in))
     mean_out = np.float64(np.float32(lum_out) / np.float32(n_out))
     ratio = mean_in / max(mean_out, 1e-6)
-    bluer = True
+    shift = 0.0
     if c3.shape[0] > 0:
         shift = np.float64(np.float32(c3_in) / np.float32(n_in)) - np.float64(np.float32(c3_out) / np.float32(n_out))
-        bluer = shift >= min_blue_shift
-    if ratio > max_luminance_ratio or not bluer:
+    return binary, True, ratio, shift
+
+
+@njit(**_JIT)
+def _classify(idx8, lum8, c3, lum_pairwise, max_luminance_ratio, min_blue_shift, open_runs, close_runs):
+    """The detector's work after the index ``idx8`` (h, w) uint8 in one call: Otsu's split and its figures
+    (``_split_figures``), the decision and the morphology. Returns the mask (h, w) uint8 (``_open_close`` of the
+    split), or zeros when a class is empty, the shadow class is not darker than ``max_luminance_ratio`` times the
+    rest, or (``c3`` not empty) not bluer by ``min_blue_shift``."""
+    binary, split, ratio, shift = _split_figures(idx8, lum8, c3, lum_pairwise)
+    if not split or ratio > max_luminance_ratio or (c3.shape[0] > 0 and not shift >= min_blue_shift):
         return np.zeros(binary.shape, np.uint8)
     return _open_close(binary, open_runs, close_runs)
 
