@@ -604,10 +604,8 @@ class CameraRenderer:
         data, factor = self._grid(occlusion)
         if view is not None:  # shadows lie on the surfaces the perspective view sees
             return sample_grid(view, data, factor)
-        # map pixel u -> grid pixel (u + 0.5) / f - 0.5
-        a = affine / factor
-        a[:, 2] += 0.5 / factor - 0.5
-        return cv2.warpAffine(data, a, size, flags=_WARP_FLAGS, borderMode=cv2.BORDER_REPLICATE)
+        return cv2.warpAffine(data, _to_grid(affine, factor), size, flags=_WARP_FLAGS,
+                              borderMode=cv2.BORDER_REPLICATE)
 
     def _grid(self, occlusion: Any) -> tuple[np.ndarray, int]:
         """The (data, map px per cell) of a ShadowGrid or map-sized array, checked against the map."""
@@ -707,11 +705,9 @@ class CameraRenderer:
         rgba = self.map_level(level)
         if rgba.shape[0] * rgba.shape[1] >= 1 << 32:    # (the pass indexes the level with uint32)
             return None
-        a = affine / factor
-        a[:, 2] += 0.5 / factor - 0.5
         box = rgba.view(np.uint32).reshape(rgba.shape[:2])
-        return _LevelWarp(box, affine / (1 << level), np.ascontiguousarray(data), a, _shading_lut(shading_params),
-                          camera.height_px, camera.width_px)
+        return _LevelWarp(box, affine / (1 << level), np.ascontiguousarray(data), _to_grid(affine, factor),
+                          _shading_lut(shading_params), camera.height_px, camera.width_px)
 
     def _render_baked(self, baked: BakedShadows, affine: np.ndarray, pose: Pose, rng: np.random.Generator,
                       speed_mps: float, status: FootprintStatus,
@@ -816,6 +812,14 @@ class CameraRenderer:
         cos2 = f_px ** 2 / (f_px ** 2 + u ** 2 + v ** 2)
         gain = (1.0 - strength * (1.0 - cos2 ** 2)).astype(np.float32)
         return cv2.merge([gain, gain, gain])
+
+
+def _to_grid(affine: np.ndarray, factor: int) -> np.ndarray:
+    """Frame pixel -> shadow-grid pixel from the frame -> map ``affine``: map pixel u -> grid pixel
+    (u + 0.5) / factor - 0.5."""
+    a = affine / factor
+    a[:, 2] += 0.5 / factor - 0.5
+    return a
 
 
 def _contiguous_occlusion(renderer: CameraRenderer, *args: Any) -> np.ndarray:
