@@ -56,9 +56,7 @@ def learning_curve(run_dir: str | os.PathLike, out_png: str | os.PathLike, *, wi
     run_dir, out_png = Path(run_dir), Path(out_png)
     ev = _eval_rows(run_dir)
     mon = _monitor_rows(run_dir)
-    mpl = require_extra("matplotlib", "plots", "Learning curves")
-    mpl.use("Agg")
-    plt = require_extra("matplotlib.pyplot", "plots", "Learning curves")
+    plt = _pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(11, 4), constrained_layout=True)
     ax = axes[0]
     if mon.size:
@@ -101,6 +99,12 @@ def learning_curve(run_dir: str | os.PathLike, out_png: str | os.PathLike, *, wi
     return _save(plt, fig, title or f"learning curves: {run_dir.name}", out_png, 110)
 
 
+def _pyplot():
+    """matplotlib's pyplot on the Agg backend (files only), or the clear error naming the ``plots`` extra."""
+    require_extra("matplotlib", "plots", "Learning curves").use("Agg")
+    return require_extra("matplotlib.pyplot", "plots", "Learning curves")
+
+
 def _save(plt, fig, title: str, out_png: Path, dpi: int) -> Path:
     fig.suptitle(title)
     out_png.parent.mkdir(parents=True, exist_ok=True)
@@ -125,9 +129,7 @@ def registration_curve(run_dir: str | os.PathLike, out_png: str | os.PathLike, *
     before PPO (the cloned policy, at 0) and along PPO's timesteps."""
     run_dir, out_png = Path(run_dir), Path(out_png)
     bc, ppo = _csv_columns(run_dir / "bc_curve.csv"), _csv_columns(run_dir / "ppo_curve.csv")
-    mpl = require_extra("matplotlib", "plots", "Learning curves")
-    mpl.use("Agg")
-    plt = require_extra("matplotlib.pyplot", "plots", "Learning curves")
+    plt = _pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.6), constrained_layout=True)
     ax = axes[0]
     if bc:
