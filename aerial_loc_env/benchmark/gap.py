@@ -439,7 +439,8 @@ def image_colour_windows(path: str | Path, cfg: GapConfig | None = None, *, gsd_
     windows = [img[y:y + h, x:x + w] for x, y in origins]
     out = [camera_colour_stats(win[..., :3]) for win in windows if win[..., 3].min() == 255]
     if not out:
-        raise MapError(f"gap: every window of {p} touches no-data")
+        raise MapError(f"gap: every {cfg.window_m[0]:g} x {cfg.window_m[1]:g} m window of {p} touches no-data; "
+                       "use a smaller window (aerial-loc gap --window-m W H) or an image with more valid ground")
     return out, gsd
 
 

@@ -179,6 +179,12 @@ def test_a_single_image_gives_its_colour_statistics_window_by_window(tmp_path, c
     assert "no such image file" in capsys.readouterr().err
     assert main(["gap", "--image", str(path), "1.0", "extra"]) == 2
     assert "PATH [GSD]" in capsys.readouterr().err
+    island = np.zeros((300, 400, 3), np.uint8)            # black no-data around a 100 x 100 m patch of ground
+    island[100:200, 150:250] = img[100:200, 150:250] // 2 + 60
+    cv2.imwrite(str(tmp_path / "island.png"), island)
+    assert main(["gap", "--image", str(tmp_path / "island.png"), "1.0"]) == 2
+    assert "touches no-data; use a smaller window" in capsys.readouterr().err
+    assert main(["gap", "--gsd", "1", "--image", str(tmp_path / "island.png"), "1.0", "--window-m", "50", "50"]) == 0
 
 
 def test_pairs_from_files_and_the_command(tmp_path, capsys):
