@@ -118,11 +118,8 @@ def write_readme_pictures(src: Path, dst: Path) -> list[Path]:
         if width is not None and bgr.shape[1] != width:
             height = round(bgr.shape[0] * width / bgr.shape[1])
             bgr = cv2.resize(bgr, (width, height), interpolation=cv2.INTER_AREA)
-        path = Path(dst) / name
         params = [cv2.IMWRITE_JPEG_QUALITY, _README_JPEG_QUALITY] if name.endswith(".jpg") else []
-        if not cv2.imwrite(str(path), bgr, params):
-            raise ConfigError(f"pictures: could not write {path} (check the folder is writable)")
-        written.append(path)
+        written.append(_write_bgr(Path(dst) / name, bgr, params))
     return written
 
 
@@ -282,7 +279,11 @@ def _with_header(img: np.ndarray, text: str) -> np.ndarray:
 
 
 def _save(path: Path, rgb: np.ndarray) -> Path:
-    if not cv2.imwrite(str(path), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)):
+    return _write_bgr(path, cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+
+
+def _write_bgr(path: Path, bgr: np.ndarray, params: list[int] | None = None) -> Path:
+    if not cv2.imwrite(str(path), bgr, params or []):
         raise ConfigError(f"pictures: could not write {path} (check the folder is writable)")
     return path
 
