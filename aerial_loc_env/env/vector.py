@@ -9,7 +9,11 @@ bookkeeping (the pose, the photometry draws, the observation and info dicts) tha
 in threads of one process take turns. ``EnvShards`` splits the N sub-envs into one contiguous block per process:
 the calling process steps the last block itself while each worker steps its own, so the caller's core works
 instead of waiting, and each worker gets one message per step for its whole block (not one per sub-env).
-Observations travel through shared memory; rewards, flags and infos as one small pickle per worker and step.
+Observations travel through shared memory, and so do a Box space's actions and the infos' numbers and numeric
+arrays (``_InfoRecords``: one record per sub-env, laid out by the info's keys and kinds; the objects in an info go
+in the message, and an unchanging one only when it changed); rewards, flags and the rest as one small pickle per
+worker and step. The caller batches the infos from the records (one copy per key), which is what brings the
+lockstep's fixed cost per step below a small scenario's step.
 Sub-envs in one process share one ``World`` (``world.scene``); workers open the same map files (the procedural
 city's disk cache is memory-mapped, so its pages are shared), and each sub-env is built in its worker from the
 scenario id and overrides: nothing map-sized is pickled.
@@ -23,6 +27,7 @@ mask) are Gymnasium's. ``EnvShards`` also serves ``learning.vec_env`` (stable-ba
 from __future__ import annotations
 
 import multiprocessing as mp
+import operator
 import os
 import pickle
 import time
@@ -79,6 +84,246 @@ def _put(leaves: list[tuple[tuple, Any]], slot: int, value: Any) -> None:
         view[slot] = item
 
 
+# ------------------------------------------------------------------------------- infos through shared memory
+#: bytes of shared record per sub-env for its info's numbers and numeric arrays; an info whose numbers need more
+#: (a shadow mask in the info) travels pickled, as do infos that ``batch_infos`` leaves to ``_add_info``
+_INFO_RECORD_BYTES = 1024
+_SCALAR_TYPES = (int, float, bool)
+_IMMUTABLE_TYPES = (str, bytes, int, float, bool, complex, type(None))
+
+
+def _info_kind(value: Any) -> tuple | None:
+    """How ``batch_infos`` batches ``value``: ``(type,)`` a number (an array of its own dtype), ``("array", dtype,
+    shape)`` a numeric array (one more leading axis), ``("object",)`` anything else it keeps as an object; None
+    for what makes it leave the info to ``_add_info`` (a dict) or what no record holds (an object or subclassed
+    array)."""
+    kind = type(value)
+    if kind in _SCALAR_TYPES or issubclass(kind, np.number):
+        return (kind,)
+    if kind is np.ndarray:
+        return ("array", value.dtype.str, value.shape) if value.dtype.kind in "biufc" else None
+    if isinstance(value, (dict, np.ndarray)):
+        return None
+    return ("object",)
+
+
+def _unchanging(value: Any) -> bool:
+    """Whether ``value`` cannot change in place (so a receiver may keep the copy it got): immutable builtins and
+    frozen dataclass instances."""
+    if type(value) in _IMMUTABLE_TYPES:
+        return True
+    params = getattr(value, "__dataclass_params__", None)
+    return params is not None and not isinstance(value, type) and bool(params.frozen)
+
+
+class _InfoLayout:
+    """The shape of one kind of info dict (``signature``: its keys in order, each with its ``_info_kind``): its
+    numbers and numeric arrays as fields of a record of ``_INFO_RECORD_BYTES`` per sub-env in the shared
+    ``records`` (``fields``: one (num_envs, ...) view per such key), its objects beside (in the messages).
+    ``fits`` is False where the numbers need more than a record."""
+
+    def __init__(self, signature: tuple, records: np.ndarray) -> None:
+        self.signature = signature
+        names, formats, offsets, end = [], [], [], 0
+        for key, kind in signature:
+            if kind[0] == "object":
+                continue
+            dtype = np.dtype(kind[0]) if len(kind) == 1 else np.dtype((np.dtype(kind[1]), kind[2]))
+            start = -(-end // 8) * 8
+            names.append(key)
+            formats.append(dtype)
+            offsets.append(start)
+            end = start + dtype.itemsize
+        self.fits = end <= _INFO_RECORD_BYTES
+        self.fields: dict[str, np.ndarray] = {}
+        if self.fits:
+            self.rec = records.view(np.dtype({"names": names, "formats": formats, "offsets": offsets,
+                                              "itemsize": _INFO_RECORD_BYTES}))
+            self.fields = {name: self.rec[name] for name in names}
+        # (key, its field or None for an object, the Python type a number decodes to or None)
+        self.items = [(key, self.fields.get(key), kind[0] if len(kind) == 1 and kind[0] != "object" else None)
+                      for key, kind in signature]
+        self.object_keys = [key for key, kind in signature if kind[0] == "object"]
+        self._numbers = operator.itemgetter(*names) if len(names) > 1 else (lambda info: (info[names[0]],)) \
+            if names else (lambda info: ())
+        # what an info must hold to be of this layout, key by key: a number's type, an array's dtype and shape
+        self._checks = [(key, kind[0] if len(kind) == 1 and kind[0] != "object" else None,
+                         (np.dtype(kind[1]), kind[2]) if kind[0] == "array" else None) for key, kind in signature]
+
+    def holds(self, info: dict) -> bool:
+        """Whether ``info`` (whose keys are this layout's, in order) is of this layout."""
+        for key, scalar, array in self._checks:
+            value = info[key]
+            kind = type(value)
+            if scalar is not None:
+                if kind is not scalar:
+                    return False
+            elif array is not None:
+                if kind is not np.ndarray or value.dtype != array[0] or value.shape != array[1]:
+                    return False
+            elif kind in _SCALAR_TYPES or isinstance(value, (np.ndarray, np.number, dict)):   # no object now
+                return False
+        return True
+
+    def write(self, slot: int, info: dict) -> None:
+        self.rec[slot] = self._numbers(info)
+
+    def read(self, slot: int, objects: dict) -> dict:
+        """Sub-env ``slot``'s info as it was written (numbers of their own Python or NumPy type, array copies)."""
+        out: dict[str, Any] = {}
+        for key, field, scalar in self.items:
+            if field is None:
+                out[key] = objects[key]
+            elif scalar is None:
+                out[key] = field[slot].copy()
+            else:
+                value = field[slot]
+                out[key] = scalar(value) if scalar in _SCALAR_TYPES else value[()]
+        return out
+
+    def batch(self, present: list[bool], objects: Sequence[dict | None]) -> dict[str, Any]:
+        """``batch_infos`` of the sub-envs ``present`` (one bool per sub-env), every one of this layout."""
+        out: dict[str, Any] = {}
+        mask = np.array(present)
+        absent = None if all(present) else ~mask
+        chosen = [i for i, here in enumerate(present) if here]
+        for key, field, _ in self.items:
+            if field is None:
+                array = np.empty(len(present), dtype=object)     # (None where absent)
+                for i in chosen:
+                    array[i] = objects[i][key]
+            else:
+                array = field.copy()
+                if absent is not None:
+                    array[absent] = 0
+            out[key] = array
+            out[f"_{key}"] = mask.copy()
+        return out
+
+
+#: ``_InfoRecords.unpack``'s source for the caller's own sub-envs
+_LOCAL = -1
+
+
+class _InfoRecords:
+    """The shared info records of all sub-envs, as one process sees them. ``pack`` writes a sub-env's info into its
+    record and returns what goes in the message instead of the info: ``(layout id, its signature the first time a
+    worker sends it, the objects)``, where a worker (``remote``) leaves out an object the caller holds already
+    (the same unchanging value as last time); or the info itself where no record holds it. ``unpack`` (the
+    caller's side) resolves an entry from a worker or from the caller's own sub-envs (``_LOCAL``)."""
+
+    def __init__(self, buffer: Any, num_envs: int, remote: bool) -> None:
+        self.records = np.frombuffer(buffer, dtype=np.uint8, count=num_envs * _INFO_RECORD_BYTES)
+        self.remote = remote
+        self._by_signature: dict[tuple, tuple[int, _InfoLayout]] = {}
+        self._by_keys: dict[tuple, tuple[int, _InfoLayout]] = {}   # the last layout of each key sequence
+        self._by_id: list[_InfoLayout] = []
+        self._announced: set[int] = set()
+        self._sent: dict[int, dict[str, Any]] = {}            # per sub-env: the objects the receiver holds
+        self._remote: dict[int, dict[int, _InfoLayout]] = {}  # per process: its layout ids (the caller's side)
+        self.objects: dict[int, dict[str, Any]] = {}          # per sub-env: its latest objects (the caller's side)
+
+    def layout(self, signature: tuple) -> tuple[int, _InfoLayout]:
+        found = self._by_signature.get(signature)
+        if found is None:
+            found = self._by_signature[signature] = (len(self._by_id), _InfoLayout(signature, self.records))
+            self._by_id.append(found[1])
+        return found
+
+    def pack(self, slot: int, info: Any) -> Any:
+        if type(info) is not dict:
+            return info
+        keys = tuple(info)
+        found = self._by_keys.get(keys)
+        if found is None or not found[1].holds(info):
+            signature = []
+            for key, value in info.items():
+                kind = _info_kind(value)
+                if kind is None or key.startswith("_") or key == "final_obs":
+                    return info
+                signature.append((key, kind))
+            found = self._by_keys[keys] = self.layout(tuple(signature))
+        ident, layout = found
+        if not layout.fits:
+            return info
+        try:
+            layout.write(slot, info)
+        except (OverflowError, ValueError, TypeError):     # a number its field cannot hold: sent whole
+            return info
+        sent = self._sent.setdefault(slot, {})
+        objects = []
+        for key in layout.object_keys:
+            value = info[key]
+            if not (self.remote and key in sent and sent[key] is value):
+                objects.append((key, value))
+                if _unchanging(value):
+                    sent[key] = value
+                else:
+                    sent.pop(key, None)
+        new = self.remote and ident not in self._announced
+        self._announced.add(ident)
+        return ident, layout.signature if new else None, tuple(objects)
+
+    def forget(self) -> None:
+        """After a message was lost (an error): announce every layout and send every object again."""
+        self._announced.clear()
+        self._sent.clear()
+
+    def unpack(self, source: int, slot: int, entry: Any) -> Any:
+        """``(layout, slot)`` for a packed entry from process ``source``, else the entry (None, a dict)."""
+        if type(entry) is not tuple:
+            return entry
+        ident, signature, objects = entry
+        if source == _LOCAL:
+            layout = self._by_id[ident]
+        else:
+            ids = self._remote.setdefault(source, {})
+            if signature is not None:
+                ids[ident] = self.layout(signature)[1]
+            layout = ids[ident]
+        self.objects.setdefault(slot, {}).update(objects)
+        return layout, slot
+
+    def batch(self, num_envs: int, entries: Sequence[Any]) -> dict[str, Any] | None:
+        """Gymnasium's batched info of the unpacked ``entries`` (one per sub-env: None, a dict, ``(layout,
+        slot)``): from the records where every present one has one layout, else as ``batch_infos`` (None where
+        that leaves it to ``_add_info``)."""
+        layout = None
+        for entry in entries:
+            if entry is None:
+                continue
+            if type(entry) is not tuple or (layout is not None and entry[0] is not layout):
+                return batch_infos(num_envs, self.dicts(entries))
+            layout = entry[0]
+        if layout is None:
+            return {}
+        return layout.batch([entry is not None for entry in entries], [self.objects.get(i) for i in range(num_envs)])
+
+    def dicts(self, entries: Sequence[Any]) -> list[dict | None]:
+        return [entry[0].read(entry[1], self.objects[entry[1]]) if type(entry) is tuple else entry
+                for entry in entries]
+
+
+class _Slot:
+    """What an op sees of its sub-env's place in the batch: calling it with an observation writes that into the
+    shared batch (the ``put`` of the ops' signature), ``action()`` copies the sub-env's row of the shared actions
+    (the caller writes the next step's over it), ``pack(info)`` the info into the shared records (``_InfoRecords``)."""
+
+    __slots__ = ("index", "_leaves", "_actions", "_records")
+
+    def __init__(self, index: int, leaves: list[tuple[tuple, Any]], actions: Any, records: _InfoRecords) -> None:
+        self.index, self._leaves, self._actions, self._records = index, leaves, actions, records
+
+    def __call__(self, obs: Any) -> None:
+        _put(self._leaves, self.index, obs)
+
+    def action(self) -> Any:
+        return np.array(self._actions[self.index])
+
+    def pack(self, info: Any) -> Any:
+        return self._records.pack(self.index, info)
+
+
 def _op_reset(env: gym.Env, put: Callable[[Any], None], seed: int | None, options: dict | None) -> dict:
     obs, info = env.reset(seed=seed, options=options)
     put(obs)
@@ -89,6 +334,21 @@ def _op_step(env: gym.Env, put: Callable[[Any], None], action: Any) -> tuple:
     obs, reward, terminated, truncated, info = env.step(action)
     put(obs)
     return reward, terminated, truncated, info
+
+
+def _op_reset_packed(env: gym.Env, slot: _Slot, seed: int | None, options: dict | None) -> Any:
+    """``reset``, its info in the shared records (``_InfoRecords.pack``)."""
+    obs, info = env.reset(seed=seed, options=options)
+    slot(obs)
+    return slot.pack(info)
+
+
+def _op_step_packed(env: gym.Env, slot: _Slot, *action: Any) -> tuple:
+    """``step`` with the given action or (none given) the sub-env's row of the shared actions; its info in the
+    shared records."""
+    obs, reward, terminated, truncated, info = env.step(action[0] if action else slot.action())
+    slot(obs)
+    return reward, terminated, truncated, slot.pack(info)
 
 
 def _op_step_same(env: gym.Env, put: Callable[[Any], None], action: Any) -> tuple:
@@ -121,16 +381,13 @@ def _op_apply(env: gym.Env, put: Callable[[Any], None], fn: Callable[..., Any], 
 
 
 _OPS: dict[str, Callable[..., Any]] = {"reset": _op_reset, "step": _op_step, "step_same": _op_step_same,
+                                       "reset_packed": _op_reset_packed, "step_packed": _op_step_packed,
                                        "call": _op_call, "set_attr": _op_set_attr, "none": _op_none,
                                        "apply": _op_apply}
 
 
-def _run_block(envs: Sequence[gym.Env], slots: Sequence[int], leaves: list[tuple[tuple, Any]],
-               commands: Sequence[tuple]) -> list:
-    out = []
-    for env, slot, (op, *args) in zip(envs, slots, commands, strict=True):
-        out.append(_OPS[op](env, lambda obs, slot=slot: _put(leaves, slot, obs), *args))
-    return out
+def _run_block(envs: Sequence[gym.Env], slots: Sequence[_Slot], commands: Sequence[tuple]) -> list:
+    return [_OPS[op](env, slot, *args) for env, slot, (op, *args) in zip(envs, slots, commands, strict=True)]
 
 
 class _RemoteError:
@@ -237,7 +494,7 @@ class _Channel:
 
 
 def _worker(channel: _Channel, fns: CloudpickleWrapper, slots: list[int], shm: Any, num_envs: int,
-            forked: bool) -> None:
+            forked: bool, action_shm: Any, info_buffer: Any) -> None:
     """A worker process: build the block's sub-envs, then run each step's commands until told to stop."""
     parent = mp.parent_process()
     alive = parent.is_alive if parent is not None else (lambda: True)
@@ -248,9 +505,12 @@ def _worker(channel: _Channel, fns: CloudpickleWrapper, slots: list[int], shm: A
 
             cv2.setNumThreads(1)
         envs = [fn() for fn in fns.fn]
-        space = envs[0].observation_space
+        space, action_space = envs[0].observation_space, envs[0].action_space
         leaves = _leaves(space, _views_of(space, shm, num_envs))
-        channel.send(False, ("ok", (space, envs[0].action_space)))
+        actions = None if action_shm is None else _views_of(action_space, action_shm, num_envs)
+        records = _InfoRecords(info_buffer, num_envs, remote=True)
+        places = [_Slot(i, leaves, actions, records) for i in slots]
+        channel.send(False, ("ok", (space, action_space)))
     except BaseException as exc:  # noqa: BLE001 - reported to the caller, which raises it
         channel.send(False, ("error", _RemoteError(exc, slots[len(envs)] if len(envs) < len(slots) else None)))
         return
@@ -260,8 +520,9 @@ def _worker(channel: _Channel, fns: CloudpickleWrapper, slots: list[int], shm: A
             if commands is None:
                 break
             try:
-                channel.send(False, ("ok", _run_block(envs, slots, leaves, commands)))
+                channel.send(False, ("ok", _run_block(envs, places, commands)))
             except Exception as exc:  # noqa: BLE001 - reported to the caller, which raises it
+                records.forget()     # the caller gets none of this block's entries
                 channel.send(False, ("error", _RemoteError(exc, None)))
     except (EOFError, OSError, KeyboardInterrupt):
         pass
@@ -315,13 +576,23 @@ class EnvShards:
         self._shm = create_shared_memory(self.observation_space, self.num_envs, ctx=ctx)
         self.views = _views_of(self.observation_space, self._shm, self.num_envs)
         self._leaves = _leaves(self.observation_space, self.views)
+        # the actions of a Box action space and the infos' numbers also travel through shared memory (``step``
+        # and ``reset`` of ``AerialLocVectorEnv``: the ops "step_packed" and "reset_packed")
+        self._action_shm = create_shared_memory(self.action_space, self.num_envs, ctx=ctx) \
+            if isinstance(self.action_space, spaces.Box) else None
+        self.actions = None if self._action_shm is None else \
+            _views_of(self.action_space, self._action_shm, self.num_envs)
+        self._info_buffer = ctx.RawArray("B", self.num_envs * _INFO_RECORD_BYTES)
+        self.info_records = _InfoRecords(self._info_buffer, self.num_envs, remote=False)
+        self._local = [_Slot(i, self._leaves, self.actions, self.info_records) for i in self.local_slots]
         spin_s = _SPIN_S if processes <= usable_cores() else 0.0
         try:
             for slots in self._blocks:
                 channel = _Channel(ctx, spin_s)
                 fns = CloudpickleWrapper([env_fns[i] for i in slots])
                 proc = ctx.Process(target=_worker, args=(channel, fns, slots, self._shm, self.num_envs,
-                                                         self.start_method == "fork"),
+                                                         self.start_method == "fork", self._action_shm,
+                                                         self._info_buffer),
                                    daemon=True, name=f"aerial-loc vector worker {len(self._procs)}")
                 self._channels.append(channel)
                 proc.start()
@@ -365,8 +636,7 @@ class EnvShards:
                 raise AerialLocError(self._broken) from None
         error: BaseException | None = None
         try:
-            local = _run_block(self.local_envs, self.local_slots, self._leaves,
-                               [commands[i] for i in self.local_slots])
+            local = _run_block(self.local_envs, self._local, [commands[i] for i in self.local_slots])
         except Exception as exc:  # noqa: BLE001 - raised once the workers have answered
             error, local = exc, []
         results: list = [None] * self.num_envs
@@ -376,15 +646,24 @@ class EnvShards:
             if status == "error":
                 remote_error = remote_error or (k, payload)
                 continue
-            for i, res in zip(slots, payload, strict=True):
-                results[i] = res
+            for i, res in zip(slots, payload, strict=True):   # (every answer unpacked: the records stay in step)
+                results[i] = self._unpacked(k, i, commands[i][0], res)
         if remote_error is not None:
             remote_error[1].raise_it(remote_error[0])
         if error is not None:
             raise error
         for i, res in zip(self.local_slots, local, strict=True):
-            results[i] = res
+            results[i] = self._unpacked(_LOCAL, i, commands[i][0], res)
         return results
+
+    def _unpacked(self, source: int, slot: int, op: str, result: Any) -> Any:
+        """A packed op's result with its info entry resolved (``_InfoRecords.unpack``); other results as they are."""
+        if op == "step_packed":
+            reward, terminated, truncated, entry = result
+            return reward, terminated, truncated, self.info_records.unpack(source, slot, entry)
+        if op == "reset_packed":
+            return self.info_records.unpack(source, slot, result)
+        return result
 
     def _receive_raw(self, k: int) -> tuple[str, Any]:
         proc = self._procs[k]
@@ -561,44 +840,54 @@ class AerialLocVectorEnv(VectorEnv):
             if not isinstance(mask, np.ndarray) or mask.shape != (n,) or mask.dtype != np.bool_ or not mask.any():
                 raise ValueError(f"`options['reset_mask']` must be a numpy bool array of shape ({n},) with at "
                                  f"least one True value, got {mask!r}")
-        results = self._shards.run([("reset", seeds[i], options) if mask[i] else ("none",) for i in range(n)])
+        results = self._shards.run([("reset_packed", seeds[i], options) if mask[i] else ("none",)
+                                    for i in range(n)])
         self._terminations[mask] = False
         self._truncations[mask] = False
         self._autoreset_envs[mask] = False
         return self._observations(), self._infos([results[i] if mask[i] else None for i in range(n)])
 
-    def _infos(self, infos: Sequence[dict | None]) -> dict[str, Any]:
-        batched = batch_infos(self.num_envs, infos)
+    def _infos(self, entries: Sequence[Any]) -> dict[str, Any]:
+        """The sub-envs' infos batched (``entries``: what ``EnvShards.run`` returned for each: None, an info, a
+        packed info)."""
+        records = self._shards.info_records
+        batched = records.batch(self.num_envs, entries)
         if batched is None:
             batched = {}
-            for i, info in enumerate(infos):
+            for i, info in enumerate(records.dicts(entries)):
                 if info is not None:
                     batched = self._add_info(batched, info, i)
         return batched
 
     def step(self, actions: Any) -> tuple[Any, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
         """Step every sub-env with its row of ``actions``; finished sub-envs reset as ``autoreset_mode`` says."""
-        rows = list(iterate(self.action_space, actions))
-        if len(rows) != self.num_envs:
-            raise AerialLocError(f"step: {len(rows)} actions for {self.num_envs} sub-envs; pass one action per "
-                                 f"sub-env (shape {self.action_space.shape})")
         mode = self.autoreset_mode
+        shared = self._shards.actions
+        if (mode != AutoresetMode.SAME_STEP and shared is not None and type(actions) is np.ndarray
+                and actions.dtype == shared.dtype and actions.shape == shared.shape):
+            shared[...] = actions        # each sub-env reads its row (an action of another dtype goes as it is)
+            rows: list = [()] * self.num_envs
+        else:
+            rows = [(row,) for row in iterate(self.action_space, actions)]
+            if len(rows) != self.num_envs:
+                raise AerialLocError(f"step: {len(rows)} actions for {self.num_envs} sub-envs; pass one action "
+                                     f"per sub-env (shape {self.action_space.shape})")
         if mode == AutoresetMode.NEXT_STEP:
-            commands = [("reset", None, None) if self._autoreset_envs[i] else ("step", rows[i])
+            commands = [("reset_packed", None, None) if self._autoreset_envs[i] else ("step_packed", *rows[i])
                         for i in range(self.num_envs)]
         elif mode == AutoresetMode.DISABLED:
             if self._autoreset_envs.any():
                 raise AerialLocError(f"step: sub-envs {np.flatnonzero(self._autoreset_envs).tolist()} finished "
                                      "their episodes; with autoreset_mode DISABLED reset them first "
                                      "(reset(options={'reset_mask': terminations | truncations}))")
-            commands = [("step", row) for row in rows]
+            commands = [("step_packed", *row) for row in rows]
         else:
-            commands = [("step_same", row) for row in rows]
+            commands = [("step_same", *row) for row in rows]
         results = self._shards.run(commands)
-        step_infos: list[dict] = []
+        step_infos: list[Any] = []
         finals: list[dict | None] = []
         for i, res in enumerate(results):
-            if commands[i][0] == "reset":
+            if commands[i][0] == "reset_packed":
                 self._rewards[i], self._terminations[i], self._truncations[i] = 0.0, False, False
                 step_infos.append(res)
             elif mode == AutoresetMode.SAME_STEP:

@@ -178,6 +178,82 @@ def test_infos_batch_as_gymnasium_does() -> None:
     sync.close()
 
 
+def test_infos_through_the_shared_records_batch_as_gymnasium_does() -> None:
+    """A worker packs each info into the shared records (numbers) and its message (objects, only when changed, and
+    every time for one that can change in place); the caller's batch equals Gymnasium's ``_add_info``, key order
+    included, across changing layouts, absent sub-envs and infos no record holds (sent whole)."""
+    from dataclasses import dataclass
+
+    from aerial_loc_env.env.vector import _INFO_RECORD_BYTES, _LOCAL, _InfoRecords
+
+    @dataclass(frozen=True)
+    class Frozen:
+        x: float
+
+    sync = gym.vector.SyncVectorEnv([lambda: gym.make(SID, **SHORT)] * 3)
+    shared = bytearray(3 * _INFO_RECORD_BYTES)
+    worker, caller = _InfoRecords(shared, 3, remote=True), _InfoRecords(shared, 3, remote=False)
+    frozen, mutable = Frozen(1.0), [1, 2]
+    rounds = [
+        [{"t": 0.5, "p": np.arange(4.0), "s": 3, "o": frozen}, None, {"t": 1.5, "p": np.ones(4), "s": 4, "o": frozen}],
+        [{"t": 0.5, "p": np.arange(4.0), "s": 3, "o": frozen}, {"t": 2.5, "p": np.zeros(4), "s": 5, "o": mutable},
+         {"t": 1.5, "p": np.ones(4), "s": 4, "o": frozen}],
+        [{"t": 7.0, "s": 1, "o": Frozen(2.0)}, {"t": 8.0, "s": 2, "o": mutable}, {"t": 9.0, "s": 3, "o": frozen}],
+        [{"t": 7.0, "s": 1, "o": frozen}, {"t": 8.0, "s": 2, "o": mutable}, {"s": 3, "t": 9.0, "o": frozen}],
+        [{"f": True, "q": np.float32(1.5), "b": np.bool_(True)}, {"f": False, "q": np.float32(2.5), "b": None},
+         {"big": np.zeros(_INFO_RECORD_BYTES)}],
+        [{"nested": {"x": 1}}, None, {"_hidden": 1.0}],   # left to _add_info, as by batch_infos
+    ]
+    for k, infos in enumerate(rounds):
+        if k == 3:
+            mutable.append(3)                             # changed in place: the caller must see it
+        # sub-envs 0 and 1 in a worker, sub-env 2 in the caller's own block
+        entries = [caller.unpack(0, i, worker.pack(i, info)) for i, info in enumerate(infos[:2])]
+        entries.append(caller.unpack(_LOCAL, 2, caller.pack(2, infos[2])))
+        expected: dict = {}
+        for i, info in enumerate(infos):
+            if info is not None:
+                expected = sync._add_info(expected, info, i)
+        batched = caller.batch(3, entries)
+        if batched is None:
+            batched = {}
+            for i, info in enumerate(caller.dicts(entries)):
+                if info is not None:
+                    batched = sync._add_info(batched, info, i)
+        assert data_equivalence(batched, expected) and list(batched) == list(expected), f"round {k}"
+    packed = worker.pack(0, rounds[0][0])
+    assert isinstance(packed, tuple) and packed[1] is None and packed[2] == ()   # the frozen object held already
+    assert worker.pack(1, rounds[1][1])[2] == (("o", mutable),)                  # a list: sent every time
+    big = {"n": 2**70}
+    assert worker.pack(0, big) is big                  # no int64 holds it: the info goes whole (as it was)
+    worker.forget()                                                               # (after a lost message)
+    assert worker.pack(0, rounds[0][0])[1:] == ((("t", (float,)), ("p", ("array", "<f8", (4,))), ("s", (int,)),
+                                                  ("o", ("object",))), (("o", frozen),))
+    sync.close()
+
+
+def test_actions_of_another_dtype_go_as_given_and_big_infos_whole() -> None:
+    """Float64 actions reach the sub-envs unrounded (not through the float32 shared actions), integer actions are
+    refused as a single env refuses them, and an info too big for a record (the shadow mask) arrives whole: all
+    equal to SyncVectorEnv."""
+    kw = {**SHORT, "observation.info_shadow_mask": True}
+    ours = gym.make_vec(SID, num_envs=2, processes=2, **kw)
+    sync = gym.make_vec(SID, num_envs=2, vectorization_mode="sync", **kw)
+    try:
+        for envs in (ours, sync):
+            envs.reset(seed=6)
+        for actions in _actions(2, 9, seed=8):
+            actions = actions.astype(np.float64) + 1e-9    # not a float32 value
+            out_a, out_b = ours.step(actions), sync.step(actions)
+            assert all(data_equivalence(x, y) for x, y in zip(out_a, out_b, strict=True))
+        assert out_a[4]["shadow_mask"].shape == (2, 64, 64)
+        with pytest.raises(InvalidActionError, match="float array"):
+            ours.step(np.zeros((2, 2), np.int64))
+    finally:
+        ours.close()
+        sync.close()
+
+
 @pytest.mark.parametrize("mode", ["vector_entry_point", "async"])
 def test_sub_env_factories_pickle_without_maps(mode: str) -> None:
     """What travels to a worker is the id and the overrides (a few KB), never a map."""
