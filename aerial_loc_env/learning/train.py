@@ -264,6 +264,7 @@ def train(spec_name: str | os.PathLike, out_dir: str | os.PathLike | None = None
         require_extra("torch", "rl", "Training").set_num_threads(recipe.torch_threads)
 
     env = _vec_env(recipe, out)
+    logger = None
     try:
         if resume is not None:
             model = cls.load(str(resume), env=env, device=recipe.device)
@@ -273,7 +274,8 @@ def train(spec_name: str | os.PathLike, out_dir: str | os.PathLike | None = None
         done = int(model.num_timesteps)
         formats = ["csv"] + (["tensorboard"] if importlib.util.find_spec("tensorboard") else [])
         formats += ["stdout"] if verbose else []
-        model.set_logger(logger_mod.configure(str(out / "logs"), formats))
+        logger = logger_mod.configure(str(out / "logs"), formats)
+        model.set_logger(logger)
         evaluator = _eval_callback(recipe, out)
         checkpoints = callbacks_mod.CheckpointCallback(max(recipe.checkpoint_freq // recipe.n_envs, 1),
                                                        str(out / "checkpoints"), name_prefix="model")
@@ -292,6 +294,8 @@ def train(spec_name: str | os.PathLike, out_dir: str | os.PathLike | None = None
         os.replace(tmp, model_path)
     finally:
         env.close()
+        if logger is not None:      # its files (progress.csv, the event files) closed, not left to the collector
+            logger.close()
     if spec_text is not None:
         (out / "recipe.toml").write_text(spec_text)
     scenario = scenario_spec(recipe)

@@ -35,6 +35,11 @@ def _step(env: gym.Env, put: Callable[[Any], None], action: Any) -> tuple:
     return reward, done, info, reset_info
 
 
+def _step_shared(env: gym.Env, put: Any) -> tuple:
+    """``_step`` with the sub-env's row of the shared actions (``EnvShards.actions``)."""
+    return _step(env, put, put.action())
+
+
 def _get_attr(env: gym.Env, put: Callable[[Any], None], name: str) -> Any:
     return env.get_wrapper_attr(name)
 
@@ -107,7 +112,14 @@ class ShardVecEnv(_vec.VecEnv):
 
     def step_wait(self) -> Any:
         actions, self._actions = self._actions, None
-        results = self._shards.run([("apply", _step, actions[i]) for i in range(self.num_envs)])
+        shared = self._shards.actions
+        if shared is not None and type(actions) is np.ndarray and actions.dtype == shared.dtype \
+                and actions.shape == shared.shape:
+            shared[...] = actions       # each sub-env reads its row (actions of another dtype go as they are)
+            commands = [("apply", _step_shared)] * self.num_envs
+        else:
+            commands = [("apply", _step, actions[i]) for i in range(self.num_envs)]
+        results = self._shards.run(commands)
         rewards, dones, infos = [], [], []
         for i, (reward, done, info, reset_info) in enumerate(results):
             rewards.append(reward)
