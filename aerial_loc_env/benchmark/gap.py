@@ -2,7 +2,7 @@
 
 A benchmark ranks localization methods the way a real flight would only if its map and camera differ as much
 as real acquisitions do. This module measures that difference with six statistics (and the camera window's
-colours with two more), on
+colours with two more, and the two windows' luma photometry with three), on
 
 - a scenario (``scenario_gap``): the env's camera frame against the database patch rendered at the frame's
   *true* pose (the estimators' map, ``briefing.orthomap``), at every ``stride``-th frame of several seeds. Like
@@ -67,6 +67,18 @@ Both are NaN for a grey camera window. They are reported beside the gap statisti
 presets' calibration (``STATS``). A single real image (``image_colour_windows``, ``aerial-loc gap --image``: no
 second epoch, so these two only) shows them for imagery of other places and sensors than the pairs'.
 
+Three more compare the two windows' luma at the truth (``photometric_stats``), the photometric part of the gap
+that the sum-of-squared-differences model sees and the correlation-based statistics do not (reported, not
+calibrated either):
+
+``luma_ratio``
+    mean luma of C / mean luma of D: the exposure and brightness difference.
+``contrast_ratio``
+    standard deviation of C's luma / that of D: the contrast difference (tone curves, haze, shadows, blur).
+``ssd_residual``
+    mean of (C - D)^2 / variance of D: the squared difference at the true pose, in units of the map's variance
+    (0 = identical; 1 - 2 rho k + k^2 + (mean difference / std D)^2 for correlation rho and contrast ratio k).
+
 Summaries (``summarize``) give the median, the quartiles and the mean of each statistic over windows. The
 **spread of the real pairs** is the range (min..max) over pairs of each pair's median (of its mean, for
 ``template_within``); ``aerial-loc gap`` marks a scenario's statistic that lies inside it. How far a headline
@@ -101,12 +113,16 @@ from aerial_loc_env.world.maps.pairs import DEFAULT_MAX_SHIFT_M
 STATS = ("ncc", "bit_agreement", "psr", "peak_margin", "orb_inlier_ratio", "template_within")
 #: the camera window's own colour statistics (reported, not calibrated)
 CAMERA_STATS = ("dark_c3_shift", "dark_luma_ratio")
+#: the camera window's luma against the database's at the truth (reported, not calibrated)
+PHOTO_STATS = ("luma_ratio", "contrast_ratio", "ssd_residual")
 #: every statistic of a window, in table order
-ALL_STATS = STATS + CAMERA_STATS
+ALL_STATS = STATS + CAMERA_STATS + PHOTO_STATS
 #: column titles of the printed table
 TITLES = {"ncc": "NCC", "bit_agreement": "bit agreement", "psr": "PSR", "peak_margin": "peak margin",
           "orb_inlier_ratio": "ORB inliers", "template_within": "template <= 2 m",
-          "dark_c3_shift": "dark c3 shift", "dark_luma_ratio": "dark / lit luma"}
+          "dark_c3_shift": "dark c3 shift", "dark_luma_ratio": "dark / lit luma",
+          "luma_ratio": "camera / map luma", "contrast_ratio": "camera / map contrast",
+          "ssd_residual": "SSD residual"}
 
 
 @dataclass(frozen=True)
@@ -239,7 +255,20 @@ def window_stats(camera: np.ndarray, database: np.ndarray, cfg: GapConfig, gsd_m
     core = db[m:m + h, m:m + w]
     return {"ncc": ncc(cam, core), "bit_agreement": bit_agreement(cam, core, cfg.n_bits, cfg.seed),
             **surface_stats(ncc_surface(cam, db), gsd, cfg.success_radius_m),
-            "orb_inlier_ratio": orb_inlier_ratio(cam, db, cfg), **camera_colour_stats(camera)}
+            "orb_inlier_ratio": orb_inlier_ratio(cam, db, cfg), **camera_colour_stats(camera),
+            **photometric_stats(cam, core)}
+
+
+def photometric_stats(camera: np.ndarray, database: np.ndarray) -> dict[str, float]:
+    """The camera window's luma against the database window's at the truth (module docstring): mean ratio,
+    standard deviation ratio and the SSD residual (mean squared difference / the database's variance); NaN where
+    the database window is constant (or black)."""
+    c, d = np.asarray(camera, dtype=np.float64), np.asarray(database, dtype=np.float64)
+    mean_d, var_d = float(d.mean()), float(d.var())
+    if mean_d <= 0.0 or var_d <= 0.0:
+        return {s: math.nan for s in PHOTO_STATS}
+    return {"luma_ratio": float(c.mean()) / mean_d, "contrast_ratio": math.sqrt(float(c.var()) / var_d),
+            "ssd_residual": float(np.mean((c - d) ** 2)) / var_d}
 
 
 # ------------------------------------------------------------------------------------------ summaries
@@ -541,20 +570,21 @@ def _cell(summary: Mapping[str, Mapping[str, float]], stat: str, inside: bool | 
 
 
 def gap_table(rows: Sequence[tuple[str, Mapping[str, Mapping[str, float]]]],
-              real: Mapping[str, tuple[float, float]] | None = None, *, unmarked: Iterable[str] = ()) -> str:
-    """A Markdown table: one row per source (label, summary), median (p25-p75) per statistic (the fraction
-    for template matching); with ``real`` (the real pairs' spread) a spread row, and '*' marks a figure
+              real: Mapping[str, tuple[float, float]] | None = None, *, unmarked: Iterable[str] = (),
+              stats: Sequence[str] = STATS + CAMERA_STATS) -> str:
+    """A Markdown table of ``stats``: one row per source (label, summary), median (p25-p75) per statistic (the
+    fraction for template matching); with ``real`` (the real pairs' spread) a spread row, and '*' marks a figure
     inside it (except on the ``unmarked`` rows: the real pairs themselves)."""
     unmarked = set(unmarked)
-    head = "| source | windows | " + " | ".join(TITLES[s] for s in ALL_STATS) + " |"
-    lines = [head, "|" + "---|" * (len(ALL_STATS) + 2)]
+    head = "| source | windows | " + " | ".join(TITLES[s] for s in stats) + " |"
+    lines = [head, "|" + "---|" * (len(stats) + 2)]
     for label, summary in rows:
         cells = []
-        for s in ALL_STATS:
+        for s in stats:
             inside = None if real is None or label in unmarked or s not in summary else \
                 real[s][0] <= headline(summary, s) <= real[s][1]
             cells.append(_cell(summary, s, inside))
-        n = max(summary[s]["n"] for s in ALL_STATS if s in summary)
+        n = max(summary[s]["n"] for s in stats if s in summary)
         lines.append(f"| {label} | {n} | " + " | ".join(cells) + " |")
     if real is not None:
         def rng_cell(s: str) -> str:
@@ -564,7 +594,7 @@ def gap_table(rows: Sequence[tuple[str, Mapping[str, Mapping[str, float]]]],
             if s == "dark_c3_shift":
                 return f"{lo:+.3f} to {hi:+.3f}"
             return f"{lo:.0%}-{hi:.0%}" if s == "template_within" else f"{lo:.2f}-{hi:.2f}"
-        lines.append("| **real pairs: spread** | | " + " | ".join(rng_cell(s) for s in ALL_STATS) + " |")
+        lines.append("| **real pairs: spread** | | " + " | ".join(rng_cell(s) for s in stats) + " |")
     return "\n".join(lines)
 
 
@@ -719,6 +749,12 @@ def main(argv: list[str] | None = None) -> int:
           "template <= 2 m: fraction of windows; dark c3 shift and dark / lit luma: the camera window alone, "
           "the two Otsu classes of the shadow index (not calibrated)"
           + ("; * = inside the real pairs' spread" if real else ""))
+    photo_rows = [(label, summary) for label, summary in rows if label not in result["images"]]
+    if photo_rows:
+        print("\ncamera against map luma at the truth (the exposure, contrast and squared-difference part of the "
+              "gap; not calibrated):\n")
+        print(gap_table(photo_rows, real, unmarked=list(result["pairs"]), stats=PHOTO_STATS))
+        print()
     for label, info in result["pairs"].items():
         print(f"{label}: {info['registration']}")
     if args.json:

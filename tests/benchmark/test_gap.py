@@ -153,6 +153,34 @@ def test_camera_colour_statistics_need_a_colour_window_with_two_classes():
     assert table.splitlines()[-1].endswith("| - | - |")
 
 
+def test_photometric_statistics_of_a_camera_window_that_is_the_map_under_gain_offset_and_noise():
+    """C = k D + b + n (noise n independent of D): the luma ratio is mean C / mean D, the contrast ratio
+    sqrt(k^2 + var n / var D) and the SSD residual ((k - 1)^2 var D + var n + (mean C - mean D)^2) / var D, from the
+    windows' own moments; identical windows give 1, 1 and 0."""
+    rng = np.random.default_rng(4)
+    d = rng.uniform(40.0, 200.0, (100, 150))
+    n = rng.normal(0.0, 6.0, d.shape)
+    n -= n.mean()
+    c = 0.6 * d + 20.0 + n
+    got = gap.photometric_stats(c, d)
+    var_d, cov = d.var(), np.mean((d - d.mean()) * (n - n.mean()))
+    assert got["luma_ratio"] == pytest.approx(c.mean() / d.mean(), rel=1e-12)
+    assert got["contrast_ratio"] == pytest.approx(np.sqrt(0.36 + (n.var() + 1.2 * cov) / var_d), rel=1e-9)
+    expected_ssd = (0.16 * var_d + n.var() - 0.8 * cov + (c.mean() - d.mean()) ** 2) / var_d
+    assert got["ssd_residual"] == pytest.approx(expected_ssd, rel=1e-9)
+    assert gap.photometric_stats(d, d) == {"luma_ratio": 1.0, "contrast_ratio": 1.0, "ssd_residual": 0.0}
+    assert all(math.isnan(v) for v in gap.photometric_stats(d, np.full_like(d, 90.0)).values())
+    cfg = gap.GapConfig()
+    m = cfg.margin_px(cfg.gsd_m)
+    img = texture(200, 300, seed=5)
+    darker = (img * 0.5).astype(np.uint8)
+    stats = gap.window_stats(darker, cv2.copyMakeBorder(img, m, m, m, m, cv2.BORDER_REFLECT), cfg)
+    assert stats["luma_ratio"] == pytest.approx(0.5, abs=0.01) and stats["contrast_ratio"] == pytest.approx(0.5,
+                                                                                                           abs=0.01)
+    table = gap.gap_table([("half", gap.summarize([stats]))], stats=gap.PHOTO_STATS)
+    assert table.splitlines()[0] == "| source | windows | camera / map luma | camera / map contrast | SSD residual |"
+
+
 def test_a_single_image_gives_its_colour_statistics_window_by_window(tmp_path, capsys):
     """``--image PATH GSD``: a 400 x 300 m image at 1 m/px in 150 x 100 m windows (2 x 3 of them, centred), each
     scored by ``camera_colour_stats`` on the windows cut from the image; the gap columns stay empty."""
