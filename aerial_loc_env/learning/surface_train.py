@@ -532,6 +532,9 @@ def _fine_tune(model: Any, r: RegistrationRecipe, val_seeds: list[int], curve: l
             if state["last"] != self.num_timesteps and time.perf_counter() < deadline + 120:
                 self.run()
 
+    # no SB3 output (the curve above is the record): its default logger would leave an SB3-<date> folder in /tmp
+    model.set_logger(require_extra("stable_baselines3.common.logger", "rl", "Training the learned registration")
+                     .Logger(None, []))
     model.learn(r.ppo_timesteps, callback=ValEval())
     return state["best"]
 
