@@ -161,10 +161,11 @@ def test_shipped_policy_metadata() -> None:
     assert policy.meta["training"]["chosen"].split("@")[0] in ("bc", "bc+ppo")
 
 
-def test_recipe_end_to_end_on_a_tiny_budget(tmp_path: Path) -> None:
+def test_recipe_end_to_end_on_a_tiny_budget(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """`aerial-loc train` on the recipe with a tiny budget: cloning data, cloning, PPO steps, the policy written
-    (and refused over without --overwrite), and it runs as the agent."""
+    (and refused over without --overwrite), and it runs as the agent; SB3's default logger folder never made."""
     pytest.importorskip("stable_baselines3")
+    monkeypatch.setenv("SB3_LOGDIR", str(tmp_path / "sb3-default-logger"))     # where SB3's default would write
     from aerial_loc_env.learning.cli import main
 
     text = (REPO / "agents" / "ppo-learned-registration.toml").read_text()
@@ -184,3 +185,4 @@ def test_recipe_end_to_end_on_a_tiny_budget(tmp_path: Path) -> None:
     assert policy.meta["training"]["chosen"] == meta["training"]["chosen"]
     with pytest.raises(ConfigError, match="exists"):
         main([str(spec), "--out", str(out)])
+    assert not (tmp_path / "sb3-default-logger").exists()
