@@ -88,6 +88,9 @@ def _put(leaves: list[tuple[tuple, Any]], slot: int, value: Any) -> None:
 #: bytes of shared record per sub-env for its info's numbers and numeric arrays; an info whose numbers need more
 #: (a shadow mask in the info) travels pickled, as do infos that ``batch_infos`` leaves to ``_add_info``
 _INFO_RECORD_BYTES = 1024
+#: the most info layouts a process keeps; an info of a new layout beyond them travels pickled (an env whose info
+#: keys change every step would otherwise grow the table without end)
+_MAX_INFO_LAYOUTS = 64
 _SCALAR_TYPES = (int, float, bool)
 _IMMUTABLE_TYPES = (str, bytes, int, float, bool, complex, type(None))
 
@@ -95,8 +98,8 @@ _IMMUTABLE_TYPES = (str, bytes, int, float, bool, complex, type(None))
 def _info_kind(value: Any) -> tuple | None:
     """How ``batch_infos`` batches ``value``: ``(type,)`` a number (an array of its own dtype), ``("array", dtype,
     shape)`` a numeric array (one more leading axis), ``("object",)`` anything else it keeps as an object; None
-    for what makes it leave the info to ``_add_info`` (a dict) or what no record holds (an object or subclassed
-    array)."""
+    for what makes it leave the info to ``_add_info`` (a dict) or what no record holds (an array of objects or
+    strings, a subclassed array)."""
     kind = type(value)
     if kind in _SCALAR_TYPES or issubclass(kind, np.number):
         return (kind,)
@@ -242,7 +245,10 @@ class _InfoRecords:
                 if kind is None or key.startswith("_") or key == "final_obs":
                     return info
                 signature.append((key, kind))
-            found = self._by_keys[keys] = self.layout(tuple(signature))
+            signature = tuple(signature)
+            if signature not in self._by_signature and len(self._by_id) >= _MAX_INFO_LAYOUTS:
+                return info
+            found = self._by_keys[keys] = self.layout(signature)
         ident, layout = found
         if not layout.fits:
             return info

@@ -184,6 +184,7 @@ def test_infos_through_the_shared_records_batch_as_gymnasium_does() -> None:
     included, across changing layouts, absent sub-envs and infos no record holds (sent whole)."""
     from dataclasses import dataclass
 
+    from aerial_loc_env.env import vector
     from aerial_loc_env.env.vector import _INFO_RECORD_BYTES, _LOCAL, _InfoRecords
 
     @dataclass(frozen=True)
@@ -226,6 +227,9 @@ def test_infos_through_the_shared_records_batch_as_gymnasium_does() -> None:
     assert worker.pack(1, rounds[1][1])[2] == (("o", mutable),)                  # a list: sent every time
     big = {"n": 2**70}
     assert worker.pack(0, big) is big                  # no int64 holds it: the info goes whole (as it was)
+    many = [{f"key_{k}": 1.0} for k in range(vector._MAX_INFO_LAYOUTS + 1)]   # a new layout every time
+    packed = [worker.pack(0, info) for info in many]
+    assert len(worker._by_id) == vector._MAX_INFO_LAYOUTS and packed[-1] is many[-1]
     worker.forget()                                                               # (after a lost message)
     assert worker.pack(0, rounds[0][0])[1:] == ((("t", (float,)), ("p", ("array", "<f8", (4,))), ("s", (int,)),
                                                   ("o", ("object",))), (("o", frozen),))
