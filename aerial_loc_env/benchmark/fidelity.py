@@ -249,6 +249,9 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="an override for every scenario, real and simulated, after the fitted flight (JSON value), "
                          "e.g. flight.duration_s=20 for a quick look")
+    ap.add_argument("--sim-set", action="append", default=[], metavar="KEY=VALUE",
+                    help="an override for the simulated presets only, after --set (JSON value): a sensitivity run "
+                         "against the same real trials, e.g. perspective.enabled=false")
     ap.add_argument("--quiet", action="store_true", help="no progress bar")
     return ap
 
@@ -308,8 +311,9 @@ def main(argv: list[str] | None = None) -> int:
     smallest = min(extents.values(), key=min)
     flight = fit_flight(smallest)
     extra = _overrides(args.set)
+    sim_extra = _overrides(args.sim_set)
     real = tuple(ScenarioEntry(**e) for e in pair_entries(sources, flight, extra))
-    sims = tuple(ScenarioEntry(sid, {**sim_overrides(flight), **extra}, f"sim: {sid.split('/')[-1]}")
+    sims = tuple(ScenarioEntry(sid, {**sim_overrides(flight), **extra, **sim_extra}, f"sim: {sid.split('/')[-1]}")
                  for sid in (args.sim or DEFAULT_SIMS))
     grids = [Grid("fidelity", agents, real, tuple(range(args.seeds))),
              Grid("fidelity", agents, sims, tuple(range(args.sim_seeds)))]
@@ -318,7 +322,8 @@ def main(argv: list[str] | None = None) -> int:
     print(f"fidelity: {len(agents)} agents on {len(real)} real pairs x {args.seeds} seeds and {len(sims)} "
           f"preset(s) x {args.sim_seeds} seeds at {flight['flight.altitude_m']:g} m, "
           f"{flight['flight.duration_s']:g} s (fitted to {smallest[0]:.0f} x {smallest[1]:.0f} m)"
-          f"{f', overrides {extra}' if extra else ''} -> {out}/", flush=True)
+          f"{f', overrides {extra}' if extra else ''}{f', presets only {sim_extra}' if sim_extra else ''} -> {out}/",
+          flush=True)
     rows: list[dict] = []
     for grid in grids:
         rows += run_grid(grid, str(out), workers=args.workers, progress=not args.quiet)
@@ -337,7 +342,8 @@ def main(argv: list[str] | None = None) -> int:
     text = [f"# Fidelity: simulated presets against {len(real)} real pairs\n",
             f"Flight: {PAIR_ID}'s geometry at {flight['flight.altitude_m']:g} m for {flight['flight.duration_s']:g} s "
             f"(fitted to the smallest pair, {smallest[0]:.0f} x {smallest[1]:.0f} m)"
-            f"{f', overrides {extra}' if extra else ''}; {args.seeds} seeds per pair, {args.sim_seeds} per preset; "
+            f"{f', overrides {extra}' if extra else ''}{f', presets only {sim_extra}' if sim_extra else ''}; "
+            f"{args.seeds} seeds per pair, {args.sim_seeds} per preset; "
             "median-trial RMSE.\n"]
     for res in results:
         text += [fidelity_table(res), ""]
@@ -345,7 +351,8 @@ def main(argv: list[str] | None = None) -> int:
     report = "\n".join(text) + "\n"
     print("\n" + report)
     atomic_write_bytes(out / "fidelity.md", report.encode())
-    data = {"flight": flight, "overrides": extra, "seeds": args.seeds, "sim_seeds": args.sim_seeds, "pairs": {
+    data = {"flight": flight, "overrides": extra, "sim_overrides": sim_extra, "seeds": args.seeds,
+            "sim_seeds": args.sim_seeds, "pairs": {
         s.label: {"path_a": str(s.path_a), "path_b": str(s.path_b), "gsd_m": s.gsd_m, "extent_m": extents[s.label],
                   "registration": registrations[s.label]} for s in sources},
         "results": [finite_or_null(asdict(r)) for r in results], "machine": machine()}

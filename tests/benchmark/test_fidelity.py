@@ -115,6 +115,14 @@ def test_the_command_on_synthetic_pairs(tmp_path, capsys):
     assert len(rows) == 3 * (2 * 2 + 2)
     assert main(argv) == 0                                   # resumed: nothing new
     assert len((tmp_path / "out" / "trials.jsonl").read_text().splitlines()) == len(rows)
+    # a sensitivity run: an override for the preset only; the real trials are those already there
+    assert main([*argv, "--sim-set", "flight.altitude_m=180"]) == 0
+    assert "presets only {'flight.altitude_m': 180}" in capsys.readouterr().out
+    again = (tmp_path / "out" / "trials.jsonl").read_text().splitlines()
+    assert len(again) == len(rows) + 3 * 2                   # only the preset's trials are new
+    new = [json.loads(line) for line in again[len(rows):]]
+    assert all(r["scenario_spec"]["overrides"]["flight.altitude_m"] == 180 for r in new)
+    assert json.loads((tmp_path / "out" / "fidelity.json").read_text())["sim_overrides"] == {"flight.altitude_m": 180}
 
 
 def test_bad_sources_are_clear_errors(tmp_path):
