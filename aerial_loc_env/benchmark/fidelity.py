@@ -243,7 +243,9 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument("--seeds", type=int, default=4, help="episodes per real pair (seeds 0..N-1; default 4)")
     ap.add_argument("--sim-seeds", type=int, default=8, help="episodes per preset (default 8)")
     ap.add_argument("--out", default=str(Path("results") / "fidelity"),
-                    help="results folder (trials kept and skipped on a re-run; fidelity.md and fidelity.json)")
+                    help="results folder (trials kept and skipped on a re-run; fidelity.md and fidelity.json, written "
+                         "for each run's settings: a run with other --set / --sim-set reuses the real trials and "
+                         "rewrites them, and the first command run again writes its own back from the kept trials)")
     ap.add_argument("--workers", type=int, default=max(1, len(os.sched_getaffinity(0)))
                     if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1), help="parallel processes")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",

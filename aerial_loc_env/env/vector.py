@@ -26,6 +26,7 @@ mask) are Gymnasium's. ``EnvShards`` also serves ``learning.vec_env`` (stable-ba
 
 from __future__ import annotations
 
+import dataclasses
 import multiprocessing as mp
 import operator
 import os
@@ -33,7 +34,7 @@ import pickle
 import time
 import traceback
 from collections.abc import Callable, Sequence
-from typing import Any
+from typing import Any, NamedTuple
 
 import gymnasium as gym
 import numpy as np
@@ -110,13 +111,19 @@ def _info_kind(value: Any) -> tuple | None:
     return ("object",)
 
 
-def _unchanging(value: Any) -> bool:
-    """Whether ``value`` cannot change in place (so a receiver may keep the copy it got): immutable builtins and
-    frozen dataclass instances."""
+def _unchanging(value: Any, depth: int = 0) -> bool:
+    """Whether ``value`` cannot change in place (so a receiver may keep the copy it got): immutable builtins, and
+    tuples and frozen dataclass instances made of such values (a frozen dataclass holding a list can change)."""
     if type(value) in _IMMUTABLE_TYPES:
         return True
+    if depth >= 4:
+        return False
+    if type(value) is tuple:
+        return all(_unchanging(v, depth + 1) for v in value)
     params = getattr(value, "__dataclass_params__", None)
-    return params is not None and not isinstance(value, type) and bool(params.frozen)
+    if params is None or isinstance(value, type) or not params.frozen:
+        return False
+    return all(_unchanging(getattr(value, f.name), depth + 1) for f in dataclasses.fields(value))
 
 
 class _InfoLayout:
@@ -178,7 +185,7 @@ class _InfoLayout:
             if field is None:
                 out[key] = objects[key]
             elif scalar is None:
-                out[key] = field[slot].copy()
+                out[key] = np.array(field[slot])      # (a copy; a 0-d array stays an array)
             else:
                 value = field[slot]
                 out[key] = scalar(value) if scalar in _SCALAR_TYPES else value[()]
@@ -202,6 +209,20 @@ class _InfoLayout:
             out[key] = array
             out[f"_{key}"] = mask.copy()
         return out
+
+
+class _Packed(tuple):
+    """An info in the shared records as a message carries it: (layout id, its signature the first time, the
+    objects). Its own type, so that no info an env returns (a tuple, say) is taken for one."""
+
+    __slots__ = ()
+
+
+class _InRecord(NamedTuple):
+    """The caller's side of a packed info: its layout and the sub-env whose record holds it."""
+
+    layout: _InfoLayout
+    slot: int
 
 
 #: ``_InfoRecords.unpack``'s source for the caller's own sub-envs
@@ -242,7 +263,7 @@ class _InfoRecords:
             signature = []
             for key, value in info.items():
                 kind = _info_kind(value)
-                if kind is None or key.startswith("_") or key == "final_obs":
+                if kind is None or type(key) is not str or key.startswith("_") or key == "final_obs":
                     return info
                 signature.append((key, kind))
             signature = tuple(signature)
@@ -268,7 +289,7 @@ class _InfoRecords:
                     sent.pop(key, None)
         new = self.remote and ident not in self._announced
         self._announced.add(ident)
-        return ident, layout.signature if new else None, tuple(objects)
+        return _Packed((ident, layout.signature if new else None, tuple(objects)))
 
     def forget(self) -> None:
         """After a message was lost (an error): announce every layout and send every object again."""
@@ -276,8 +297,8 @@ class _InfoRecords:
         self._sent.clear()
 
     def unpack(self, source: int, slot: int, entry: Any) -> Any:
-        """``(layout, slot)`` for a packed entry from process ``source``, else the entry (None, a dict)."""
-        if type(entry) is not tuple:
+        """``_InRecord`` for a packed entry from process ``source``, else the entry (None, an info sent whole)."""
+        if type(entry) is not _Packed:
             return entry
         ident, signature, objects = entry
         if source == _LOCAL:
@@ -288,25 +309,25 @@ class _InfoRecords:
                 ids[ident] = self.layout(signature)[1]
             layout = ids[ident]
         self.objects.setdefault(slot, {}).update(objects)
-        return layout, slot
+        return _InRecord(layout, slot)
 
     def batch(self, num_envs: int, entries: Sequence[Any]) -> dict[str, Any] | None:
-        """Gymnasium's batched info of the unpacked ``entries`` (one per sub-env: None, a dict, ``(layout,
-        slot)``): from the records where every present one has one layout, else as ``batch_infos`` (None where
+        """Gymnasium's batched info of the unpacked ``entries`` (one per sub-env: None, an info, an ``_InRecord``):
+        from the records where every present one is in a record of one layout, else as ``batch_infos`` (None where
         that leaves it to ``_add_info``)."""
         layout = None
         for entry in entries:
             if entry is None:
                 continue
-            if type(entry) is not tuple or (layout is not None and entry[0] is not layout):
+            if type(entry) is not _InRecord or (layout is not None and entry.layout is not layout):
                 return batch_infos(num_envs, self.dicts(entries))
-            layout = entry[0]
+            layout = entry.layout
         if layout is None:
             return {}
         return layout.batch([entry is not None for entry in entries], [self.objects.get(i) for i in range(num_envs)])
 
     def dicts(self, entries: Sequence[Any]) -> list[dict | None]:
-        return [entry[0].read(entry[1], self.objects[entry[1]]) if type(entry) is tuple else entry
+        return [entry.layout.read(entry.slot, self.objects[entry.slot]) if type(entry) is _InRecord else entry
                 for entry in entries]
 
 
@@ -733,7 +754,7 @@ def batch_infos(num_envs: int, infos: Sequence[dict | None]) -> dict[str, Any] |
         pairs = [(i, info[key]) for i, info in present if key in info]
         first = pairs[0][1]
         kind = type(first)
-        if key.startswith("_") or key == "final_obs":
+        if type(key) is not str or key.startswith("_") or key == "final_obs":
             return None
         if kind in (int, float, bool) or issubclass(kind, np.number):
             array = np.zeros(num_envs, dtype=kind)

@@ -293,9 +293,11 @@ def train(spec_name: str | os.PathLike, out_dir: str | os.PathLike | None = None
         model.save(str(tmp))
         os.replace(tmp, model_path)
     finally:
-        env.close()
-        if logger is not None:      # its files (progress.csv, the event files) closed, not left to the collector
-            logger.close()
+        try:
+            env.close()
+        finally:
+            if logger is not None:      # its files (progress.csv, the event files) closed, not left to the collector
+                logger.close()
     if spec_text is not None:
         (out / "recipe.toml").write_text(spec_text)
     scenario = scenario_spec(recipe)

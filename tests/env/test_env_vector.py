@@ -12,6 +12,7 @@ import signal
 import subprocess
 import sys
 import warnings
+from dataclasses import dataclass
 from pathlib import Path
 
 import cloudpickle
@@ -42,12 +43,12 @@ def _assert_same_run(a: gym.vector.VectorEnv, b: gym.vector.VectorEnv, seed: int
     """Reset both with ``seed`` and step them with the same actions: every output equal, bit for bit. Returns how
     many episode ends were crossed."""
     out_a, out_b = a.reset(seed=seed), b.reset(seed=seed)
-    assert all(data_equivalence(x, y) for x, y in zip(out_a, out_b, strict=True))
+    assert all(data_equivalence(x, y, exact=True) for x, y in zip(out_a, out_b, strict=True))
     ends = 0
     for k, actions in enumerate(_actions(a.num_envs, steps)):
         out_a, out_b = a.step(actions), b.step(actions)
         for name, x, y in zip(("obs", "reward", "terminated", "truncated", "info"), out_a, out_b, strict=True):
-            assert data_equivalence(x, y), f"step {k}: {name} differs"
+            assert data_equivalence(x, y, exact=True), f"step {k}: {name} differs"
         ends += int(np.count_nonzero(out_a[2] | out_a[3]))
     return ends
 
@@ -115,12 +116,12 @@ def test_disabled_autoreset_resets_by_mask_as_sync() -> None:
             envs.reset(seed=[1, 2])
         for actions in _actions(2, 8):
             out_a, out_b = ours.step(actions), sync.step(actions)
-            assert all(data_equivalence(x, y) for x, y in zip(out_a, out_b, strict=True))
+            assert all(data_equivalence(x, y, exact=True) for x, y in zip(out_a, out_b, strict=True))
         assert out_a[3].all()
         with pytest.raises(AerialLocError, match="DISABLED.*reset_mask"):
             ours.step(actions)
         mask = np.array([False, True])
-        assert all(data_equivalence(x, y) for x, y in zip(ours.reset(options={"reset_mask": mask}),
+        assert all(data_equivalence(x, y, exact=True) for x, y in zip(ours.reset(options={"reset_mask": mask}),
                                                           sync.reset(options={"reset_mask": mask}), strict=True))
     finally:
         ours.close()
@@ -173,43 +174,52 @@ def test_infos_batch_as_gymnasium_does() -> None:
             if info is not None:
                 expected = sync._add_info(expected, info, i)
         batched = batch_infos(3, infos)
-        assert data_equivalence(batched, expected) and list(batched) == list(expected)
+        assert data_equivalence(batched, expected, exact=True) and list(batched) == list(expected)
     assert batch_infos(3, [{"nested": {"x": 1}}, None, None]) is None     # left to _add_info
     sync.close()
 
 
+@dataclass(frozen=True)
+class Frozen:
+    """An info object that cannot change (unless it holds one that can)."""
+
+    x: object
+
+
 def test_infos_through_the_shared_records_batch_as_gymnasium_does() -> None:
     """A worker packs each info into the shared records (numbers) and its message (objects, only when changed, and
-    every time for one that can change in place); the caller's batch equals Gymnasium's ``_add_info``, key order
-    included, across changing layouts, absent sub-envs and infos no record holds (sent whole)."""
-    from dataclasses import dataclass
+    every time for one that can change in place), the message pickled as the channel carries it; the caller's batch
+    equals Gymnasium's ``_add_info``, key order included, across changing layouts, absent sub-envs and infos no
+    record holds (sent whole)."""
+    import pickle
 
     from aerial_loc_env.env import vector
     from aerial_loc_env.env.vector import _INFO_RECORD_BYTES, _LOCAL, _InfoRecords
 
-    @dataclass(frozen=True)
-    class Frozen:
-        x: float
+    def sent(entry: object) -> object:
+        return pickle.loads(pickle.dumps(entry, protocol=pickle.HIGHEST_PROTOCOL))
 
     sync = gym.vector.SyncVectorEnv([lambda: gym.make(SID, **SHORT)] * 3)
     shared = bytearray(3 * _INFO_RECORD_BYTES)
     worker, caller = _InfoRecords(shared, 3, remote=True), _InfoRecords(shared, 3, remote=False)
-    frozen, mutable = Frozen(1.0), [1, 2]
+    frozen, mutable, holder = Frozen(1.0), [1, 2], Frozen([5])    # holder: frozen, but its list is not
     rounds = [
         [{"t": 0.5, "p": np.arange(4.0), "s": 3, "o": frozen}, None, {"t": 1.5, "p": np.ones(4), "s": 4, "o": frozen}],
         [{"t": 0.5, "p": np.arange(4.0), "s": 3, "o": frozen}, {"t": 2.5, "p": np.zeros(4), "s": 5, "o": mutable},
          {"t": 1.5, "p": np.ones(4), "s": 4, "o": frozen}],
         [{"t": 7.0, "s": 1, "o": Frozen(2.0)}, {"t": 8.0, "s": 2, "o": mutable}, {"t": 9.0, "s": 3, "o": frozen}],
-        [{"t": 7.0, "s": 1, "o": frozen}, {"t": 8.0, "s": 2, "o": mutable}, {"s": 3, "t": 9.0, "o": frozen}],
+        [{"t": 7.0, "s": 1, "o": holder}, {"t": 8.0, "s": 2, "o": mutable}, {"s": 3, "t": 9.0, "o": frozen}],
+        [{"t": 7.0, "s": 1, "o": holder}, {"t": 8.0, "s": 2, "o": mutable}, {"s": 3, "t": 9.0, "o": frozen}],
         [{"f": True, "q": np.float32(1.5), "b": np.bool_(True)}, {"f": False, "q": np.float32(2.5), "b": None},
          {"big": np.zeros(_INFO_RECORD_BYTES)}],
         [{"nested": {"x": 1}}, None, {"_hidden": 1.0}],   # left to _add_info, as by batch_infos
     ]
     for k, infos in enumerate(rounds):
-        if k == 3:
+        if k == 4:
             mutable.append(3)                             # changed in place: the caller must see it
+            holder.x.append(6)
         # sub-envs 0 and 1 in a worker, sub-env 2 in the caller's own block
-        entries = [caller.unpack(0, i, worker.pack(i, info)) for i, info in enumerate(infos[:2])]
+        entries = [caller.unpack(0, i, sent(worker.pack(i, info))) for i, info in enumerate(infos[:2])]
         entries.append(caller.unpack(_LOCAL, 2, caller.pack(2, infos[2])))
         expected: dict = {}
         for i, info in enumerate(infos):
@@ -221,9 +231,11 @@ def test_infos_through_the_shared_records_batch_as_gymnasium_does() -> None:
             for i, info in enumerate(caller.dicts(entries)):
                 if info is not None:
                     batched = sync._add_info(batched, info, i)
-        assert data_equivalence(batched, expected) and list(batched) == list(expected), f"round {k}"
+        assert data_equivalence(batched, expected, exact=True) and list(batched) == list(expected), f"round {k}"
+    assert worker.pack(0, rounds[0][0])[2] == (("o", frozen),)                   # another object than last time
     packed = worker.pack(0, rounds[0][0])
-    assert isinstance(packed, tuple) and packed[1] is None and packed[2] == ()   # the frozen object held already
+    assert isinstance(packed, vector._Packed) and packed[1] is None and packed[2] == ()   # the object held already
+    assert worker.pack(0, rounds[3][0])[2] == worker.pack(0, rounds[3][0])[2] == (("o", holder),)   # it may change
     assert worker.pack(1, rounds[1][1])[2] == (("o", mutable),)                  # a list: sent every time
     big = {"n": 2**70}
     assert worker.pack(0, big) is big                  # no int64 holds it: the info goes whole (as it was)
@@ -249,7 +261,7 @@ def test_actions_of_another_dtype_go_as_given_and_big_infos_whole() -> None:
         for actions in _actions(2, 9, seed=8):
             actions = actions.astype(np.float64) + 1e-9    # not a float32 value
             out_a, out_b = ours.step(actions), sync.step(actions)
-            assert all(data_equivalence(x, y) for x, y in zip(out_a, out_b, strict=True))
+            assert all(data_equivalence(x, y, exact=True) for x, y in zip(out_a, out_b, strict=True))
         assert out_a[4]["shadow_mask"].shape == (2, 64, 64)
         with pytest.raises(InvalidActionError, match="float array"):
             ours.step(np.zeros((2, 2), np.int64))
@@ -297,6 +309,21 @@ def test_a_bad_action_in_a_worker_raises_the_sub_envs_error_and_the_env_goes_on(
         envs.step(np.zeros((2, 2), np.float32))
     finally:
         envs.close()
+
+
+def test_after_a_failed_block_the_worker_sends_its_layouts_and_objects_again() -> None:
+    """Sub-env 1's bad action fails the worker's block after sub-env 0 had packed its info (a layout the caller
+    never received): the worker forgets what it sent, so the steps after a reset equal SyncVectorEnv's."""
+    ours = gym.make_vec(SID, num_envs=3, processes=2, **SHORT)        # the worker holds sub-envs 0 and 1
+    sync = gym.make_vec(SID, num_envs=3, vectorization_mode="sync", **SHORT)
+    try:
+        ours.reset(seed=2)
+        with pytest.raises(InvalidActionError, match="NaN"):
+            ours.step(np.array([[0.0, 0.0], [np.nan, 0.0], [0.0, 0.0]], np.float32))
+        assert _assert_same_run(ours, sync, seed=5, steps=10) == 3
+    finally:
+        ours.close()
+        sync.close()
 
 
 def test_a_dead_worker_is_a_clear_error() -> None:

@@ -46,8 +46,9 @@ def test_shard_vec_env_steps_as_sb3s_vec_envs_across_episode_ends() -> None:
         assert ours.processes == 2
         ours.seed(7)
         ref.seed(7)
-        assert data_equivalence(ours.reset(), dict(ref.reset()))      # SubprocVecEnv's dict, Dummy's OrderedDict
-        assert data_equivalence(ours.reset_infos, ref.reset_infos)
+        # SubprocVecEnv's dict, Dummy's OrderedDict
+        assert data_equivalence(ours.reset(), dict(ref.reset()), exact=True)
+        assert data_equivalence(ours.reset_infos, ref.reset_infos, exact=True)
         rng = np.random.default_rng(1)
         dones = 0
         for k in range(19):
@@ -56,14 +57,14 @@ def test_shard_vec_env_steps_as_sb3s_vec_envs_across_episode_ends() -> None:
                 actions = actions.astype(np.float64) + 1e-9
             obs, rewards, done, infos = ours.step(actions)
             obs_r, rewards_r, done_r, infos_r = ref.step(actions)
-            assert data_equivalence(obs, dict(obs_r)), f"step {k}"
+            assert data_equivalence(obs, dict(obs_r), exact=True), f"step {k}"
             assert rewards.dtype == np.float64 and np.array_equal(rewards.astype(np.float32), rewards_r)
             assert np.array_equal(done, done_r)
             assert data_equivalence([_without_episode_time(i) for i in infos],
-                                    [_without_episode_time(i) for i in infos_r]), f"step {k}"
+                                    [_without_episode_time(i) for i in infos_r], exact=True), f"step {k}"
             dones += int(done.sum())
         assert dones == 6
-        assert data_equivalence(ours.reset_infos, ref.reset_infos)
+        assert data_equivalence(ours.reset_infos, ref.reset_infos, exact=True)
         assert ours.get_attr("render_mode") == [None] * 3
         assert ours.env_is_wrapped(Monitor) == [True] * 3 and ours.has_attr("core")
         assert ours.env_method("get_episode_rewards", indices=[2]) == ref.env_method("get_episode_rewards",
