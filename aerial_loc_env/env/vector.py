@@ -647,7 +647,16 @@ class EnvShards:
     def run(self, commands: Sequence[tuple]) -> list:
         """One command per sub-env (``(op, *args)``, ops in ``_OPS``); the workers run theirs while this process
         runs its own block; returns the results in sub-env order. Every worker answers before an error is raised,
-        so the next call starts clean."""
+        so the next call starts clean. An interrupt (Ctrl-C) leaves answers unread and blocks half stepped: the
+        vector env then refuses every further call with an error saying so (close it and make a new one)."""
+        try:
+            return self._run(commands)
+        except (KeyboardInterrupt, SystemExit):
+            self._broken = (f"{self._where}: a step was interrupted before every sub-env had answered; the sub-envs "
+                            "and the messages are out of step: close this vector env and make a new one")
+            raise
+
+    def _run(self, commands: Sequence[tuple]) -> list:
         if self.closed:
             raise AerialLocError(f"{self._where}: the vector env is closed")
         if len(commands) != self.num_envs:

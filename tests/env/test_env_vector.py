@@ -326,6 +326,27 @@ def test_after_a_failed_block_the_worker_sends_its_layouts_and_objects_again() -
         sync.close()
 
 
+def test_after_an_interrupted_step_the_vector_env_says_so_and_closes() -> None:
+    """Ctrl-C in the caller's own block leaves the worker's answer unread: the next call is a clear error, not a
+    step that reads the old answer, and close still stops the worker."""
+    envs = gym.make_vec(SID, num_envs=2, processes=2, **SHORT)
+    try:
+        envs.reset(seed=0)
+        local = envs.unwrapped.local_envs[0]
+
+        def interrupted(action: object) -> None:
+            raise KeyboardInterrupt
+
+        local.step = interrupted
+        with pytest.raises(KeyboardInterrupt):
+            envs.step(np.zeros((2, 2), np.float32))
+        with pytest.raises(AerialLocError, match="interrupted .* close this vector env and make a new one"):
+            envs.step(np.zeros((2, 2), np.float32))
+    finally:
+        envs.close()
+    assert not envs.unwrapped._shards._procs[0].is_alive()
+
+
 def test_a_dead_worker_is_a_clear_error() -> None:
     envs = gym.make_vec(SID, num_envs=2, processes=2, **SHORT)
     try:
