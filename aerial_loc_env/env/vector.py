@@ -96,6 +96,12 @@ _SCALAR_TYPES = (int, float, bool)
 _IMMUTABLE_TYPES = (str, bytes, int, float, bool, complex, type(None))
 
 
+def _left_to_add_info(key: Any) -> bool:
+    """Whether ``batch_infos`` leaves an info with ``key`` to ``_add_info`` (a key that is not a string, a ``_``
+    mask-like key, a same-step final observation)."""
+    return type(key) is not str or key.startswith("_") or key == "final_obs"
+
+
 def _info_kind(value: Any) -> tuple | None:
     """How ``batch_infos`` batches ``value``: ``(type,)`` a number (an array of its own dtype), ``("array", dtype,
     shape)`` a numeric array (one more leading axis), ``("object",)`` anything else it keeps as an object; None
@@ -150,19 +156,17 @@ class _InfoLayout:
             self.rec = records.view(np.dtype({"names": names, "formats": formats, "offsets": offsets,
                                               "itemsize": _INFO_RECORD_BYTES}))
             self.fields = {name: self.rec[name] for name in names}
-        # (key, its field or None for an object, the Python type a number decodes to or None)
-        self.items = [(key, self.fields.get(key), kind[0] if len(kind) == 1 and kind[0] != "object" else None)
-                      for key, kind in signature]
+        # per key: its field (None for an object), the type of a number (None otherwise) and an array's dtype and
+        # shape (None otherwise): what reading, batching and checking an info of this layout go by
+        self.items = [(key, self.fields.get(key), kind[0] if len(kind) == 1 and kind[0] != "object" else None,
+                       (np.dtype(kind[1]), kind[2]) if kind[0] == "array" else None) for key, kind in signature]
         self.object_keys = [key for key, kind in signature if kind[0] == "object"]
         self._numbers = operator.itemgetter(*names) if len(names) > 1 else (lambda info: (info[names[0]],)) \
             if names else (lambda info: ())
-        # what an info must hold to be of this layout, key by key: a number's type, an array's dtype and shape
-        self._checks = [(key, kind[0] if len(kind) == 1 and kind[0] != "object" else None,
-                         (np.dtype(kind[1]), kind[2]) if kind[0] == "array" else None) for key, kind in signature]
 
     def holds(self, info: dict) -> bool:
         """Whether ``info`` (whose keys are this layout's, in order) is of this layout."""
-        for key, scalar, array in self._checks:
+        for key, _, scalar, array in self.items:
             value = info[key]
             kind = type(value)
             if scalar is not None:
@@ -181,7 +185,7 @@ class _InfoLayout:
     def read(self, slot: int, objects: dict) -> dict:
         """Sub-env ``slot``'s info as it was written (numbers of their own Python or NumPy type, array copies)."""
         out: dict[str, Any] = {}
-        for key, field, scalar in self.items:
+        for key, field, scalar, _ in self.items:
             if field is None:
                 out[key] = objects[key]
             elif scalar is None:
@@ -197,7 +201,7 @@ class _InfoLayout:
         mask = np.array(present)
         absent = None if all(present) else ~mask
         chosen = [i for i, here in enumerate(present) if here]
-        for key, field, _ in self.items:
+        for key, field, _, _ in self.items:
             if field is None:
                 array = np.empty(len(present), dtype=object)     # (None where absent)
                 for i in chosen:
@@ -263,7 +267,7 @@ class _InfoRecords:
             signature = []
             for key, value in info.items():
                 kind = _info_kind(value)
-                if kind is None or type(key) is not str or key.startswith("_") or key == "final_obs":
+                if kind is None or _left_to_add_info(key):
                     return info
                 signature.append((key, kind))
             signature = tuple(signature)
@@ -312,19 +316,34 @@ class _InfoRecords:
         return _InRecord(layout, slot)
 
     def batch(self, num_envs: int, entries: Sequence[Any]) -> dict[str, Any] | None:
-        """Gymnasium's batched info of the unpacked ``entries`` (one per sub-env: None, an info, an ``_InRecord``):
-        from the records where every present one is in a record of one layout, else as ``batch_infos`` (None where
-        that leaves it to ``_add_info``)."""
+        """Gymnasium's batched info of the unpacked ``entries`` (one per sub-env: None, an info, an ``_InRecord``)
+        where every present one is in a record of one layout (from the records); None otherwise (``dicts``)."""
         layout = None
         for entry in entries:
             if entry is None:
                 continue
             if type(entry) is not _InRecord or (layout is not None and entry.layout is not layout):
-                return batch_infos(num_envs, self.dicts(entries))
+                return None
             layout = entry.layout
         if layout is None:
             return {}
         return layout.batch([entry is not None for entry in entries], [self.objects.get(i) for i in range(num_envs)])
+
+    def batched(self, num_envs: int, entries: Sequence[Any], add_info: Callable[[dict, dict, int], dict]
+                ) -> dict[str, Any]:
+        """Gymnasium's batched info of the unpacked ``entries``: from the records (``batch``), else from the infos
+        read back (``dicts``) by ``batch_infos``, else one by one by ``add_info`` (``VectorEnv._add_info``)."""
+        batched = self.batch(num_envs, entries)
+        if batched is not None:
+            return batched
+        infos = self.dicts(entries)
+        batched = batch_infos(num_envs, infos)
+        if batched is None:
+            batched = {}
+            for i, info in enumerate(infos):
+                if info is not None:
+                    batched = add_info(batched, info, i)
+        return batched
 
     def dicts(self, entries: Sequence[Any]) -> list[dict | None]:
         return [entry.layout.read(entry.slot, self.objects[entry.slot]) if type(entry) is _InRecord else entry
@@ -640,6 +659,16 @@ class EnvShards:
         """How many processes step the sub-envs (this one included)."""
         return len(self._procs) + 1
 
+    def share_actions(self, actions: Any) -> bool:
+        """Write ``actions`` into the shared actions if they are an array of their dtype and shape (each sub-env
+        then reads its row: ``_Slot.action``); False (nothing written) for actions to send as they are."""
+        shared = self.actions
+        if shared is None or type(actions) is not np.ndarray or actions.dtype != shared.dtype \
+                or actions.shape != shared.shape:
+            return False
+        shared[...] = actions
+        return True
+
     def put(self, slot: int, obs: Any) -> None:
         """Write sub-env ``slot``'s observation into the shared batch."""
         _put(self._leaves, slot, obs)
@@ -763,9 +792,9 @@ def batch_infos(num_envs: int, infos: Sequence[dict | None]) -> dict[str, Any] |
         pairs = [(i, info[key]) for i, info in present if key in info]
         first = pairs[0][1]
         kind = type(first)
-        if type(key) is not str or key.startswith("_") or key == "final_obs":
+        if _left_to_add_info(key):
             return None
-        if kind in (int, float, bool) or issubclass(kind, np.number):
+        if kind in _SCALAR_TYPES or issubclass(kind, np.number):
             array = np.zeros(num_envs, dtype=kind)
         elif isinstance(first, np.ndarray):
             array = np.zeros((num_envs, *first.shape), dtype=first.dtype)
@@ -886,22 +915,12 @@ class AerialLocVectorEnv(VectorEnv):
     def _infos(self, entries: Sequence[Any]) -> dict[str, Any]:
         """The sub-envs' infos batched (``entries``: what ``EnvShards.run`` returned for each: None, an info, a
         packed info)."""
-        records = self._shards.info_records
-        batched = records.batch(self.num_envs, entries)
-        if batched is None:
-            batched = {}
-            for i, info in enumerate(records.dicts(entries)):
-                if info is not None:
-                    batched = self._add_info(batched, info, i)
-        return batched
+        return self._shards.info_records.batched(self.num_envs, entries, self._add_info)
 
     def step(self, actions: Any) -> tuple[Any, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
         """Step every sub-env with its row of ``actions``; finished sub-envs reset as ``autoreset_mode`` says."""
         mode = self.autoreset_mode
-        shared = self._shards.actions
-        if (mode != AutoresetMode.SAME_STEP and shared is not None and type(actions) is np.ndarray
-                and actions.dtype == shared.dtype and actions.shape == shared.shape):
-            shared[...] = actions        # each sub-env reads its row (an action of another dtype goes as it is)
+        if mode != AutoresetMode.SAME_STEP and self._shards.share_actions(actions):
             rows: list = [()] * self.num_envs
         else:
             rows = [(row,) for row in iterate(self.action_space, actions)]

@@ -112,10 +112,7 @@ class ShardVecEnv(_vec.VecEnv):
 
     def step_wait(self) -> Any:
         actions, self._actions = self._actions, None
-        shared = self._shards.actions
-        if shared is not None and type(actions) is np.ndarray and actions.dtype == shared.dtype \
-                and actions.shape == shared.shape:
-            shared[...] = actions       # each sub-env reads its row (actions of another dtype go as they are)
+        if self._shards.share_actions(actions):
             commands = [("apply", _step_shared)] * self.num_envs
         else:
             commands = [("apply", _step, actions[i]) for i in range(self.num_envs)]

@@ -225,12 +225,7 @@ def test_infos_through_the_shared_records_batch_as_gymnasium_does() -> None:
         for i, info in enumerate(infos):
             if info is not None:
                 expected = sync._add_info(expected, info, i)
-        batched = caller.batch(3, entries)
-        if batched is None:
-            batched = {}
-            for i, info in enumerate(caller.dicts(entries)):
-                if info is not None:
-                    batched = sync._add_info(batched, info, i)
+        batched = caller.batched(3, entries, sync._add_info)
         assert data_equivalence(batched, expected, exact=True) and list(batched) == list(expected), f"round {k}"
     assert worker.pack(0, rounds[0][0])[2] == (("o", frozen),)                   # another object than last time
     packed = worker.pack(0, rounds[0][0])
