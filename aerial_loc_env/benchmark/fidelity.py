@@ -282,10 +282,10 @@ def _sources(args: argparse.Namespace) -> list[PairSource]:
     return out
 
 
-def _overrides(items: Sequence[str]) -> dict[str, Any]:
-    from aerial_loc_env.benchmark.gap import _overrides as parse
+def _overrides(items: Sequence[str], option: str, example: str) -> dict[str, Any]:
+    from aerial_loc_env.config import parse_assignments
 
-    return parse(items)
+    return parse_assignments(items, where=f"fidelity: {option}", example=example)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -312,8 +312,8 @@ def main(argv: list[str] | None = None) -> int:
     extents = {s.label: pair_extent_m(s) for s in sources}
     smallest = min(extents.values(), key=min)
     flight = fit_flight(smallest)
-    extra = _overrides(args.set)
-    sim_extra = _overrides(args.sim_set)
+    extra = _overrides(args.set, "--set", "flight.duration_s=20")
+    sim_extra = _overrides(args.sim_set, "--sim-set", "perspective.enabled=false")
     real = tuple(ScenarioEntry(**e) for e in pair_entries(sources, flight, extra))
     sims = tuple(ScenarioEntry(sid, {**sim_overrides(flight), **extra, **sim_extra}, f"sim: {sid.split('/')[-1]}")
                  for sid in (args.sim or DEFAULT_SIMS))

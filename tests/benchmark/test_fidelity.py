@@ -131,6 +131,11 @@ def test_bad_sources_are_clear_errors(tmp_path):
     a, b = write_pair(tmp_path / "x")
     with pytest.raises(ConfigError, match=r"--pair .*: give EARLIER LATER \[GSD\]"):
         fidelity.main(["--pair", str(a)])
+    with pytest.raises(ConfigError, match=r"fidelity: --sim-set 'perspective' must look like KEY=VALUE"):
+        fidelity.main(["--pair", str(a), str(b), "--out", str(tmp_path / "o1"), "--sim-set", "perspective"])
+    with pytest.raises(ConfigError, match=r"contrastt"):      # an unknown key: refused before any trial
+        fidelity.main(["--pair", str(a), str(b), "--out", str(tmp_path / "o2"), "--sim-set", "database.contrastt=2"])
+    assert not (tmp_path / "o2" / "trials.jsonl").exists()
     (tmp_path / "busy").mkdir()
     (tmp_path / "busy" / "experiment.json").write_text('{"experiments": ["mine"]}')
     with pytest.raises(ConfigError, match=r"holds the results of experiment 'mine', not 'fidelity'"):
