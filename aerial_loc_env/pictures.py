@@ -11,7 +11,7 @@ Writes, into ``--out``:
 - ``contact_sheet.png``: all the pairs stacked;
 - with ``--realism``, ``gap_<level>.png``: the map database at the true pose | the camera frame, for each kind
   of realistic map-camera gap alone (epoch change, relief displacement over tall buildings, the map's own sun,
-  the map's own sensor) and all together (``AerialLoc/RealisticPaper-v2``); with ``--map``, the kinds that apply
+  the map's own sensor) and all together (``AerialLoc/RealisticPaper-v3``); with ``--map``, the kinds that apply
   to that map (its acquisition by another sensor, the realistic camera, both), flown over it; with ``--pair``
   also ``gap_real_pair.png``, a real two-epoch pair in the same layout (what the simulated gap should look like).
 
@@ -301,8 +301,8 @@ def realism_levels() -> list[tuple[str, str, str, dict, str]]:
     from aerial_loc_env.env import load_scenario
     from aerial_loc_env.env.scenarios import SECTIONS
 
-    real = load_scenario("AerialLoc/RealisticPaper-v2").to_dict()
-    season = load_scenario("AerialLoc/SeasonChange-v2").to_dict()
+    real = load_scenario("AerialLoc/RealisticPaper-v3").to_dict()
+    season = load_scenario("AerialLoc/SeasonChange-v3").to_dict()
     # relief alone: Downtown with every other part of the gap back at its default (off)
     relief = {name: config_to_dict(SECTIONS[name]()()) for name in
               ("epoch", "database", "gimbal", "altimeter", "exposure", "haze", "photometry")}
@@ -314,14 +314,14 @@ def realism_levels() -> list[tuple[str, str, str, dict, str]]:
         ("epoch", "epoch change only: map of epoch A | camera over epoch B (SeasonChange's rates)",
          "AerialLoc/PaperNoShadows-v2", {**_QUIET, "epoch": season["epoch"]}, "middle"),
         ("relief", "relief only: affine map patch | perspective camera, tall buildings at the frame edge "
-                   "(Downtown)", "AerialLoc/Downtown-v2", relief, "relief"),
+                   "(Downtown)", "AerialLoc/Downtown-v3", relief, "relief"),
         ("database_sun", f"map with another sun's shadows (az {sun[0]:.0f}, el {sun[1]:.0f} deg) | camera "
                          "with the flight's sun", "AerialLoc/PaperShadows-v2",
          {"shadows.database_sun_deg": sun}, "middle"),
         ("acquisition", "map acquired by another sensor (GSD, blur, JPEG, colour, haze, lean, georeference "
                         "bias) | camera", "AerialLoc/PaperNoShadows-v2", {**_QUIET, "database": real["database"]},
          "middle"),
-        ("realistic", "everything: RealisticPaper-v2 map | camera", "AerialLoc/RealisticPaper-v2", {}, "middle"),
+        ("realistic", "everything: RealisticPaper-v3 map | camera", "AerialLoc/RealisticPaper-v3", {}, "middle"),
     ]
 
 
@@ -334,7 +334,7 @@ def map_realism_levels(map_path: str, *, crs: str | None = None, gsd_m: float | 
     from aerial_loc_env.env import load_scenario
 
     orthomap = _load_map(map_path, crs=crs, gsd_m=gsd_m)
-    real = load_scenario("AerialLoc/RealisticPaper-v2").to_dict()
+    real = load_scenario("AerialLoc/RealisticPaper-v3").to_dict()
     has_dsm = orthomap.dsm_m is not None
     base: dict = {"map": {"kind": "file", "path": str(map_path), **({"crs": crs} if crs else {}),
                           **({"gsd_m": gsd_m} if gsd_m is not None else {})},

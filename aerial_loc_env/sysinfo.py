@@ -55,3 +55,24 @@ def isa() -> str:
         features = f"{vector_isa(config.CPU_FEATURES)} (NUMBA_CPU_FEATURES)"
     target = cpu if cpu == host else f"{cpu} (NUMBA_CPU_NAME; host {host})"
     return f"{target}, {features}; FAST_GATHER {jit.FAST_GATHER}, FAST_LUT {jit.FAST_LUT}"
+
+
+#: NumPy's dispatch targets beyond AVX2 (numpy 2's names; older ones use AVX512F, AVX512_SKX ...)
+_NUMPY_BEYOND_AVX2 = ("X86_V4", "AVX512_SKX", "AVX512_CLX", "AVX512_CNL", "AVX512_ICL", "AVX512_SPR", "AVX512F",
+                      "AVX512CD", "AVX512_KNL", "AVX512_KNM")
+#: OpenCV's names of the AVX-512 features behind its AVX512_SKX dispatch (it warns about naming one the host lacks)
+_OPENCV_AVX512 = ("AVX512F", "AVX512-COMMON", "AVX512-SKX", "AVX512BW", "AVX512CD", "AVX512DQ", "AVX512VL")
+
+
+def avx2_env(cache_dir: str) -> dict[str, str]:
+    """Environment variables that make a new x86-64 process compute as an AVX2 machine without AVX-512 does, on
+    any host: numba compiles Zen 3's own code (its kernels cached in ``cache_dir``), NumPy and OpenCV leave out
+    their AVX-512 code, OpenBLAS takes its Haswell kernels. For benchmarks of the AVX2 path and for checking that
+    results do not depend on the CPU (``portable``); each library reads them at import."""
+    from numpy._core import _multiarray_umath as npcore
+
+    numpy_off = [f for f in _NUMPY_BEYOND_AVX2 if f in npcore.__cpu_dispatch__]
+    opencv_off = _OPENCV_AVX512 if npcore.__cpu_features__.get("AVX512_SKX") else ()
+    return {"NUMBA_CPU_NAME": "znver3", "NUMBA_CPU_FEATURES": "", "NUMBA_CACHE_DIR": cache_dir,
+            "NPY_DISABLE_CPU_FEATURES": " ".join(numpy_off), "OPENBLAS_CORETYPE": "Haswell",
+            "OPENCV_CPU_DISABLE": ",".join(opencv_off)}

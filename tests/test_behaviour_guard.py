@@ -20,8 +20,8 @@ DIGESTS = Path(__file__).parent / "data" / "behaviour_digests.json"
 #: every registered id that needs no user file, flown for two seconds (three frames hashed), otherwise as shipped
 SCENARIOS = ("AerialLoc/PaperShadows-v2", "AerialLoc/PaperNoShadows-v2", "AerialLoc/GlobalLocalization-v2",
              "AerialLoc/CloudShadows-v2", "AerialLoc/MavicPro-v2", "AerialLoc/Small-v2",
-             "AerialLoc/RealisticPaper-v2", "AerialLoc/SeasonChange-v2", "AerialLoc/Downtown-v2",
-             "AerialLoc/Crosswind-v2")
+             "AerialLoc/RealisticPaper-v3", "AerialLoc/SeasonChange-v3", "AerialLoc/Downtown-v3",
+             "AerialLoc/Crosswind-v3")
 #: every shipped classical agent spec on the paper's camera for 4 s (oracles get the shadow mask)
 AGENT_SCENARIO = {"id": "AerialLoc/PaperShadows-v2",
                   "overrides": {"flight.duration_s": 4.0, "observation.info_shadow_mask": True}}

@@ -1,6 +1,6 @@
 """``aerial-loc bench [EXPERIMENT]``: run an experiment grid, print the table, write CSV/JSON, a Markdown
 report and plots. With no argument it runs the default comparison on the embedded procedural city: the paper's
-setting (AerialLoc/PaperShadows-v2) beside the realistic map-camera gap (AerialLoc/RealisticPaper-v2).
+setting (AerialLoc/PaperShadows-v2) beside the realistic map-camera gap (AerialLoc/RealisticPaper-v3).
 
 Results go to ``results/<experiment>/`` (``--out``): ``trials.jsonl`` (the source of truth, appended as each
 episode ends), ``trials.csv`` / ``trials.json`` (derived), ``report.md`` and PNG plots. A re-run skips the

@@ -57,7 +57,7 @@ DEFAULT_AGENTS = (("mcl-mi", "MCL MI"), ("mcl-ncc", "MCL NCC"), ("template-ncc",
                   ("mcl-abbrief", "MCL abBRIEF"), ("mcl-conventional", "MCL conventional"),
                   ("mcl-shadow-aware", "MCL shadow-aware"), ("mcl-ssd", "MCL SSD"),
                   ("mcl-restoration", "MCL restoration"), ("features-orb", "ORB + RANSAC"))
-DEFAULT_SIMS = ("AerialLoc/RealisticPaper-v2",)
+DEFAULT_SIMS = ("AerialLoc/RealisticPaper-v3",)
 TARGET_TAU = 0.8
 TARGET_RATIO = (0.67, 1.5)
 

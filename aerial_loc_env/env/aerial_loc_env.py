@@ -194,6 +194,14 @@ class AerialLocEnv(gym.Env):
       construction sites, rooftop vents, AC units and skylights, stains on paving, roofs and lawns, worn
       markings, plaza furniture, a less saturated palette; the realistic presets' shaded walls lit by sky and
       ground (``perspective.ambient`` 0.4) and a colour-enhanced map product (``database.saturation`` 1.2).
+    * v3 of ``RealisticPaper``, ``SeasonChange``, ``Downtown``, ``Crosswind`` (the other ids stay v2: their frames
+      did not change): the same floats on every CPU. NumPy's ``exp``, ``log``, ``power``, ``arctan2`` ... and
+      OpenBLAS's products rounded differently with AVX-512 than without, so a v2 world, its frames and the
+      estimates on them depended on the machine. Now ``portable`` computes them (libm per element, products in
+      index order): the map product's tone and grey (acquisition generator 2), the epoch's palette (epoch
+      generator 4), facade light (perspective 6), the wind's gusts (wind generator 2). On an AVX-512 machine v3
+      differs from v2 in the last bits: 550 of the map's 80 million bytes, a few bytes of the epochs, facade
+      light and gusts. ``gym.make`` of their v2 ids names the v3 id.
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 4}

@@ -33,6 +33,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from aerial_loc_env import portable
 from aerial_loc_env.config import rng
 from aerial_loc_env.errors import ConfigError
 from aerial_loc_env.estimators.database import DatabaseWindow
@@ -125,7 +126,8 @@ class _OpenClose:
 def c3_invariant(rgb: np.ndarray) -> np.ndarray:
     """``arctan(B / max(R, G))`` scaled to [0, 1] (float32)."""
     f = rgb.astype(np.float32)
-    return np.arctan2(f[..., 2], np.maximum(np.maximum(f[..., 0], f[..., 1]), 1.0)) * np.float32(2.0 / np.pi)
+    c3 = portable.arctan2(f[..., 2], np.maximum(np.maximum(f[..., 0], f[..., 1]), np.float32(1.0)))
+    return c3 * np.float32(2.0 / np.pi)
 
 
 def shadow_index(small_rgb: np.ndarray, index: str) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
@@ -230,8 +232,8 @@ _INDEX_MODES = {"c3_luminance": 0, "c3": 1, "luminance": 2}
 
 @functools.lru_cache(maxsize=1)
 def _c3_table() -> np.ndarray:
-    """``c3_invariant`` of every 8-bit (B, max(R, G)) pair (256, 256) float32: NumPy's own floats (its
-    ``arctan2`` is a function of the two values alone, tested), looked up per pixel instead of recomputed."""
+    """``c3_invariant`` of every 8-bit (B, max(R, G)) pair (256, 256) float32: its own floats (``portable.arctan2``
+    is a function of the two values alone, tested), looked up per pixel instead of recomputed."""
     b, m = np.meshgrid(np.arange(256, dtype=np.uint8), np.arange(256, dtype=np.uint8), indexing="ij")
     return np.ascontiguousarray(c3_invariant(np.stack([m, m, b], axis=-1)))
 
@@ -434,6 +436,6 @@ class MapRatioShadowDetector:
         mask = binary.astype(bool)
         if mask.all() or not mask.any():
             return ShadowMask(np.zeros((h, w), bool), (H, W))
-        if float(np.exp(lr[mask].mean() - lr[~mask].mean())) > c.min_darkening:
+        if portable.exp(float(lr[mask].mean() - lr[~mask].mean())) > c.min_darkening:
             return ShadowMask(np.zeros((h, w), bool), (H, W))
         return ShadowMask(self._open_close(binary), (H, W))

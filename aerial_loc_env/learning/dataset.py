@@ -38,7 +38,7 @@ from aerial_loc_env.errors import ConfigError
 from aerial_loc_env.learning.splits import PRESETS, WorldRef, check_split, split_of, worlds
 
 #: the scenario whose camera, flight and odometry each preset's examples use
-PRESET_BASES = {"paper": "AerialLoc/RealisticPaper-v2", "downtown": "AerialLoc/Downtown-v2"}
+PRESET_BASES = {"paper": "AerialLoc/RealisticPaper-v3", "downtown": "AerialLoc/Downtown-v3"}
 #: each preset's city parameters: a fixed value or a (lo, hi) range drawn per world; ``downtown_radius``: a share
 #: of the city's smaller side
 PRESET_CITIES: dict[str, dict[str, Any]] = {

@@ -26,6 +26,7 @@ from typing import Any
 
 import numpy as np
 
+from aerial_loc_env import portable
 from aerial_loc_env.config import rng
 from aerial_loc_env.errors import ConfigError
 from aerial_loc_env.estimators.database import DatabaseWindow, WindowPolicy, read_by_window
@@ -160,8 +161,8 @@ def conv2d(x: np.ndarray, w: np.ndarray, b: np.ndarray) -> np.ndarray:
     p = k // 2
     xp = np.pad(x, ((0, 0), (p, p), (p, p)))
     cols = np.stack([xp[:, dy:dy + h, dx:dx + wd] for dy in range(k) for dx in range(k)], axis=1)  # (C, k*k, H, W)
-    out = np.tensordot(w.reshape(w.shape[0], c, k * k), cols, axes=([1, 2], [0, 1]))
-    return out + b[:, None, None]
+    out = portable.matmul(w.reshape(w.shape[0], c * k * k), cols.reshape(c * k * k, h * wd))   # (no BLAS: the same
+    return out.reshape(-1, h, wd) + b[:, None, None]                                         # floats on every CPU)
 
 
 def surface_features(surface: np.ndarray, layers: list[tuple[np.ndarray, np.ndarray]], pool: int) -> np.ndarray:
@@ -209,9 +210,9 @@ class SurfacePolicy:
     def __call__(self, surface: np.ndarray) -> np.ndarray:
         h = self.features(surface).astype(np.float64)
         for w, b in self.mlp:
-            h = np.tanh(w @ h + b)
+            h = np.tanh(portable.matmul(w, h) + b)
         w, b = self.head
-        return np.clip(w @ h + b, -1.0, 1.0)
+        return np.clip(portable.matmul(w, h) + b, -1.0, 1.0)
 
 
 def write_policy(arrays: Mapping[str, np.ndarray], meta: dict, path: Any, overwrite: bool = False) -> Any:

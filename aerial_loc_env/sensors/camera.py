@@ -19,6 +19,7 @@ from typing import NamedTuple, Protocol
 
 import numpy as np
 
+from aerial_loc_env import portable
 from aerial_loc_env.config import rng
 from aerial_loc_env.errors import ConfigError
 
@@ -375,7 +376,7 @@ class SceneExposure:
         gain = 1.0
         ex = self.exposure
         if ex.strength > 0.0:
-            mean = t * float(np.dot(_LUMA, cv2.mean(image)[:3])) + (1.0 - t) * float(np.dot(_LUMA, air))
+            mean = t * portable.matmul(_LUMA, cv2.mean(image)[:3]) + (1.0 - t) * portable.matmul(_LUMA, air)
             want = (ex.target_luma / max(mean, 1.0)) ** ex.strength
             want = min(max(want, ex.gain_range[0]), ex.gain_range[1])
             self.gain = want if self.gain is None else self.gain + self._alpha * (want - self.gain)

@@ -52,6 +52,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from aerial_loc_env import portable
 from aerial_loc_env.config import rng
 from aerial_loc_env.errors import ConfigError
 from aerial_loc_env.sensors import perspective_kernels as kernels
@@ -59,7 +60,7 @@ from aerial_loc_env.sensors.camera import CameraModel, apply_affine
 
 _NEAREST = cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP
 _MAX_HEIGHT_FRACTION = 0.95
-GENERATOR_VERSION = 5  # bump whenever the frames change for the same inputs (env/fingerprint.py)
+GENERATOR_VERSION = 6  # bump whenever the frames change for the same inputs (env/fingerprint.py)
 _MARCH_FACTOR = 4      # the march runs on a 1/4-resolution camera grid over the 4 x 4 block maximum of the heights
 _REMAP_MAX_PX = 32767  # cv2.remap's limit on the source's sides
 _SURFACE_TOL_M = 0.3    # h(m(z1)) within this of z1: the ray sees the surface (ridged roofs vary by less per px)
@@ -384,9 +385,9 @@ class ReliefView:
             return np.full(0 if view.facade is None else view.facade.size, self.config.facade_gain)
         az, el = (math.radians(a) for a in sun_deg)
         amb = self.config.ambient
-        towards = view.facing @ np.array([math.sin(az), math.cos(az)], dtype=np.float32)
+        towards = portable.matmul(view.facing, np.array([math.sin(az), math.cos(az)], dtype=np.float32))
         direct = (1.0 - amb) * math.cos(el) / max(math.sin(el), 0.05) * np.maximum(towards, 0.0)
-        return np.asarray(self.config.facade_gain * np.minimum(0.5 * amb + direct, 1.5) ** (1.0 / gamma),
+        return np.asarray(self.config.facade_gain * portable.power(np.minimum(0.5 * amb + direct, 1.5), 1.0 / gamma),
                           np.float32)
 
 

@@ -49,6 +49,7 @@ from typing import Any, Literal
 import cv2
 import numpy as np
 
+from aerial_loc_env import portable
 from aerial_loc_env.config import rng as range_meta
 from aerial_loc_env.errors import ConfigError, FootprintError
 from aerial_loc_env.sensors.camera import CameraModel, Pose, apply_affine
@@ -884,14 +885,14 @@ def photometry_draws(p: Photometry, rng: np.random.Generator) -> tuple[float | N
     if p.gamma != 1.0 or p.gamma_std > 0.0:
         gamma = p.gamma * math.exp(p.gamma_std * rng.standard_normal())
     if p.gain != 1.0 or p.exposure_std > 0.0 or p.white_balance_std > 0.0:
-        gains = p.gain * np.exp(p.exposure_std * rng.standard_normal() + p.white_balance_std
+        gains = p.gain * portable.exp(p.exposure_std * rng.standard_normal() + p.white_balance_std
                                 * rng.standard_normal(3))
     return gamma, gains
 
 
 def gamma_lut(gamma: float) -> np.ndarray:
     """uint8 tone curve ``round(255 (v / 255) ** gamma)``."""
-    return np.rint(255.0 * _UNIT_LEVELS ** gamma).astype(np.uint8)
+    return np.rint(255.0 * portable.power(_UNIT_LEVELS, gamma)).astype(np.uint8)
 
 
 def tone_lut(gamma: float | None, gains: np.ndarray | None) -> np.ndarray:

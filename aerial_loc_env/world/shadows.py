@@ -27,6 +27,7 @@ from typing import NamedTuple
 import cv2
 import numpy as np
 
+from aerial_loc_env import portable
 from aerial_loc_env.config import check_value
 from aerial_loc_env.config import rng as rng_meta
 from aerial_loc_env.errors import ConfigError, MapError
@@ -312,7 +313,7 @@ def _disc_formula(x: np.ndarray) -> np.ndarray:
     """``(x sqrt(1 - x^2) + arcsin x) / pi + 1/2`` for x in [-1, 1]: the disc fraction below height x."""
     root = np.sqrt(1.0 - x * x)
     out = x * root
-    out += np.arcsin(x)
+    out += portable.arcsin(x)
     out *= 1.0 / math.pi
     out += 0.5
     return out
@@ -466,7 +467,7 @@ def shading_lut(strength: float, *, shadow_ratio: float = 0.15,
     q = np.arange(256, dtype=np.float64) / 255.0
     gains = _shadow_gains(strength, shadow_ratio, sky_tint_rgb)
     lin = 1.0 - q[None, :] * (1.0 - gains[:, None])          # (3, 256) linear-light gains
-    lut = np.clip(np.rint(255.0 * lin ** (1.0 / gamma)), 0, 255).astype(np.uint8)
+    lut = np.clip(np.rint(255.0 * portable.power(lin, 1.0 / gamma)), 0, 255).astype(np.uint8)
     lut.flags.writeable = False
     return lut
 
@@ -591,7 +592,7 @@ class CloudField:
         spectrum = np.zeros_like(k2)
         for octave in range(3):
             s = scale_m / 2.0 ** octave / 4.0                   # spatial sigma of the octave's kernel
-            spectrum += 0.5 ** octave * np.exp(-2.0 * math.pi ** 2 * s * s * k2)
+            spectrum += 0.5 ** octave * portable.exp(-2.0 * math.pi ** 2 * s * s * k2)
         spectrum[0, 0] = 0.0
         f = np.fft.irfft2(np.fft.rfft2(noise) * spectrum, s=(ny, nx))
         f = (f - f.mean()) / max(float(f.std()), 1e-12)

@@ -25,11 +25,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from aerial_loc_env import portable
 from aerial_loc_env.config import rng
 from aerial_loc_env.errors import ConfigError
 
 #: the generator version of the wind field (bumped whenever the field drawn for a seed changes)
-GENERATOR_VERSION = 1
+GENERATOR_VERSION = 2
 #: the strongest wind accepted: mean speed + 3 gust sigma at most this share of the airspeed (a crab of asin 0.6,
 #: about 37 degrees; beyond, the vehicle barely makes way upwind and its guidance saturates)
 MAX_WIND_SHARE = 0.6
@@ -101,7 +102,7 @@ class WindConfig:
         z = rng.standard_normal(t.size)
         out = np.empty(t.size)
         out[0] = sigma * z[0]
-        a = np.exp(-np.diff(t) / float(self.gust_tau_s))
+        a = portable.exp(-np.diff(t) / float(self.gust_tau_s))
         drive = sigma * np.sqrt(1.0 - a * a)
         for k in range(1, t.size):
             out[k] = a[k - 1] * out[k - 1] + drive[k - 1] * z[k]

@@ -10,7 +10,7 @@ from aerial_loc_env.benchmark.report import paper_sections
 
 def test_the_default_runs_the_paper_setting_beside_the_realistic_gap():
     grid = load_grid("default")
-    assert [s.id for s in grid.scenarios] == ["AerialLoc/PaperShadows-v2", "AerialLoc/RealisticPaper-v2"]
+    assert [s.id for s in grid.scenarios] == ["AerialLoc/PaperShadows-v2", "AerialLoc/RealisticPaper-v3"]
     assert grid.paper[0] == "comparison"
     row = {"agent": "SSD", "seed": 0, "errors_m": [1.0], "converged": True, "diverged": False,
            "agent_spec": {"name": "mcl-ssd", "params": {}}, "shadow_fraction_mean": 0.3}

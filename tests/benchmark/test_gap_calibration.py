@@ -23,7 +23,7 @@ from aerial_loc_env.benchmark import gap
 from aerial_loc_env.errors import ConfigError
 
 PAIRS = SHARED_DATA / "pairs" / "levir-cd"
-REALISTIC = ("AerialLoc/RealisticPaper-v2", "AerialLoc/SeasonChange-v2", "AerialLoc/Downtown-v2")
+REALISTIC = ("AerialLoc/RealisticPaper-v3", "AerialLoc/SeasonChange-v3", "AerialLoc/Downtown-v3")
 #: frames per scenario (the first frame of seeds 0..FRAMES-1) and the confidence of each statistic's interval
 FRAMES = 24
 CONFIDENCE = 0.99

@@ -8,7 +8,7 @@ import pytest
 from aerial_loc_env.env import load_scenario
 
 PAPER = ("AerialLoc/PaperShadows-v2", "AerialLoc/PaperNoShadows-v2")
-REALISTIC = ("AerialLoc/RealisticPaper-v2", "AerialLoc/SeasonChange-v2", "AerialLoc/Downtown-v2")
+REALISTIC = ("AerialLoc/RealisticPaper-v3", "AerialLoc/SeasonChange-v3", "AerialLoc/Downtown-v3")
 SETTING = ("flight", "camera", "odometry", "observation", "episode", "reward")
 
 

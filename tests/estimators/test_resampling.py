@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from aerial_loc_env import portable
 from aerial_loc_env.errors import ConfigError
 from aerial_loc_env.estimators.mcl import resampling
 
@@ -91,14 +92,15 @@ def test_unknown_scheme_is_a_clear_error() -> None:
 
 
 def _normalize_reference(log_w: np.ndarray) -> tuple[np.ndarray, float]:
-    """``normalize_log_weights`` as it was: the non-finite values masked to -inf first, always."""
+    """``normalize_log_weights`` as it was: the non-finite values masked to -inf first, always (with its
+    ``portable`` exp and log)."""
     lw = np.where(np.isfinite(log_w), log_w, -np.inf)
     m = float(np.max(lw))
     if not np.isfinite(m):
         return np.full(lw.shape[0], 1.0 / lw.shape[0]), -np.inf
-    w = np.exp(lw - m)
+    w = portable.exp(lw - m)
     s = float(w.sum())
-    return w / s, m + float(np.log(s / lw.shape[0]))
+    return w / s, m + portable.log(s / lw.shape[0])
 
 
 def test_normalization_skips_the_mask_only_where_it_changes_nothing():

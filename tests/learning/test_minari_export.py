@@ -30,8 +30,8 @@ def _load(root, dataset_id, monkeypatch):
 
 def test_ids_are_versioned_like_env_ids():
     assert default_dataset_id("AerialLoc/Small-v2", "mcl-ncc") == "aerial-loc/small-mcl-ncc-v2"
-    assert default_dataset_id("AerialLoc/RealisticPaper-v2", "agents/features-sift.toml") == \
-        "aerial-loc/realistic-paper-features-sift-v2"
+    assert default_dataset_id("AerialLoc/RealisticPaper-v3", "agents/features-sift.toml") == \
+        "aerial-loc/realistic-paper-features-sift-v3"
     assert check_dataset_id("aerial-loc/mine-v3") == "aerial-loc/mine-v3"
     with pytest.raises(ConfigError, match="not a versioned dataset id.*-v<version>"):
         check_dataset_id("aerial-loc/mine")

@@ -41,7 +41,7 @@ def test_grid_rows_go_north_and_columns_east() -> None:
 
 
 def test_zero_correction_is_dead_reckoning_and_corrections_are_east_north() -> None:
-    env = gym.make("AerialLoc/RealisticPaper-v2", **SHORT)
+    env = gym.make("AerialLoc/RealisticPaper-v3", **SHORT)
     obs, _ = env.reset(seed=2)
     briefing = env.unwrapped.briefing
     core, dr = SurfaceRegistration(SurfaceParams(half_cells=3)), DeadReckoningAgent()
@@ -140,7 +140,7 @@ def test_the_shipped_policy_runs_without_torch() -> None:
         import aerial_loc_env.env
         from aerial_loc_env.estimators.episode import EpisodeDriver
         from aerial_loc_env.estimators.registry import make_agent
-        env = gym.make("AerialLoc/RealisticPaper-v2", **{"flight.duration_s": 3.0})
+        env = gym.make("AerialLoc/RealisticPaper-v3", **{"flight.duration_s": 3.0})
         agent = make_agent("ppo-learned-registration")
         with EpisodeDriver(env, [agent]) as driver:
             errors = [rec.error_m(0) for rec in driver.episode(4)]

@@ -26,6 +26,7 @@ from typing import Any, ClassVar, NamedTuple
 
 import numpy as np
 
+from aerial_loc_env import portable
 from aerial_loc_env.config import rng
 from aerial_loc_env.errors import ConfigError
 from aerial_loc_env.estimators.mcl.measurement import MeasurementModel, register_model
@@ -44,7 +45,7 @@ def quantize(values: np.ndarray, bins: int, lo: float = 0.0, hi: float = 256.0) 
 def _entropy_rows(p: np.ndarray) -> np.ndarray:
     """Shannon entropy (nats) of each row of probabilities ``p`` (N, M)."""
     with np.errstate(divide="ignore", invalid="ignore"):
-        logs = np.where(p > 0, np.log(np.where(p > 0, p, 1.0)), 0.0)
+        logs = np.where(p > 0, portable.log(np.where(p > 0, p, 1.0)), 0.0)
     return -(p * logs).sum(axis=1)
 
 
@@ -61,7 +62,7 @@ def nlogn_table(k: int) -> np.ndarray:
     ``H = log K - sum_c c log c / K``."""
     c = np.arange(k + 1, dtype=np.float64)
     out = np.zeros(k + 1)
-    out[1:] = c[1:] * np.log(c[1:])
+    out[1:] = c[1:] * portable.log(c[1:])
     return out
 
 
@@ -158,7 +159,7 @@ class NCCModel(DenseModel):
         """The reference's sum and centred sum of squares (float64)."""
         r = ref.astype(np.float64)
         rc = r - r.mean()
-        return float(r.sum()), float(rc @ rc)
+        return float(r.sum()), portable.matmul(rc.reshape(-1), rc.reshape(-1))
 
     def _score(self, prepared: DensePrepared, states: np.ndarray, altitude_m: float) -> tuple[np.ndarray, np.ndarray]:
         stats, valid = self._moments(prepared, states, altitude_m)

@@ -42,6 +42,7 @@ from typing import Any, NamedTuple
 import cv2
 import numpy as np
 
+from aerial_loc_env import portable
 from aerial_loc_env.config import build_config, rng
 from aerial_loc_env.errors import ConfigError
 from aerial_loc_env.estimators.mcl.measurement import MeasurementModel, register_model
@@ -169,7 +170,7 @@ def rasterize_segments(segments: np.ndarray, shape: tuple[int, int], thickness: 
 def edge_orientation_layer(gray: np.ndarray, edges: np.ndarray) -> np.ndarray:
     """(H, W, 2) float32 doubled-angle unit vectors of the edge direction (gradient + 90 deg) on ``edges``."""
     gx, gy = _gradients(gray)
-    t2 = 2.0 * (np.arctan2(gy, gx) + np.pi / 2)
+    t2 = 2.0 * (portable.arctan2(gy, gx) + np.pi / 2)
     layer = np.stack([np.cos(t2), np.sin(t2)], axis=-1).astype(np.float32)
     layer[~edges] = 0.0
     return layer
@@ -237,7 +238,7 @@ class EdgeModelConfig:
 def orientation_similarity(diff_rad: np.ndarray, center_deg: float = 20.0, width_deg: float = 2.0) -> np.ndarray:
     """Eq. (2) of reference 2: ``1 - 1 / (1 + exp((center - |d|) / width))``, ``d`` in degrees."""
     d = np.degrees(np.abs(diff_rad))
-    return 1.0 - 1.0 / (1.0 + np.exp(np.clip((center_deg - d) / width_deg, -60.0, 60.0)))
+    return 1.0 - 1.0 / (1.0 + portable.exp(np.clip((center_deg - d) / width_deg, -60.0, 60.0)))
 
 
 def cell_orientations(layer: np.ndarray, cells_x: int, cells_y: int) -> tuple[np.ndarray, np.ndarray]:
@@ -245,7 +246,7 @@ def cell_orientations(layer: np.ndarray, cells_x: int, cells_y: int) -> tuple[np
     *lead, h, w, _ = layer.shape
     blocks = layer.reshape(*lead, cells_y, h // cells_y, cells_x, w // cells_x, 2).sum(axis=(-4, -2))
     n = (h // cells_y) * (w // cells_x)
-    return np.arctan2(blocks[..., 1], blocks[..., 0]), np.hypot(blocks[..., 0], blocks[..., 1]) / n
+    return portable.arctan2(blocks[..., 1], blocks[..., 0]), np.hypot(blocks[..., 0], blocks[..., 1]) / n
 
 
 class PreparedEdges(NamedTuple):
@@ -305,12 +306,13 @@ class EdgeOrientationModel(MeasurementModel):
         map2, coverage = cell_orientations(layers, cfg.cells_x, cfg.cells_y)          # (N, cy, cx)
         # map -> camera orientation: theta_cam = theta_map - pi/2 + yaw (doubled: + 2 yaw - pi)
         exp2 = map2 + (2.0 * np.asarray(states, float)[:, 2] - math.pi)[:, None, None]
-        diff2 = np.angle(np.exp(1j * (exp2 - prepared.angle2[None])))                # wrapped to (-pi, pi]
+        turn = np.exp(1j * (exp2 - prepared.angle2[None]))
+        diff2 = portable.arctan2(turn.imag, turn.real)                              # wrapped to (-pi, pi]
         eta = orientation_similarity(diff2 / 2.0, cfg.sigmoid_center_deg, cfg.sigmoid_width_deg)
         eta = np.where(coverage >= cfg.min_coverage, eta, 0.0)
         w = (eta * prepared.observed[None]).sum(axis=(1, 2)) / n_obs                  # eq. (3)-(4)
         w = np.where(valid, w, 0.0)
-        return np.log(np.maximum(w, cfg.floor))
+        return portable.log(np.maximum(w, cfg.floor))
 
 
 register_model("edges", EdgeOrientationModel)

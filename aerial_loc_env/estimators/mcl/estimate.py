@@ -9,17 +9,19 @@ import math
 
 import numpy as np
 
+from aerial_loc_env import portable
+
 
 def weighted_mean(xy: np.ndarray, W: np.ndarray) -> np.ndarray:
     """Weighted mean (2,) of positions ``xy`` (N, 2) with normalized weights ``W`` (N,)."""
-    return W @ xy
+    return portable.matmul(W, xy)
 
 
 def weighted_cov(xy: np.ndarray, W: np.ndarray, center: np.ndarray | None = None) -> np.ndarray:
     """Weighted 2x2 covariance about ``center`` (default: the weighted mean)."""
     c = weighted_mean(xy, W) if center is None else center
     d = xy - c
-    return (d * W[:, None]).T @ d
+    return portable.matmul((d * W[:, None]).T, d)
 
 
 def max_std_m(cov: np.ndarray) -> float:
@@ -31,13 +33,13 @@ def max_std_m(cov: np.ndarray) -> float:
 
 
 def circular_mean(angles_rad: np.ndarray, W: np.ndarray) -> float:
-    return float(np.arctan2(W @ np.sin(angles_rad), W @ np.cos(angles_rad)))
+    return math.atan2(portable.matmul(W, np.sin(angles_rad)), portable.matmul(W, np.cos(angles_rad)))
 
 
 def circular_mean_of_yaws(states: np.ndarray, W: np.ndarray) -> float:
     """``circular_mean(states[:, 2], W)`` with the yaws' cosines and sines from ``yaw_cos_sin`` (the same floats)."""
     cos, sin = yaw_cos_sin(states)
-    return float(np.arctan2(W @ sin, W @ cos))
+    return math.atan2(portable.matmul(W, sin), portable.matmul(W, cos))
 
 
 #: the last yaw_cos_sin: (the states array, a copy of its yaw column, their cosines, their sines)
@@ -74,7 +76,7 @@ def mean_shift(xy: np.ndarray, W: np.ndarray, bandwidth_m: float, *, n_seeds: in
     for _ in range(max_iter):
         k = _kernel(m, xy, W, inv2h2)                           # (S, N)
         s = k.sum(axis=1, keepdims=True)
-        new = np.where(s > 0, (k @ xy) / np.maximum(s, 1e-300), m)
+        new = np.where(s > 0, portable.matmul(k, xy) / np.maximum(s, 1e-300), m)
         shift = float(np.max(np.abs(new - m)))
         m = new
         if shift < tol_m:
@@ -85,4 +87,4 @@ def mean_shift(xy: np.ndarray, W: np.ndarray, bandwidth_m: float, *, n_seeds: in
 
 def _kernel(m: np.ndarray, xy: np.ndarray, W: np.ndarray, inv2h2: float) -> np.ndarray:
     d2 = ((m[:, None, :] - xy[None, :, :]) ** 2).sum(axis=2)
-    return np.exp(-d2 * inv2h2) * W[None, :]
+    return portable.exp(-d2 * inv2h2) * W[None, :]

@@ -70,6 +70,7 @@ from typing import TYPE_CHECKING, Any
 import cv2
 import numpy as np
 
+from aerial_loc_env import portable
 from aerial_loc_env.config import build_config, rng
 from aerial_loc_env.errors import ConfigError
 from aerial_loc_env.estimators.database import DatabaseWindow
@@ -135,9 +136,9 @@ class IntensityPairsConfig:
 def activation(K: int | np.ndarray, lc: int | np.ndarray, a: float | np.ndarray) -> np.ndarray | float:
     """Eq. (8): ``sigma_m(K, lc) = 1 - 1 / (1 + exp(-a (lc - K / 2)))``, in (0, 1), 1/2 at lc = K/2."""
     if isinstance(K, int) and isinstance(lc, int) and isinstance(a, float):   # one frame's: float64 arithmetic
-        return float(1.0 - 1.0 / (1.0 + np.exp(-a * (float(lc) - K / 2.0))))    # without the 0-d arrays
+        return float(1.0 - 1.0 / (1.0 + portable.exp(-a * (float(lc) - K / 2.0))))
     z = -np.asarray(a, dtype=np.float64) * (np.asarray(lc, dtype=np.float64) - np.asarray(K) / 2.0)
-    out = 1.0 - 1.0 / (1.0 + np.exp(z))
+    out = 1.0 - 1.0 / (1.0 + portable.exp(z))
     return float(out) if np.ndim(out) == 0 else out
 
 
@@ -181,7 +182,7 @@ def similarity_from_counts(counts: np.ndarray, sums: np.ndarray, valid: np.ndarr
     total_w = float(np.sum(pair_weights))
     if total_w <= 0:
         return np.full(n, 0.5)
-    return (f @ pair_weights) / (total_w * c)
+    return portable.matmul(f, pair_weights) / (total_w * c)
 
 
 #: id(rgb layer) -> (weak reference to it, the no-data layer it was read with, {channels: (words, nodata)})
@@ -356,7 +357,7 @@ class IntensityPairsModel(MeasurementModel):
                 vals = np.where(mask_pts[:, None], restored, vals)
                 cam_bits = vals[:K] > vals[K:]                                # (the restored pixels' bits)
         if cfg.channels == 1:
-            vals = vals @ _LUMA[:, None]
+            vals = portable.matmul(vals, _LUMA[:, None])
             cam_bits = vals[:K] > vals[K:]                                    # (K, 1) eq. (2)
         keep, log_scale, log_offset, pair_weights, pairs = None, 1.0, 0.0, None, None
         if cfg.shadow == "drop":
@@ -383,7 +384,7 @@ class IntensityPairsModel(MeasurementModel):
         xy = states[:, :2]
         std = float(np.sqrt(np.max(xy.var(axis=0))))
         if std <= self.map_detector.config.max_std_m:
-            yaw = float(np.arctan2(np.sin(states[:, 2]).mean(), np.cos(states[:, 2]).mean()))
+            yaw = math.atan2(np.sin(states[:, 2]).mean(), np.cos(states[:, 2]).mean())
             mx, my = xy.mean(axis=0)
             smask = self.map_detector.detect(p.image, float(mx), float(my), yaw, p.altitude_m, small=p.small)
             source = "map"
@@ -465,7 +466,7 @@ class IntensityPairsModel(MeasurementModel):
         elif cfg.likelihood == "gaussian":
             log_l = -0.5 * ((xi - cfg.mu) / cfg.sigma) ** 2
         else:
-            log_l = np.log(np.maximum(xi, 1e-12))
+            log_l = portable.log(np.maximum(xi, 1e-12))
         if prepared.log_scale != 1.0:       # (1.0 x: the same floats)
             log_l = prepared.log_scale * log_l
         return log_l + prepared.log_offset

@@ -14,6 +14,7 @@ from collections.abc import Callable
 
 import numpy as np
 
+from aerial_loc_env import portable
 from aerial_loc_env.errors import ConfigError
 from aerial_loc_env.estimators.mcl.resampling_kernels import inverse_cdf_indices, max_and_shift, sum_and_divide
 
@@ -88,8 +89,8 @@ def normalize_log_weights(log_w: np.ndarray) -> tuple[np.ndarray, float]:
 
     Non-finite log-weights (-inf for impossible particles, NaN never expected) count as weight 0; if every
     weight is 0 the result is uniform and the log-mean is -inf, which the core treats as a collapse. The maximum,
-    the shift, the sum and the division are compiled passes around NumPy's ``exp`` (its floats: NumPy's pairwise
-    sum, tests/estimators/test_resampling.py).
+    the shift, the sum and the division are compiled passes around ``portable.exp`` (the same floats on every CPU;
+    the sum is NumPy's pairwise sum, tests/estimators/test_resampling.py).
     """
     w, m = _exp_below_max(log_w)
     if w is None:
@@ -97,7 +98,7 @@ def normalize_log_weights(log_w: np.ndarray) -> tuple[np.ndarray, float]:
         return np.full(n, 1.0 / n), -np.inf
     W = np.empty_like(w)
     s = float(sum_and_divide(w, W))
-    return W, m + float(np.log(s / log_w.shape[0]))
+    return W, m + portable.log(s / log_w.shape[0])
 
 
 def log_mean_weight(log_w: np.ndarray) -> float:
@@ -106,7 +107,7 @@ def log_mean_weight(log_w: np.ndarray) -> float:
     w, m = _exp_below_max(log_w)
     if w is None:
         return -np.inf
-    return m + float(np.log(float(w.sum()) / log_w.shape[0]))
+    return m + portable.log(float(w.sum()) / log_w.shape[0])
 
 
 def _exp_below_max(log_w: np.ndarray) -> tuple[np.ndarray | None, float]:
@@ -121,9 +122,9 @@ def _exp_below_max(log_w: np.ndarray) -> tuple[np.ndarray | None, float]:
         m = float(max_and_shift(lw, shifted))
         if not math.isfinite(m):
             return None, -np.inf
-    return np.exp(shifted, out=shifted), m
+    return portable.exp(shifted, out=shifted), m
 
 
 def ess(W: np.ndarray) -> float:
     """Effective sample size 1 / sum(W^2) of normalized weights, in [1, N]."""
-    return float(1.0 / np.dot(W, W))
+    return 1.0 / portable.matmul(W, W)

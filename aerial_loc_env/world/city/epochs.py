@@ -25,6 +25,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from aerial_loc_env import portable
 from aerial_loc_env.config import config_to_dict, rng
 from aerial_loc_env.errors import ConfigError, MapError
 from aerial_loc_env.world.city.paint import WORLD_SATURATION
@@ -34,12 +35,12 @@ from aerial_loc_env.world.maps.orthomap import Orthomap
 
 #: Bump whenever change_epoch's output changes for a given input and config: it is part of the cache key and of
 #: the benchmark's scenario fingerprint (env/fingerprint.py).
-GENERATOR_VERSION = 3
+GENERATOR_VERSION = 4
 
 def _muted(colours) -> np.ndarray:
     """Palette colours as the procedural city paints them: pulled towards their grey by ``WORLD_SATURATION``."""
     c = np.asarray(colours, np.float32)
-    grey = c @ np.array([0.299, 0.587, 0.114], np.float32)
+    grey = portable.matmul(c.reshape(-1, 3), np.array([0.299, 0.587, 0.114], np.float32)).reshape(c.shape[:-1])
     return grey[..., None] + WORLD_SATURATION * (c - grey[..., None])
 
 
@@ -341,7 +342,7 @@ def _roofs(L: _Layers, rng: np.random.Generator, rate: float, bl: _Buildings) ->
     mean = _mean_colour(L.rgb, labels, n)
     px = L.rgb[m].astype(np.float32)
     lum = px.mean(axis=1) / np.maximum(mean[lab].mean(axis=1), 1.0)
-    flat = np.where(recover[lab], lum ** 0.35, lum)[:, None]         # a new cover flattens the old texture
+    flat = np.where(recover[lab], portable.power(lum, 0.35), lum)[:, None]   # a new cover flattens the old texture
     L.rgb[m] = np.clip(new[lab] * flat, 0, 255).astype(np.uint8)
 
 

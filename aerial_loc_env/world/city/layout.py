@@ -13,6 +13,8 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from aerial_loc_env import portable
+
 KEEPOUT_CELL_M = 1.0  # resolution of the coarse mask of land that blocks must not build on
 MAX_GROUP = 4         # most grid cells one use (apartment complex, park, ...) spans
 
@@ -58,7 +60,7 @@ class Layout:
     def downtown(self, p: np.ndarray) -> float:
         """1 at the centre of downtown, falling off as a Gaussian of the distance."""
         d2 = float(np.sum((np.asarray(p) - self.centre_m) ** 2))
-        return float(np.exp(-0.5 * d2 / self.downtown_radius_m**2))
+        return portable.exp(-0.5 * d2 / self.downtown_radius_m**2)
 
 
 def _grid_lines(rng: np.random.Generator, extent_m: float) -> tuple[np.ndarray, np.ndarray]:

@@ -30,13 +30,14 @@ from typing import Any
 import cv2
 import numpy as np
 
+from aerial_loc_env import portable
 from aerial_loc_env.config import config_to_dict, rng
 from aerial_loc_env.errors import ConfigError, MapError
 from aerial_loc_env.world.maps.cache import cached_bundle, spec_key
 from aerial_loc_env.world.maps.orthomap import Orthomap
 
 #: Bump whenever ``acquire``'s output changes for the same inputs (the benchmark's fingerprint, env/fingerprint.py).
-GENERATOR_VERSION = 1
+GENERATOR_VERSION = 2
 
 
 @dataclass(frozen=True)
@@ -179,9 +180,9 @@ def _colour_response(img: np.ndarray, cfg: AcquisitionConfig) -> np.ndarray:
     if cfg.gain_rgb != (1.0, 1.0, 1.0):
         x *= np.asarray(cfg.gain_rgb, np.float32)
     if cfg.tone_gamma != 1.0:
-        x = np.power(np.clip(x, 0.0, 1.0), np.float32(cfg.tone_gamma))
+        x = portable.power(np.clip(x, 0.0, 1.0), np.float32(cfg.tone_gamma))
     if cfg.saturation != 1.0:
-        grey = x @ np.array([0.299, 0.587, 0.114], np.float32)
+        grey = portable.matmul(x.reshape(-1, 3), np.array([0.299, 0.587, 0.114], np.float32)).reshape(x.shape[:-1])
         x = grey[..., None] + np.float32(cfg.saturation) * (x - grey[..., None])
     if cfg.contrast != 1.0:
         mean = x.reshape(-1, 3).mean(axis=0)

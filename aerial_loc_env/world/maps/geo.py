@@ -23,6 +23,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from aerial_loc_env import portable
 from aerial_loc_env.errors import MapError, require_extra
 
 # --- WGS84 ----------
@@ -165,16 +166,16 @@ class WorldMercatorProjection(Projection):
         phi = np.radians(lat_deg)
         es = WGS84_E * np.sin(phi)
         # y = a * (atanh(sin phi) - e atanh(e sin phi)): the isometric latitude, stable near the equator.
-        y = WGS84_A_M * (np.arctanh(np.sin(phi)) - WGS84_E * np.arctanh(es))
+        y = WGS84_A_M * (portable.arctanh(np.sin(phi)) - WGS84_E * portable.arctanh(es))
         return WGS84_A_M * np.radians(lon_deg), y
 
     def inverse(self, x, y):
         x, y = _arrays(x, y)
-        t = np.exp(-y / WGS84_A_M)
-        phi = np.pi / 2 - 2 * np.arctan(t)
+        t = portable.exp(-y / WGS84_A_M)
+        phi = np.pi / 2 - 2 * portable.arctan(t)
         for _ in range(30):
             es = WGS84_E * np.sin(phi)
-            new = np.pi / 2 - 2 * np.arctan(t * ((1 - es) / (1 + es)) ** (WGS84_E / 2))
+            new = np.pi / 2 - 2 * portable.arctan(t * portable.power((1 - es) / (1 + es), WGS84_E / 2))
             done = np.max(np.abs(new - phi), initial=0.0) < 1e-15
             phi = new
             if done:
@@ -197,11 +198,11 @@ class WebMercatorProjection(Projection):
     def forward(self, lat_deg, lon_deg):
         lat_deg, lon_deg = _arrays(lat_deg, lon_deg)
         _check_lat(lat_deg, self.crs)
-        return WGS84_A_M * np.radians(lon_deg), WGS84_A_M * np.arctanh(np.sin(np.radians(lat_deg)))
+        return WGS84_A_M * np.radians(lon_deg), WGS84_A_M * portable.arctanh(np.sin(np.radians(lat_deg)))
 
     def inverse(self, x, y):
         x, y = _arrays(x, y)
-        return np.degrees(np.arctan(np.sinh(y / WGS84_A_M))), np.degrees(x / WGS84_A_M)
+        return np.degrees(portable.arctan(portable.sinh(y / WGS84_A_M))), np.degrees(x / WGS84_A_M)
 
     def ground_scale(self, lat_deg):
         # dx = a dlon and dy = a dlat / cos(lat), while the ellipsoid has dE = N cos(lat) dlon, dN = M dlat.
@@ -275,13 +276,13 @@ class UTMProjection(Projection):
         phi, lam = np.radians(lat_deg), np.radians(lon_deg) - self._lon0
         lam = (lam + np.pi) % (2 * np.pi) - np.pi
         c = 2 * math.sqrt(_N) / (1 + _N)
-        t = np.sinh(np.arctanh(np.sin(phi)) - c * np.arctanh(c * np.sin(phi)))
-        xi_p = np.arctan2(t, np.cos(lam))
-        eta_p = np.arctanh(np.sin(lam) / np.sqrt(1 + t * t))
+        t = portable.sinh(portable.arctanh(np.sin(phi)) - c * portable.arctanh(c * np.sin(phi)))
+        xi_p = portable.arctan2(t, np.cos(lam))
+        eta_p = portable.arctanh(np.sin(lam) / np.sqrt(1 + t * t))
         xi, eta = xi_p.copy(), eta_p.copy()
         for j, a in enumerate(_TM_ALPHA, start=1):
-            xi += a * np.sin(2 * j * xi_p) * np.cosh(2 * j * eta_p)
-            eta += a * np.cos(2 * j * xi_p) * np.sinh(2 * j * eta_p)
+            xi += a * np.sin(2 * j * xi_p) * portable.cosh(2 * j * eta_p)
+            eta += a * np.cos(2 * j * xi_p) * portable.sinh(2 * j * eta_p)
         return 500_000.0 + 0.9996 * _TM_A * eta, self._n0 + 0.9996 * _TM_A * xi
 
     def inverse(self, x, y):
@@ -290,13 +291,13 @@ class UTMProjection(Projection):
         eta = (x - 500_000.0) / (0.9996 * _TM_A)
         xi_p, eta_p = xi.copy(), eta.copy()
         for j, b in enumerate(_TM_BETA, start=1):
-            xi_p -= b * np.sin(2 * j * xi) * np.cosh(2 * j * eta)
-            eta_p -= b * np.cos(2 * j * xi) * np.sinh(2 * j * eta)
-        tau_p = np.sin(xi_p) / np.sqrt(np.sinh(eta_p) ** 2 + np.cos(xi_p) ** 2)   # tan(conformal latitude)
-        lam = np.arctan2(np.sinh(eta_p), np.cos(xi_p))
+            xi_p -= b * np.sin(2 * j * xi) * portable.cosh(2 * j * eta)
+            eta_p -= b * np.cos(2 * j * xi) * portable.sinh(2 * j * eta)
+        tau_p = np.sin(xi_p) / np.sqrt(portable.sinh(eta_p) ** 2 + np.cos(xi_p) ** 2)   # tan(conformal latitude)
+        lam = portable.arctan2(portable.sinh(eta_p), np.cos(xi_p))
         tau = tau_p.copy()
         for _ in range(10):   # Newton on tau = tan(phi) (Karney 2011, eqs. 19-21)
-            sig = np.sinh(WGS84_E * np.arctanh(WGS84_E * tau / np.sqrt(1 + tau * tau)))
+            sig = portable.sinh(WGS84_E * portable.arctanh(WGS84_E * tau / np.sqrt(1 + tau * tau)))
             f_tau = tau * np.sqrt(1 + sig * sig) - sig * np.sqrt(1 + tau * tau)
             d_tau = ((tau_p - f_tau) / np.sqrt(1 + f_tau * f_tau) * (1 + (1 - WGS84_E2) * tau * tau)
                      / ((1 - WGS84_E2) * np.sqrt(1 + tau * tau)))
@@ -304,7 +305,7 @@ class UTMProjection(Projection):
             if np.max(np.abs(d_tau), initial=0.0) < 1e-15:
                 break
         lon = np.degrees(lam + self._lon0)
-        return np.degrees(np.arctan(tau)), (lon + 180.0) % 360.0 - 180.0
+        return np.degrees(portable.arctan(tau)), (lon + 180.0) % 360.0 - 180.0
 
 
 class PyprojProjection(Projection):
@@ -487,23 +488,24 @@ class LocalTangentGeoref(Georeference):
         q = self._origin_ecef + e[..., None] * east + n[..., None] * north
         scale = np.array([WGS84_A_M, WGS84_A_M, WGS84_B_M])
         qs, ds = q / scale, up / scale
-        a = ds @ ds
-        b = 2.0 * (qs @ ds)
+        a = portable.matmul(ds, ds)
+        b = 2.0 * portable.matmul(qs.reshape(-1, 3), ds).reshape(qs.shape[:-1])
         c = np.einsum("...i,...i->...", qs, qs) - 1.0
         disc = b * b - 4.0 * a * c
         if np.any(disc < 0):
             raise MapError("LocalTangentGeoref: pixel too far from the origin (vertical misses the Earth)")
         t = -2.0 * c / (b + np.sqrt(disc))          # the root near 0, in a cancellation-free form
         p = q + t[..., None] * up
-        lat = np.degrees(np.arctan2(p[..., 2], (1.0 - WGS84_E2) * np.hypot(p[..., 0], p[..., 1])))
-        lon = np.degrees(np.arctan2(p[..., 1], p[..., 0]))
+        lat = np.degrees(portable.arctan2(p[..., 2], (1.0 - WGS84_E2) * np.hypot(p[..., 0], p[..., 1])))
+        lon = np.degrees(portable.arctan2(p[..., 1], p[..., 0]))
         return lat, lon
 
     def latlon_to_pixel(self, lat_deg, lon_deg):
         lat_deg, lon_deg = _arrays(lat_deg, lon_deg)
         _check_lat(lat_deg, "LocalTangentGeoref")
         d = geodetic_to_ecef(lat_deg, lon_deg) - self._origin_ecef
-        e, n = d @ self._frame[0], d @ self._frame[1]
+        e = portable.matmul(d.reshape(-1, 3), self._frame[0]).reshape(d.shape[:-1])
+        n = portable.matmul(d.reshape(-1, 3), self._frame[1]).reshape(d.shape[:-1])
         return self.origin_u_px + e / self.gsd_x_m, self.origin_v_px - n / self.gsd_y_m
 
     def shifted(self, du_px: float, dv_px: float) -> LocalTangentGeoref:

@@ -1,0 +1,84 @@
+"""Compiled loops of ``portable``: one scalar libm call per element, products summed in index order.
+
+Why loops: NumPy's vectorized transcendental functions and OpenBLAS's products take a different code path on each
+CPU (AVX-512, AVX2, NEON), and those paths round differently. A loop of libm calls, which LLVM cannot vectorize
+without a vector math library, and a sum taken in index order (numba reassociates nothing without fastmath) give
+the same floats on every CPU.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba as nb
+import numpy as np
+
+from aerial_loc_env.jit import JIT as _JIT
+
+
+def _elementwise(f):
+    """``kernel(x, out)``: ``out[i] = f(x[i])`` over flat arrays, ``f`` a ``math`` function given only arguments
+    inside its domain (the caller's wrapper keeps NaN in and out; see ``_domain``)."""
+
+    @nb.njit(**_JIT)
+    def kernel(x, out):
+        for i in range(x.size):
+            out[i] = f(x[i])
+    return kernel
+
+
+@nb.njit(inline="always", **_JIT)
+def _log_or_limit(v):
+    return math.log(v) if v > 0 else (-np.inf if v == 0 else np.nan)
+
+
+@nb.njit(inline="always", **_JIT)
+def _log1p_or_limit(v):
+    return math.log1p(v) if v > -1 else (-np.inf if v == -1 else np.nan)
+
+
+@nb.njit(inline="always", **_JIT)
+def _asin_or_nan(v):
+    return math.asin(v) if -1 <= v <= 1 else np.nan
+
+
+@nb.njit(inline="always", **_JIT)
+def _atanh_or_limit(v):
+    a = abs(v)
+    return math.atanh(v) if a < 1 else (math.copysign(np.inf, v) if a == 1 else np.nan)
+
+
+exp = _elementwise(math.exp)
+log = _elementwise(_log_or_limit)
+log1p = _elementwise(_log1p_or_limit)
+arcsin = _elementwise(_asin_or_nan)
+arctan = _elementwise(math.atan)
+arctanh = _elementwise(_atanh_or_limit)
+sinh = _elementwise(math.sinh)
+cosh = _elementwise(math.cosh)
+tan = _elementwise(math.tan)
+
+
+@nb.njit(**_JIT)
+def arctan2(y, x, out):
+    for i in range(y.size):
+        out[i] = math.atan2(y[i], x[i])
+
+
+@nb.njit(**_JIT)
+def power(x, p, out):
+    for i in range(x.size):
+        out[i] = x[i] ** p
+
+
+@nb.njit(**_JIT)
+def matmul(a, b, out):
+    """``out += a @ b`` for (m, k) and (k, n) (``out`` zeroed): each entry's products added in the order of k."""
+    m, k = a.shape
+    n = b.shape[1]
+    for i in range(m):
+        for j in range(n):
+            s = out[i, j]     # (zeroed by the caller: typed as ``out``)
+            for t in range(k):
+                s += a[i, t] * b[t, j]
+            out[i, j] = s
