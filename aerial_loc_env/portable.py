@@ -16,6 +16,7 @@ other floats; ``sysinfo`` reports the latter.
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
@@ -44,11 +45,18 @@ def _unary(kernel: Any, x: Any, out: np.ndarray | None) -> Any:
 
 def exp(x: Any, out: np.ndarray | None = None) -> Any:
     """``np.exp`` (libm's, per element); a Python number gives a float. ``out`` may be ``x`` itself."""
+    if type(x) is float and out is None:       # (a number: libm's exp as Python calls it, without the arrays)
+        try:
+            return math.exp(x)
+        except OverflowError:
+            return math.inf
     return _unary(_k.exp, x, out)
 
 
 def log(x: Any, out: np.ndarray | None = None) -> Any:
     """``np.log``: -inf at 0, NaN below it (without NumPy's warnings)."""
+    if type(x) is float and out is None:
+        return math.log(x) if x > 0 else (-math.inf if x == 0 else math.nan)
     return _unary(_k.log, x, out)
 
 
@@ -95,6 +103,8 @@ def matmul(a: Any, b: Any) -> Any:
     """``a @ b`` for 1-D and 2-D operands, each entry's products added in index order (no BLAS); float32 where
     both are float32, else float64; a 1-D by 1-D product gives a float."""
     aa, ba = np.asarray(a), np.asarray(b)
+    if aa.ndim == 1 and ba.ndim == 1 and aa.dtype == ba.dtype == np.float64 and aa.shape == ba.shape:
+        return _k.dot(aa, ba)      # (the particle filter's weighted sums: one call, the same floats as below)
     if aa.ndim not in (1, 2) or ba.ndim not in (1, 2):
         raise ValueError(f"portable.matmul: 1-D or 2-D operands, got {aa.shape} and {ba.shape}")
     dtype = np.float32 if aa.dtype == np.float32 and ba.dtype == np.float32 else np.float64

@@ -82,3 +82,12 @@ def matmul(a, b, out):
             for t in range(k):
                 s += a[i, t] * b[t, j]
             out[i, j] = s
+
+
+@nb.njit(**_JIT)
+def dot(a, b):
+    """``a @ b`` of two 1-D float64 arrays, the products added in index order."""
+    s = 0.0
+    for t in range(a.shape[0]):
+        s += a[t] * b[t]
+    return s
