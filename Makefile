@@ -6,7 +6,7 @@ PIP    := $(PY) -m pip
 # The CPU build of torch: pinned so that pip never pulls several GB of CUDA packages.
 TORCH  ?= torch==2.13.0
 
-.PHONY: venv run test test-fast bench pictures lint wheel clean
+.PHONY: venv run test test-fast bench bench-avx2 pictures lint wheel clean
 
 $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -35,6 +35,10 @@ test-fast: venv
 # Speed benchmarks on one core (BLAS/OpenMP pinned before numpy loads).
 bench: venv
 	OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 $(PY) -m aerial_loc_env.perf $(ARGS)
+
+# The same, computed as an AVX2 machine without AVX-512 does (numba, NumPy, OpenCV, OpenBLAS), on any x86-64 host.
+bench-avx2: venv
+	OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 $(PY) -m aerial_loc_env.perf --avx2 $(ARGS)
 
 # with ../shared, a real LEVIR-CD pair beside the simulated gap (in results/pictures, never docs/img: its licence
 # forbids copies in the repository)

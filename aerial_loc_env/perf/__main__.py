@@ -1,11 +1,13 @@
-"""``python -m aerial_loc_env.perf [filter ...] [--json FILE]``: run the speed benchmarks, print a table of medians
-and their ratios to the floor (one bare map warp, timed interleaved with each benchmark)."""
+"""``python -m aerial_loc_env.perf [filter ...] [--json FILE] [--avx2]``: run the speed benchmarks, print a table of
+medians and their ratios to the floor (one bare map warp, timed interleaved with each benchmark); ``--avx2``: in a
+process that computes as an AVX2 machine without AVX-512 does (``sysinfo.avx2_env``), on any x86-64 host."""
 
 from __future__ import annotations
 
 import argparse
 import importlib
 import json
+import os
 import pkgutil
 import sys
 
@@ -51,7 +53,16 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m aerial_loc_env.perf", description=__doc__)
     ap.add_argument("filters", nargs="*", help="run only benchmarks whose name contains one of these")
     ap.add_argument("--json", help="also write the results to this JSON file")
+    ap.add_argument("--avx2", action="store_true",
+                    help="run as an AVX2 machine without AVX-512 does (numba, NumPy, OpenCV, OpenBLAS; x86-64 only)")
     args = ap.parse_args(argv)
+    if args.avx2 and os.environ.get("AERIAL_LOC_AVX2") != "1":     # the libraries read it at import: a new process
+        from aerial_loc_env.paths import cache_dir
+        from aerial_loc_env.sysinfo import avx2_env
+
+        rest = [a for a in (sys.argv[1:] if argv is None else argv) if a != "--avx2"]
+        env = {**os.environ, **avx2_env(str(cache_dir("numba-avx2"))), "AERIAL_LOC_AVX2": "1"}
+        os.execve(sys.executable, [sys.executable, "-m", "aerial_loc_env.perf", *rest], env)
     single_core()
     benches = collect()
     floor = next(b for b in benches if b.name == FLOOR_NAME)
@@ -60,6 +71,10 @@ def main(argv: list[str] | None = None) -> int:
     start_load = load()
     print(f"machine: {machine()} (one core: OMP_NUM_THREADS=1, cv2.setNumThreads(1)); {start_load} at start")
     print(f"compiled kernels: {isa()}")
+    if os.environ.get("AERIAL_LOC_AVX2") == "1":
+        env = os.environ
+        print(f"libraries as on an AVX2 CPU (--avx2): NumPy without {env.get('NPY_DISABLE_CPU_FEATURES') or '-'}, "
+              f"OpenBLAS {env.get('OPENBLAS_CORETYPE')}, OpenCV without {env.get('OPENCV_CPU_DISABLE') or '-'}")
     print(f"ratio = median CPU time per item / median CPU time of the floor ('{FLOOR_NAME}': one bilinear warp "
           "of the frame from the map) timed interleaved with it")
     print(f"{'benchmark':66s} {'ratio':>9s} {'target':>10s} {'ok':>3s}  {'median CPU':>13s} {'p95 CPU':>13s} "

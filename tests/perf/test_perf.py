@@ -105,3 +105,31 @@ def test_the_header_names_the_code_the_kernels_are_compiled_for(tmp_path):
     assert r.returncode == 0, r.stderr
     assert r.stdout.splitlines()[1] == f"compiled kernels: {isa()}"
     assert json.loads(out.read_text())["isa"] == isa()
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(__import__("platform").machine().lower() not in ("x86_64", "amd64"),
+                    reason="--avx2 emulates an x86-64 AVX2 CPU")
+def test_avx2_runs_in_a_process_that_computes_as_an_avx2_machine(tmp_path):
+    """``--avx2`` (``make bench-avx2``) runs the benchmarks in a new process under ``sysinfo.avx2_env``: the header
+    names znver3's own code for the kernels and the libraries' paths left out, and the JSON keeps the ISA."""
+    import json
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("NUMBA_", "NPY_", "OPENBLAS_C", "OPENCV_CPU"))}
+    env.pop("AERIAL_LOC_AVX2", None)
+    env["XDG_CACHE_HOME"] = str(tmp_path / "cache")      # (its numba cache: kept apart from the native one)
+    out = tmp_path / "bench.json"
+    r = subprocess.run([sys.executable, "-m", "aerial_loc_env.perf", "no benchmark has this name", "--avx2", "--json",
+                        str(out)], cwd=Path(__file__).resolve().parents[2], env=env, capture_output=True, text=True,
+                       timeout=600)
+    assert r.returncode == 0, r.stderr
+    lines = r.stdout.splitlines()
+    assert lines[1].startswith("compiled kernels: znver3 (NUMBA_CPU_NAME") and "FAST_GATHER False" in lines[1]
+    assert lines[2].startswith("libraries as on an AVX2 CPU (--avx2): NumPy without ")
+    assert "OpenBLAS Haswell" in lines[2]
+    assert json.loads(out.read_text())["isa"].startswith("znver3 (NUMBA_CPU_NAME")
+    assert (tmp_path / "cache" / "aerial_loc_env" / "numba-avx2").is_dir()
