@@ -11,7 +11,7 @@ NumPy's own ``sqrt``, ``sin``, ``cos``, float32 ``exp``/``log``, ``hypot``, sums
 already the same everywhere (``tests/test_portable.py`` checks both lists under emulated CPUs).
 
 A libm with other roundings (not glibc's) or a numba with Intel's vector math library (``icc_rt``) installed gives
-other floats; ``sysinfo`` reports the latter.
+other floats; ``sysinfo.isa()`` (the benchmark header) says when numba has it.
 """
 
 from __future__ import annotations

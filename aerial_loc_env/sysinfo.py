@@ -39,7 +39,9 @@ def isa() -> str:
     """The code numba compiles the kernels for: LLVM's CPU name, its vector instructions and which of the
     kernels' CPU-specific paths run (``jit.FAST_GATHER``, ``jit.FAST_LUT``); set by ``NUMBA_CPU_NAME`` /
     ``NUMBA_CPU_FEATURES`` where given (``NUMBA_CPU_NAME=znver3 NUMBA_CPU_FEATURES=``: an AVX2 machine's code on
-    any x86-64 host). Imports numba (seconds on a cold start): for benchmark headers, not for every report."""
+    any x86-64 host), and whether numba vectorizes math with Intel's SVML (``icc_rt`` installed), which rounds
+    ``portable``'s functions otherwise. Imports numba (seconds on a cold start): for benchmark headers, not for
+    every report."""
     from llvmlite import binding as llvm
     from numba.core import config
 
@@ -54,7 +56,8 @@ def isa() -> str:
     else:
         features = f"{vector_isa(config.CPU_FEATURES)} (NUMBA_CPU_FEATURES)"
     target = cpu if cpu == host else f"{cpu} (NUMBA_CPU_NAME; host {host})"
-    return f"{target}, {features}; FAST_GATHER {jit.FAST_GATHER}, FAST_LUT {jit.FAST_LUT}"
+    svml = "; Intel SVML in numba's math (other floats than libm's: see portable)" if config.USING_SVML else ""
+    return f"{target}, {features}; FAST_GATHER {jit.FAST_GATHER}, FAST_LUT {jit.FAST_LUT}{svml}"
 
 
 #: NumPy's dispatch targets beyond AVX2 (numpy 2's names; older ones use AVX512F, AVX512_SKX ...)

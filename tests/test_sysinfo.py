@@ -38,3 +38,13 @@ def test_isa_under_numba_target_options_says_so():
     assert r.returncode == 0, r.stderr
     assert r.stdout.startswith("haswell (NUMBA_CPU_NAME; host ")
     assert "haswell's own (NUMBA_CPU_FEATURES empty); FAST_GATHER False, FAST_LUT False" in r.stdout
+
+
+def test_isa_says_when_numba_takes_intels_vector_math(monkeypatch):
+    """With Intel's SVML (``icc_rt``) numba vectorizes ``portable``'s libm loops with other roundings: said."""
+    from numba.core import config
+
+    monkeypatch.setattr(config, "USING_SVML", True)
+    assert isa().endswith("; Intel SVML in numba's math (other floats than libm's: see portable)")
+    monkeypatch.setattr(config, "USING_SVML", False)
+    assert "SVML" not in isa()
