@@ -68,14 +68,15 @@ _OPENCV_AVX512 = ("AVX512F", "AVX512-COMMON", "AVX512-SKX", "AVX512BW", "AVX512C
 
 
 def avx2_env(cache_dir: str) -> dict[str, str]:
-    """Environment variables that make a new x86-64 process compute as an AVX2 machine without AVX-512 does, on
-    any host: numba compiles Zen 3's own code (its kernels cached in ``cache_dir``), NumPy and OpenCV leave out
-    their AVX-512 code, OpenBLAS takes its Haswell kernels. For benchmarks of the AVX2 path and for checking that
-    results do not depend on the CPU (``portable``); each library reads them at import."""
+    """Environment variables that make a new x86-64 process compute as an AVX2 machine without AVX-512 does, on any
+    host: numba compiles Zen 3's own code (its kernels cached in ``cache_dir``), NumPy and OpenCV leave out their
+    AVX-512 code, OpenBLAS takes its Haswell kernels, torch (the learned agents' extra) its AVX2 ones. For
+    benchmarks of the AVX2 path and for checking that results do not depend on the CPU (``portable``); each library
+    reads them at import."""
     from numpy._core import _multiarray_umath as npcore
 
     numpy_off = [f for f in _NUMPY_BEYOND_AVX2 if f in npcore.__cpu_dispatch__]
     opencv_off = _OPENCV_AVX512 if npcore.__cpu_features__.get("AVX512_SKX") else ()
     return {"NUMBA_CPU_NAME": "znver3", "NUMBA_CPU_FEATURES": "", "NUMBA_CACHE_DIR": cache_dir,
             "NPY_DISABLE_CPU_FEATURES": " ".join(numpy_off), "OPENBLAS_CORETYPE": "Haswell",
-            "OPENCV_CPU_DISABLE": ",".join(opencv_off)}
+            "OPENCV_CPU_DISABLE": ",".join(opencv_off), "ATEN_CPU_CAPABILITY": "avx2"}

@@ -26,6 +26,13 @@ def cache_homes(tmp_path, monkeypatch) -> tuple[Path, Path]:
 
 
 @pytest.fixture(scope="session")
+def avx2_numba_cache(tmp_path_factory) -> Path:
+    """One numba cache for the tests' processes that compile as an AVX2 machine (``sysinfo.avx2_env``): the
+    kernels they share are compiled once per test worker, not once per test."""
+    return tmp_path_factory.mktemp("numba-avx2")
+
+
+@pytest.fixture(scope="session")
 def repo_root() -> Path:
     """The project root (holds pyproject.toml, envs/, agents/)."""
     return REPO_ROOT

@@ -74,7 +74,8 @@ def main(argv: list[str] | None = None) -> int:
     if os.environ.get("AERIAL_LOC_AVX2") == "1":
         env = os.environ
         print(f"libraries as on an AVX2 CPU (--avx2): NumPy without {env.get('NPY_DISABLE_CPU_FEATURES') or '-'}, "
-              f"OpenBLAS {env.get('OPENBLAS_CORETYPE')}, OpenCV without {env.get('OPENCV_CPU_DISABLE') or '-'}")
+              f"OpenBLAS {env.get('OPENBLAS_CORETYPE')}, OpenCV without {env.get('OPENCV_CPU_DISABLE') or '-'}, "
+              f"torch {env.get('ATEN_CPU_CAPABILITY')}")
     print(f"ratio = median CPU time per item / median CPU time of the floor ('{FLOOR_NAME}': one bilinear warp "
           "of the frame from the map) timed interleaved with it")
     print(f"{'benchmark':66s} {'ratio':>9s} {'target':>10s} {'ok':>3s}  {'median CPU':>13s} {'p95 CPU':>13s} "

@@ -719,7 +719,7 @@ def _level_frame(fk):
     return count, hashlib.sha1(out.tobytes()).hexdigest()
 
 
-def test_the_kernels_compiled_for_an_avx2_cpu_give_the_same_bytes(tmp_path):
+def test_the_kernels_compiled_for_an_avx2_cpu_give_the_same_bytes(avx2_numba_cache):
     """Compiled for an AVX2 CPU without AVX-512 (``NUMBA_CPU_NAME=znver3`` with its own features, on any x86-64
     host; elsewhere for LLVM's generic CPU), the tone lookups take the portable path (``FAST_LUT`` off: scalar
     lookups of whole 32-bit pixels) and give the bytes of this process's path (the byte permutes where the host
@@ -734,7 +734,7 @@ def test_the_kernels_compiled_for_an_avx2_cpu_give_the_same_bytes(tmp_path):
 
     env = {k: v for k, v in os.environ.items() if not k.startswith("NUMBA_")}
     x86 = platform.machine().lower() in ("x86_64", "amd64")
-    env.update(NUMBA_CACHE_DIR=str(tmp_path / "numba"), NUMBA_CPU_FEATURES="",
+    env.update(NUMBA_CACHE_DIR=str(avx2_numba_cache), NUMBA_CPU_FEATURES="",
                NUMBA_CPU_NAME="znver3" if x86 else "generic")
     repo = Path(__file__).resolve().parents[2]
     script = _AVX2_RUN.replace("# _level_frame\n", inspect.getsource(_level_frame))
