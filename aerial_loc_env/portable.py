@@ -31,16 +31,22 @@ def _float_array(x: Any) -> np.ndarray:
     return np.asarray(a, dtype=np.float32 if a.dtype == np.float32 else np.float64, order="C")
 
 
-def _unary(kernel: Any, x: Any, out: np.ndarray | None) -> Any:
+def _like_input(res: np.ndarray, *inputs: Any) -> Any:
+    """``res`` as the inputs were given: an array for arrays, a NumPy scalar for NumPy scalars, else a float."""
+    if any(np.ndim(x) for x in inputs):
+        return res
+    return res[()] if any(isinstance(x, np.generic) for x in inputs) else float(res)
+
+
+def _unary(kernel: Any, x: Any, out: np.ndarray | None, *args: Any) -> Any:
+    """``kernel(flat x, *args, flat result)`` into a new array or ``out``."""
     a = _float_array(x)
     res = np.empty_like(a) if out is None else out
     if res.shape != a.shape or res.dtype != a.dtype or not res.flags.c_contiguous:
         raise ValueError(f"portable: out must be a C-contiguous {a.dtype} array of shape {a.shape}, got "
                          f"{res.dtype} {res.shape}")
-    kernel(a.reshape(-1), res.reshape(-1))
-    if out is None and np.ndim(x) == 0:
-        return res[()] if isinstance(x, np.generic) else float(res)
-    return res
+    kernel(a.reshape(-1), *args, res.reshape(-1))
+    return res if out is not None else _like_input(res, x)
 
 
 def exp(x: Any, out: np.ndarray | None = None) -> Any:
@@ -86,17 +92,12 @@ def arctan2(y: Any, x: Any) -> Any:
     yc, xc = np.asarray(yb, dtype, order="C"), np.asarray(xb, dtype, order="C")
     out = np.empty(yc.shape, dtype)
     _k.arctan2(yc.reshape(-1), xc.reshape(-1), out.reshape(-1))
-    if ya.ndim == 0 and xa.ndim == 0:
-        return out[()] if isinstance(y, np.generic) or isinstance(x, np.generic) else float(out)
-    return out
+    return _like_input(out, y, x)
 
 
 def power(x: Any, p: float) -> Any:
     """``np.power(x, p)`` for a scalar exponent, in ``x``'s precision (a float32 array: ``powf``)."""
-    a = _float_array(x)
-    out = np.empty_like(a)
-    _k.power(a.reshape(-1), a.dtype.type(p), out.reshape(-1))
-    return out if np.ndim(x) else (out[()] if isinstance(x, np.generic) else float(out))
+    return _unary(_k.power, x, None, (np.float32 if np.asarray(x).dtype == np.float32 else np.float64)(p))
 
 
 def matmul(a: Any, b: Any) -> Any:

@@ -71,17 +71,30 @@ def power(x, p, out):
         out[i] = x[i] ** p
 
 
+_WIDE = 16     # columns of ``b`` from which ``matmul`` goes row by row
+
+
 @nb.njit(**_JIT)
 def matmul(a, b, out):
-    """``out += a @ b`` for (m, k) and (k, n) (``out`` zeroed): each entry's products added in the order of k."""
+    """``out += a @ b`` for (m, k) and (k, n) (``out`` zeroed): each entry's products added in the order of k.
+    Wide ``b`` (a convolution's columns): a row of ``b`` at a time into the row of ``out``, the loop over the
+    independent entries vectorized and ``b`` read in its order; narrow ``b`` (a particle cloud's coordinates):
+    entry by entry. The same floats either way."""
     m, k = a.shape
     n = b.shape[1]
     for i in range(m):
+        row = out[i]
+        if n >= _WIDE:
+            for t in range(k):
+                ait, bt = a[i, t], b[t]
+                for j in range(n):
+                    row[j] += ait * bt[j]
+            continue
         for j in range(n):
-            s = out[i, j]     # (zeroed by the caller: typed as ``out``)
+            s = row[j]
             for t in range(k):
                 s += a[i, t] * b[t, j]
-            out[i, j] = s
+            row[j] = s
 
 
 @nb.njit(**_JIT)

@@ -39,3 +39,14 @@ def check_env_silently(sid: str, **kwargs) -> None:
         check_env(gym.make(sid, render_mode="rgb_array", **kwargs).unwrapped)
         sb3_checker.check_env(gym.make(sid, **kwargs).unwrapped, warn=True)
     assert [str(w.message) for w in caught] == []
+
+
+def host_env() -> dict[str, str]:
+    """This process's environment without the variables that pick a CPU's code paths (those ``sysinfo.avx2_env``
+    sets, and ``perf --avx2``'s marker): a subprocess started with it computes as the host does."""
+    import os
+
+    from aerial_loc_env.sysinfo import avx2_env
+
+    chosen = set(avx2_env("")) | {"AERIAL_LOC_AVX2"}
+    return {k: v for k, v in os.environ.items() if k not in chosen}

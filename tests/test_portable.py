@@ -7,7 +7,6 @@ import functools
 import hashlib
 import json
 import math
-import os
 import platform
 import subprocess
 import sys
@@ -15,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from shared_helpers import host_env
 
 from aerial_loc_env import portable
 
@@ -99,6 +99,15 @@ def test_matmul_adds_the_products_in_index_order(dtype):
         portable.matmul(a[None], b)
 
 
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_matmul_of_a_wide_operand_adds_in_index_order_too(dtype):
+    """A ``b`` of many columns (a convolution's) goes row by row through the kernel: the same index-order sums."""
+    rng = np.random.default_rng(4)
+    a, b = rng.normal(size=(3, 25)).astype(dtype), rng.normal(size=(25, 40)).astype(dtype)
+    np.testing.assert_array_equal(portable.matmul(a, b), _in_order(a, b))
+    np.testing.assert_array_equal(portable.matmul(a[1], b), _in_order(a[1:2], b)[0])
+
+
 def cpu_sensitive_results() -> dict[str, str]:
     """Digests of what NumPy's vector code and OpenBLAS's kernels would make depend on the CPU: the portable
     functions, NumPy's functions the module says are the same everywhere, and the simulator's and estimators'
@@ -158,7 +167,7 @@ def test_results_are_the_same_on_an_avx2_cpu(tmp_path, avx2_numba_cache):
     (the AVX-512 side is then checked where the digests' other machines run the suite)."""
     from aerial_loc_env.sysinfo import avx2_env
 
-    env = {k: v for k, v in os.environ.items() if not k.startswith(("NUMBA_", "NPY_", "OPENBLAS_", "OPENCV_", "ATEN_"))}
+    env = host_env()
     env.update(avx2_env(str(avx2_numba_cache)), PYTHONPATH=str(Path(__file__).parent), XDG_CACHE_HOME=str(tmp_path))
     script = "import json, test_portable as t; print(json.dumps(t.cpu_sensitive_results()))"
     r = subprocess.run([sys.executable, "-c", script], env=env, cwd=Path(__file__).resolve().parents[1],

@@ -114,14 +114,13 @@ def test_avx2_runs_in_a_process_that_computes_as_an_avx2_machine(tmp_path):
     """``--avx2`` (``make bench-avx2``) runs the benchmarks in a new process under ``sysinfo.avx2_env``: the header
     names znver3's own code for the kernels and the libraries' paths left out, and the JSON keeps the ISA."""
     import json
-    import os
     import subprocess
     import sys
     from pathlib import Path
 
-    ours = ("NUMBA_", "NPY_", "OPENBLAS_C", "OPENCV_CPU", "ATEN_")
-    env = {k: v for k, v in os.environ.items() if not k.startswith(ours)}
-    env.pop("AERIAL_LOC_AVX2", None)
+    from shared_helpers import host_env
+
+    env = host_env()
     env["XDG_CACHE_HOME"] = str(tmp_path / "cache")      # (its numba cache: kept apart from the native one)
     out = tmp_path / "bench.json"
     r = subprocess.run([sys.executable, "-m", "aerial_loc_env.perf", "no benchmark has this name", "--avx2", "--json",

@@ -504,8 +504,8 @@ class LocalTangentGeoref(Georeference):
         lat_deg, lon_deg = _arrays(lat_deg, lon_deg)
         _check_lat(lat_deg, "LocalTangentGeoref")
         d = geodetic_to_ecef(lat_deg, lon_deg) - self._origin_ecef
-        e = portable.matmul(d.reshape(-1, 3), self._frame[0]).reshape(d.shape[:-1])
-        n = portable.matmul(d.reshape(-1, 3), self._frame[1]).reshape(d.shape[:-1])
+        en = portable.matmul(d.reshape(-1, 3), self._frame[:2].T)
+        e, n = en[:, 0].reshape(d.shape[:-1]), en[:, 1].reshape(d.shape[:-1])
         return self.origin_u_px + e / self.gsd_x_m, self.origin_v_px - n / self.gsd_y_m
 
     def shifted(self, du_px: float, dv_px: float) -> LocalTangentGeoref:
