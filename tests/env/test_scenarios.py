@@ -131,6 +131,18 @@ def test_an_older_version_of_an_id_names_the_registered_one(old):
         gym.make(old)
 
 
+@pytest.mark.parametrize("name", ["RealisticPaper", "SeasonChange", "Downtown", "Crosswind"])
+def test_the_v2_of_an_id_now_v3_names_the_v3(name):
+    """The four realistic ids went to v3 when their worlds' last bits became the same on every CPU: their v2 names
+    the v3 (the spec loader, Gymnasium, ``registered_version``)."""
+    old, new = f"AerialLoc/{name}-v2", f"AerialLoc/{name}-v3"
+    with pytest.raises(ConfigError, match=rf"'{old}' is not registered.*'{new}'"):
+        load_scenario(old)
+    with pytest.warns(DeprecationWarning, match="out of date"), pytest.raises(gym.error.Error, match=new):
+        gym.make(old)
+    assert scenarios.registered_version(old) == new
+
+
 def test_registered_version_names_the_current_id_of_an_old_one():
     assert scenarios.registered_version("AerialLoc/RealMap-v1") == "AerialLoc/RealMap-v2"
     assert scenarios.registered_version("AerialLoc/Small-v2") == "AerialLoc/Small-v2"
