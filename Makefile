@@ -23,9 +23,11 @@ venv: $(VENV)/.installed
 run: venv
 	$(VENV)/bin/aerial-loc bench
 
-## Quick start 2: install, then run the whole test suite.
+## Quick start 2: install, then run the whole test suite: on 2 workers, then the tests timed by the wall clock
+## (real UDP links, SITL missions; marked realtime) alone, as a loaded machine would stretch their update gaps.
 test: venv
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n 2 -m "not realtime"
+	$(PY) -m pytest -q -m realtime
 
 # The developer's loop: the suite without the tests marked slow (statistical, training, long flights, the ones
 # that take seconds: fresh interpreters, worker processes, every id or agent, the behaviour digests).

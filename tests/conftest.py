@@ -14,6 +14,19 @@ from pathlib import Path
 import pytest
 from shared_helpers import REAL_TILES, REPO_ROOT, SHARED_DATA
 
+_REALTIME_DIRS = ("sitl", "mavlink")   # real UDP links and SITL processes timed by the wall clock
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Mark the tests of ``tests/sitl`` and ``tests/mavlink`` ``realtime``: they measure message rates and update
+    gaps on real sockets, which a machine busy with other test workers stretches (``make test`` runs them on their
+    own after the rest)."""
+    tests_dir = Path(__file__).resolve().parent
+    for item in items:
+        rel = Path(str(item.path)).resolve().relative_to(tests_dir)
+        if rel.parts and rel.parts[0] in _REALTIME_DIRS:
+            item.add_marker(pytest.mark.realtime)
+
 
 @pytest.fixture()
 def cache_homes(tmp_path, monkeypatch) -> tuple[Path, Path]:
