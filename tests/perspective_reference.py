@@ -185,6 +185,22 @@ def _row_buffers(self: ReliefView, n: int) -> tuple[np.ndarray, np.ndarray]:
     return bufs
 
 
+def facade_gains_numpy(self: ReliefView, view: ViewMaps, sun_deg: tuple[float, float] | None = None,
+                       gamma: float = 2.2) -> np.ndarray:
+    """``ReliefView.facade_gains`` as NumPy computed it before its kernel: a float64 constant without a sun, else
+    NumPy's float32 arithmetic on the facings (the sun's direction added in index order, libm's ``powf``)."""
+    if sun_deg is None or view.facing is None:
+        return np.full(0 if view.facade is None else view.facade.size, self.config.facade_gain)
+    az, el = (math.radians(a) for a in sun_deg)
+    amb = self.config.ambient
+    sun = np.array([math.sin(az), math.cos(az)], dtype=np.float32)
+    towards = (np.float32(0.0) + view.facing[:, 0] * sun[0]) + view.facing[:, 1] * sun[1]
+    direct = (1.0 - amb) * math.cos(el) / max(math.sin(el), 0.05) * np.maximum(towards, 0.0)
+    lit = np.minimum(0.5 * amb + direct, 1.5)
+    p = np.float32(1.0 / gamma)
+    return np.asarray(self.config.facade_gain * np.array([v ** p for v in lit], np.float32), np.float32)
+
+
 def reference_shade_facades(self: ReliefView, image: np.ndarray, view: ViewMaps,
                             sun_deg: tuple[float, float] | None = None, gamma: float = 2.2) -> np.ndarray:
     """Perspective v5's ``ReliefView.shade_facades``: the facade pixels' bytes as one 1-D NumPy gather/scatter
@@ -192,7 +208,7 @@ def reference_shade_facades(self: ReliefView, image: np.ndarray, view: ViewMaps,
     if view.facade is None:
         return image
     c = image.shape[-1]
-    gain = self.facade_gains(view, sun_deg, gamma).repeat(c)
+    gain = facade_gains_numpy(self, view, sun_deg, gamma).repeat(c)
     at = (view.facade * c).repeat(c)
     for i in range(1, c):
         at[i::c] += i

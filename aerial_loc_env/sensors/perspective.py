@@ -31,7 +31,7 @@ is the ray's first intersection from above, the largest ``z`` with ``h(m(z)) >= 
 The result is a pair of per-pixel map coordinate planes (x, y) for one ``cv2.remap`` of the map (and of the cast-shadow
 field, which lives in map coordinates on the ground and roofs, so shadows stay on the surfaces they fall on). With
 the shadows baked into a box of the map (``render.CameraRenderer.bake``) the frame is one remap of that box, RGB and
-occlusion together, done inside the frame's finishing pass (``render_kernels.remap_finish``, the facades shaded
+occlusion together, done inside the frame's finishing pass (``perspective_kernels.view_finish``, the facades shaded
 there): the maps are then made in the box's pixels (``origin_px``) so that no pass shifts them.
 Heights are clipped below ``0.95 H`` (a camera below the roofs has no downward view). Features thinner than one
 march step (about ``H_max / N`` of height, ``r H_max / (N H)`` on the ground) may be missed at the frame edge.
@@ -52,7 +52,6 @@ from typing import Any
 import cv2
 import numpy as np
 
-from aerial_loc_env import portable
 from aerial_loc_env.config import rng
 from aerial_loc_env.errors import ConfigError
 from aerial_loc_env.sensors import perspective_kernels as kernels
@@ -66,6 +65,7 @@ _REMAP_MAX_PX = 32767  # cv2.remap's limit on the source's sides
 _SURFACE_TOL_M = 0.3    # h(m(z1)) within this of z1: the ray sees the surface (ridged roofs vary by less per px)
 _NO_DSM = np.zeros((1, 1), np.float32)   # the kernel's height model argument for flat views (never read)
 _NO_TILT = np.zeros((3, 3), np.float32)  # its tilt argument for untilted views (never read)
+_NO_SUN = np.full(6, np.nan, np.float32)  # view_finish's sun argument without a sun (facades at facade_gain)
 _F = _MARCH_FACTOR
 # the march grid -> camera pixels (the block centres), identity, map px -> pooled px: the same every frame
 _GRID_TO_CAM = np.array([[_F, 0.0, (_F - 1) / 2.0], [0.0, _F, (_F - 1) / 2.0], [0.0, 0.0, 1.0]])
@@ -186,6 +186,19 @@ class ViewMaps:
         return cv2.remap(image[r0:r1, c0:c1], gx, gy, cv2.INTER_LINEAR, borderMode=border, borderValue=0)
 
 
+@dataclass(frozen=True, eq=False)
+class ViewPlan:
+    """A frame's view up to its per-pixel maps: the march's result and the maps kernel's arguments
+    (``ReliefView.plan``), for ``ReliefView.view_of`` (the maps) or ``ReliefView.finish_frame`` (the frame sampled
+    through them, the maps never stored whole)."""
+
+    shape: tuple[int, int]                    # (h, w) camera pixels
+    bbox: tuple[float, float, float, float]   # as ``ViewMaps.bbox``
+    origin_px: tuple[int, int]                # as ``ViewMaps.origin_px``
+    key: tuple[bool, bool]                    # the kernels' (tilted, replicated border)
+    args: tuple[Any, ...]                     # (z0, relief, factor, centre, tilt, flat, lin, consts, dsm, window)
+
+
 def _window(bbox: tuple[float, float, float, float], scale: float, offset: tuple[float, float], w: int,
             h: int) -> tuple[int, int, int, int]:
     """The pixel window (c0, r0, c1, r1) of a grid ``u_g = u_0 * scale + offset`` (per axis) holding ``bbox``
@@ -242,6 +255,37 @@ class ReliefView:
         the tilt homography ``tilt`` (``tilt_homography``), in map pixels minus ``origin_px`` (``ViewMaps``);
         None when the footprint is flat and the camera untilted (the affine warp is exact then). ``corners``: the
         footprint's corners (``footprint_px``) if the caller has them."""
+        plan = self.plan(affine, altitude_m, camera, tilt, origin_px, corners)
+        return None if plan is None else self.view_of(plan)
+
+    def view_of(self, plan: ViewPlan) -> ViewMaps:
+        """The per-pixel maps of a planned frame (``perspective_kernels.view_maps``)."""
+        h, w = plan.shape
+        gx, gy = self._map_buffers(h, w)
+        facade, facing = self._facade_buffers(h * w)
+        n = kernels.view_maps[plan.key](gx, gy, facade, facing, *plan.args)
+        if n == 0:
+            return ViewMaps(gx, gy, None, plan.bbox, None, plan.origin_px)
+        return ViewMaps(gx, gy, facade[:n], plan.bbox, facing[:n], plan.origin_px)
+
+    def finish_frame(self, plan: ViewPlan, box: np.ndarray, sun_deg: tuple[float, float] | None, gamma: float,
+                     *args: Any) -> int:
+        """A planned frame sampled from ``box`` (a baked box's uint32 RGBA pixels, in whose pixels the plan was
+        made) and finished, its facades shaded (``facade_gains``), without its maps going through memory
+        (``perspective_kernels.view_finish``; ``args``: ``render_kernels.warp_finish``'s after its matrix)."""
+        h, w = plan.shape
+        facade, facing = self._facade_buffers(h * w)
+        sun = self._sun_params(sun_deg, gamma)
+        gains = self._reused("gains", lambda: (np.empty(h * w, np.float32), np.empty(h * w, np.float64)),
+                             lambda bufs: bufs[0].size >= h * w)[0 if sun is not None else 1]
+        return kernels.view_finish[plan.key](box, facade, facing, gains, _NO_SUN if sun is None else sun,
+                                             self.config.facade_gain, *plan.args, *args)
+
+    def plan(self, affine: np.ndarray, altitude_m: float, camera: CameraModel,
+             tilt: np.ndarray | None = None, origin_px: tuple[int, int] = (0, 0),
+             corners: np.ndarray | None = None) -> ViewPlan | None:
+        """``maps``' frame up to its per-pixel maps: the march done, the maps kernel's arguments (``ViewPlan``), or
+        None where ``maps`` gives None."""
         w, h = camera.width_px, camera.height_px
         a = np.asarray(affine, dtype=np.float64)
         cu, cv = camera.center_px
@@ -255,25 +299,21 @@ class ReliefView:
         wc, hc = -(-w // f), -(-h // f)
 
         def pixel_maps(z0: np.ndarray, relief: np.ndarray, consts: tuple[float, ...] = (0.0,) * 7,
-                       window: tuple[int, ...] = (0,) * 5) -> ViewMaps:
-            """The kernel's maps: ground points on flat cells, the refined visible points on relief cells."""
-            gx, gy = self._map_buffers(h, w)
-            facade, facing = self._facade_buffers(h * w)
+                       window: tuple[int, ...] = (0,) * 5) -> ViewPlan:
+            """The maps kernel's arguments: ground points on flat cells, the refined visible points on relief
+            cells."""
             if tilt is None:
                 conj = _NO_TILT
             else:
                 shift, unshift = _centre_shift(cu, cv)
                 conj = (unshift @ tilt @ shift).astype(np.float32)
             flat = np.array([[a[0, 0], a[0, 1], ox], [a[1, 0], a[1, 1], oy]], np.float32)
-            n = kernels.view_maps[tilt is not None, bool(window[4])](
-                gx, gy, facade, facing, z0, relief, f, np.array([cu, cv], np.float32), conj, flat,
-                a[:, :2].astype(np.float32), np.array(consts, np.float32),
-                _NO_DSM if self.dsm is None else self.dsm, np.array(window[:4], np.int64))
-            if n == 0:
-                return ViewMaps(gx, gy, None, bbox, None, origin)
-            return ViewMaps(gx, gy, facade[:n], bbox, facing[:n], origin)
+            return ViewPlan((h, w), bbox, origin, (tilt is not None, bool(window[4])), (
+                z0, relief, f, np.array([cu, cv], np.float32), conj, flat, a[:, :2].astype(np.float32),
+                np.array(consts, np.float32), _NO_DSM if self.dsm is None else self.dsm,
+                np.array(window[:4], np.int64)))
 
-        def flat_view() -> ViewMaps | None:
+        def flat_view() -> ViewPlan | None:
             """Flat ground under the footprint: the affine warp (None), or the tilted camera's ground points."""
             if tilt is None:
                 return None
@@ -381,14 +421,24 @@ class ReliefView:
         sin(el) max(0, n . sun)``: walls facing away from the sun are dark, walls facing it at a low sun bright;
         then ``facade_gain`` (its albedo against the roof's) and the tone curve ``gamma`` (float32).
         """
-        if sun_deg is None or view.facing is None:
+        sun = self._sun_params(sun_deg, gamma)
+        if sun is None or view.facing is None:
             return np.full(0 if view.facade is None else view.facade.size, self.config.facade_gain)
+        gains = np.empty(view.facing.shape[0], np.float32)
+        kernels.facade_gains(view.facing, sun, gains)
+        return gains
+
+    def _sun_params(self, sun_deg: tuple[float, float] | None, gamma: float) -> np.ndarray | None:
+        """``facade_gains``' constants as its kernel takes them (float32: sin and cos of the azimuth, the direct
+        light's coefficient ``(1 - ambient) cos(el) / max(sin(el), 0.05)``, half the ambient, 1 / gamma,
+        ``facade_gain``: each rounded once from its float64 value, as NumPy's float32 arithmetic takes a Python
+        number), or None without a sun."""
+        if sun_deg is None:
+            return None
         az, el = (math.radians(a) for a in sun_deg)
         amb = self.config.ambient
-        towards = portable.matmul(view.facing, np.array([math.sin(az), math.cos(az)], dtype=np.float32))
-        direct = (1.0 - amb) * math.cos(el) / max(math.sin(el), 0.05) * np.maximum(towards, 0.0)
-        return np.asarray(self.config.facade_gain * portable.power(np.minimum(0.5 * amb + direct, 1.5), 1.0 / gamma),
-                          np.float32)
+        return np.array([math.sin(az), math.cos(az), (1.0 - amb) * math.cos(el) / max(math.sin(el), 0.05),
+                         0.5 * amb, 1.0 / gamma, self.config.facade_gain], np.float32)
 
 
 def sample_grid(view: ViewMaps, data: np.ndarray, factor: int) -> np.ndarray:
@@ -396,5 +446,5 @@ def sample_grid(view: ViewMaps, data: np.ndarray, factor: int) -> np.ndarray:
     return view.sample(data, border=cv2.BORDER_REPLICATE, scale=1.0 / factor, offset=0.5 / factor - 0.5)
 
 
-__all__ = ["PerspectiveConfig", "ReliefView", "ViewMaps", "footprint_px", "sample_grid", "tilt_homography",
+__all__ = ["PerspectiveConfig", "ReliefView", "ViewMaps", "ViewPlan", "footprint_px", "sample_grid", "tilt_homography",
            "tilted_corners"]

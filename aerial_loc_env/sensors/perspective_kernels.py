@@ -47,7 +47,17 @@ from aerial_loc_env.jit import fma32 as _fma
 from aerial_loc_env.jit import gather_f32x16 as _gather_f32x16
 from aerial_loc_env.jit import index32 as _index32
 from aerial_loc_env.jit import wide_vectors as _wide
-from aerial_loc_env.sensors.render_kernels import gain_byte
+from aerial_loc_env.sensors.render_kernels import (
+    OCC_ALPHA,
+    _box_layout,
+    _row_buffers,
+    _scene_row,
+    _sensor_row,
+    _shade_row,
+    _tone_tables,
+    _warp_row,
+    gain_byte,
+)
 
 _LANES = 16    # OpenCV's nearest warps: vector body in blocks of 2 x 8 float32 lanes (AVX2), scalar tail after it
 _F32 = np.float32
@@ -230,27 +240,31 @@ def _gather(heights: np.ndarray, cols: int, ix: np.ndarray, iy: np.ndarray, out:
             out[j] = heights[np.uint64(iy[j]) * np.uint64(cols) + np.uint64(ix[j])]
 
 
-def _maps_kernel(tilted: bool, replicate: bool):
-    """``view_maps`` for nadir or tilted rays, reading the height model with zeros or (a window of a map beyond
-    remap's size limit) its border outside: compile-time constants, as for ``march``."""
+@numba.njit(inline="always", **_JIT)
+def _band_scratch(size: int, wc: int) -> tuple:
+    """The buffers a band of ``size`` pixels (``wc`` cells) needs in ``_band_kernel``'s bands."""
+    f32 = np.float32
+    return (np.empty(size, f32), np.empty(size, f32), np.empty(wc, np.int64), np.empty(wc, np.int64),
+            np.empty(size, f32), np.empty(size, f32), np.empty(size, f32), np.empty(size, f32), np.empty(size, f32),
+            np.empty(size, f32), np.empty(size, np.int32), np.empty(size, np.int32), np.empty(size, np.int32),
+            np.empty(size, np.bool_), np.empty(size, f32), np.empty(size, f32), np.empty(size, f32))
 
-    @numba.njit(**_JIT)
-    def view_maps(out_x: np.ndarray, out_y: np.ndarray, facade: np.ndarray, facing: np.ndarray, z0: np.ndarray,
-                  relief: np.ndarray, factor: int, centre: np.ndarray, tilt: np.ndarray, flat: np.ndarray,
-                  lin: np.ndarray, consts: np.ndarray, dsm: np.ndarray, window: np.ndarray) -> int:
-        """The per-pixel maps of ``ReliefView.maps`` into ``out_x``/``out_y`` (h, w) float32; returns the number
-        of facade pixels, whose flat indices and facing directions are written to ``facade``/``facing`` in
-        flat-index order (``render_kernels.remap_finish`` then takes them row by row without sorting).
 
-        Rays: pixel offsets from the principal point ``centre`` (cu, cv), through the centred tilt homography
-        ``tilt`` (3, 3) float32 when tilted. Flat cells (``relief`` 0): ``flat`` (2, 3) float32 rows (alpha, beta,
-        gamma) of the ground point ``fma(u, alpha, fma(v, beta, gamma))``. Relief cells: ``lin`` (2, 2) float32
-        the affine's linear part (ground point - nadir), ``consts`` float32 (nadir x, nadir y, origin-shifted nadir
-        x, y, H, surface tolerance, height cap), fixed-point steps from the cell's ``z0`` on ``dsm`` (C-contiguous;
-        read per ``window``: c0, r0, c1, r1)."""
-        _wide()
-        h, w = out_x.shape
-        hc, wc = z0.shape
+def _band_kernel(tilted: bool, replicate: bool):
+    """The maps of one band of cells (``factor`` rows of pixels) for nadir or tilted rays, reading the height model
+    with zeros or (a window of a map beyond remap's size limit) its border outside: compile-time constants, as for
+    ``march``. Inlined into ``view_maps`` (whole planes) and ``view_finish`` (a band's rows at a time)."""
+
+    @numba.njit(inline="always", **_JIT)
+    def band(cy: int, y_off: int, out_x: np.ndarray, out_y: np.ndarray, w: int, h: int, facade: np.ndarray,
+             facing: np.ndarray, n: int, z0: np.ndarray, relief: np.ndarray, factor: int, centre: np.ndarray,
+             tilt: np.ndarray, flat: np.ndarray, lin: np.ndarray, consts: np.ndarray, dsm: np.ndarray,
+             window: np.ndarray, scratch: tuple) -> int:
+        """Band ``cy``'s rows y into ``out_x``/``out_y`` rows ``y - y_off``; its facades appended to
+        ``facade``/``facing`` from ``n`` on (frame flat indices, in flat-index order); returns the new count."""
+        (band_du, band_dv, cells, wall_at, bdu, bdv, bk, bz, bz2, bk1, wall, pix_x, pix_y, ins, got, wall_u,
+         wall_v) = scratch
+        wc = z0.shape[1]
         rows, cols = dsm.shape
         heights = dsm.reshape(-1)
         c0, r0, c1, r1 = window[0], window[1], window[2], window[3]
@@ -261,171 +275,270 @@ def _maps_kernel(tilted: bool, replicate: bool):
         t00, t01, t02, t10, t11, t12 = tilt[0, 0], tilt[0, 1], tilt[0, 2], tilt[1, 0], tilt[1, 1], tilt[1, 2]
         t20, t21, t22 = tilt[2, 0], tilt[2, 1], tilt[2, 2]
         one, zero = _F32(1.0), _F32(0.0)
-        map_x, map_y = out_x.reshape(h * w), out_y.reshape(h * w)
+        map_x, map_y = out_x.reshape(out_x.size), out_y.reshape(out_y.size)
+        shift = y_off * w       # frame flat index -> the planes' flat index
+        y0, y1 = cy * factor, min(cy * factor + factor, h)
+        for y in range(y0, y1):
+            v = _F32(y) - cv
+            o = (y - y0) * w
+            du_row, dv_row = band_du[o:o + w], band_dv[o:o + w]
+            gx_row, gy_row = out_x[y - y_off], out_y[y - y_off]
+            for x in range(w):
+                u = _F32(np.int32(x)) - cu
+                if tilted:
+                    den = _fma(u, t20, _fma(v, t21, t22))
+                    ru = _fma(u, t00, _fma(v, t01, t02)) / den
+                    rv = _fma(u, t10, _fma(v, t11, t12)) / den
+                else:
+                    ru, rv = u, v
+                gx_row[x] = _fma(ru, a0, _fma(rv, a1, a2))
+                gy_row[x] = _fma(ru, b0, _fma(rv, b1, b2))
+                if tilted:      # (untilted: the rays are the offsets, computed where listed)
+                    du_row[x] = l00 * ru + l01 * rv
+                    dv_row[x] = l10 * ru + l11 * rv
+        m = 0
+        n_cells = 0
+        for cx in range(wc):
+            if relief[cy, cx] == 0:
+                continue
+            cells[n_cells] = cx
+            n_cells += 1
+            k0 = one - z0[cy, cx] / big_h
+            xa, xb = cx * factor, min(cx * factor + factor, w)
+            for y in range(y0, y1):
+                o = (y - y0) * w
+                v = _F32(y) - cv
+                if xb - xa == 4:        # a whole cell of the march's 4 x 4 blocks: loads, then stores (SLP;
+                    a, b = np.uint64(o + xa), np.uint64(m)     # unsigned: no negative-index wraparound)
+                    p1, p2, p3, q1, q2, q3 = a + _U1, a + _U2, a + _U3, b + _U1, b + _U2, b + _U3
+                    if tilted:
+                        u0, u1, u2, u3 = band_du[a], band_du[p1], band_du[p2], band_du[p3]
+                        v0, v1, v2, v3 = band_dv[a], band_dv[p1], band_dv[p2], band_dv[p3]
+                    else:
+                        x0 = _F32(xa)
+                        r0_, r1_ = x0 - cu, (x0 + _F32(1.0)) - cu
+                        r2_, r3_ = (x0 + _F32(2.0)) - cu, (x0 + _F32(3.0)) - cu
+                        u0, u1 = l00 * r0_ + l01 * v, l00 * r1_ + l01 * v
+                        u2, u3 = l00 * r2_ + l01 * v, l00 * r3_ + l01 * v
+                        v0, v1 = l10 * r0_ + l11 * v, l10 * r1_ + l11 * v
+                        v2, v3 = l10 * r2_ + l11 * v, l10 * r3_ + l11 * v
+                    bdu[b], bdu[q1], bdu[q2], bdu[q3] = u0, u1, u2, u3
+                    bdv[b], bdv[q1], bdv[q2], bdv[q3] = v0, v1, v2, v3
+                    bk[b], bk[q1], bk[q2], bk[q3] = k0, k0, k0, k0
+                    m += 4
+                else:
+                    for x in range(xa, xb):
+                        if tilted:
+                            bdu[m] = band_du[o + x]
+                            bdv[m] = band_dv[o + x]
+                        else:
+                            u = _F32(np.int32(x)) - cu
+                            bdu[m] = l00 * u + l01 * v
+                            bdv[m] = l10 * u + l11 * v
+                        bk[m] = k0
+                        m += 1
+        for j in range(m):      # z1: the height of the surface the ray is in just below its march hit
+            pix_x[j], pix_y[j], ins[j] = _dsm_index(bdu[j], bdv[j], bk[j], nx, ny, rows, cols, c0, r0, c1, r1,
+                                                    replicate)
+        _gather(heights, cols, pix_x, pix_y, got, m, not replicate)
+        for j in range(m):      # z2 = h(m(z1)) (the same point where z1 = z0, e.g. open ground)
+            g, inside = got[j], ins[j]
+            z1 = min(g if inside else zero, cap)
+            bz[j] = z1
+            k1 = one - z1 / big_h
+            bk1[j] = k1
+            pix_x[j], pix_y[j], ins[j] = _dsm_index(bdu[j], bdv[j], k1, nx, ny, rows, cols, c0, r0, c1, r1,
+                                                    replicate)
+        _gather(heights, cols, pix_x, pix_y, got, m, not replicate)
+        for j in range(m):      # not settled on a surface after one step: one more (z3)
+            k1, k0, z1, g, inside = bk1[j], bk[j], bz[j], got[j], ins[j]
+            same = k1 == k0
+            z2 = z1 if same else min(g if inside else zero, cap)
+            bz2[j] = z2
+            bk[j] = k1      # (= k0 where same: a k is 1 - z / H, never -0.0)
+            k2 = one - z2 / big_h
+            bk1[j] = k2
+            pix_x[j], pix_y[j], ins[j] = _dsm_index(bdu[j], bdv[j], k2, nx, ny, rows, cols, c0, r0, c1, r1,
+                                                    replicate)
+        _gather(heights, cols, pix_x, pix_y, got, m, not replicate)
+        for j in range(m):      # settled (or a wall: below) at the last step's point
+            z1, z2, g, inside, k1, k0 = bz[j], bz2[j], got[j], ins[j], bk1[j], bk[j]
+            z3 = min(g if inside else zero, cap)
+            again = abs(z2 - z1) > tol
+            scale = k1 if again else k0
+            bz[j] = bdu[j] * scale + ox
+            bz2[j] = bdv[j] * scale + oy
+            wall[j] = np.int32(again & (abs(z3 - z2) > tol))  # still jumping: the ray entered through a wall
+        n0 = n
+        j = 0
+        for c in range(n_cells):    # scattered to the maps
+            xa, xb = cells[c] * factor, min(cells[c] * factor + factor, w)
+            for y in range(y0, y1):
+                row_x, row_y = out_x[y - y_off], out_y[y - y_off]
+                if xb - xa == 4:        # loads, then stores (SLP)
+                    a, b = np.uint64(j), np.uint64(xa)
+                    p1, p2, p3, q1, q2, q3 = a + _U1, a + _U2, a + _U3, b + _U1, b + _U2, b + _U3
+                    u0, u1, u2, u3 = bz[a], bz[p1], bz[p2], bz[p3]
+                    v0, v1, v2, v3 = bz2[a], bz2[p1], bz2[p2], bz2[p3]
+                    row_x[b], row_x[q1], row_x[q2], row_x[q3] = u0, u1, u2, u3
+                    row_y[b], row_y[q1], row_y[q2], row_y[q3] = v0, v1, v2, v3
+                    j += 4
+                else:
+                    for x in range(xa, xb):
+                        row_x[x] = bz[j]
+                        row_y[x] = bz2[j]
+                        j += 1
+        j = 0
+        for c in range(n_cells):    # each cell's first listed pixel if the cell has a wall, else -1
+            size_c = (y1 - y0) * (min(cells[c] * factor + factor, w) - cells[c] * factor)
+            any_wall = np.int32(0)
+            for i in range(size_c):
+                any_wall |= wall[np.uint64(j + i)]
+            wall_at[c] = j if any_wall != 0 else -1
+            j += size_c
+        for y in range(y0, y1):     # the walls listed (written at n, kept where a wall) row by row: the
+            for c in range(n_cells):    # frame's facades in flat-index order
+                if wall_at[c] < 0:
+                    continue
+                xa, xb = cells[c] * factor, min(cells[c] * factor + factor, w)
+                j = wall_at[c] + (y - y0) * (xb - xa)
+                for x in range(xa, xb):
+                    ju, iu = np.uint64(j), np.uint64(n - n0)
+                    facade[np.uint64(n)] = y * w + x
+                    wall_u[iu] = bdu[ju]
+                    wall_v[iu] = bdv[ju]
+                    n += wall[ju]
+                    j += 1
+        for i in range(n - n0):     # walls: coloured from where the ray meets the ground, facing it
+            du, dv = wall_u[i], wall_v[i]
+            dist = max(_F32(np.sqrt(np.float64(du) * du + np.float64(dv) * dv)), _F32(1e-3))
+            scale = one + one / dist
+            wall_u[i] = du * scale + ox
+            wall_v[i] = dv * scale + oy
+            bdu[i] = -(du / dist)
+            bdv[i] = dv / dist
+        band_facade, band_facing = facade[n0:n], facing[n0:n]
+        for i in range(n - n0):
+            p = np.uint64(band_facade[i] - shift)
+            map_x[p] = wall_u[i]
+            map_y[p] = wall_v[i]
+            band_facing[i, 0] = bdu[i]
+            band_facing[i, 1] = bdv[i]
+        return n
+
+    return band
+
+
+def _maps_kernel(tilted: bool, replicate: bool):
+    """``view_maps`` for nadir or tilted rays, reading the height model with zeros or (a window of a map beyond
+    remap's size limit) its border outside (``_band_kernel``)."""
+    band = _band_kernel(tilted, replicate)
+
+    @numba.njit(**_JIT)
+    def view_maps(out_x: np.ndarray, out_y: np.ndarray, facade: np.ndarray, facing: np.ndarray, z0: np.ndarray,
+                  relief: np.ndarray, factor: int, centre: np.ndarray, tilt: np.ndarray, flat: np.ndarray,
+                  lin: np.ndarray, consts: np.ndarray, dsm: np.ndarray, window: np.ndarray) -> int:
+        """The per-pixel maps of ``ReliefView.maps`` into ``out_x``/``out_y`` (h, w) float32; returns the number
+        of facade pixels, whose flat indices and facing directions are written to ``facade``/``facing`` in
+        flat-index order (the finishing pass takes them row by row without sorting).
+
+        Rays: pixel offsets from the principal point ``centre`` (cu, cv), through the centred tilt homography
+        ``tilt`` (3, 3) float32 when tilted. Flat cells (``relief`` 0): ``flat`` (2, 3) float32 rows (alpha, beta,
+        gamma) of the ground point ``fma(u, alpha, fma(v, beta, gamma))``. Relief cells: ``lin`` (2, 2) float32
+        the affine's linear part (ground point - nadir), ``consts`` float32 (nadir x, nadir y, origin-shifted nadir
+        x, y, H, surface tolerance, height cap), fixed-point steps from the cell's ``z0`` on ``dsm`` (C-contiguous;
+        read per ``window``: c0, r0, c1, r1)."""
+        _wide()
+        h, w = out_x.shape
         # One band of cells (factor rows of pixels) at a time: every pixel's ray and ground point row by row (flat
         # cells keep it), then the relief cells' pixels listed cell by cell, then each fixed-point step over the
         # whole list (independent lookups overlap; a pixel's chain of dependent lookups is latency-bound).
-        size = factor * w
-        band_du, band_dv = np.empty(size, np.float32), np.empty(size, np.float32)
-        cells, wall_at = np.empty(wc, np.int64), np.empty(wc, np.int64)
-        bdu, bdv = np.empty(size, np.float32), np.empty(size, np.float32)
-        bk, bz, bz2 = np.empty(size, np.float32), np.empty(size, np.float32), np.empty(size, np.float32)
-        bk1, wall = np.empty(size, np.float32), np.empty(size, np.int32)
-        pix_x, pix_y, ins = np.empty(size, np.int32), np.empty(size, np.int32), np.empty(size, np.bool_)
-        got = np.empty(size, np.float32)
-        wall_u, wall_v = np.empty(size, np.float32), np.empty(size, np.float32)
+        scratch = _band_scratch(factor * w, z0.shape[1])
         n = 0
-        for cy in range(hc):
-            y0, y1 = cy * factor, min(cy * factor + factor, h)
-            for y in range(y0, y1):
-                v = _F32(y) - cv
-                o = (y - y0) * w
-                du_row, dv_row = band_du[o:o + w], band_dv[o:o + w]
-                gx_row, gy_row = out_x[y], out_y[y]
-                for x in range(w):
-                    u = _F32(np.int32(x)) - cu
-                    if tilted:
-                        den = _fma(u, t20, _fma(v, t21, t22))
-                        ru = _fma(u, t00, _fma(v, t01, t02)) / den
-                        rv = _fma(u, t10, _fma(v, t11, t12)) / den
-                    else:
-                        ru, rv = u, v
-                    gx_row[x] = _fma(ru, a0, _fma(rv, a1, a2))
-                    gy_row[x] = _fma(ru, b0, _fma(rv, b1, b2))
-                    if tilted:      # (untilted: the rays are the offsets, computed where listed)
-                        du_row[x] = l00 * ru + l01 * rv
-                        dv_row[x] = l10 * ru + l11 * rv
-            m = 0
-            n_cells = 0
-            for cx in range(wc):
-                if relief[cy, cx] == 0:
-                    continue
-                cells[n_cells] = cx
-                n_cells += 1
-                k0 = one - z0[cy, cx] / big_h
-                xa, xb = cx * factor, min(cx * factor + factor, w)
-                for y in range(y0, y1):
-                    o = (y - y0) * w
-                    v = _F32(y) - cv
-                    if xb - xa == 4:        # a whole cell of the march's 4 x 4 blocks: loads, then stores (SLP;
-                        a, b = np.uint64(o + xa), np.uint64(m)     # unsigned: no negative-index wraparound)
-                        p1, p2, p3, q1, q2, q3 = a + _U1, a + _U2, a + _U3, b + _U1, b + _U2, b + _U3
-                        if tilted:
-                            u0, u1, u2, u3 = band_du[a], band_du[p1], band_du[p2], band_du[p3]
-                            v0, v1, v2, v3 = band_dv[a], band_dv[p1], band_dv[p2], band_dv[p3]
-                        else:
-                            x0 = _F32(xa)
-                            r0_, r1_ = x0 - cu, (x0 + _F32(1.0)) - cu
-                            r2_, r3_ = (x0 + _F32(2.0)) - cu, (x0 + _F32(3.0)) - cu
-                            u0, u1 = l00 * r0_ + l01 * v, l00 * r1_ + l01 * v
-                            u2, u3 = l00 * r2_ + l01 * v, l00 * r3_ + l01 * v
-                            v0, v1 = l10 * r0_ + l11 * v, l10 * r1_ + l11 * v
-                            v2, v3 = l10 * r2_ + l11 * v, l10 * r3_ + l11 * v
-                        bdu[b], bdu[q1], bdu[q2], bdu[q3] = u0, u1, u2, u3
-                        bdv[b], bdv[q1], bdv[q2], bdv[q3] = v0, v1, v2, v3
-                        bk[b], bk[q1], bk[q2], bk[q3] = k0, k0, k0, k0
-                        m += 4
-                    else:
-                        for x in range(xa, xb):
-                            if tilted:
-                                bdu[m] = band_du[o + x]
-                                bdv[m] = band_dv[o + x]
-                            else:
-                                u = _F32(np.int32(x)) - cu
-                                bdu[m] = l00 * u + l01 * v
-                                bdv[m] = l10 * u + l11 * v
-                            bk[m] = k0
-                            m += 1
-            for j in range(m):      # z1: the height of the surface the ray is in just below its march hit
-                pix_x[j], pix_y[j], ins[j] = _dsm_index(bdu[j], bdv[j], bk[j], nx, ny, rows, cols, c0, r0, c1, r1,
-                                                        replicate)
-            _gather(heights, cols, pix_x, pix_y, got, m, not replicate)
-            for j in range(m):      # z2 = h(m(z1)) (the same point where z1 = z0, e.g. open ground)
-                g, inside = got[j], ins[j]
-                z1 = min(g if inside else zero, cap)
-                bz[j] = z1
-                k1 = one - z1 / big_h
-                bk1[j] = k1
-                pix_x[j], pix_y[j], ins[j] = _dsm_index(bdu[j], bdv[j], k1, nx, ny, rows, cols, c0, r0, c1, r1,
-                                                        replicate)
-            _gather(heights, cols, pix_x, pix_y, got, m, not replicate)
-            for j in range(m):      # not settled on a surface after one step: one more (z3)
-                k1, k0, z1, g, inside = bk1[j], bk[j], bz[j], got[j], ins[j]
-                same = k1 == k0
-                z2 = z1 if same else min(g if inside else zero, cap)
-                bz2[j] = z2
-                bk[j] = k1      # (= k0 where same: a k is 1 - z / H, never -0.0)
-                k2 = one - z2 / big_h
-                bk1[j] = k2
-                pix_x[j], pix_y[j], ins[j] = _dsm_index(bdu[j], bdv[j], k2, nx, ny, rows, cols, c0, r0, c1, r1,
-                                                        replicate)
-            _gather(heights, cols, pix_x, pix_y, got, m, not replicate)
-            for j in range(m):      # settled (or a wall: below) at the last step's point
-                z1, z2, g, inside, k1, k0 = bz[j], bz2[j], got[j], ins[j], bk1[j], bk[j]
-                z3 = min(g if inside else zero, cap)
-                again = abs(z2 - z1) > tol
-                scale = k1 if again else k0
-                bz[j] = bdu[j] * scale + ox
-                bz2[j] = bdv[j] * scale + oy
-                wall[j] = np.int32(again & (abs(z3 - z2) > tol))  # still jumping: the ray entered through a wall
-            n0 = n
-            j = 0
-            for c in range(n_cells):    # scattered to the maps
-                xa, xb = cells[c] * factor, min(cells[c] * factor + factor, w)
-                for y in range(y0, y1):
-                    row_x, row_y = out_x[y], out_y[y]
-                    if xb - xa == 4:        # loads, then stores (SLP)
-                        a, b = np.uint64(j), np.uint64(xa)
-                        p1, p2, p3, q1, q2, q3 = a + _U1, a + _U2, a + _U3, b + _U1, b + _U2, b + _U3
-                        u0, u1, u2, u3 = bz[a], bz[p1], bz[p2], bz[p3]
-                        v0, v1, v2, v3 = bz2[a], bz2[p1], bz2[p2], bz2[p3]
-                        row_x[b], row_x[q1], row_x[q2], row_x[q3] = u0, u1, u2, u3
-                        row_y[b], row_y[q1], row_y[q2], row_y[q3] = v0, v1, v2, v3
-                        j += 4
-                    else:
-                        for x in range(xa, xb):
-                            row_x[x] = bz[j]
-                            row_y[x] = bz2[j]
-                            j += 1
-            j = 0
-            for c in range(n_cells):    # each cell's first listed pixel if the cell has a wall, else -1
-                size_c = (y1 - y0) * (min(cells[c] * factor + factor, w) - cells[c] * factor)
-                any_wall = np.int32(0)
-                for i in range(size_c):
-                    any_wall |= wall[np.uint64(j + i)]
-                wall_at[c] = j if any_wall != 0 else -1
-                j += size_c
-            for y in range(y0, y1):     # the walls listed (written at n, kept where a wall) row by row: the
-                for c in range(n_cells):    # frame's facades in flat-index order
-                    if wall_at[c] < 0:
-                        continue
-                    xa, xb = cells[c] * factor, min(cells[c] * factor + factor, w)
-                    j = wall_at[c] + (y - y0) * (xb - xa)
-                    for x in range(xa, xb):
-                        ju, iu = np.uint64(j), np.uint64(n - n0)
-                        facade[np.uint64(n)] = y * w + x
-                        wall_u[iu] = bdu[ju]
-                        wall_v[iu] = bdv[ju]
-                        n += wall[ju]
-                        j += 1
-            for i in range(n - n0):     # walls: coloured from where the ray meets the ground, facing it
-                du, dv = wall_u[i], wall_v[i]
-                dist = max(_F32(np.sqrt(np.float64(du) * du + np.float64(dv) * dv)), _F32(1e-3))
-                scale = one + one / dist
-                wall_u[i] = du * scale + ox
-                wall_v[i] = dv * scale + oy
-                bdu[i] = -(du / dist)
-                bdv[i] = dv / dist
-            band_facade, band_facing = facade[n0:n], facing[n0:n]
-            for i in range(n - n0):
-                p = np.uint64(band_facade[i])
-                map_x[p] = wall_u[i]
-                map_y[p] = wall_v[i]
-                band_facing[i, 0] = bdu[i]
-                band_facing[i, 1] = bdv[i]
+        for cy in range(z0.shape[0]):
+            n = band(cy, 0, out_x, out_y, w, h, facade, facing, n, z0, relief, factor, centre, tilt, flat, lin,
+                     consts, dsm, window, scratch)
         return n
 
     return view_maps
+
+
+@numba.njit(inline="always", **_JIT)
+def _facade_gain(fx: np.float32, fy: np.float32, sun: np.ndarray) -> np.float32:
+    """``ReliefView.facade_gains``'s sunlit gain of a facade facing (``fx``, ``fy``) (east, north), in its float32
+    operations and their order: ``sun`` float32 (sin az, cos az, the direct light's coefficient, half the ambient,
+    1 / gamma, facade_gain)."""
+    towards = (_F32(0.0) + fx * sun[0]) + fy * sun[1]      # (portable.matmul: products added in index order)
+    lit = min(sun[3] + sun[2] * max(towards, _F32(0.0)), _F32(1.5))
+    return sun[5] * lit ** sun[4]
+
+
+@numba.njit(**_JIT)
+def facade_gains(facing: np.ndarray, sun: np.ndarray, out: np.ndarray) -> None:
+    """``out`` (n,) float32: the sunlit gain (``_facade_gain``) of each facing (n, 2) float32."""
+    for i in range(out.size):
+        out[i] = _facade_gain(facing[i, 0], facing[i, 1], sun)
+
+
+def _finish_kernel(tilted: bool, replicate: bool):
+    """``view_finish`` for nadir or tilted rays (``_band_kernel``'s constants)."""
+    band = _band_kernel(tilted, replicate)
+
+    @numba.njit(**_JIT)
+    def view_finish(box: np.ndarray, facade: np.ndarray, facing: np.ndarray, gains: np.ndarray, sun: np.ndarray,
+                    fixed_gain: float, z0: np.ndarray, relief: np.ndarray, factor: int, centre: np.ndarray,
+                    tilt: np.ndarray, flat: np.ndarray, lin: np.ndarray, consts: np.ndarray, dsm: np.ndarray,
+                    window: np.ndarray, lut: np.ndarray, out: np.ndarray, alpha: np.ndarray, sensor: bool,
+                    vig: np.ndarray, bank: np.ndarray, dy: int, dx3: int, sigma_mode: int, a32: np.float32,
+                    b32: np.float32, a64: float, b64: float) -> int:
+        """The frame of ``view_maps``' maps: ``render_kernels.warp_finish`` with the box sampled through them (bit for
+        bit OpenCV 5's ``cv2.remap(rgba, map_x, map_y, INTER_LINEAR, BORDER_CONSTANT 0)``), the facade pixels scaled
+        by their gains after the alpha is taken and before the tone (``render_kernels._shade_row``), a band of cells
+        at a time: the band's maps (its rows of each plane, in cache: the planes never go through memory), facades
+        and gains, then the band's rows sampled and finished. Returns the shadowed pixels.
+
+        ``box`` (bh, bw) uint32 as ``warp_finish``'s, the maps made in its pixels (``consts``' origin-shifted
+        nadir); ``facade``/``facing``/``gains``: buffers for up to H W facades (``gains`` float32 with a sun, else
+        float64: the gain's precision), the facades' gains ``_facade_gain`` with ``sun`` (its first value NaN:
+        none) else ``fixed_gain``; the maps' arguments as ``view_maps``', the rest as ``warp_finish``'s after its
+        matrix. The box lines 8 rows down are prefetched from the flat ground's step per row (the later rows' maps
+        are not made yet)."""
+        _wide()
+        h_px, w_px = alpha.shape
+        hc, wc = z0.shape
+        scratch = _band_scratch(factor * w_px, wc)
+        band_x, band_y = np.empty((factor, w_px), np.float32), np.empty((factor, w_px), np.float32)
+        flat_box, bw, umax, vmax, stride = _box_layout(box)
+        fa, fb, idx, q00, q01, q10, q11, c00, c01, c10, c11, rgba, o, no_occ = _row_buffers(w_px)
+        l0, l1, l2, tabs = _tone_tables(lut)
+        w3 = 3 * w_px
+        lit = not np.isnan(sun[0])
+        # the box lines 8 rows down (the flat ground's step per camera row): the band's later rows are not made yet
+        ahead = np.int64(np.rint(_F32(8.0) * flat[1, 1])) * bw + np.int64(np.rint(_F32(8.0) * flat[0, 1]))
+        n, t, count = 0, 0, 0
+        for cy in range(hc):
+            y0 = cy * factor
+            n0 = n
+            n = band(cy, y0, band_x, band_y, w_px, h_px, facade, facing, n, z0, relief, factor, centre, tilt, flat,
+                     lin, consts, dsm, window, scratch)
+            for i in range(n0, n):
+                gains[i] = _facade_gain(facing[i, 0], facing[i, 1], sun) if lit else fixed_gain
+            for y in range(y0, min(y0 + factor, h_px)):
+                row_px = np.int64(y) * w_px
+                t1 = t
+                while t1 < n and facade[t1] < row_px + w_px:
+                    t1 += 1
+                _warp_row(box, flat_box, ahead, band_x[y - y0], band_y[y - y0], fa, fb, idx, rgba, q00, q01, q10,
+                          q11, c00, c01, c10, c11)
+                _shade_row(rgba, facade, gains, t, t1, row_px)
+                t = t1
+                count += _scene_row(rgba, o, alpha[y], no_occ, 4, w_px, OCC_ALPHA, l0, l1, l2, l0, l1, l2, False,
+                                    tabs)
+                _sensor_row(o, out[w3 * y:w3 * (y + 1)], y, h_px, sensor, vig, bank, dy, dx3, sigma_mode, a32, b32,
+                            a64, b64)
+        return count
+
+    return view_finish
 
 
 @numba.njit(**_JIT)
@@ -442,5 +555,7 @@ def shade_pixels(image: np.ndarray, pixels: np.ndarray, gain: np.ndarray) -> Non
 march = {tilted: _march_kernel(tilted) for tilted in (False, True)}     # by tilt: affine / projective probes
 view_maps = {(tilted, replicate): _maps_kernel(tilted, replicate)      # by tilt and border (compiled when used)
              for tilted in (False, True) for replicate in (False, True)}
+view_finish = {(tilted, replicate): _finish_kernel(tilted, replicate)
+               for tilted in (False, True) for replicate in (False, True)}
 
-__all__ = ["march", "shade_pixels", "view_maps"]
+__all__ = ["facade_gains", "march", "shade_pixels", "view_finish", "view_maps"]

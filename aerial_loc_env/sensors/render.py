@@ -32,9 +32,9 @@ Why it is built this way:
   frame, scaled by the read + shot noise sigma (int16 fixed point, 2**-8), added with saturation: within 2 grey
   levels of the float arithmetic (tests/sensors/test_render_photometry.py derives the bound) and bit-identical to the
   OpenCV passes it replaced (tests/sensors/test_render_kernel.py keeps them as the reference). A perspective or tilted
-  view samples the baked box through its per-pixel maps inside the same pass, its facades shaded there too
-  (``render_kernels.remap_finish``, bit for bit ``cv2.remap`` and the facade gains). Motion blur and ``pre_sensor``
-  steps split the pass in two around them.
+  view samples the baked box through its per-pixel maps inside the same pass, the maps made there a band of rows
+  at a time and its facades shaded there too (``perspective_kernels.view_finish``, bit for bit the view's maps,
+  ``cv2.remap`` and the facade gains). Motion blur and ``pre_sensor`` steps split the pass in two around them.
 """
 
 from __future__ import annotations
@@ -57,6 +57,7 @@ from aerial_loc_env.sensors.perspective import (
     PerspectiveConfig,
     ReliefView,
     ViewMaps,
+    ViewPlan,
     footprint_px,
     sample_grid,
     tilt_homography,
@@ -232,23 +233,22 @@ class _BoxWarp:
 
 
 @dataclass(frozen=True, eq=False)
-class _MapWarp:
-    """The baked box sampled through a view's per-pixel maps inside the finishing pass (``render_kernels.remap_finish``:
-    bit for bit ``cv2.remap`` INTER_LINEAR with a zero border, then the facades' gains), instead of a remap, two
-    finishing passes and the facade shading between them. ``shade_px``: the facade pixels' flat indices,
-    ``shade_gain`` their gains (``ReliefView.facade_gains``)."""
+class _ViewWarp:
+    """The baked box sampled through a planned view inside the finishing pass, the view's maps made a band at a time
+    in the same pass (``ReliefView.finish_frame``, ``perspective_kernels.view_finish``: the frame of ``view_maps``
+    then ``cv2.remap`` of the box through them, bit for bit, the facades shaded with ``facade_gains``)."""
 
     box: np.ndarray
-    map_x: np.ndarray
-    map_y: np.ndarray
-    shade_px: np.ndarray
-    shade_gain: np.ndarray
+    view: ReliefView
+    plan: ViewPlan
+    sun_deg: tuple[float, float] | None
+    gamma: float
     height_px: int
     width_px: int
 
     def finish(self, fk: Any, *args: Any) -> int:
-        """``remap_finish`` of this warp with the finishing arguments ``args``."""
-        return fk.remap_finish(self.box, self.map_x, self.map_y, self.shade_px, self.shade_gain, *args)
+        """``view_finish`` of this view with the finishing arguments ``args``."""
+        return self.view.finish_frame(self.plan, self.box, self.sun_deg, self.gamma, *args)
 
 
 @dataclass(frozen=True, eq=False)
@@ -665,11 +665,12 @@ class CameraRenderer:
             baked = baked if level == 0 and baked.covers(corners) else None
         # a flat, untilted view needs no per-pixel maps (the affine warp is exact): skip their two float passes;
         # a view's maps come in the baked box's pixels when it serves the frame (no shift of the maps to sample it)
-        view = None if tilt is None and self._view.dsm is None else self._view.maps(
+        plan = None if tilt is None and self._view.dsm is None else self._view.plan(
             affine, pose.altitude_m, camera, tilt, (0, 0) if baked is None else baked.origin_px, footprint)
         if baked is not None:
             self._bake_tiles(baked, corners)
-            return self._render_baked(baked, affine, pose, rng, speed_mps, status, pre_sensor, view, sun_deg)
+            return self._render_baked(baked, affine, pose, rng, speed_mps, status, pre_sensor, plan, sun_deg)
+        view = None if plan is None else self._view.view_of(plan)
         if view is None:
             warp = self._level_warp(occlusion, shading_params, affine, level, camera)
             if warp is not None:
@@ -712,38 +713,38 @@ class CameraRenderer:
 
     def _render_baked(self, baked: BakedShadows, affine: np.ndarray, pose: Pose, rng: np.random.Generator,
                       speed_mps: float, status: FootprintStatus,
-                      pre_sensor: Callable[[np.ndarray], np.ndarray] | None, view: ViewMaps | None = None,
+                      pre_sensor: Callable[[np.ndarray], np.ndarray] | None, plan: ViewPlan | None = None,
                       sun_deg: tuple[float, float] | None = None) -> Frame:
         """One warp of the pre-shaded box: RGB and the occlusion (alpha) together, inside the finishing pass
-        (``_BoxWarp``). ``view``: a perspective or tilted view, made in the box's pixels, samples the box through its
-        maps instead, its facades shaded in the same pass (``_MapWarp``). The passes index the box with uint32: a
-        box is part of a map with an RGBA copy (``_RGBA_MAX_PX`` unless forced), far below 2**32 pixels."""
+        (``_BoxWarp``). ``plan``: a perspective or tilted view, planned in the box's pixels, samples the box through
+        its maps instead, the maps made and its facades shaded in the same pass (``_ViewWarp``). The passes index the
+        box with uint32: a box is part of a map with an RGBA copy (``_RGBA_MAX_PX`` unless forced), far below 2**32
+        pixels."""
         camera = self.camera
         h, w = baked.rgba.shape[:2]
         box = baked.rgba.view(np.uint32).reshape(h, w)
-        out: _BoxWarp | _MapWarp
-        if view is None:
+        out: _BoxWarp | _ViewWarp
+        if plan is None:
             a = affine.copy()
             a[0, 2] -= baked.origin_px[0]
             a[1, 2] -= baked.origin_px[1]
             out = _BoxWarp(box, a, camera.height_px, camera.width_px)
         else:
-            gains = self._view.facade_gains(view, sun_deg, float(baked.shading_params.get("gamma", 2.2)))
-            out = _MapWarp(box, view.x, view.y, _NO_PIXELS if view.facade is None else view.facade, gains,
-                           camera.height_px, camera.width_px)
+            out = _ViewWarp(box, self._view, plan, sun_deg, float(baked.shading_params.get("gamma", 2.2)),
+                            camera.height_px, camera.width_px)
         mid = [] if pre_sensor is None else [pre_sensor]
         image, alpha, count = self._finish(out, _BAKED_ALPHA, None, rng, speed_mps, pose, mid)
         return Frame(image=image, shadow_mask=None, shadow_fraction=count / alpha.size, valid=status == "valid",
                      status=status, pose=pose, pyramid_level=0, occlusion_q=alpha)
 
     # ------------------------------------------------------------------ photometry
-    def _finish(self, src: np.ndarray | _BoxWarp | _MapWarp | _LevelWarp, occ: np.ndarray | None,
+    def _finish(self, src: np.ndarray | _BoxWarp | _ViewWarp | _LevelWarp, occ: np.ndarray | None,
                 shading_params: Mapping[str, Any] | None, rng: np.random.Generator, speed_mps: float, pose: Pose,
                 mid: list[Callable[[np.ndarray], np.ndarray]]) -> tuple[np.ndarray, np.ndarray, int]:
         """The frame from the warped map ``src`` (a fresh (H, W, 3 or 4) uint8 array, which becomes the frame's
-        memory), or the baked box's warp to do in the first pass (``_BoxWarp``, ``_MapWarp``, with ``_BAKED_ALPHA``):
+        memory), or the baked box's warp to do in the first pass (``_BoxWarp``, ``_ViewWarp``, with ``_BAKED_ALPHA``):
         shadows, motion blur, gamma, gains, vignetting, noise (``render_kernels.finish``, ``warp_finish``,
-        ``remap_finish``); returns (image,
+        ``view_finish``); returns (image,
         the alpha (H, W) with ``_BAKED_ALPHA`` else a dummy, the shadowed pixel count).
 
         ``occ``: the float occlusion to shade with ``shading_params``, or ``_BAKED_ALPHA`` (src's alpha, already
@@ -752,7 +753,7 @@ class CameraRenderer:
         ``photometry_draws``, then the noise bank offsets."""
         fk = _kernels()
         p = self.photometry
-        warp = src if isinstance(src, (_BoxWarp, _MapWarp, _LevelWarp)) else None
+        warp = src if isinstance(src, (_BoxWarp, _ViewWarp, _LevelWarp)) else None
         if warp is not None:   # the warp is done in the first pass, into the frame's memory
             h, w, cn = warp.height_px, warp.width_px, 4
             src = np.empty((h, w, 3), np.uint8)

@@ -77,10 +77,6 @@ _INV255 = np.float32(1.0 / 255.0)
 #: new offset each frame, from L3, in row segments the hardware prefetchers pick up late (further ahead gains
 #: nothing more; docs/perf-log.md)
 _BANK_AHEAD_ROWS = 16
-#: ``remap_finish`` prefetches the box lines that the row this many rows down will read (every ``_BOX_AHEAD_STEP``-th
-#: pixel's two neighbour rows, from its maps): the box is out of cache after the step's other work (docs/perf-log.md)
-_BOX_AHEAD_ROWS = 16
-_BOX_AHEAD_STEP = 8
 
 
 @nb.njit(inline="always", **_JIT)
@@ -481,92 +477,15 @@ def _replicate_row(grid, fu, fv, out):
         out[x] = _fma32(b, v1 - v0, v0)
 
 
-@nb.njit(**_JIT)
-def remap_finish(box, map_x, map_y, shade_px, shade_gain, lut, out, alpha, sensor, vig, bank, dy, dx3, sigma_mode,
-                 a32, b32, a64, b64):
-    """``warp_finish`` through per-pixel maps (a perspective or tilted view of the baked box): each row sampled
-    at ``map_x``/``map_y`` (H, W) float32 box pixels, bit for bit OpenCV 5's ``cv2.remap(rgba, map_x, map_y,
-    INTER_LINEAR, BORDER_CONSTANT 0)`` (the floor, weights and fma chain of its warps;
-    tests/sensors/test_render_kernel.py compares), then the pixels ``shade_px`` (flat indices, each once, in any order)
-    scaled by ``shade_gain`` (``gain_byte``: a view's facades, after the alpha is taken and before the tone), then
-    ``finish``'s stages. One pass instead of a remap, a finishing pass, the facades and a second finishing pass: no
-    RGBA frame and no intermediate RGB frame in memory.
-    """
-    _wide_vectors()
-    h_px, w_px = alpha.shape
-    flat, _, umax, vmax, stride = _box_layout(box)
-    fa, fb, idx, q00, q01, q10, q11, c00, c01, c10, c11, rgba, o, no_occ = _row_buffers(w_px)
-    l0, l1, l2, tabs = _tone_tables(lut)
-    w3 = 3 * w_px
-    first, px, gains = _shade_rows(shade_px, shade_gain, h_px, w_px)
-    count = 0
-    for y in range(h_px):
-        fu, fv = map_x[y], map_y[y]
-        if y + _BOX_AHEAD_ROWS < h_px:     # the box's lines that a later row will read (branch-free: a point
-            pu, pv = map_x[y + _BOX_AHEAD_ROWS], map_y[y + _BOX_AHEAD_ROWS]     # outside prefetches the edge)
-            for x in range(0, w_px, _BOX_AHEAD_STEP):
-                u, v = pu[x], pv[x]
-                u = u if u > np.float32(0.0) else np.float32(0.0)     # (NaN -> 0)
-                v = v if v > np.float32(0.0) else np.float32(0.0)
-                u = u if u < umax else umax
-                v = v if v < vmax else vmax
-                k = np.int64(np.int32(v)) * np.int64(stride) + np.int64(np.int32(u))
-                _prefetch(flat, k)
-                _prefetch(flat, k + np.int64(stride))
-        if _weights_row(fu, fv, fa, fb, idx, stride, umax, vmax) == 0:
-            _sample_row(flat, idx, stride, fa, fb, rgba, q00, q01, q10, q11, c00, c01, c10, c11)
-        else:
-            _border_row(box, fu, fv, fa, fb, q00, q01, q10, q11)
-            _blend_row(c00, c01, c10, c11, fa, fb, rgba, 0)
-        row_px = np.int64(y) * w_px
-        for t in range(first[y], first[y + 1]):
-            p, g = 4 * (px[t] - row_px), gains[t]
-            rgba[p] = gain_byte(rgba[p], g)
-            rgba[p + 1] = gain_byte(rgba[p + 1], g)
-            rgba[p + 2] = gain_byte(rgba[p + 2], g)
-        count += _scene_row(rgba, o, alpha[y], no_occ, 4, w_px, OCC_ALPHA, l0, l1, l2, l0, l1, l2, False, tabs)
-        _sensor_row(o, out[w3 * y:w3 * (y + 1)], y, h_px, sensor, vig, bank, dy, dx3, sigma_mode, a32, b32, a64, b64)
-    return count
-
-
 @nb.njit(inline="always", **_JIT)
-def _shade_rows(shade_px, shade_gain, h_px, w_px):
-    """The shaded pixels by row: row y's flat indices and gains are ``px``/``gains[first[y]:first[y + 1]]``. Pixels
-    in flat-index order (as ``ReliefView.maps`` lists facades) are taken as they are, the rows found in one walk;
-    others are put in order by a counting sort (O(n + H) for n facades)."""
-    n_shade = shade_px.shape[0]
-    first = np.zeros(h_px + 1, np.int64)
-    disorder = 0
-    for i in range(1, n_shade):
-        disorder += np.int64(shade_px[i - 1] >= shade_px[i])
-    if disorder == 0:
-        t = 0
-        for y in range(h_px):
-            first[y] = t
-            end = np.int64(y + 1) * w_px
-            while t < n_shade and shade_px[t] < end:
-                t += 1
-        first[h_px] = t
-        return first, shade_px, shade_gain
-    rows = np.empty(n_shade, np.int32)
-    inv_w = 1.0 / w_px
-    for i in range(n_shade):
-        p = shade_px[i]
-        r = np.int64(np.float64(p) * inv_w)          # p // W without a division (exact after the correction)
-        r += np.int64((r + 1) * w_px <= p) - np.int64(r * w_px > p)
-        rows[i] = r
-    for i in range(n_shade):
-        first[rows[i] + 1] += 1
-    for y in range(h_px):
-        first[y + 1] += first[y]
-    fill = first[:h_px].copy()
-    px, gains = np.empty_like(shade_px), np.empty_like(shade_gain)
-    for i in range(n_shade):
-        t = fill[rows[i]]
-        px[t] = shade_px[i]
-        gains[t] = shade_gain[i]
-        fill[rows[i]] = t + 1
-    return first, px, gains
+def _shade_row(rgba, shade_px, shade_gain, lo, hi, row_px):
+    """The sampled row ``rgba`` (RGBA bytes) at the pixels ``shade_px[lo:hi]`` (frame flat indices in this row,
+    which starts at ``row_px``) scaled by ``shade_gain`` (``gain_byte``: a view's facades)."""
+    for t in range(lo, hi):
+        p, g = 4 * (shade_px[t] - row_px), shade_gain[t]
+        rgba[p] = gain_byte(rgba[p], g)
+        rgba[p + 1] = gain_byte(rgba[p + 1], g)
+        rgba[p + 2] = gain_byte(rgba[p + 2], g)
 
 
 @nb.njit(inline="always", **_JIT)
@@ -586,9 +505,10 @@ def _box_layout(box):
 
 @nb.njit(inline="always", **_JIT)
 def _row_buffers(w_px):
-    """The row buffers of the box-sampling passes (``warp_finish``, ``remap_finish``): the bilinear weights per pixel,
-    the top-left neighbours' indices, the four neighbours as uint32 pixels and as their bytes, the sampled RGBA
-    row, the toned RGB row, and ``_scene_row``'s float occlusion (unused with the baked alpha)."""
+    """The row buffers of the box-sampling passes (``warp_finish``, ``perspective_kernels.view_finish``): the
+    bilinear weights per pixel, the top-left neighbours' indices, the four neighbours as uint32 pixels and as their
+    bytes, the sampled RGBA row, the toned RGB row, and ``_scene_row``'s float occlusion (unused with the baked
+    alpha)."""
     q = np.empty((4, w_px), np.uint32)
     q00, q01, q10, q11 = q[0], q[1], q[2], q[3]
     return (np.empty(w_px, np.float32), np.empty(w_px, np.float32), np.empty(w_px, np.uint32),

@@ -10,7 +10,7 @@ import math
 import cv2
 import numpy as np
 import pytest
-from perspective_reference import reference_maps, reference_shade_facades
+from perspective_reference import facade_gains_numpy, reference_maps, reference_shade_facades
 
 from aerial_loc_env.errors import ConfigError
 from aerial_loc_env.sensors.camera import CameraModel, Pose
@@ -124,6 +124,33 @@ def test_facade_shading_equals_the_reference(sun_deg):
     got = r._view.shade_facades(image.copy(), view, sun_deg, 2.2)
     assert np.array_equal(got, expected)
     assert not np.array_equal(got, image)
+
+
+def test_facade_gains_kernel_equals_numpys_float32_arithmetic():
+    """The sunlit facade gains (``perspective_kernels.facade_gains``, also inlined in ``view_finish``) equal NumPy's
+    float32 formula bit for bit over random facings (the unit circle, its axes and diagonals, where the sun's
+    direction term is 0 or negative), suns from grazing to overhead, gammas and facade albedos; without a sun both
+    give the float64 constant."""
+    from aerial_loc_env.sensors.perspective import ViewMaps
+
+    rng = np.random.default_rng(8)
+    angles = np.concatenate([rng.uniform(-np.pi, np.pi, 5000), np.arange(-4, 5) * (np.pi / 4)])
+    facing = np.stack([np.cos(angles), np.sin(angles)], axis=1).astype(np.float32)
+    plane = np.zeros((1, 1), np.float32)
+    view = ViewMaps(plane, plane, np.arange(facing.shape[0]), (0.0, 0.0, 1.0, 1.0), facing)
+    for _ in range(40):
+        config = PerspectiveConfig(enabled=True, facade_gain=float(rng.uniform(0.05, 1.0)),
+                                   ambient=float(rng.uniform(0.01, 1.0)))
+        rv = ReliefView(None, config)
+        sun = (float(rng.uniform(0.0, 360.0)), float(rng.choice([rng.uniform(0.5, 5.0), rng.uniform(5.0, 90.0)])))
+        gamma = float(rng.uniform(0.5, 3.0))
+        got, expected = rv.facade_gains(view, sun, gamma), facade_gains_numpy(rv, view, sun, gamma)
+        assert got.dtype == expected.dtype == np.float32
+        np.testing.assert_array_equal(got, expected)
+        dark = got[np.argmin(facing @ np.array([math.sin(math.radians(sun[0])), math.cos(math.radians(sun[0]))]))]
+        assert dark < got.max()     # walls facing away from the sun are darker than those facing it
+        unlit = rv.facade_gains(view, None, gamma)
+        assert unlit.dtype == np.float64 and np.all(unlit == config.facade_gain)
 
 
 def test_a_view_the_caller_holds_is_never_overwritten():

@@ -18,6 +18,7 @@ import cv2
 import numba
 import numpy as np
 import pytest
+from perspective_reference import facade_gains_numpy
 
 from aerial_loc_env.sensors import render as render_mod
 from aerial_loc_env.sensors import render_kernels as fk
@@ -55,9 +56,11 @@ class _OpenCVRenderer(CameraRenderer):
         facades = None
         if isinstance(src, render_mod._BoxWarp):
             src = _warp_box(src.box, src.matrix, src.width_px, src.height_px)
-        elif isinstance(src, render_mod._MapWarp):
-            facades = src.shade_px, src.shade_gain
-            src = _remap_box(src.box, src.map_x, src.map_y)
+        elif isinstance(src, render_mod._ViewWarp):    # the view's maps, cv2.remap, the facades as NumPy did
+            view = src.view.view_of(src.plan)
+            facades = (np.zeros(0, np.int64), np.zeros(0)) if view.facade is None else \
+                (view.facade, facade_gains_numpy(src.view, view, src.sun_deg, src.gamma))
+            src = _remap_box(src.box, view.x, view.y)
         elif isinstance(src, render_mod._LevelWarp):    # the level's warp, then the grid's (replicated border)
             occ = cv2.warpAffine(src.grid, src.grid_matrix, (src.width_px, src.height_px),
                                  flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REPLICATE)
@@ -207,7 +210,7 @@ def test_rgb_maps_scene_steps_and_views_equal_the_opencv_passes():
                     new = new_r.render(pose, np.random.default_rng(i), new_b, None, sun_deg=sun, **kw)
                     ref = ref_r.render(pose, np.random.default_rng(i), ref_b, None, sun_deg=sun, **kw)
                     _assert_same(new, ref, ref_r)
-        if relief:    # the baked views went through remap_finish, facades included
+        if relief:    # the baked views went through view_finish, facades included
             assert len(ref_r.facades) == 16 and min(ref_r.facades) > 0
 
 
@@ -476,14 +479,37 @@ def test_level_warp_equals_opencv_warps_then_shading_over_random_affines(size):
             assert np.abs(got.astype(int) - ref).max() <= 2 and (got != ref).mean() < 0.01
 
 
+@numba.njit
+def _remap_through(box, map_x, map_y, pixels, gains, lut, out, alpha, ahead):
+    """``view_finish``'s rows through given maps (no sensor stage): each row sampled (``_warp_row``, box lines
+    ``ahead`` prefetched), its facades shaded (``_shade_row``, the pixels walked in flat-index order), toned."""
+    h_px, w_px = alpha.shape
+    flat, _, _, _, _ = fk._box_layout(box)
+    fa, fb, idx, q00, q01, q10, q11, c00, c01, c10, c11, rgba, o, no_occ = fk._row_buffers(w_px)
+    l0, l1, l2, tabs = fk._tone_tables(lut)
+    count, t = 0, 0
+    for y in range(h_px):
+        row_px = np.int64(y) * w_px
+        t1 = t
+        while t1 < pixels.size and pixels[t1] < row_px + w_px:
+            t1 += 1
+        fk._warp_row(box, flat, ahead, map_x[y], map_y[y], fa, fb, idx, rgba, q00, q01, q10, q11, c00, c01, c10, c11)
+        fk._shade_row(rgba, pixels, gains, t, t1, row_px)
+        t = t1
+        count += fk._scene_row(rgba, o, alpha[y], no_occ, 4, w_px, fk.OCC_ALPHA, l0, l1, l2, l0, l1, l2, False, tabs)
+        out[3 * w_px * y:3 * w_px * (y + 1)] = o
+    return count
+
+
 @pytest.mark.parametrize("size", [(600, 400), (120, 80), (37, 9)])
 def test_map_warp_equals_opencv_remap_then_facades_over_random_maps(size):
-    """``remap_finish`` against ``cv2.remap`` (8UC4, INTER_LINEAR, zero border) then the facades' gains: maps of
-    random rotations and scales with per-pixel jitter (as relief displaces a view's points), inside the box, across
-    its edges and beyond them, integral and half-integral points (rounding ties of the weights), NaN and infinite
-    points (zero, not a read outside the box); facade pixels in random order (counting-sorted) and in flat-index
-    order (as the maps kernel lists them: walked), with float32 and float64 gains (with and without a sun), some
-    saturating. The RGB, alpha and count are equal where OpenCV runs its AVX2 kernel, as for ``warp_finish``."""
+    """The rows of ``perspective_kernels.view_finish`` (``_remap_through``: the library's row helpers as that pass
+    composes them) against ``cv2.remap`` (8UC4, INTER_LINEAR, zero border) then the facades' gains: maps of random
+    rotations and scales with per-pixel jitter (as relief displaces a view's points), inside the box, across its
+    edges and beyond them, integral and half-integral points (rounding ties of the weights), NaN and infinite points
+    (zero, not a read outside the box); facade pixels in flat-index order (as the maps kernel lists them), with
+    float32 and float64 gains (with and without a sun), some saturating. The RGB, alpha and count are equal where
+    OpenCV runs its AVX2 kernel, as for ``warp_finish``."""
     w, h = size
     rng = np.random.default_rng(h)
     box = rng.integers(0, 256, (300, 420, 4), dtype=np.uint8)
@@ -506,15 +532,12 @@ def test_map_warp_equals_opencv_remap_then_facades_over_random_maps(size):
             map_x.flat[rng.choice(h * w, 5)] = np.nan
             map_y.flat[rng.choice(h * w, 5)] = np.inf
             map_x.flat[rng.choice(h * w, 5)] = -np.inf
-        pixels = rng.choice(h * w, size=(h * w) // 5, replace=False).astype(np.int64)
-        if t % 3 == 1:      # in flat-index order, as the views list their facades (walked, not sorted)
-            pixels.sort()
+        pixels = np.sort(rng.choice(h * w, size=(h * w) // 5, replace=False)).astype(np.int64)
         gains = rng.uniform(0.2, 1.6, pixels.size)
         gains = gains.astype(np.float32) if t % 2 else gains
         out = np.empty(h * w * 3, np.uint8)
         alpha = np.empty((h, w), np.uint8)
-        count = fk.remap_finish(box32, map_x, map_y, pixels, gains, ident, out, alpha, False, render_mod._NO_VIG,
-                                render_mod._NO_BANK, 0, 0, fk.NOISE_OFF, np.float32(0), np.float32(0), 0.0, 0.0)
+        count = _remap_through(box32, map_x, map_y, pixels, gains, ident, out, alpha, 8 * 420 + 3 * (t % 3 - 1))
         ref = _remap_box(box32, map_x, map_y)
         ref_alpha = ref[..., 3].copy()
         ref = np.ascontiguousarray(ref[..., :3])
