@@ -339,15 +339,12 @@ class ReliefView:
         # (u + 0.5) / F - 0.5 of the window's map px u
         pooled = self._march_heights()
         c0, r0, c1, r1 = _window(bbox, 1.0 / f, (0.5 / f - 0.5,) * 2, pooled.shape[1], pooled.shape[0])
-        map_to_pool[:2, 2] -= (c0, r0)
-        ground_m = probes(np.ones(1))[0]
-        if tilt is None:
-            heights = cv2.warpAffine(pooled[r0:r1, c0:c1], ground_m[:2], (wc, hc), flags=_NEAREST,
-                                     borderMode=cv2.BORDER_CONSTANT)
-        else:
-            heights = cv2.warpPerspective(pooled[r0:r1, c0:c1], ground_m, (wc, hc), flags=_NEAREST,
-                                          borderMode=cv2.BORDER_CONSTANT)
-        z_raw = float(cv2.minMaxLoc(heights)[1])
+        map_to_pool[0, 2] -= c0
+        map_to_pool[1, 2] -= r0
+        march_window = np.array([r0, c0, r1 - r0, c1 - c0])
+        # the tallest block maximum the cells' rays start over (OpenCV's nearest warp of the window, its maximum)
+        z_raw = kernels.top_height[tilt is not None](pooled, probes(np.ones(1)).astype(np.float32).reshape(1, 9),
+                                                     march_window, hc, wc)
         z_top = min(z_raw, _MAX_HEIGHT_FRACTION * big_h)
         if z_top <= 0.0:
             return flat_view()
@@ -360,10 +357,11 @@ class ReliefView:
         levels = z_top * np.arange(steps, 0, -1) / steps
         warps = probes(np.concatenate([[1.0], 1.0 - levels / big_h])).astype(np.float32).reshape(-1, 9)
         reach = 2.0 * max(abs(a[0, 0]) + abs(a[0, 1]), abs(a[1, 0]) + abs(a[1, 1]))   # map px per axis, in a cell
-        z0, relief = np.empty((hc, wc), np.float32), np.empty((hc, wc), np.uint8)
+        z0, relief = self._reused("march", lambda: (np.empty((hc, wc), np.float32), np.empty((hc, wc), np.uint8)),
+                                  lambda bufs: bufs[0].shape == (hc, wc))
         count = kernels.march[tilt is not None](
             z0, relief, warps, (levels - 1e-4).astype(np.float32), levels.astype(np.float32), pooled,
-            self._ground_heights(int(math.ceil((reach + 1.0) / f))), np.array([r0, c0, r1 - r0, c1 - c0]))
+            self._ground_heights(int(math.ceil((reach + 1.0) / f))), march_window)
         if count == 0:
             return flat_view()
         cap = _MAX_HEIGHT_FRACTION * big_h if z_raw > _MAX_HEIGHT_FRACTION * big_h else math.inf

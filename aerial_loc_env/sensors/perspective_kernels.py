@@ -200,6 +200,35 @@ def _march_kernel(perspective: bool):
     return march
 
 
+def _top_kernel(perspective: bool):
+    """``top_height`` for an affine (nadir) or projective (tilted) warp (a compile-time constant, as for
+    ``march``)."""
+
+    @numba.njit(**_JIT)
+    def top_height(pooled: np.ndarray, probe: np.ndarray, window: np.ndarray, hc: int, wc: int) -> float:
+        """The largest of the (hc, wc) heights OpenCV's nearest ``warpAffine`` / ``warpPerspective`` of the window
+        (row0, col0, rows, cols) of ``pooled`` by ``probe`` (1, 9) float32 reads, zero outside it
+        (``cv2.minMaxLoc``'s maximum of that warp: the same pixels as ``march``'s probes)."""
+        nr, nc = np.int32(window[2]), np.int32(window[3])
+        stride = np.int32(pooled.shape[1])
+        base = window[0] * np.int64(stride) + window[1]
+        pool = pooled.reshape(-1)
+        body = (wc // _LANES) * _LANES
+        tm = np.empty((1, 12), np.float32)
+        q = np.empty(wc, np.int32)
+        val = np.empty(wc, np.float32)
+        top = -np.inf
+        for y in range(hc):
+            _row_terms(tm, probe, y)
+            _probe_row(q, tm[0, 0], tm[0, 1], tm[0, 2], tm[0, 3], tm[0, 4], tm[0, 5], tm[0, 6], tm[0, 7], tm[0, 8],
+                       tm[0, 9], tm[0, 10], tm[0, 11], body, nr, nc, stride, perspective)
+            _read_row(pool, base, q, val)
+            for x in range(wc):
+                top = max(top, np.float64(val[x] if q[x] >= 0 else _F32(0.0)))
+        return top
+    return top_height
+
+
 @numba.njit(inline="always", **_JIT)
 def _dsm_index(du: np.float32, dv: np.float32, k: np.float32, nx: np.float32, ny: np.float32, rows: int, cols: int,
                c0: int, r0: int, c1: int, r1: int, replicate: bool) -> tuple[np.int32, np.int32, bool]:
@@ -553,9 +582,10 @@ def shade_pixels(image: np.ndarray, pixels: np.ndarray, gain: np.ndarray) -> Non
 
 
 march = {tilted: _march_kernel(tilted) for tilted in (False, True)}     # by tilt: affine / projective probes
+top_height = {tilted: _top_kernel(tilted) for tilted in (False, True)}
 view_maps = {(tilted, replicate): _maps_kernel(tilted, replicate)      # by tilt and border (compiled when used)
              for tilted in (False, True) for replicate in (False, True)}
 view_finish = {(tilted, replicate): _finish_kernel(tilted, replicate)
                for tilted in (False, True) for replicate in (False, True)}
 
-__all__ = ["facade_gains", "march", "shade_pixels", "view_finish", "view_maps"]
+__all__ = ["facade_gains", "march", "shade_pixels", "top_height", "view_finish", "view_maps"]

@@ -81,6 +81,7 @@ _SIGMA_BITS = 8   # the int16 sigma LUT holds round(sigma * 2**8); sigma <= 71.1
 
 _LEVELS = np.repeat(np.arange(256, dtype=np.uint8)[None, :, None], 3, axis=2)  # (1, 256, 3): every level per channel
 _UNIT_LEVELS = np.arange(256) / 255.0                                           # the levels in [0, 1] (float64)
+_UNIT_GAINS = np.ones(3)                                                         # tone_lut's gains when none are drawn
 _IDENTITY = np.ascontiguousarray(_LEVELS[0].T)                                   # (3, 256) identity tone table
 _IDENTITY_RO = _IDENTITY.copy()
 _IDENTITY_RO.flags.writeable = False   # the dummy shading table (shading LUTs are read-only: one kernel signature)
@@ -886,8 +887,10 @@ def photometry_draws(p: Photometry, rng: np.random.Generator) -> tuple[float | N
     if p.gamma != 1.0 or p.gamma_std > 0.0:
         gamma = p.gamma * math.exp(p.gamma_std * rng.standard_normal())
     if p.gain != 1.0 or p.exposure_std > 0.0 or p.white_balance_std > 0.0:
-        gains = p.gain * portable.exp(p.exposure_std * rng.standard_normal() + p.white_balance_std
-                                * rng.standard_normal(3))
+        # gain exp(e + s w_c) per channel in Python floats: NumPy's float64 operations and libm's exp (``portable``)
+        exposure = p.exposure_std * rng.standard_normal()
+        gains = np.array([p.gain * math.exp(exposure + p.white_balance_std * w)
+                          for w in rng.standard_normal(3).tolist()])
     return gamma, gains
 
 
@@ -899,16 +902,14 @@ def gamma_lut(gamma: float) -> np.ndarray:
 def tone_lut(gamma: float | None, gains: np.ndarray | None) -> np.ndarray:
     """The frame's tone curve then per-channel gains as one (3, 256) uint8 table (row c: channel c's output at
     each input level): what ``cv2.LUT`` of ``gamma_lut`` then a diagonal float32 ``cv2.transform`` (saturating) do
-    to the 256 levels, the gains applied by ``render_kernels.tone_table`` (that arithmetic in one compiled call
-    instead of four OpenCV/NumPy calls; tests/sensors/test_render_geometry.py compares it with the OpenCV
+    to the 256 levels, the curve and the gains computed in one compiled call (``render_kernels.tone_table``: that
+    arithmetic instead of five OpenCV/NumPy calls; tests/sensors/test_render_geometry.py compares it with the OpenCV
     operations)."""
     if gamma is None and gains is None:
         return _IDENTITY
-    levels = _IDENTITY[0] if gamma is None else gamma_lut(gamma)
-    if gains is None:
-        return np.repeat(levels[None, :], 3, axis=0)
     out = np.empty((3, 256), np.uint8)
-    _kernels().tone_table(levels, np.asarray(gains, dtype=np.float64), out)
+    _kernels().tone_table(_UNIT_LEVELS, math.nan if gamma is None else float(gamma),
+                          _UNIT_GAINS if gains is None else np.asarray(gains, dtype=np.float64), out)
     return out
 
 

@@ -19,7 +19,7 @@ keeps those passes as the reference and compares exactly); what each pass comput
   ``_vignetted``: the sensor stage then runs in 16 float32 lanes, not numba's 8 int64);
 - ``cv2.transform`` with a diagonal float32 matrix on uint8 is ``rint(v * g)`` in float32, saturated: a byte
   function per channel, so gamma and gains compose into one table per frame (``render.tone_lut``: ``cv2.LUT``'s
-  gamma table, then ``tone_table``'s gains, that arithmetic over the 256 levels);
+  gamma table, then the gains, that arithmetic over the 256 levels in one call, ``tone_table``);
 - ``cv2.multiply(S, Z, scale=2**-19)`` on int16 is ``rint(float32(S Z) * 2**-19)`` (the product rounded to
   float32 first, then the exact power-of-two scale);
 - the int16 sigma LUT ``rint(256 sqrt(r**2 + g v))`` (float64) is computed here instead of read (a gather per
@@ -170,14 +170,16 @@ def _scene_row(s, o, m, f, cn, w_px, occ_mode, l0, l1, l2, s0, s1, s2, lit_same,
 
 
 @nb.njit(**_JIT)
-def tone_table(levels, gains, out):
-    """``out[c, v]`` = the tone ``levels[v]`` (uint8 (256,)) times channel c's gain ``gains[c]`` (float64, cast to
-    float32), rounded half to even and saturated (``gain_byte``): ``cv2.transform`` of uint8 levels by a diagonal
-    float32 matrix (the zero terms add nothing), as ``render.tone_lut`` uses it."""
-    for c in range(out.shape[0]):
-        g = np.float32(gains[c])
-        for v in range(levels.shape[0]):
-            out[c, v] = gain_byte(levels[v], g)
+def tone_table(unit, gamma, gains, out):
+    """``out[c, v]``: the tone curve's level ``rint(255 unit[v] ** gamma)`` (``unit`` the 256 levels over 255,
+    float64; ``render.gamma_lut``'s arithmetic, libm's ``pow``; a NaN ``gamma``: the level ``v`` itself) times
+    channel c's gain ``gains[c]`` (float64, cast to float32), rounded half to even and saturated (``gain_byte``):
+    ``cv2.LUT`` of the tone curve, then ``cv2.transform`` of uint8 levels by a diagonal float32 matrix (the zero terms
+    add nothing), as ``render.tone_lut`` uses it. One call for the frame's whole table."""
+    for v in range(unit.shape[0]):
+        level = np.uint8(v) if np.isnan(gamma) else np.uint8(np.rint(255.0 * unit[v] ** gamma))
+        for c in range(out.shape[0]):
+            out[c, v] = gain_byte(level, np.float32(gains[c]))
 
 
 @nb.njit(inline="always", **_JIT)

@@ -126,6 +126,43 @@ def test_facade_shading_equals_the_reference(sun_deg):
     assert not np.array_equal(got, image)
 
 
+@pytest.mark.parametrize("tilted", [False, True])
+def test_top_height_is_the_maximum_of_opencvs_nearest_warp(tilted):
+    """``perspective_kernels.top_height`` (the march's first height) equals ``cv2.minMaxLoc``'s maximum of OpenCV's
+    nearest ``warpAffine`` / ``warpPerspective`` of the pooled window (zero border) over random warps, windows and
+    grid sizes (rows that end inside the vector body and in the scalar tail), points inside, across and outside the
+    window; negative heights too (the border's zeros then count). (OpenCV 4 rounds its probes in fixed point: there
+    a probe near a pixel boundary may read its neighbour, and so may the maximum.)"""
+    from aerial_loc_env.sensors import perspective_kernels as kernels
+    from aerial_loc_env.sensors.perspective import _NEAREST
+
+    rng = np.random.default_rng(3 + tilted)
+    pooled = (rng.random((300, 300)) * 30.0 * (rng.random((300, 300)) < 0.2)).astype(np.float32)
+    pooled[:40] -= 5.0
+    seen_zero = seen_top = False
+    differ = 0
+    for _ in range(600):
+        angle, scale = rng.uniform(-np.pi, np.pi), rng.uniform(0.2, 2.0)
+        m = np.array([[scale * np.cos(angle), -scale * np.sin(angle), rng.uniform(-50.0, 200.0)],
+                      [scale * np.sin(angle), scale * np.cos(angle), rng.uniform(-50.0, 200.0)],
+                      [*(rng.normal(0.0, 1e-3, 2) if tilted else (0.0, 0.0)), 1.0]])
+        r0, c0 = rng.integers(0, 150, 2)
+        window = pooled[r0:r0 + rng.integers(1, 150), c0:c0 + rng.integers(1, 150)]
+        hc, wc = int(rng.integers(1, 60)), int(rng.integers(1, 90))
+        if tilted:
+            warped = cv2.warpPerspective(window, m, (wc, hc), flags=_NEAREST, borderMode=cv2.BORDER_CONSTANT)
+        else:
+            warped = cv2.warpAffine(window, m[:2], (wc, hc), flags=_NEAREST, borderMode=cv2.BORDER_CONSTANT)
+        expected = float(cv2.minMaxLoc(warped)[1])
+        got = kernels.top_height[tilted](pooled, m.astype(np.float32).reshape(1, 9),
+                                         np.array([r0, c0, *window.shape]), hc, wc)
+        differ += got != expected
+        seen_zero |= expected == 0.0
+        seen_top |= expected > 10.0
+    assert differ == 0 if EXACT else differ < 30
+    assert seen_zero and seen_top
+
+
 def test_facade_gains_kernel_equals_numpys_float32_arithmetic():
     """The sunlit facade gains (``perspective_kernels.facade_gains``, also inlined in ``view_finish``) equal NumPy's
     float32 formula bit for bit over random facings (the unit circle, its axes and diagonals, where the sun's

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from types import SimpleNamespace
 
 import cv2
@@ -34,6 +35,24 @@ def test_pose_affine_and_corners_equal_camera_to_map_bit_for_bit(camera, gsd):
             assert renderer.camera_to_map(again).tobytes() == camera.camera_to_map(renderer.orthomap, *again).tobytes()
         corners = (got @ renderer._hom_corners(camera)).T
         assert corners.tobytes() == np.ascontiguousarray(apply_affine(expected, camera.corners_px())).tobytes()
+
+
+def test_photometry_draws_are_numpys_arithmetic_on_the_same_draws():
+    """The frame's gamma and gains in Python floats equal the NumPy expression they replaced (the same draws in the
+    same order, ``portable.exp``), bit for bit, and leave the generator where it left it."""
+    from aerial_loc_env import portable
+
+    for seed in range(200):
+        p = Photometry(gain=float(1.0 + seed % 3), exposure_std=0.5, white_balance_std=0.2, gamma_std=0.3)
+        a, b = np.random.default_rng(seed), np.random.default_rng(seed)
+        gamma, gains = photometry_draws(p, a)
+        ref_gamma = p.gamma * math.exp(p.gamma_std * b.standard_normal())
+        ref_gains = p.gain * portable.exp(p.exposure_std * b.standard_normal() + p.white_balance_std
+                                          * b.standard_normal(3))
+        assert gamma == ref_gamma and gains.dtype == np.float64
+        assert gains.tobytes() == ref_gains.tobytes()
+        assert a.standard_normal() == b.standard_normal()
+    assert photometry_draws(Photometry.ideal(), np.random.default_rng(0)) == (None, None)
 
 
 def test_tone_lut_is_the_opencv_operations_over_all_levels():
