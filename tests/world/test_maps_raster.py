@@ -157,6 +157,33 @@ def test_pickles_as_its_path(cogs):
     assert np.array_equal(back.read(10, 20, 30, 40)[0], opened.read(10, 20, 30, 40)[0])
 
 
+def test_the_file_handle_closes_with_the_map_without_a_warning(cogs):
+    """A map read by window holds its file open while it lives: ``close`` releases it (a later read opens it again)
+    and a map dropped without ``close`` releases it too, never left to the garbage collector's ResourceWarning."""
+    import gc
+    import os
+    import warnings
+
+    def open_fds() -> int:
+        return len(os.listdir("/proc/self/fd"))
+
+    gc.collect()
+    before = open_fds()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        opened = open_map(cogs["deflate"], read="window")
+        first = opened.read(10, 20, 30, 40)[0]
+        assert open_fds() == before + 1
+        opened.close()
+        assert open_fds() == before
+        assert np.array_equal(opened.read(10, 20, 30, 40)[0], first)     # opened again
+        assert open_fds() == before + 1
+        del opened
+        gc.collect()
+        assert open_fds() == before
+    assert [str(w.message) for w in caught if issubclass(w.category, ResourceWarning)] == []
+
+
 def test_a_map_larger_than_memory_is_refused_before_decoding(tmp_path, monkeypatch):
     png = tmp_path / "big.png"
     cv2.imwrite(str(png), _texture(300, 400, 4))

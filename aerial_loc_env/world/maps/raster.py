@@ -25,6 +25,7 @@ import json
 import math
 import os
 import threading
+import weakref
 from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
@@ -287,6 +288,7 @@ class RasterMap(MapGeometry):
         self._nodata_rule = nodata
         self._pid: int | None = None
         self._tif: Any = None
+        self._closer: weakref.finalize | None = None
         self._readers: dict[Any, TileReader] = {}
         self._tiles = TileCache()
         tif = self._file()
@@ -307,11 +309,19 @@ class RasterMap(MapGeometry):
 
         if self._tif is None or self._pid != os.getpid():   # a forked worker opens its own handle
             try:
-                self._tif = tifffile.TiffFile(self.path)
+                tif = tifffile.TiffFile(self.path)
             except Exception as exc:   # tifffile raises many types on corrupt files
                 raise MapError(f"{self.path}: unreadable TIFF: {exc}") from exc
+            # the handle is closed with the map (or by ``close``), never left to the garbage collector's warning
+            self._tif, self._closer = tif, weakref.finalize(self, tif.close)
             self._pid, self._readers, self._tiles = os.getpid(), {}, TileCache()
         return self._tif
+
+    def close(self) -> None:
+        """Close the map's file handle now (a later read opens it again); the map also closes it when collected."""
+        if self._closer is not None:
+            self._closer()
+        self._tif = self._closer = None
 
     def _reader(self, key: str, level: int = 0) -> TileReader:
         tif = self._file()
