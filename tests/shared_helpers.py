@@ -26,7 +26,9 @@ def crop_png(om, folder: Path, size: int = 512) -> tuple[Path, float, float]:
 
 
 def check_env_silently(sid: str, **kwargs) -> None:
-    """Gymnasium's and SB3's env checkers on ``gym.make(sid, **kwargs)``, failing on any warning either gives."""
+    """Gymnasium's and SB3's env checkers on ``gym.make(sid, **kwargs)``, failing on any warning either gives
+    (earlier tests' garbage collected first: its ResourceWarnings are not the checkers')."""
+    import gc
     import warnings
 
     import gymnasium as gym
@@ -34,6 +36,7 @@ def check_env_silently(sid: str, **kwargs) -> None:
     from gymnasium.utils.env_checker import check_env
 
     sb3_checker = pytest.importorskip("stable_baselines3.common.env_checker")
+    gc.collect()
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         check_env(gym.make(sid, render_mode="rgb_array", **kwargs).unwrapped)

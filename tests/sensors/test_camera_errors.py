@@ -8,6 +8,7 @@ import math
 import gymnasium as gym
 import numpy as np
 import pytest
+from shared_helpers import check_env_silently
 
 import aerial_loc_env  # noqa: F401  (registers the ids)
 from aerial_loc_env.errors import ConfigError
@@ -143,16 +144,7 @@ ALL_ON = {"perspective": {"enabled": True}, "gimbal": {"roll_pitch_std_deg": 0.4
 
 
 def test_checkers_pass_with_every_camera_error_on():
-    import warnings
-
-    from gymnasium.utils.env_checker import check_env
-
-    sb3_checker = pytest.importorskip("stable_baselines3.common.env_checker")
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        check_env(gym.make("AerialLoc/Small-v2", render_mode="rgb_array", **ALL_ON).unwrapped)
-        sb3_checker.check_env(gym.make("AerialLoc/Small-v2", **ALL_ON).unwrapped, warn=True)
-    assert [str(w.message) for w in caught] == []
+    check_env_silently("AerialLoc/Small-v2", **ALL_ON)
 
 
 def test_every_camera_error_on_is_deterministic_and_pickles():
