@@ -12,7 +12,6 @@ from aerial_loc_env.sensors.camera import CameraModel, apply_affine
 from aerial_loc_env.sensors.perspective import (
     _MARCH_FACTOR,
     _MAX_HEIGHT_FRACTION,
-    _NEAREST,
     _REMAP_MAX_PX,
     _SURFACE_TOL_M,
     ReliefView,
@@ -22,6 +21,7 @@ from aerial_loc_env.sensors.perspective import (
 )
 
 _ROW_PX = 1024
+_NEAREST = cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP   # OpenCV's nearest warp, its matrix the inverse map
 
 
 def _centred_planes(camera: CameraModel) -> tuple[np.ndarray, np.ndarray]:

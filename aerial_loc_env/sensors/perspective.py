@@ -57,7 +57,6 @@ from aerial_loc_env.errors import ConfigError
 from aerial_loc_env.sensors import perspective_kernels as kernels
 from aerial_loc_env.sensors.camera import CameraModel, apply_affine
 
-_NEAREST = cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP
 _MAX_HEIGHT_FRACTION = 0.95
 GENERATOR_VERSION = 6  # bump whenever the frames change for the same inputs (env/fingerprint.py)
 _MARCH_FACTOR = 4      # the march runs on a 1/4-resolution camera grid over the 4 x 4 block maximum of the heights
@@ -276,8 +275,9 @@ class ReliefView:
         h, w = plan.shape
         facade, facing = self._facade_buffers(h * w)
         sun = self._sun_params(sun_deg, gamma)
-        gains = self._reused("gains", lambda: (np.empty(h * w, np.float32), np.empty(h * w, np.float64)),
-                             lambda bufs: bufs[0].size >= h * w)[0 if sun is not None else 1]
+        dtype = np.float64 if sun is None else np.float32      # the gain's precision (``facade_gains``)
+        (gains,) = self._reused(f"gains {np.dtype(dtype)}", lambda: (np.empty(h * w, dtype),),
+                                lambda bufs: bufs[0].size >= h * w)
         return kernels.view_finish[plan.key](box, facade, facing, gains, _NO_SUN if sun is None else sun,
                                              self.config.facade_gain, *plan.args, *args)
 

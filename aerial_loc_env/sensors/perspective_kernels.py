@@ -553,14 +553,9 @@ def _finish_kernel(tilted: bool, replicate: bool):
             for i in range(n0, n):
                 gains[i] = _facade_gain(facing[i, 0], facing[i, 1], sun) if lit else fixed_gain
             for y in range(y0, min(y0 + factor, h_px)):
-                row_px = np.int64(y) * w_px
-                t1 = t
-                while t1 < n and facade[t1] < row_px + w_px:
-                    t1 += 1
                 _warp_row(box, flat_box, ahead, band_x[y - y0], band_y[y - y0], fa, fb, idx, rgba, q00, q01, q10,
                           q11, c00, c01, c10, c11)
-                _shade_row(rgba, facade, gains, t, t1, row_px)
-                t = t1
+                t = _shade_row(rgba, facade, gains, t, n, np.int64(y) * w_px, w_px)
                 count += _scene_row(rgba, o, alpha[y], no_occ, 4, w_px, OCC_ALPHA, l0, l1, l2, l0, l1, l2, False,
                                     tabs)
                 _sensor_row(o, out[w3 * y:w3 * (y + 1)], y, h_px, sensor, vig, bank, dy, dx3, sigma_mode, a32, b32,

@@ -89,7 +89,6 @@ _NO_OCC = np.zeros((1, 1), np.float32)   # dummy arguments where the kernel read
 _NO_VIG = np.zeros((1, 1), np.uint8)
 _NO_BANK = np.zeros((1, 1), np.int16)
 _BAKED_ALPHA = np.zeros((1, 1), np.float32)   # ``_finish``'s marker: the occlusion is src's (baked) alpha
-_NO_PIXELS = np.zeros(0, np.int64)   # no facade pixels
 _FRAME_KERNEL = __name__.rpartition(".")[0] + ".render_kernels"
 
 

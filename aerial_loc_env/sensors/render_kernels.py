@@ -480,14 +480,18 @@ def _replicate_row(grid, fu, fv, out):
 
 
 @nb.njit(inline="always", **_JIT)
-def _shade_row(rgba, shade_px, shade_gain, lo, hi, row_px):
-    """The sampled row ``rgba`` (RGBA bytes) at the pixels ``shade_px[lo:hi]`` (frame flat indices in this row,
-    which starts at ``row_px``) scaled by ``shade_gain`` (``gain_byte``: a view's facades)."""
-    for t in range(lo, hi):
+def _shade_row(rgba, shade_px, shade_gain, t, n, row_px, w_px):
+    """The sampled row ``rgba`` (RGBA bytes; the frame's row starting at flat index ``row_px``, ``w_px`` wide) at
+    its pixels among ``shade_px[t:n]`` (frame flat indices in flat-index order: the row's come first) scaled by
+    ``shade_gain`` (``gain_byte``: a view's facades); returns the index past the row's pixels."""
+    end = row_px + w_px
+    while t < n and shade_px[t] < end:
         p, g = 4 * (shade_px[t] - row_px), shade_gain[t]
         rgba[p] = gain_byte(rgba[p], g)
         rgba[p + 1] = gain_byte(rgba[p + 1], g)
         rgba[p + 2] = gain_byte(rgba[p + 2], g)
+        t += 1
+    return t
 
 
 @nb.njit(inline="always", **_JIT)

@@ -10,7 +10,7 @@ import math
 import cv2
 import numpy as np
 import pytest
-from perspective_reference import facade_gains_numpy, reference_maps, reference_shade_facades
+from perspective_reference import _NEAREST, facade_gains_numpy, reference_maps, reference_shade_facades
 
 from aerial_loc_env.errors import ConfigError
 from aerial_loc_env.sensors.camera import CameraModel, Pose
@@ -133,8 +133,8 @@ def test_top_height_is_the_maximum_of_opencvs_nearest_warp(tilted):
     grid sizes (rows that end inside the vector body and in the scalar tail), points inside, across and outside the
     window; negative heights too (the border's zeros then count). (OpenCV 4 rounds its probes in fixed point: there
     a probe near a pixel boundary may read its neighbour, and so may the maximum.)"""
+
     from aerial_loc_env.sensors import perspective_kernels as kernels
-    from aerial_loc_env.sensors.perspective import _NEAREST
 
     rng = np.random.default_rng(3 + tilted)
     pooled = (rng.random((300, 300)) * 30.0 * (rng.random((300, 300)) < 0.2)).astype(np.float32)

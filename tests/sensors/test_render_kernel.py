@@ -489,13 +489,8 @@ def _remap_through(box, map_x, map_y, pixels, gains, lut, out, alpha, ahead):
     l0, l1, l2, tabs = fk._tone_tables(lut)
     count, t = 0, 0
     for y in range(h_px):
-        row_px = np.int64(y) * w_px
-        t1 = t
-        while t1 < pixels.size and pixels[t1] < row_px + w_px:
-            t1 += 1
         fk._warp_row(box, flat, ahead, map_x[y], map_y[y], fa, fb, idx, rgba, q00, q01, q10, q11, c00, c01, c10, c11)
-        fk._shade_row(rgba, pixels, gains, t, t1, row_px)
-        t = t1
+        t = fk._shade_row(rgba, pixels, gains, t, pixels.size, np.int64(y) * w_px, w_px)
         count += fk._scene_row(rgba, o, alpha[y], no_occ, 4, w_px, fk.OCC_ALPHA, l0, l1, l2, l0, l1, l2, False, tabs)
         out[3 * w_px * y:3 * w_px * (y + 1)] = o
     return count
