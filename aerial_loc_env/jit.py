@@ -2,8 +2,8 @@
 
 - ``JIT``: cached, GIL-free, NumPy's error model, no bounds checks, single-threaded (benchmarks are per core;
   users parallelize over environments and workers).
-- ``fma32``, ``prefetch``, ``wide_vectors``: a fused float32 multiply-add, a cache-line prefetch hint and a
-  code-generation hint (512-bit vectors where the CPU has them); hints never change results.
+- ``fma32``, ``fma64``, ``prefetch``, ``wide_vectors``: fused float32 / float64 multiply-adds, a cache-line
+  prefetch hint and a code-generation hint (512-bit vectors where the CPU has them); hints never change results.
 - ``mul255``, ``quantize``: OpenCV's rounded uint8 multiply by a/255 and its float-to-level quantization,
   reproduced bit for bit (the shading and the frame pass both use them).
 - ``bilinear_rgba8``, ``bilinear_f32x8``: the bilinear chain on 8 pixels or points at once, each neighbour pair
@@ -186,6 +186,20 @@ def fma32(typingctx, a, b, c):
     if not all(t == types.float32 for t in (a, b, c)):
         return None
     sig = types.float32(types.float32, types.float32, types.float32)
+
+    def codegen(context, builder, signature, args):
+        return builder.fma(*args)
+
+    return sig, codegen
+
+
+@intrinsic
+def fma64(typingctx, a, b, c):
+    """float64 ``a * b + c`` rounded once (LLVM's fma), as OpenBLAS's FMA kernels accumulate small products: for
+    reproducing NumPy's ``@`` on 3 x 3 and 2 x 2 float64 matrices in compiled code. Every operand must be float64."""
+    if not all(t == types.float64 for t in (a, b, c)):
+        return None
+    sig = types.float64(types.float64, types.float64, types.float64)
 
     def codegen(context, builder, signature, args):
         return builder.fma(*args)

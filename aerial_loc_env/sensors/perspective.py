@@ -59,20 +59,13 @@ from aerial_loc_env.sensors.camera import CameraModel, apply_affine
 
 _MAX_HEIGHT_FRACTION = 0.95
 GENERATOR_VERSION = 6  # bump whenever the frames change for the same inputs (env/fingerprint.py)
-_MARCH_FACTOR = 4      # the march runs on a 1/4-resolution camera grid over the 4 x 4 block maximum of the heights
+_MARCH_FACTOR = kernels.MARCH_FACTOR   # the march's 1/4-resolution camera grid over the heights' 4 x 4 block maximum
 _REMAP_MAX_PX = 32767  # cv2.remap's limit on the source's sides
 _SURFACE_TOL_M = 0.3    # h(m(z1)) within this of z1: the ray sees the surface (ridged roofs vary by less per px)
 _NO_DSM = np.zeros((1, 1), np.float32)   # the kernel's height model argument for flat views (never read)
 _NO_TILT = np.zeros((3, 3), np.float32)  # its tilt argument for untilted views (never read)
 _NO_SUN = np.full(6, np.nan, np.float32)  # view_finish's sun argument without a sun (facades at facade_gain)
-_F = _MARCH_FACTOR
-# the march grid -> camera pixels (the block centres), identity, map px -> pooled px: the same every frame
-_GRID_TO_CAM = np.array([[_F, 0.0, (_F - 1) / 2.0], [0.0, _F, (_F - 1) / 2.0], [0.0, 0.0, 1.0]])
-_EYE = np.eye(3)
-_LAST_ROW = np.array([[0.0, 0.0, 1.0]])    # an affine's homogeneous row
-_MAP_TO_POOL = np.array([[1.0 / _F, 0.0, 0.5 / _F - 0.5], [0.0, 1.0 / _F, 0.5 / _F - 0.5], [0, 0, 1]])
-for _const in (_GRID_TO_CAM, _EYE, _LAST_ROW, _MAP_TO_POOL):    # (the kernels' arguments stay writable: one signature)
-    _const.flags.writeable = False
+_EYE = np.eye(3)       # plan_view's tilt argument for untilted views (never written)
 
 
 @dataclass(frozen=True)
@@ -198,6 +191,15 @@ class ViewPlan:
     args: tuple[Any, ...]                     # (z0, relief, factor, centre, tilt, flat, lin, consts, dsm, window)
 
 
+def _plan_buffers(hc: int, wc: int, steps: int) -> tuple[np.ndarray, ...]:
+    """``perspective_kernels.plan_view``'s outputs and scratch for a (hc, wc) march grid of ``steps`` heights: z0,
+    relief, centre, conj, flat, lin, consts, the march window, the probes' warps, the levels."""
+    f32 = np.float32
+    return (np.empty((hc, wc), f32), np.empty((hc, wc), np.uint8), np.empty(2, f32), np.empty((3, 3), f32),
+            np.empty((2, 3), f32), np.empty((2, 2), f32), np.empty(7, f32), np.empty(4, np.int64),
+            np.empty((steps + 1, 9), f32), np.empty((2, steps), f32))
+
+
 def _window(bbox: tuple[float, float, float, float], scale: float, offset: tuple[float, float], w: int,
             h: int) -> tuple[int, int, int, int]:
     """The pixel window (c0, r0, c1, r1) of a grid ``u_g = u_0 * scale + offset`` (per axis) holding ``bbox``
@@ -289,87 +291,62 @@ class ReliefView:
         w, h = camera.width_px, camera.height_px
         a = np.asarray(affine, dtype=np.float64)
         cu, cv = camera.center_px
-        nadir_x, nadir_y = a[:, :2] @ np.array([cu, cv]) + a[:, 2]     # the map pixel below the camera
         corners = footprint_px(a, camera, tilt) if corners is None else corners
         us, vs = corners.T.tolist()        # 4 points: plain Python beats NumPy's reductions (the same values)
         bbox = (min(us), min(vs), max(us), max(vs))
         origin = (int(origin_px[0]), int(origin_px[1]))
-        ox, oy = float(nadir_x) - origin[0], float(nadir_y) - origin[1]    # nadir in the maps' frame
         f = _MARCH_FACTOR
         wc, hc = -(-w // f), -(-h // f)
 
-        def pixel_maps(z0: np.ndarray, relief: np.ndarray, consts: tuple[float, ...] = (0.0,) * 7,
-                       window: tuple[int, ...] = (0,) * 5) -> ViewPlan:
-            """The maps kernel's arguments: ground points on flat cells, the refined visible points on relief
-            cells."""
-            if tilt is None:
-                conj = _NO_TILT
-            else:
-                shift, unshift = _centre_shift(cu, cv)
-                conj = (unshift @ tilt @ shift).astype(np.float32)
-            flat = np.array([[a[0, 0], a[0, 1], ox], [a[1, 0], a[1, 1], oy]], np.float32)
-            return ViewPlan((h, w), bbox, origin, (tilt is not None, bool(window[4])), (
-                z0, relief, f, np.array([cu, cv], np.float32), conj, flat, a[:, :2].astype(np.float32),
-                np.array(consts, np.float32), _NO_DSM if self.dsm is None else self.dsm,
-                np.array(window[:4], np.int64)))
-
         def flat_view() -> ViewPlan | None:
-            """Flat ground under the footprint: the affine warp (None), or the tilted camera's ground points."""
+            """Flat ground under the footprint: the affine warp (None), or the tilted camera's ground points (the
+            maps kernel's arguments with no relief cell)."""
             if tilt is None:
                 return None
-            return pixel_maps(np.zeros((hc, wc), np.float32), np.zeros((hc, wc), np.uint8))
+            nadir_x, nadir_y = a[:, :2] @ np.array([cu, cv]) + a[:, 2]     # the map pixel below the camera
+            ox, oy = float(nadir_x) - origin[0], float(nadir_y) - origin[1]    # nadir in the maps' frame
+            shift, unshift = _centre_shift(cu, cv)
+            flat = np.array([[a[0, 0], a[0, 1], ox], [a[1, 0], a[1, 1], oy]], np.float32)
+            return ViewPlan((h, w), bbox, origin, (True, False), (
+                np.zeros((hc, wc), np.float32), np.zeros((hc, wc), np.uint8), f, np.array([cu, cv], np.float32),
+                (unshift @ tilt @ shift).astype(np.float32), flat, a[:, :2].astype(np.float32),
+                np.zeros(7, np.float32), _NO_DSM if self.dsm is None else self.dsm, np.zeros(4, np.int64)))
 
         if self.dsm is None:
             return flat_view()
-        big_h = float(altitude_m)
-        # the march grid: one cell per F x F camera block, probed along the ray of the block's centre pixel
-        # (q = F q_c + (F - 1) / 2, through the tilt to the nadir camera, then to the map), on the F x F block
-        # maximum of the heights (map px u -> pooled px (u + 0.5) / F - 0.5)
-        to_map = np.concatenate((a, _LAST_ROW)) @ (_EYE if tilt is None else tilt) @ _GRID_TO_CAM
-        map_to_pool = _MAP_TO_POOL.copy()
-
-        def probes(k: np.ndarray) -> np.ndarray:
-            """The cells' points m(z) = nadir + k (g - nadir), k = 1 - z / H, in pooled px: (len(k), 3, 3)."""
-            scaled = np.zeros((k.size, 3, 3))
-            scaled[:, 0, 0] = scaled[:, 1, 1] = k
-            scaled[:, 0, 2], scaled[:, 1, 2], scaled[:, 2, 2] = nadir_x * (1.0 - k), nadir_y * (1.0 - k), 1.0
-            return map_to_pool @ scaled @ to_map
-
-        # every m(z) lies in the footprint: the march reads the pooled heights in the window under it; pooled px
-        # (u + 0.5) / F - 0.5 of the window's map px u
+        # the march and the maps' arguments in one compiled call (``perspective_kernels.plan_view``: the nadir
+        # point, the cells' probes m(z) = nadir + k (g - nadir), k = 1 - z / H, the top height, the march): every
+        # m(z) lies in the footprint, so the march reads the pooled heights in the window under it (pooled px
+        # (u + 0.5) / F - 0.5 of map px u). A cell's hit is the first height z_i from the footprint's top at which
+        # its ray is at or below the block maximum (pooled > z_i - 1e-4), 0 without one; z0 is the hits' 3 x 3
+        # maximum (no roof edge is lost to the coarse grid; the next steps verify). Flat ground: a cell whose rays
+        # hit nothing (z0 = 0) and whose pixels all look at ground of height 0 (the block maximum dilated by the
+        # cell's reach, sampled like the march) sees the ground at its affine point g: the fixed-point steps would
+        # leave it there (z1 = z2 = 0).
         pooled = self._march_heights()
         c0, r0, c1, r1 = _window(bbox, 1.0 / f, (0.5 / f - 0.5,) * 2, pooled.shape[1], pooled.shape[0])
-        map_to_pool[0, 2] -= c0
-        map_to_pool[1, 2] -= r0
-        march_window = np.array([r0, c0, r1 - r0, c1 - c0])
-        # the tallest block maximum the cells' rays start over (OpenCV's nearest warp of the window, its maximum)
-        z_raw = kernels.top_height[tilt is not None](pooled, probes(np.ones(1)).astype(np.float32).reshape(1, 9),
-                                                     march_window, hc, wc)
-        z_top = min(z_raw, _MAX_HEIGHT_FRACTION * big_h)
-        if z_top <= 0.0:
-            return flat_view()
-        # the march, top down: a cell's hit is the first height z_i at which its ray is at or below the block
-        # maximum (pooled > z_i - 1e-4), 0 without one; z0 is the hits' 3 x 3 maximum (no roof edge is lost to
-        # the coarse grid; the next steps verify). Flat ground: a cell whose rays hit nothing (z0 = 0) and whose
-        # pixels all look at ground of height 0 (the block maximum dilated by the cell's reach, sampled like the
-        # march) sees the ground at its affine point g: the fixed-point steps would leave it there (z1 = z2 = 0).
+        (a00, a01, _), (a10, a11, _) = a.tolist()
+        reach = 2.0 * max(abs(a00) + abs(a01), abs(a10) + abs(a11))   # map px per axis, in a cell
         steps = self.config.march_steps
-        levels = z_top * np.arange(steps, 0, -1) / steps
-        warps = probes(np.concatenate([[1.0], 1.0 - levels / big_h])).astype(np.float32).reshape(-1, 9)
-        reach = 2.0 * max(abs(a[0, 0]) + abs(a[0, 1]), abs(a[1, 0]) + abs(a[1, 1]))   # map px per axis, in a cell
-        z0, relief = self._reused("march", lambda: (np.empty((hc, wc), np.float32), np.empty((hc, wc), np.uint8)),
-                                  lambda bufs: bufs[0].shape == (hc, wc))
-        count = kernels.march[tilt is not None](
-            z0, relief, warps, (levels - 1e-4).astype(np.float32), levels.astype(np.float32), pooled,
-            self._ground_heights(int(math.ceil((reach + 1.0) / f))), march_window)
-        if count == 0:
+        bufs = self._reused("march", lambda: _plan_buffers(hc, wc, steps),
+                            lambda bufs: bufs[0].shape == (hc, wc) and bufs[8].shape[0] == steps + 1)
+        z0, relief, centre, conj, flat, lin, consts, march_window, warps, levels = bufs
+        shift, unshift = _centre_shift(cu, cv)
+        march_window[:] = (r0, c0, r1 - r0, c1 - c0)
+        count = kernels.plan_view[tilt is not None](
+            a, _EYE if tilt is None else tilt, shift, unshift, float(cu), float(cv), float(altitude_m),
+            _MAX_HEIGHT_FRACTION, _SURFACE_TOL_M, *origin, march_window, pooled,
+            self._ground_heights(int(math.ceil((reach + 1.0) / f))), warps, levels, z0, relief, centre, conj, flat,
+            lin, consts)
+        if count <= 0:
             return flat_view()
-        cap = _MAX_HEIGHT_FRACTION * big_h if z_raw > _MAX_HEIGHT_FRACTION * big_h else math.inf
         if max(self.dsm.shape) < _REMAP_MAX_PX:
             window = (0, 0, self.dsm.shape[1], self.dsm.shape[0], 0)
         else:   # as remap would read it: a window under the footprint, its border replicated
             window = (*_window(bbox, 1.0, (0.0, 0.0), self.dsm.shape[1], self.dsm.shape[0]), 1)
-        return pixel_maps(z0, relief, (nadir_x, nadir_y, ox, oy, big_h, _SURFACE_TOL_M, cap), window)
+        return ViewPlan((h, w), bbox, origin, (tilt is not None, bool(window[4])), (
+            z0, relief, f, centre, conj if tilt is not None else _NO_TILT, flat, lin, consts, self.dsm,
+            np.array(window[:4], np.int64)))
 
     def _map_buffers(self, h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
         """Two (h, w) float32 planes for a frame's maps: the last frame's when nothing else holds them any more

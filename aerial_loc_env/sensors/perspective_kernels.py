@@ -44,6 +44,7 @@ from aerial_loc_env.jit import FAST_GATHER as _FAST_GATHER
 from aerial_loc_env.jit import GATHER_LANES as _GATHER_LANES
 from aerial_loc_env.jit import JIT as _JIT
 from aerial_loc_env.jit import fma32 as _fma
+from aerial_loc_env.jit import fma64 as _fma64
 from aerial_loc_env.jit import gather_f32x16 as _gather_f32x16
 from aerial_loc_env.jit import index32 as _index32
 from aerial_loc_env.jit import wide_vectors as _wide
@@ -59,6 +60,8 @@ from aerial_loc_env.sensors.render_kernels import (
     gain_byte,
 )
 
+#: the march's cells: blocks of MARCH_FACTOR x MARCH_FACTOR camera pixels, probed on the heights' block maximum
+MARCH_FACTOR = 4
 _LANES = 16    # OpenCV's nearest warps: vector body in blocks of 2 x 8 float32 lanes (AVX2), scalar tail after it
 _F32 = np.float32
 _U1, _U2, _U3 = np.uint64(1), np.uint64(2), np.uint64(3)   # unsigned offsets (no wraparound)
@@ -200,6 +203,28 @@ def _march_kernel(perspective: bool):
     return march
 
 
+@numba.njit(inline="always", **_JIT)
+def _top(pooled: np.ndarray, probe: np.ndarray, window: np.ndarray, hc: int, wc: int, perspective: bool) -> float:
+    """``top_height``'s maximum (``perspective`` a constant at each call site)."""
+    nr, nc = np.int32(window[2]), np.int32(window[3])
+    stride = np.int32(pooled.shape[1])
+    base = window[0] * np.int64(stride) + window[1]
+    pool = pooled.reshape(-1)
+    body = (wc // _LANES) * _LANES
+    tm = np.empty((1, 12), np.float32)
+    q = np.empty(wc, np.int32)
+    val = np.empty(wc, np.float32)
+    top = -np.inf
+    for y in range(hc):
+        _row_terms(tm, probe, y)
+        _probe_row(q, tm[0, 0], tm[0, 1], tm[0, 2], tm[0, 3], tm[0, 4], tm[0, 5], tm[0, 6], tm[0, 7], tm[0, 8],
+                   tm[0, 9], tm[0, 10], tm[0, 11], body, nr, nc, stride, perspective)
+        _read_row(pool, base, q, val)
+        for x in range(wc):
+            top = max(top, np.float64(val[x] if q[x] >= 0 else _F32(0.0)))
+    return top
+
+
 def _top_kernel(perspective: bool):
     """``top_height`` for an affine (nadir) or projective (tilted) warp (a compile-time constant, as for
     ``march``)."""
@@ -209,24 +234,114 @@ def _top_kernel(perspective: bool):
         """The largest of the (hc, wc) heights OpenCV's nearest ``warpAffine`` / ``warpPerspective`` of the window
         (row0, col0, rows, cols) of ``pooled`` by ``probe`` (1, 9) float32 reads, zero outside it
         (``cv2.minMaxLoc``'s maximum of that warp: the same pixels as ``march``'s probes)."""
-        nr, nc = np.int32(window[2]), np.int32(window[3])
-        stride = np.int32(pooled.shape[1])
-        base = window[0] * np.int64(stride) + window[1]
-        pool = pooled.reshape(-1)
-        body = (wc // _LANES) * _LANES
-        tm = np.empty((1, 12), np.float32)
-        q = np.empty(wc, np.int32)
-        val = np.empty(wc, np.float32)
-        top = -np.inf
-        for y in range(hc):
-            _row_terms(tm, probe, y)
-            _probe_row(q, tm[0, 0], tm[0, 1], tm[0, 2], tm[0, 3], tm[0, 4], tm[0, 5], tm[0, 6], tm[0, 7], tm[0, 8],
-                       tm[0, 9], tm[0, 10], tm[0, 11], body, nr, nc, stride, perspective)
-            _read_row(pool, base, q, val)
-            for x in range(wc):
-                top = max(top, np.float64(val[x] if q[x] >= 0 else _F32(0.0)))
-        return top
+        return _top(pooled, probe, window, hc, wc, perspective)
     return top_height
+
+
+@numba.njit(inline="always", **_JIT)
+def _mm3(p: np.ndarray, q: np.ndarray, out: np.ndarray) -> None:
+    """``out = p @ q`` for 3 x 3 float64 matrices as NumPy's ``@`` gives it on x86-64 (OpenBLAS's FMA kernels):
+    each entry ``fma(p_i2, q_2j, fma(p_i1, q_1j, p_i0 q_0j))`` (tests/sensors/test_perspective_kernels.py compares
+    them over random matrices)."""
+    for i in range(3):
+        for j in range(3):
+            out[i, j] = _fma64(p[i, 2], q[2, j], _fma64(p[i, 1], q[1, j], p[i, 0] * q[0, j]))
+
+
+@numba.njit(inline="always", **_JIT)
+def _probe(m2p: np.ndarray, to_map: np.ndarray, nadir_x: float, nadir_y: float, k: float, s: np.ndarray,
+           t: np.ndarray, u: np.ndarray, out: np.ndarray) -> None:
+    """``out`` (9,) float32: ``m2p @ S(k) @ to_map`` rounded, S(k) = ``[[k, 0, nadir_x (1 - k)], [0, k, nadir_y
+    (1 - k)], [0, 0, 1]]``: the cells' points m(z) = nadir + k (g - nadir), k = 1 - z / H, in pooled px (``s``,
+    ``t``, ``u``: 3 x 3 scratch)."""
+    s[:] = 0.0
+    s[0, 0] = s[1, 1] = k
+    s[0, 2], s[1, 2], s[2, 2] = nadir_x * (1.0 - k), nadir_y * (1.0 - k), 1.0
+    _mm3(m2p, s, t)
+    _mm3(t, to_map, u)
+    for i in range(9):
+        out[i] = np.float32(u[i // 3, i % 3])
+
+
+def _plan_kernel(perspective: bool):
+    """``plan_view`` for an untilted (affine probes) or tilted (projective) view (a compile-time constant, as for
+    ``march``)."""
+    march_rows = march[perspective]
+
+    @numba.njit(**_JIT)
+    def plan_view(a: np.ndarray, tilt: np.ndarray, shift: np.ndarray, unshift: np.ndarray, cu: float, cv: float,
+                  big_h: float, frac: float, tol: float, origin_x: int, origin_y: int, march_window: np.ndarray,
+                  pooled: np.ndarray, ground: np.ndarray, warps: np.ndarray, levels: np.ndarray, z0: np.ndarray,
+                  relief: np.ndarray, centre: np.ndarray, conj: np.ndarray, flat: np.ndarray, lin: np.ndarray,
+                  consts: np.ndarray) -> int:
+        """A frame's plan (``ReliefView.plan``) in one call: the nadir point, the probes' warps, the top height
+        (``top_height``), the march (``march``) into ``z0``/``relief``, and the maps kernel's arguments (``centre``,
+        ``conj``, ``flat``, ``lin``, ``consts``, float32); returns the relief cells (0: flat ground, ``consts``
+        left zero), -1 where nothing stands under the footprint (z_top <= 0).
+
+        ``a`` (2, 3) float64: camera -> map (level 0); ``tilt`` (3, 3) float64: the tilt homography (the identity
+        untilted); ``shift``/``unshift``: the translation by the principal point (cu, cv) and its inverse; ``big_h``
+        the altitude H, ``frac`` the height cap's fraction of H, ``tol`` the surface tolerance; (``origin_x``,
+        ``origin_y``): the map pixel at the maps' zero; ``march_window`` int64 (row0, col0, rows, cols) of ``pooled``;
+        ``warps`` (steps + 1, 9) float32 and ``levels`` (2, steps) float32 (the levels less 1e-4, the levels):
+        scratch. The float64 arithmetic is ``ReliefView.plan``'s NumPy expressions', operation by operation
+        (``_mm3``; NumPy's 2 x 2 matrix-vector product ``fma(a0, x, a1 y)``)."""
+        nadir_x = _fma64(a[0, 0], cu, a[0, 1] * cv) + a[0, 2]
+        nadir_y = _fma64(a[1, 0], cu, a[1, 1] * cv) + a[1, 2]
+        ox, oy = nadir_x - np.float64(origin_x), nadir_y - np.float64(origin_y)
+        centre[0], centre[1] = np.float32(cu), np.float32(cv)
+        t, u = np.empty((3, 3)), np.empty((3, 3))
+        if perspective:
+            _mm3(unshift, tilt, t)
+            _mm3(t, shift, u)
+            for i in range(3):
+                for j in range(3):
+                    conj[i, j] = np.float32(u[i, j])
+        else:
+            conj[:] = 0.0
+        flat[0, 0], flat[0, 1], flat[0, 2] = np.float32(a[0, 0]), np.float32(a[0, 1]), np.float32(ox)
+        flat[1, 0], flat[1, 1], flat[1, 2] = np.float32(a[1, 0]), np.float32(a[1, 1]), np.float32(oy)
+        lin[0, 0], lin[0, 1], lin[1, 0], lin[1, 1] = flat[0, 0], flat[0, 1], flat[1, 0], flat[1, 1]
+        consts[:] = 0.0
+        # the march grid -> camera px (block centres), through the tilt, to the map; map px -> pooled px of the window
+        f = np.float64(MARCH_FACTOR)
+        m3 = np.zeros((3, 3))
+        m3[:2, :] = a
+        m3[2, 2] = 1.0
+        grid = np.zeros((3, 3))
+        grid[0, 0] = grid[1, 1] = f
+        grid[0, 2] = grid[1, 2] = (f - 1.0) / 2.0
+        grid[2, 2] = 1.0
+        _mm3(m3, tilt, t)
+        to_map = np.empty((3, 3))
+        _mm3(t, grid, to_map)
+        m2p = np.zeros((3, 3))
+        m2p[0, 0] = m2p[1, 1] = 1.0 / f
+        m2p[0, 2] = (0.5 / f - 0.5) - np.float64(march_window[1])
+        m2p[1, 2] = (0.5 / f - 0.5) - np.float64(march_window[0])
+        m2p[2, 2] = 1.0
+        s = np.empty((3, 3))
+        hc, wc = z0.shape
+        _probe(m2p, to_map, nadir_x, nadir_y, 1.0, s, t, u, warps[0])
+        z_raw = _top(pooled, warps[0:1], march_window, hc, wc, perspective)
+        z_top = min(z_raw, frac * big_h)
+        if z_top <= 0.0:
+            return -1
+        steps = levels.shape[1]
+        for i in range(steps):
+            level = z_top * np.float64(steps - i) / np.float64(steps)
+            levels[0, i] = np.float32(level - 1e-4)
+            levels[1, i] = np.float32(level)
+            _probe(m2p, to_map, nadir_x, nadir_y, 1.0 - level / big_h, s, t, u, warps[i + 1])
+        count = march_rows(z0, relief, warps, levels[0], levels[1], pooled, ground, march_window)
+        if count == 0:
+            return 0
+        cap = frac * big_h if z_raw > frac * big_h else np.inf
+        consts[0], consts[1], consts[2], consts[3] = np.float32(nadir_x), np.float32(nadir_y), np.float32(ox), \
+            np.float32(oy)
+        consts[4], consts[5], consts[6] = np.float32(big_h), np.float32(tol), np.float32(cap)
+        return count
+    return plan_view
 
 
 @numba.njit(inline="always", **_JIT)
@@ -578,9 +693,10 @@ def shade_pixels(image: np.ndarray, pixels: np.ndarray, gain: np.ndarray) -> Non
 
 march = {tilted: _march_kernel(tilted) for tilted in (False, True)}     # by tilt: affine / projective probes
 top_height = {tilted: _top_kernel(tilted) for tilted in (False, True)}
+plan_view = {tilted: _plan_kernel(tilted) for tilted in (False, True)}
 view_maps = {(tilted, replicate): _maps_kernel(tilted, replicate)      # by tilt and border (compiled when used)
              for tilted in (False, True) for replicate in (False, True)}
 view_finish = {(tilted, replicate): _finish_kernel(tilted, replicate)
                for tilted in (False, True) for replicate in (False, True)}
 
-__all__ = ["facade_gains", "march", "shade_pixels", "top_height", "view_finish", "view_maps"]
+__all__ = ["facade_gains", "march", "plan_view", "shade_pixels", "top_height", "view_finish", "view_maps"]

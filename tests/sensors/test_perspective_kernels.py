@@ -6,6 +6,7 @@ map beyond remap's size limit."""
 from __future__ import annotations
 
 import math
+import platform
 
 import cv2
 import numpy as np
@@ -220,3 +221,38 @@ def test_facade_shading_refuses_a_frame_the_kernel_cannot_write():
     for bad in (image[:200], image.astype(np.float32), image[:, ::-1], image[..., 0]):
         with pytest.raises(ConfigError, match="shade_facades"):
             r._view.shade_facades(bad, view)
+
+
+@pytest.mark.skipif(platform.machine().lower() not in ("x86_64", "amd64"),
+                    reason="the plan reproduces NumPy's products as OpenBLAS computes them on x86-64")
+def test_the_plans_float64_products_are_numpys():
+    """``plan_view``'s 3 x 3 products (``_mm3``) and its nadir point equal NumPy's ``@`` (OpenBLAS) bit for bit over
+    random matrices of mixed magnitudes, both for plain 3 x 3 products and for a matrix times a stack (``probes``'
+    broadcast); a plain sum of products differs from it in many entries (the test can fail)."""
+    import numba
+
+    from aerial_loc_env.sensors import perspective_kernels as kernels
+
+    @numba.njit
+    def products(p, q, out, a, cu, cv, nadir):
+        for i in range(p.shape[0]):
+            kernels._mm3(p[i], q[i], out[i])
+        for i in range(a.shape[0]):
+            nadir[i, 0] = kernels._fma64(a[i, 0, 0], cu, a[i, 0, 1] * cv) + a[i, 0, 2]
+            nadir[i, 1] = kernels._fma64(a[i, 1, 0], cu, a[i, 1, 1] * cv) + a[i, 1, 2]
+
+    rng = np.random.default_rng(11)
+    n = 4000
+    p = rng.normal(size=(n, 3, 3)) * 10.0 ** rng.uniform(-3, 3, (n, 3, 3))
+    q = rng.normal(size=(n, 3, 3)) * 10.0 ** rng.uniform(-3, 3, (n, 3, 3))
+    a = rng.normal(size=(n, 2, 3)) * 100.0
+    out, nadir = np.empty_like(p), np.empty((n, 2))
+    products(p, q, out, a, 299.5, 199.5, nadir)
+    expected = np.array([p[i] @ q[i] for i in range(n)])
+    assert np.array_equal(out, expected)
+    stacked = p[0] @ q[:200]                      # a matrix times a stack, as ``probes`` broadcasts it
+    products(np.broadcast_to(p[0], (200, 3, 3)).copy(), q[:200], out[:200], a[:0], 0.0, 0.0, nadir[:0])
+    assert np.array_equal(out[:200], stacked)
+    assert np.array_equal(nadir, np.array([a[i][:, :2] @ np.array([299.5, 199.5]) + a[i][:, 2] for i in range(n)]))
+    plain = np.einsum("nij,njk->nik", p, q, optimize=False)
+    assert np.mean(plain != expected) > 0.01
