@@ -179,32 +179,28 @@ def _install_cache_guard() -> None:
 _install_cache_guard()
 
 
-@intrinsic
-def fma32(typingctx, a, b, c):
-    """float32 ``a * b + c`` rounded once (LLVM's fma: the FMA instruction, or libm's fmaf without one), as
-    OpenCV's ``v_fma``; numba without fastmath fuses nothing else. No silent casts: every operand must be float32."""
-    if not all(t == types.float32 for t in (a, b, c)):
-        return None
-    sig = types.float32(types.float32, types.float32, types.float32)
+def _fma(ty: types.Float, name: str):
+    """An intrinsic ``a * b + c`` rounded once in the float type ``ty`` (LLVM's fma: the FMA instruction, or libm's
+    fma without one); numba without fastmath fuses nothing else. No silent casts: every operand must be ``ty``."""
 
-    def codegen(context, builder, signature, args):
-        return builder.fma(*args)
+    def typer(typingctx, a, b, c):
+        if not all(t == ty for t in (a, b, c)):
+            return None
 
-    return sig, codegen
+        def codegen(context, builder, signature, args):
+            return builder.fma(*args)
+
+        return ty(ty, ty, ty), codegen
+
+    typer.__name__ = typer.__qualname__ = name
+    return typer
 
 
-@intrinsic
-def fma64(typingctx, a, b, c):
-    """float64 ``a * b + c`` rounded once (LLVM's fma), as OpenBLAS's FMA kernels accumulate small products: for
-    reproducing NumPy's ``@`` on 3 x 3 and 2 x 2 float64 matrices in compiled code. Every operand must be float64."""
-    if not all(t == types.float64 for t in (a, b, c)):
-        return None
-    sig = types.float64(types.float64, types.float64, types.float64)
-
-    def codegen(context, builder, signature, args):
-        return builder.fma(*args)
-
-    return sig, codegen
+#: float32 ``a * b + c`` rounded once, as OpenCV's ``v_fma``
+fma32 = intrinsic(_fma(types.float32, "fma32"))
+#: float64 ``a * b + c`` rounded once, as OpenBLAS's FMA kernels accumulate small products (NumPy's ``@`` on 3 x 3
+#: and 2 x 2 float64 matrices, reproduced in compiled code)
+fma64 = intrinsic(_fma(types.float64, "fma64"))
 
 
 @intrinsic
