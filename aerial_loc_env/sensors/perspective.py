@@ -277,9 +277,8 @@ class ReliefView:
         h, w = plan.shape
         facade, facing = self._facade_buffers(h * w)
         sun = self._sun_params(sun_deg, gamma)
-        dtype = np.float64 if sun is None else np.float32      # the gain's precision (``facade_gains``)
-        (gains,) = self._reused(f"gains {np.dtype(dtype)}", lambda: (np.empty(h * w, dtype),),
-                                lambda bufs: bufs[0].size >= h * w)
+        key, dtype = ("gains f64", np.float64) if sun is None else ("gains f32", np.float32)  # (``facade_gains``)
+        (gains,) = self._reused(key, lambda: (np.empty(h * w, dtype),), lambda bufs: bufs[0].size >= h * w)
         return kernels.view_finish[plan.key](box, facade, facing, gains, _NO_SUN if sun is None else sun,
                                              self.config.facade_gain, *plan.args, *args)
 
