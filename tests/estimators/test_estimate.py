@@ -43,3 +43,29 @@ def test_yaw_cos_sin_is_numpys_and_follows_the_particles():
         np.testing.assert_array_equal(yaw_cos_sin(states)[0], np.cos(states[:, 2]))
     states[3, 2] = np.nan
     assert np.isnan(yaw_cos_sin(states)[1][3]) and yaw_cos_sin(states)[0] is not yaw_cos_sin(states.copy())[0]
+
+
+def test_weighted_mean_and_cov_are_portable_matmuls_floats():
+    """The compiled mean and covariance equal the expressions they replaced (``portable.matmul(W, xy)``,
+    ``portable.matmul((d * W[:, None]).T, d)``) bit for bit, on the filter's strided (N, 3) states view, with
+    and without a given centre; a pairwise (NumPy) sum differs from them somewhere (the test can fail)."""
+    from aerial_loc_env import portable
+    from aerial_loc_env.estimators.mcl.estimate import weighted_cov, weighted_mean
+
+    g = np.random.default_rng(9)
+    differs = 0
+    for n in (1, 7, 700, 5000):
+        states = np.column_stack([g.normal(300.0, 40.0, (n, 2)) * 10 ** g.uniform(-2, 2), g.uniform(-3, 3, n)])
+        W = g.random(n) ** 3
+        W /= W.sum()
+        xy = states[:, :2]
+        mean = portable.matmul(W, xy)
+        assert np.array_equal(weighted_mean(xy, W), mean)
+        for c in (mean, np.array([250.0, 310.0])):
+            d = xy - c
+            expected = portable.matmul((d * W[:, None]).T, d)
+            assert np.array_equal(weighted_cov(xy, W, None if c is mean else c), expected)
+            differs += not np.array_equal((d * W[:, None]).T @ d, expected)
+    assert differs > 0
+    with pytest.raises(ValueError, match=r"positions \(N, 2\)"):
+        weighted_mean(states, W)

@@ -10,18 +10,33 @@ import math
 import numpy as np
 
 from aerial_loc_env import portable
+from aerial_loc_env.estimators.mcl import estimate_kernels as _k
 
 
 def weighted_mean(xy: np.ndarray, W: np.ndarray) -> np.ndarray:
-    """Weighted mean (2,) of positions ``xy`` (N, 2) with normalized weights ``W`` (N,)."""
-    return portable.matmul(W, xy)
+    """Weighted mean (2,) of positions ``xy`` (N, 2) with normalized weights ``W`` (N,): ``W @ xy`` (one compiled
+    pass, ``portable.matmul``'s floats)."""
+    out = np.empty(2)
+    _k.weighted_mean(*_cloud(xy, W), out)
+    return out
 
 
 def weighted_cov(xy: np.ndarray, W: np.ndarray, center: np.ndarray | None = None) -> np.ndarray:
-    """Weighted 2x2 covariance about ``center`` (default: the weighted mean)."""
-    c = weighted_mean(xy, W) if center is None else center
-    d = xy - c
-    return portable.matmul((d * W[:, None]).T, d)
+    """Weighted 2x2 covariance about ``center`` (default: the weighted mean): ``(d * W[:, None]).T @ d``, ``d = xy
+    - center`` (one compiled pass, ``portable.matmul``'s floats)."""
+    xy, W = _cloud(xy, W)
+    c = weighted_mean(xy, W) if center is None else np.asarray(center, dtype=np.float64).reshape(2)
+    out = np.empty((2, 2))
+    _k.weighted_cov(xy, W, c, out)
+    return out
+
+
+def _cloud(xy: np.ndarray, W: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``xy`` (N, 2) and ``W`` (N,) as float64 arrays for the compiled passes (a view of the states as it is)."""
+    xy, W = np.asarray(xy, dtype=np.float64), np.asarray(W, dtype=np.float64)
+    if xy.ndim != 2 or xy.shape[1] != 2 or W.shape != (xy.shape[0],):
+        raise ValueError(f"estimate: positions (N, 2) and weights (N,) expected, got {xy.shape} and {W.shape}")
+    return xy, W
 
 
 def max_std_m(cov: np.ndarray) -> float:
