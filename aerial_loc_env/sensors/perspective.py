@@ -288,7 +288,7 @@ class ReliefView:
         """``maps``' frame up to its per-pixel maps: the march done, the maps kernel's arguments (``ViewPlan``), or
         None where ``maps`` gives None."""
         w, h = camera.width_px, camera.height_px
-        a = np.asarray(affine, dtype=np.float64)
+        a = np.ascontiguousarray(affine, dtype=np.float64)
         cu, cv = camera.center_px
         corners = footprint_px(a, camera, tilt) if corners is None else corners
         us, vs = corners.T.tolist()        # 4 points: plain Python beats NumPy's reductions (the same values)
@@ -296,23 +296,26 @@ class ReliefView:
         origin = (int(origin_px[0]), int(origin_px[1]))
         f = _MARCH_FACTOR
         wc, hc = -(-w // f), -(-h // f)
+        if tilt is None and self.dsm is None:
+            return None     # flat ground, untilted: the affine warp is exact
+        steps = self.config.march_steps
+        bufs = self._reused("march", lambda: _plan_buffers(hc, wc, steps),
+                            lambda bufs: bufs[0].shape == (hc, wc) and bufs[8].shape[0] == steps + 1)
+        z0, relief, centre, conj, flat, lin, consts, march_window, warps, levels = bufs
+        shift, unshift = _centre_shift(cu, cv)
+        tilt_arg = _EYE if tilt is None else np.ascontiguousarray(tilt, dtype=np.float64)
 
-        def flat_view() -> ViewPlan | None:
-            """Flat ground under the footprint: the affine warp (None), or the tilted camera's ground points (the
-            maps kernel's arguments with no relief cell)."""
-            if tilt is None:
-                return None
-            nadir_x, nadir_y = a[:, :2] @ np.array([cu, cv]) + a[:, 2]     # the map pixel below the camera
-            ox, oy = float(nadir_x) - origin[0], float(nadir_y) - origin[1]    # nadir in the maps' frame
-            shift, unshift = _centre_shift(cu, cv)
-            flat = np.array([[a[0, 0], a[0, 1], ox], [a[1, 0], a[1, 1], oy]], np.float32)
-            return ViewPlan((h, w), bbox, origin, (True, False), (
-                np.zeros((hc, wc), np.float32), np.zeros((hc, wc), np.uint8), f, np.array([cu, cv], np.float32),
-                (unshift @ tilt @ shift).astype(np.float32), flat, a[:, :2].astype(np.float32),
-                np.zeros(7, np.float32), _NO_DSM if self.dsm is None else self.dsm, np.zeros(4, np.int64)))
+        def planned(window: tuple[int, ...]) -> ViewPlan:
+            """The maps kernel's arguments (``window``: the height model's, and whether its border is replicated)."""
+            return ViewPlan((h, w), bbox, origin, (tilt is not None, bool(window[4])), (
+                z0, relief, f, centre, _NO_TILT if tilt is None else conj, flat, lin, consts,
+                _NO_DSM if self.dsm is None else self.dsm, np.array(window[:4], np.int64)))
 
-        if self.dsm is None:
-            return flat_view()
+        if self.dsm is None:    # a tilted camera over flat ground: its ground points
+            kernels.view_args(a, tilt_arg, shift, unshift, float(cu), float(cv), *origin, True, centre, conj, flat,
+                              lin)
+            z0[:], relief[:], consts[:] = 0.0, 0, 0.0
+            return planned((0,) * 5)
         # the march and the maps' arguments in one compiled call (``perspective_kernels.plan_view``: the nadir
         # point, the cells' probes m(z) = nadir + k (g - nadir), k = 1 - z / H, the top height, the march): every
         # m(z) lies in the footprint, so the march reads the pooled heights in the window under it (pooled px
@@ -326,26 +329,17 @@ class ReliefView:
         c0, r0, c1, r1 = _window(bbox, 1.0 / f, (0.5 / f - 0.5,) * 2, pooled.shape[1], pooled.shape[0])
         (a00, a01, _), (a10, a11, _) = a.tolist()
         reach = 2.0 * max(abs(a00) + abs(a01), abs(a10) + abs(a11))   # map px per axis, in a cell
-        steps = self.config.march_steps
-        bufs = self._reused("march", lambda: _plan_buffers(hc, wc, steps),
-                            lambda bufs: bufs[0].shape == (hc, wc) and bufs[8].shape[0] == steps + 1)
-        z0, relief, centre, conj, flat, lin, consts, march_window, warps, levels = bufs
-        shift, unshift = _centre_shift(cu, cv)
         march_window[:] = (r0, c0, r1 - r0, c1 - c0)
         count = kernels.plan_view[tilt is not None](
-            a, _EYE if tilt is None else tilt, shift, unshift, float(cu), float(cv), float(altitude_m),
-            _MAX_HEIGHT_FRACTION, _SURFACE_TOL_M, *origin, march_window, pooled,
-            self._ground_heights(int(math.ceil((reach + 1.0) / f))), warps, levels, z0, relief, centre, conj, flat,
-            lin, consts)
-        if count <= 0:
-            return flat_view()
+            a, tilt_arg, shift, unshift, float(cu), float(cv), float(altitude_m), _MAX_HEIGHT_FRACTION,
+            _SURFACE_TOL_M, *origin, march_window, pooled, self._ground_heights(int(math.ceil((reach + 1.0) / f))),
+            warps, levels, z0, relief, centre, conj, flat, lin, consts)
+        if count <= 0:   # flat ground under the footprint: the affine warp (None), or the tilted ground points
+            return None if tilt is None else planned((0,) * 5)
         if max(self.dsm.shape) < _REMAP_MAX_PX:
-            window = (0, 0, self.dsm.shape[1], self.dsm.shape[0], 0)
-        else:   # as remap would read it: a window under the footprint, its border replicated
-            window = (*_window(bbox, 1.0, (0.0, 0.0), self.dsm.shape[1], self.dsm.shape[0]), 1)
-        return ViewPlan((h, w), bbox, origin, (tilt is not None, bool(window[4])), (
-            z0, relief, f, centre, conj if tilt is not None else _NO_TILT, flat, lin, consts, self.dsm,
-            np.array(window[:4], np.int64)))
+            return planned((0, 0, self.dsm.shape[1], self.dsm.shape[0], 0))
+        # as remap would read it: a window under the footprint, its border replicated
+        return planned((*_window(bbox, 1.0, (0.0, 0.0), self.dsm.shape[1], self.dsm.shape[0]), 1))
 
     def _map_buffers(self, h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
         """Two (h, w) float32 planes for a frame's maps: the last frame's when nothing else holds them any more

@@ -263,6 +263,41 @@ def _probe(m2p: np.ndarray, to_map: np.ndarray, nadir_x: float, nadir_y: float, 
         out[i] = np.float32(u[i // 3, i % 3])
 
 
+@numba.njit(inline="always", **_JIT)
+def _view_args(a: np.ndarray, tilt: np.ndarray, shift: np.ndarray, unshift: np.ndarray, cu: float, cv: float,
+               origin_x: int, origin_y: int, tilted: bool, centre: np.ndarray, conj: np.ndarray, flat: np.ndarray,
+               lin: np.ndarray) -> tuple[float, float, float, float]:
+    """``view_args``' outputs; returns the nadir point (map px) and the same less the origin (float64)."""
+    nadir_x = _fma64(a[0, 0], cu, a[0, 1] * cv) + a[0, 2]   # NumPy's 2 x 2 matrix-vector product on x86-64
+    nadir_y = _fma64(a[1, 0], cu, a[1, 1] * cv) + a[1, 2]
+    ox, oy = nadir_x - np.float64(origin_x), nadir_y - np.float64(origin_y)
+    centre[0], centre[1] = np.float32(cu), np.float32(cv)
+    if tilted:
+        t, u = np.empty((3, 3)), np.empty((3, 3))
+        _mm3(unshift, tilt, t)
+        _mm3(t, shift, u)
+        for i in range(3):
+            for j in range(3):
+                conj[i, j] = np.float32(u[i, j])
+    else:
+        conj[:] = 0.0
+    flat[0, 0], flat[0, 1], flat[0, 2] = np.float32(a[0, 0]), np.float32(a[0, 1]), np.float32(ox)
+    flat[1, 0], flat[1, 1], flat[1, 2] = np.float32(a[1, 0]), np.float32(a[1, 1]), np.float32(oy)
+    lin[0, 0], lin[0, 1], lin[1, 0], lin[1, 1] = flat[0, 0], flat[0, 1], flat[1, 0], flat[1, 1]
+    return nadir_x, nadir_y, ox, oy
+
+
+@numba.njit(**_JIT)
+def view_args(a: np.ndarray, tilt: np.ndarray, shift: np.ndarray, unshift: np.ndarray, cu: float, cv: float,
+              origin_x: int, origin_y: int, tilted: bool, centre: np.ndarray, conj: np.ndarray, flat: np.ndarray,
+              lin: np.ndarray) -> None:
+    """The maps kernel's per-frame arguments (float32) from the camera -> map affine ``a`` (2, 3) float64: the
+    principal point (``centre``: cu, cv), the tilt homography ``tilt`` conjugated by the centring (``conj``:
+    ``unshift @ tilt @ shift``; zero untilted), the ground point's affine about the maps' origin (``flat``: the
+    linear part and the nadir point less (``origin_x``, ``origin_y``)) and its linear part (``lin``)."""
+    _view_args(a, tilt, shift, unshift, cu, cv, origin_x, origin_y, tilted, centre, conj, flat, lin)
+
+
 def _plan_kernel(perspective: bool):
     """``plan_view`` for an untilted (affine probes) or tilted (projective) view (a compile-time constant, as for
     ``march``)."""
@@ -276,32 +311,17 @@ def _plan_kernel(perspective: bool):
                   consts: np.ndarray) -> int:
         """A frame's plan (``ReliefView.plan``) in one call: the nadir point, the probes' warps, the top height
         (``top_height``), the march (``march``) into ``z0``/``relief``, and the maps kernel's arguments (``centre``,
-        ``conj``, ``flat``, ``lin``, ``consts``, float32); returns the relief cells (0: flat ground, ``consts``
-        left zero), -1 where nothing stands under the footprint (z_top <= 0).
+        ``conj``, ``flat``, ``lin`` (``view_args``), ``consts``, float32); returns the relief cells (0: flat ground,
+        ``consts`` left zero), -1 where nothing stands under the footprint (z_top <= 0; ``z0``/``relief`` zeroed).
 
         ``a`` (2, 3) float64: camera -> map (level 0); ``tilt`` (3, 3) float64: the tilt homography (the identity
         untilted); ``shift``/``unshift``: the translation by the principal point (cu, cv) and its inverse; ``big_h``
         the altitude H, ``frac`` the height cap's fraction of H, ``tol`` the surface tolerance; (``origin_x``,
         ``origin_y``): the map pixel at the maps' zero; ``march_window`` int64 (row0, col0, rows, cols) of ``pooled``;
         ``warps`` (steps + 1, 9) float32 and ``levels`` (2, steps) float32 (the levels less 1e-4, the levels):
-        scratch. The float64 arithmetic is ``ReliefView.plan``'s NumPy expressions', operation by operation
-        (``_mm3``; NumPy's 2 x 2 matrix-vector product ``fma(a0, x, a1 y)``)."""
-        nadir_x = _fma64(a[0, 0], cu, a[0, 1] * cv) + a[0, 2]
-        nadir_y = _fma64(a[1, 0], cu, a[1, 1] * cv) + a[1, 2]
-        ox, oy = nadir_x - np.float64(origin_x), nadir_y - np.float64(origin_y)
-        centre[0], centre[1] = np.float32(cu), np.float32(cv)
-        t, u = np.empty((3, 3)), np.empty((3, 3))
-        if perspective:
-            _mm3(unshift, tilt, t)
-            _mm3(t, shift, u)
-            for i in range(3):
-                for j in range(3):
-                    conj[i, j] = np.float32(u[i, j])
-        else:
-            conj[:] = 0.0
-        flat[0, 0], flat[0, 1], flat[0, 2] = np.float32(a[0, 0]), np.float32(a[0, 1]), np.float32(ox)
-        flat[1, 0], flat[1, 1], flat[1, 2] = np.float32(a[1, 0]), np.float32(a[1, 1]), np.float32(oy)
-        lin[0, 0], lin[0, 1], lin[1, 0], lin[1, 1] = flat[0, 0], flat[0, 1], flat[1, 0], flat[1, 1]
+        scratch. The float64 arithmetic is the NumPy expressions' it replaced, operation by operation (``_mm3``)."""
+        nadir_x, nadir_y, ox, oy = _view_args(a, tilt, shift, unshift, cu, cv, origin_x, origin_y, perspective,
+                                              centre, conj, flat, lin)
         consts[:] = 0.0
         # the march grid -> camera px (block centres), through the tilt, to the map; map px -> pooled px of the window
         f = np.float64(MARCH_FACTOR)
@@ -312,8 +332,8 @@ def _plan_kernel(perspective: bool):
         grid[0, 0] = grid[1, 1] = f
         grid[0, 2] = grid[1, 2] = (f - 1.0) / 2.0
         grid[2, 2] = 1.0
+        t, u, to_map = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
         _mm3(m3, tilt, t)
-        to_map = np.empty((3, 3))
         _mm3(t, grid, to_map)
         m2p = np.zeros((3, 3))
         m2p[0, 0] = m2p[1, 1] = 1.0 / f
@@ -326,6 +346,8 @@ def _plan_kernel(perspective: bool):
         z_raw = _top(pooled, warps[0:1], march_window, hc, wc, perspective)
         z_top = min(z_raw, frac * big_h)
         if z_top <= 0.0:
+            z0[:] = 0.0
+            relief[:] = 0
             return -1
         steps = levels.shape[1]
         for i in range(steps):
@@ -699,4 +721,5 @@ view_maps = {(tilted, replicate): _maps_kernel(tilted, replicate)      # by tilt
 view_finish = {(tilted, replicate): _finish_kernel(tilted, replicate)
                for tilted in (False, True) for replicate in (False, True)}
 
-__all__ = ["facade_gains", "march", "plan_view", "shade_pixels", "top_height", "view_finish", "view_maps"]
+__all__ = ["facade_gains", "march", "plan_view", "shade_pixels", "top_height", "view_args", "view_finish",
+           "view_maps"]
