@@ -17,11 +17,29 @@ from aerial_loc_env.sensors.perspective import (
     ReliefView,
     ViewMaps,
     _window,
-    tilted_corners,
 )
 
 _ROW_PX = 1024
 _NEAREST = cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP   # OpenCV's nearest warp, its matrix the inverse map
+
+
+def reference_tilt(camera: CameraModel, roll_rad: float, pitch_rad: float) -> np.ndarray:
+    """``tilt_homography``'s matrix as NumPy products: ``K R_roll R_pitch K^-1``."""
+    fu = (camera.width_px / 2.0) / math.tan(math.radians(camera.hfov_deg) / 2.0)
+    cu, cv = camera.center_px
+    k = np.array([[fu, 0.0, cu], [0.0, fu / camera.pixel_aspect, cv], [0.0, 0.0, 1.0]])
+    cr, sr, cp, sp = math.cos(roll_rad), math.sin(roll_rad), math.cos(pitch_rad), math.sin(pitch_rad)
+    r_roll = np.array([[cr, 0.0, sr], [0.0, 1.0, 0.0], [-sr, 0.0, cr]])
+    r_pitch = np.array([[1.0, 0.0, 0.0], [0.0, cp, -sp], [0.0, sp, cp]])
+    return k @ r_roll @ r_pitch @ np.linalg.inv(k)
+
+
+def reference_tilted_corners(camera: CameraModel, tilt: np.ndarray | None) -> np.ndarray:
+    """``tilted_corners`` by ``cv2.perspectiveTransform``."""
+    corners = camera.corners_px()
+    if tilt is None:
+        return corners
+    return cv2.perspectiveTransform(corners.reshape(1, 4, 2), tilt).reshape(4, 2)
 
 
 def _centred_planes(camera: CameraModel) -> tuple[np.ndarray, np.ndarray]:
@@ -38,7 +56,7 @@ def reference_maps(self: ReliefView, affine: np.ndarray, altitude_m: float, came
     a = np.asarray(affine, dtype=np.float64)
     (w, h), (cu, cv) = (camera.width_px, camera.height_px), camera.center_px
     nadir_x, nadir_y = a[:, :2] @ np.array([cu, cv]) + a[:, 2]     # the map pixel below the camera
-    corners = apply_affine(a, tilted_corners(camera, tilt))
+    corners = apply_affine(a, reference_tilted_corners(camera, tilt))
     bbox = (*corners.min(axis=0), *corners.max(axis=0))
     ru, rv = _centred_planes(camera)
     if tilt is not None:

@@ -55,7 +55,7 @@ import numpy as np
 from aerial_loc_env.config import rng
 from aerial_loc_env.errors import ConfigError
 from aerial_loc_env.sensors import perspective_kernels as kernels
-from aerial_loc_env.sensors.camera import CameraModel, apply_affine
+from aerial_loc_env.sensors.camera import CameraModel
 
 _MAX_HEIGHT_FRACTION = 0.95
 GENERATOR_VERSION = 6  # bump whenever the frames change for the same inputs (env/fingerprint.py)
@@ -65,7 +65,8 @@ _SURFACE_TOL_M = 0.3    # h(m(z1)) within this of z1: the ray sees the surface (
 _NO_DSM = np.zeros((1, 1), np.float32)   # the kernel's height model argument for flat views (never read)
 _NO_TILT = np.zeros((3, 3), np.float32)  # its tilt argument for untilted views (never read)
 _NO_SUN = np.full(6, np.nan, np.float32)  # view_finish's sun argument without a sun (facades at facade_gain)
-_EYE = np.eye(3)       # plan_view's tilt argument for untilted views (never written)
+_EYE = np.eye(3)       # plan_view's and map_corners' tilt argument for untilted views (never written)
+_IDENTITY_AFFINE = np.eye(2, 3)   # tilted_corners' affine (never written)
 
 
 @dataclass(frozen=True)
@@ -93,10 +94,11 @@ def tilt_homography(camera: CameraModel, roll_rad: float, pitch_rad: float) -> n
     if roll_rad == 0.0 and pitch_rad == 0.0:
         return None
     k, k_inv = _intrinsics(camera)
-    cr, sr, cp, sp = math.cos(roll_rad), math.sin(roll_rad), math.cos(pitch_rad), math.sin(pitch_rad)
-    r_roll = np.array([[cr, 0.0, sr], [0.0, 1.0, 0.0], [-sr, 0.0, cr]])
-    r_pitch = np.array([[1.0, 0.0, 0.0], [0.0, cp, -sp], [0.0, sp, cp]])
-    return k @ r_roll @ r_pitch @ k_inv
+    out = np.empty((3, 3))
+    # K R_roll R_pitch K^-1, NumPy's products in one compiled call (a frame's NumPy calls run cold after its kernels)
+    kernels.tilt_matrix(k, k_inv, math.cos(roll_rad), math.sin(roll_rad), math.cos(pitch_rad), math.sin(pitch_rad),
+                        out)
+    return out
 
 
 @lru_cache(maxsize=16)
@@ -123,15 +125,26 @@ def _centre_shift(cu: float, cv: float) -> tuple[np.ndarray, np.ndarray]:
 
 def tilted_corners(camera: CameraModel, tilt: np.ndarray | None) -> np.ndarray:
     """The image corners (4, 2) in nadir-camera pixels (for footprint checks)."""
-    corners = camera.corners_px()
-    if tilt is None:
-        return corners
-    return cv2.perspectiveTransform(corners.reshape(1, 4, 2), tilt).reshape(4, 2)
+    return footprint_px(_IDENTITY_AFFINE, camera, tilt)
 
 
 def footprint_px(affine: np.ndarray, camera: CameraModel, tilt: np.ndarray | None = None) -> np.ndarray:
-    """The frame's corners (4, 2) in level-0 map pixels: the camera->map ``affine`` of the (tilted) image corners."""
-    return apply_affine(np.asarray(affine, dtype=np.float64), tilted_corners(camera, tilt))
+    """The frame's corners (4, 2) in level-0 map pixels: the camera->map ``affine`` of the (tilted) image corners
+    (``cv2.perspectiveTransform`` then ``camera.apply_affine``'s floats, in one compiled call:
+    ``perspective_kernels.map_corners``)."""
+    out = np.empty((4, 2))
+    kernels.map_corners(np.ascontiguousarray(affine, dtype=np.float64),
+                        _EYE if tilt is None else np.ascontiguousarray(tilt, dtype=np.float64), _corners(camera),
+                        tilt is not None, out)
+    return out
+
+
+@lru_cache(maxsize=16)
+def _corners(camera: CameraModel) -> np.ndarray:
+    """``camera.corners_px()`` (read-only; once per camera)."""
+    corners = camera.corners_px()
+    corners.flags.writeable = False
+    return corners
 
 
 @dataclass(frozen=True, eq=False)

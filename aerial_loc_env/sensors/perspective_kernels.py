@@ -248,6 +248,45 @@ def _mm3(p: np.ndarray, q: np.ndarray, out: np.ndarray) -> None:
             out[i, j] = _fma64(p[i, 2], q[2, j], _fma64(p[i, 1], q[1, j], p[i, 0] * q[0, j]))
 
 
+@numba.njit(**_JIT)
+def tilt_matrix(k: np.ndarray, k_inv: np.ndarray, cr: float, sr: float, cp: float, sp: float,
+                out: np.ndarray) -> None:
+    """``out`` (3, 3) float64 = ``k @ R_roll @ R_pitch @ k_inv`` (``perspective.tilt_homography``), the products
+    left to right as NumPy's ``@`` gives them (``_mm3``); ``R_roll = [[cr, 0, sr], [0, 1, 0], [-sr, 0, cr]]``,
+    ``R_pitch = [[1, 0, 0], [0, cp, -sp], [0, sp, cp]]`` (``cr``, ``sr``: the roll's cosine and sine, ``cp``, ``sp``
+    the pitch's)."""
+    r, t, u = np.zeros((3, 3)), np.empty((3, 3)), np.empty((3, 3))
+    r[0, 0], r[0, 2], r[1, 1], r[2, 0], r[2, 2] = cr, sr, 1.0, -sr, cr
+    _mm3(k, r, t)
+    r[:] = 0.0
+    r[0, 0], r[1, 1], r[1, 2], r[2, 1], r[2, 2] = 1.0, cp, -sp, sp, cp
+    _mm3(t, r, u)
+    _mm3(u, k_inv, out)
+
+
+_FLT_EPSILON = float(np.finfo(np.float32).eps)   # cv2.perspectiveTransform's |w| threshold
+
+
+@numba.njit(**_JIT)
+def map_corners(a: np.ndarray, tilt: np.ndarray, corners: np.ndarray, tilted: bool, out: np.ndarray) -> None:
+    """``out`` (n, 2) float64: the camera points ``corners`` (n, 2), through the tilt homography ``tilt`` (3, 3)
+    when ``tilted`` (``cv2.perspectiveTransform``'s arithmetic on x86-64: ``X = fma(x, m0, y m1) + m2``, ``w`` the
+    same of the third row, ``(X, Y) * (1 / w)``, 0 where ``|w|`` is within float32's epsilon), then through the
+    affine ``a`` (2, 3) (NumPy's ``a @ [x, y, 1]``: ``fma(a2, 1, fma(a1, y, a0 x))``, as ``_mm3``)."""
+    for i in range(corners.shape[0]):
+        x, y = corners[i, 0], corners[i, 1]
+        if tilted:
+            w = _fma64(x, tilt[2, 0], y * tilt[2, 1]) + tilt[2, 2]
+            if abs(w) > _FLT_EPSILON:
+                w = 1.0 / w
+                x, y = (_fma64(x, tilt[0, 0], y * tilt[0, 1]) + tilt[0, 2]) * w, \
+                    (_fma64(x, tilt[1, 0], y * tilt[1, 1]) + tilt[1, 2]) * w
+            else:
+                x = y = 0.0
+        for r in range(2):
+            out[i, r] = _fma64(a[r, 2], 1.0, _fma64(a[r, 1], y, a[r, 0] * x))
+
+
 @numba.njit(inline="always", **_JIT)
 def _probe(m2p: np.ndarray, to_map: np.ndarray, nadir_x: float, nadir_y: float, k: float, s: np.ndarray,
            t: np.ndarray, u: np.ndarray, out: np.ndarray) -> None:
@@ -721,5 +760,5 @@ view_maps = {(tilted, replicate): _maps_kernel(tilted, replicate)      # by tilt
 view_finish = {(tilted, replicate): _finish_kernel(tilted, replicate)
                for tilted in (False, True) for replicate in (False, True)}
 
-__all__ = ["facade_gains", "march", "plan_view", "shade_pixels", "top_height", "view_args", "view_finish",
-           "view_maps"]
+__all__ = ["facade_gains", "map_corners", "march", "plan_view", "shade_pixels", "tilt_matrix", "top_height",
+           "view_args", "view_finish", "view_maps"]

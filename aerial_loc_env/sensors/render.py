@@ -362,7 +362,6 @@ class CameraRenderer:
                                     _BLOCK_PX).max(axis=(1, 3))
             self._nodata_blocks = cv2.integral((blocks > 0).astype(np.uint8))
         self._noise_bank: np.ndarray | None = None
-        self._hom_corners_of: tuple[Any, Any] = (None, None)
         self._affine_terms_of: tuple[Any, Any, float, tuple[float, ...]] = (None, None, math.nan, ())
         self._sensor = _SensorParams.build(self.camera, self.photometry)
         self.reset(noise_seed if isinstance(noise_seed, np.random.Generator) else np.random.default_rng(noise_seed))
@@ -447,13 +446,6 @@ class CameraRenderer:
         affine[0, 2] -= self._origin[0]
         affine[1, 2] -= self._origin[1]
         return affine
-
-    def _hom_corners(self, camera: CameraModel) -> np.ndarray:
-        """The image corners (3, 4) in homogeneous coordinates (``apply_affine``'s ``hom``), kept per camera."""
-        if self._hom_corners_of[0] is not camera:
-            corners = camera.corners_px()
-            self._hom_corners_of = (camera, np.vstack([corners.T, np.ones(corners.shape[0])]))
-        return self._hom_corners_of[1]
 
     def pyramid_level(self, affine: np.ndarray) -> int:
         """The pyramid level whose pixels are closest to one camera pixel (log2 of the sampling step, rounded)."""
@@ -651,10 +643,8 @@ class CameraRenderer:
         affine = self.camera_to_map(pose, camera)
         level = self.pyramid_level(affine)
         tilt = tilt_homography(camera, *tilt_rad) if any(tilt_rad) else None
-        # the footprint's corners, once a frame (the status, the box's cover and the view's window use them); the
-        # untilted ones: the same matrix product as ``apply_affine`` with the homogeneous corners kept
-        corners = footprint = footprint_px(affine, camera, tilt) if tilt is not None else \
-            (affine @ self._hom_corners(camera)).T
+        # the footprint's corners, once a frame (the status, the box's cover and the view's window use them)
+        corners = footprint = footprint_px(affine, camera, tilt)
         status = self._status(affine, level, camera, map_corners=corners)
         self._check(pose, status, strict, camera)
         baked = occlusion if isinstance(occlusion, BakedShadows) else None

@@ -11,7 +11,14 @@ import platform
 import cv2
 import numpy as np
 import pytest
-from perspective_reference import _NEAREST, facade_gains_numpy, reference_maps, reference_shade_facades
+from perspective_reference import (
+    _NEAREST,
+    facade_gains_numpy,
+    reference_maps,
+    reference_shade_facades,
+    reference_tilt,
+    reference_tilted_corners,
+)
 
 from aerial_loc_env.errors import ConfigError
 from aerial_loc_env.sensors.camera import CameraModel, Pose
@@ -256,3 +263,29 @@ def test_the_plans_float64_products_are_numpys():
     assert np.array_equal(nadir, np.array([a[i][:, :2] @ np.array([299.5, 199.5]) + a[i][:, 2] for i in range(n)]))
     plain = np.einsum("nij,njk->nik", p, q, optimize=False)
     assert np.mean(plain != expected) > 0.01
+
+
+@pytest.mark.skipif(platform.machine().lower() not in ("x86_64", "amd64"),
+                    reason="the kernels reproduce NumPy's and OpenCV's arithmetic as they run on x86-64")
+def test_the_tilt_and_the_footprint_are_numpys_and_opencvs():
+    """``tilt_homography``, ``tilted_corners`` and ``footprint_px`` (compiled: ``tilt_matrix``, ``map_corners``)
+    equal the NumPy products and ``cv2.perspectiveTransform`` + ``apply_affine`` they replaced, bit for bit, over
+    random cameras, gimbal errors and poses (x86-64's arithmetic: see the plan's products above)."""
+    from aerial_loc_env.sensors.camera import apply_affine
+    from aerial_loc_env.sensors.perspective import footprint_px, tilted_corners
+
+    rng = np.random.default_rng(12)
+    for i in range(300):
+        cam = CameraModel(width_px=int(rng.integers(40, 1200)), height_px=int(rng.integers(30, 900)),
+                          hfov_deg=float(rng.uniform(20.0, 110.0)))
+        roll, pitch = rng.normal(0.0, 0.05, 2) * (i % 3 != 0)      # every third untilted
+        tilt = tilt_homography(cam, float(roll), float(pitch))
+        if i % 3 == 0:
+            assert tilt is None
+        else:
+            assert np.array_equal(tilt, reference_tilt(cam, float(roll), float(pitch)))
+        assert np.array_equal(tilted_corners(cam, tilt), reference_tilted_corners(cam, tilt))
+        yaw = rng.uniform(-np.pi, np.pi)
+        a = np.array([[np.cos(yaw), -np.sin(yaw), rng.uniform(-1e4, 1e4)],
+                      [np.sin(yaw), np.cos(yaw), rng.uniform(-1e4, 1e4)]]) * rng.uniform(0.1, 5.0, (2, 1))
+        assert np.array_equal(footprint_px(a, cam, tilt), apply_affine(a, reference_tilted_corners(cam, tilt)))

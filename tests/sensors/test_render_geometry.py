@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from aerial_loc_env.sensors.camera import CameraModel, Pose, apply_affine
+from aerial_loc_env.sensors.perspective import footprint_px
 from aerial_loc_env.sensors.render import CameraRenderer, Photometry, gamma_lut, photometry_draws, tone_lut
 
 
@@ -33,7 +34,7 @@ def test_pose_affine_and_corners_equal_camera_to_map_bit_for_bit(camera, gsd):
         # the renderer's, with the terms it keeps per altitude: a new altitude, then the same one again
         for again in (pose, Pose(pose.y_m, pose.x_m, -pose.yaw_rad, pose.altitude_m)):
             assert renderer.camera_to_map(again).tobytes() == camera.camera_to_map(renderer.orthomap, *again).tobytes()
-        corners = (got @ renderer._hom_corners(camera)).T
+        corners = footprint_px(got, camera)     # the renderer's corners of a frame (perspective_kernels.map_corners)
         assert corners.tobytes() == np.ascontiguousarray(apply_affine(expected, camera.corners_px())).tobytes()
 
 
