@@ -260,7 +260,12 @@ class ReliefView:
         corners = footprint_px(affine, camera, tilt) if corners is None else corners
         if self.dsm is None:
             return corners
-        return np.concatenate([corners - 1.0, corners + 1.0])
+        return np.concatenate([corners - self.reads_margin_px, corners + self.reads_margin_px])
+
+    @property
+    def reads_margin_px(self) -> float:
+        """How far (map px, per axis) a frame's samples reach beyond its footprint (``reads_px``)."""
+        return 0.0 if self.dsm is None else 1.0
 
     def maps(self, affine: np.ndarray, altitude_m: float, camera: CameraModel,
              tilt: np.ndarray | None = None, origin_px: tuple[int, int] = (0, 0),

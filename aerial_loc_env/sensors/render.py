@@ -207,12 +207,13 @@ class BakedShadows:
     baked_tiles: np.ndarray           # (rows, columns) bool: the tiles of rgba filled so far
     done_range: list[int] = field(default_factory=lambda: [0, 0, 0, 0])  # (ty0, ty1, tx0, tx1) a frame found baked
 
-    def covers(self, corners_px: np.ndarray) -> bool:
-        """Whether map points (n, 2) lie in the box with the bilinear kernel's margin."""
+    def covers(self, bounds_px: tuple[float, float, float, float]) -> bool:
+        """Whether map points within ``bounds_px`` (u0, v0, u1, v1) lie in the box with the bilinear kernel's
+        margin."""
         c0, r0 = self.origin_px
         h, w = self.rgba.shape[:2]
-        us, vs = corners_px[:, 0].tolist(), corners_px[:, 1].tolist()
-        return min(us) >= c0 + 1.0 and min(vs) >= r0 + 1.0 and max(us) <= c0 + w - 2.0 and max(vs) <= r0 + h - 2.0
+        u0, v0, u1, v1 = bounds_px
+        return u0 >= c0 + 1.0 and v0 >= r0 + 1.0 and u1 <= c0 + w - 2.0 and v1 <= r0 + h - 2.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -396,15 +397,15 @@ class CameraRenderer:
         return BakedShadows(grid, dict(shading_params or {}), np.empty((r1 - r0, c1 - c0, 4), np.uint8), (c0, r0),
                             np.zeros(tiles, dtype=bool))
 
-    def _bake_tiles(self, baked: BakedShadows, corners_px: np.ndarray) -> None:
-        """Shade the tiles of ``baked`` that the bilinear warp over map points ``corners_px`` reads, if not yet."""
+    def _bake_tiles(self, baked: BakedShadows, bounds_px: tuple[float, float, float, float]) -> None:
+        """Shade the tiles of ``baked`` that the bilinear warp over map points within ``bounds_px`` (u0, v0, u1, v1)
+        reads, if not yet."""
         c0, r0 = baked.origin_px
-        # the tile range in plain Python (a frame's 4 corners: numpy's per-call overhead would cost more)
-        us, vs = corners_px[:, 0].tolist(), corners_px[:, 1].tolist()
-        tx0 = max((math.floor(min(us)) - c0 - 1) // _BAKE_TILE_PX, 0)
-        ty0 = max((math.floor(min(vs)) - r0 - 1) // _BAKE_TILE_PX, 0)
-        tx1 = (math.floor(max(us)) - c0 + 2) // _BAKE_TILE_PX + 1
-        ty1 = (math.floor(max(vs)) - r0 + 2) // _BAKE_TILE_PX + 1
+        u0, v0, u1, v1 = bounds_px
+        tx0 = max((math.floor(u0) - c0 - 1) // _BAKE_TILE_PX, 0)
+        ty0 = max((math.floor(v0) - r0 - 1) // _BAKE_TILE_PX, 0)
+        tx1 = (math.floor(u1) - c0 + 2) // _BAKE_TILE_PX + 1
+        ty1 = (math.floor(v1) - r0 + 2) // _BAKE_TILE_PX + 1
         last = baked.done_range
         if last[0] <= ty0 and ty1 <= last[1] and last[2] <= tx0 and tx1 <= last[3]:
             return   # inside the range a frame found baked (tiles stay baked): no numpy call
@@ -644,21 +645,23 @@ class CameraRenderer:
         level = self.pyramid_level(affine)
         tilt = tilt_homography(camera, *tilt_rad) if any(tilt_rad) else None
         # the footprint's corners, once a frame (the status, the box's cover and the view's window use them)
-        corners = footprint = footprint_px(affine, camera, tilt)
-        status = self._status(affine, level, camera, map_corners=corners)
+        footprint = footprint_px(affine, camera, tilt)
+        status = self._status(affine, level, camera, map_corners=footprint)
         self._check(pose, status, strict, camera)
         baked = occlusion if isinstance(occlusion, BakedShadows) else None
         if baked is not None:
             occlusion, shading_params = baked.grid, baked.shading_params
-            if self._view.dsm is not None:   # else the reads are the footprint's corners, computed above
-                corners = self._view.reads_px(affine, camera, tilt, footprint)
-            baked = baked if level == 0 and baked.covers(corners) else None
+            # the bounds of the map points the frame reads (``ReliefView.reads_px``'s, in plain Python: 4 points)
+            m = self._view.reads_margin_px
+            us, vs = footprint[:, 0].tolist(), footprint[:, 1].tolist()
+            reads = (min(us) - m, min(vs) - m, max(us) + m, max(vs) + m)
+            baked = baked if level == 0 and baked.covers(reads) else None
         # a flat, untilted view needs no per-pixel maps (the affine warp is exact): skip their two float passes;
         # a view's maps come in the baked box's pixels when it serves the frame (no shift of the maps to sample it)
         plan = None if tilt is None and self._view.dsm is None else self._view.plan(
             affine, pose.altitude_m, camera, tilt, (0, 0) if baked is None else baked.origin_px, footprint)
         if baked is not None:
-            self._bake_tiles(baked, corners)
+            self._bake_tiles(baked, reads)
             return self._render_baked(baked, affine, pose, rng, speed_mps, status, pre_sensor, plan, sun_deg)
         view = None if plan is None else self._view.view_of(plan)
         if view is None:
