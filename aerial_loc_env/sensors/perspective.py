@@ -61,6 +61,7 @@ _MAX_HEIGHT_FRACTION = 0.95
 GENERATOR_VERSION = 6  # bump whenever the frames change for the same inputs (env/fingerprint.py)
 _MARCH_FACTOR = kernels.MARCH_FACTOR   # the march's 1/4-resolution camera grid over the heights' 4 x 4 block maximum
 _REMAP_MAX_PX = 32767  # cv2.remap's limit on the source's sides
+_FACADE_REACH_PX = 1.0  # how far beyond the footprint a frame samples with a height model (facades: one map px)
 _SURFACE_TOL_M = 0.3    # h(m(z1)) within this of z1: the ray sees the surface (ridged roofs vary by less per px)
 _NO_DSM = np.zeros((1, 1), np.float32)   # the kernel's height model argument for flat views (never read)
 _NO_TILT = np.zeros((3, 3), np.float32)  # its tilt argument for untilted views (never read)
@@ -260,12 +261,15 @@ class ReliefView:
         corners = footprint_px(affine, camera, tilt) if corners is None else corners
         if self.dsm is None:
             return corners
-        return np.concatenate([corners - self.reads_margin_px, corners + self.reads_margin_px])
+        return np.concatenate([corners - _FACADE_REACH_PX, corners + _FACADE_REACH_PX])
 
-    @property
-    def reads_margin_px(self) -> float:
-        """How far (map px, per axis) a frame's samples reach beyond its footprint (``reads_px``)."""
-        return 0.0 if self.dsm is None else 1.0
+    def reads_bounds_px(self, corners: np.ndarray) -> tuple[float, float, float, float]:
+        """The bounds (u0, v0, u1, v1) of ``reads_px`` for a frame whose footprint's corners (``footprint_px``) are
+        ``corners``: the same floats, in plain Python (4 points; a frame's NumPy calls run cold after its
+        kernels)."""
+        m = 0.0 if self.dsm is None else _FACADE_REACH_PX
+        us, vs = corners[:, 0].tolist(), corners[:, 1].tolist()
+        return min(us) - m, min(vs) - m, max(us) + m, max(vs) + m
 
     def maps(self, affine: np.ndarray, altitude_m: float, camera: CameraModel,
              tilt: np.ndarray | None = None, origin_px: tuple[int, int] = (0, 0),

@@ -651,10 +651,7 @@ class CameraRenderer:
         baked = occlusion if isinstance(occlusion, BakedShadows) else None
         if baked is not None:
             occlusion, shading_params = baked.grid, baked.shading_params
-            # the bounds of the map points the frame reads (``ReliefView.reads_px``'s, in plain Python: 4 points)
-            m = self._view.reads_margin_px
-            us, vs = footprint[:, 0].tolist(), footprint[:, 1].tolist()
-            reads = (min(us) - m, min(vs) - m, max(us) + m, max(vs) + m)
+            reads = self._view.reads_bounds_px(footprint)     # the bounds of the map points the frame reads
             baked = baked if level == 0 and baked.covers(reads) else None
         # a flat, untilted view needs no per-pixel maps (the affine warp is exact): skip their two float passes;
         # a view's maps come in the baked box's pixels when it serves the frame (no shift of the maps to sample it)

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from aerial_loc_env.sensors.camera import CameraModel, Pose
-from aerial_loc_env.sensors.perspective import PerspectiveConfig, tilt_homography
+from aerial_loc_env.sensors.perspective import PerspectiveConfig, ReliefView, footprint_px, tilt_homography
 from aerial_loc_env.sensors.render import CameraRenderer, Photometry
 from aerial_loc_env.world.maps.geo import LocalTangentGeoref
 from aerial_loc_env.world.maps.orthomap import Orthomap
@@ -144,6 +144,21 @@ def test_maps_in_a_box_frame_are_the_map_frame_maps_shifted(tilt_rad):
     reads = r._view.reads_px(a, CAM, tilt)
     lo, hi = reads.min(axis=0), reads.max(axis=0)
     assert lo[0] <= view.x.min() and view.x.max() <= hi[0] and lo[1] <= view.y.min() and view.y.max() <= hi[1]
+
+
+@pytest.mark.parametrize("tilt_rad", [(0.0, 0.0), (0.004, -0.003)])
+@pytest.mark.parametrize("relief", [True, False])
+def test_the_reads_bounds_are_reads_pxs(tilt_rad, relief):
+    """``reads_bounds_px`` (the renderer's cover test and tile range, in plain Python) is the box of ``reads_px``'s
+    points, bit for bit, with a height model and without one."""
+    r = renderer(box_map(30.0, 50.0, 40.0))
+    view = r._view if relief else ReliefView(None)
+    tilt = tilt_homography(CAM, *tilt_rad) if any(tilt_rad) else None
+    for pose in (NADIR, Pose(183.7, 221.3, 1.1, H)):
+        a = r.camera_to_map(pose)
+        reads = view.reads_px(a, CAM, tilt)
+        assert view.reads_bounds_px(footprint_px(a, CAM, tilt)) == (*reads.min(axis=0).tolist(),
+                                                                    *reads.max(axis=0).tolist())
 
 
 def test_remap_path_with_negligible_relief_matches_the_affine_warp_within_interpolation():
