@@ -64,7 +64,7 @@ def test_importing_a_lower_layer_does_not_load_the_layers_above():
 def test_import_registers_the_ids_and_a_lazy_name_loads_its_layer():
     out = _fresh_python(
         "import sys, gymnasium as gym, aerial_loc_env as ale\n"
-        "print('AerialLoc/Small-v2' in gym.registry, 'aerial_loc_env.estimators.registry' in sys.modules)\n"
+        "print('AerialLoc/Small-v3' in gym.registry, 'aerial_loc_env.estimators.registry' in sys.modules)\n"
         "ale.make_agent\n"
         "print('aerial_loc_env.estimators.registry' in sys.modules)")
     assert out.split() == ["True", "False", "True"]
@@ -73,7 +73,7 @@ def test_import_registers_the_ids_and_a_lazy_name_loads_its_layer():
 def test_gym_make_with_the_module_prefix_in_a_fresh_interpreter():
     out = _fresh_python(
         "import gymnasium as gym\n"
-        "env = gym.make('aerial_loc_env:AerialLoc/Small-v2')\n"
+        "env = gym.make('aerial_loc_env:AerialLoc/Small-v3')\n"
         "obs, info = env.reset(seed=0)\n"
         "print(env.spec.id, obs['image'].shape)")
-    assert out.split(maxsplit=1)[0] == "AerialLoc/Small-v2"
+    assert out.split(maxsplit=1)[0] == "AerialLoc/Small-v3"

@@ -19,7 +19,7 @@ import pytest
 DIGESTS = Path(__file__).parent / "data" / "behaviour_digests.json"
 #: every registered id that needs no user file, flown for two seconds (three frames hashed), otherwise as shipped
 SCENARIOS = ("AerialLoc/PaperShadows-v2", "AerialLoc/PaperNoShadows-v2", "AerialLoc/GlobalLocalization-v2",
-             "AerialLoc/CloudShadows-v2", "AerialLoc/MavicPro-v2", "AerialLoc/Small-v2",
+             "AerialLoc/CloudShadows-v2", "AerialLoc/MavicPro-v2", "AerialLoc/Small-v3",
              "AerialLoc/RealisticPaper-v3", "AerialLoc/SeasonChange-v3", "AerialLoc/Downtown-v3",
              "AerialLoc/Crosswind-v3")
 #: every shipped classical agent spec on the paper's camera for 4 s (oracles get the shadow mask)
@@ -27,7 +27,7 @@ AGENT_SCENARIO = {"id": "AerialLoc/PaperShadows-v2",
                   "overrides": {"flight.duration_s": 4.0, "observation.info_shadow_mask": True}}
 #: the learned agents with weights in the package, on the scenario they were trained for (the other learned
 #: specs point at models a user trains)
-SHIPPED_MODELS = {"ppo-local-registration": {"id": "AerialLoc/Small-v2", "overrides": {"flight.duration_s": 4.0}}}
+SHIPPED_MODELS = {"ppo-local-registration": {"id": "AerialLoc/Small-v3", "overrides": {"flight.duration_s": 4.0}}}
 
 
 def _hash_obs(h, obs: dict, info: dict) -> None:

@@ -151,6 +151,11 @@ def cpu_sensitive_results() -> dict[str, str]:
     utm = UTMProjection(32, south=False)
     e, n = utm.forward(rng.uniform(45.0, 50.0, 300), rng.uniform(6.0, 12.0, 300))
     out["utm"] = digest(e, n, *utm.inverse(e, n))
+    env = gym.make("AerialLoc/Small-v3", **{"flight.duration_s": 2.0})    # frames from the box baked at level 1
+    obs, _ = env.reset(seed=3)
+    images = [obs["image"]] + [env.step(np.zeros(2, np.float32))[0]["image"] for _ in range(3)]
+    out["Small-v3 frames"] = digest(*images)
+    env.close()
     for name in ("mcl-ssd", "mcl-global"):   # (dense and pair models; the weighted mean, the mean-shift mode)
         env = gym.make("AerialLoc/PaperShadows-v2", **{"flight.duration_s": 3.0})
         with EpisodeDriver(env, [make_agent(name)]) as driver:

@@ -332,7 +332,7 @@ def check_scenarios(grid: Grid) -> None:
 
 
 def make_grid(name: str, agents: Sequence[Any], scenarios: Sequence[Any], seeds: Any, **options: Any) -> Grid:
-    """A grid from Python: ``make_grid("mine", ["mcl-shadow-aware"], ["AerialLoc/Small-v2"], seeds=5)``."""
+    """A grid from Python: ``make_grid("mine", ["mcl-shadow-aware"], ["AerialLoc/Small-v3"], seeds=5)``."""
     where = f"grid '{name}'"
     return grid_from_dict({"name": name, "agents": _entries(agents, "agents", where, (str, Mapping)),
                            "scenarios": _entries(scenarios, "scenarios", where, (str, Mapping)), "seeds": seeds,

@@ -202,11 +202,18 @@ class AerialLocEnv(gym.Env):
       generator 4), facade light (perspective 6), the wind's gusts (wind generator 2). On an AVX-512 machine v3
       differs from v2 in the last bits: 550 of the map's 80 million bytes, a few bytes of the epochs, facade
       light and gusts. ``gym.make`` of their v2 ids names the v3 id.
+    * v3 of ``Small`` (the only shipped scene whose frames come from a coarser pyramid level): the cast shadows
+      baked into that level (``sensors.render.BakedShadows``: the level's pixels shaded, then warped, as level-0
+      frames always were) instead of the level and the shadow grid warped, then shaded. Frames differ at shadow
+      edges, within the bound tests/sensors/test_render_bake.py derives; the world, the tracks and the draws are
+      v2's. ``gym.make`` of ``AerialLoc/Small-v2`` names the v3 id. A user's map with a height model (a city
+      bundle on ``RealMap``), or an altitude override, that puts a camera pixel over two or more map pixels
+      changes the same way under the same id.
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 4}
 
-    def __init__(self, scenario: str | Scenario = "AerialLoc/Small-v2", render_mode: str | None = None,
+    def __init__(self, scenario: str | Scenario = "AerialLoc/Small-v3", render_mode: str | None = None,
                  **overrides: Any) -> None:
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise AerialLocError(f"render_mode {render_mode!r} is not supported; use None or 'rgb_array'")

@@ -237,7 +237,7 @@ def build_scenario(spec: Mapping[str, Any], overrides: Mapping[str, Any] | None 
     sid = spec.get("id")
     if not isinstance(sid, str) or not re.fullmatch(rf"{NAMESPACE}/[A-Za-z0-9_]+-v\d+", sid):
         raise ConfigError(f"{where}: 'id' = {sid!r} must look like '{NAMESPACE}/<Name>-v<version>' "
-                          "(e.g. 'AerialLoc/Small-v2'; bump the version when the scenario's behaviour changes)")
+                          "(e.g. 'AerialLoc/Small-v3'; bump the version when the scenario's behaviour changes)")
     extra = split_overrides(overrides or {}, where=f"{sid} overrides")
     sections = {}
     for name, cls_fn in SECTIONS.items():
@@ -341,12 +341,12 @@ def broken_specs() -> tuple[BrokenSpec, ...]:
 
 
 def _short_name(sid: str) -> str:
-    """``Small`` for ``AerialLoc/Small-v2`` (the part between the namespace and the version)."""
+    """``Small`` for ``AerialLoc/Small-v3`` (the part between the namespace and the version)."""
     return sid.split("/", 1)[1].rsplit("-v", 1)[0]
 
 
 def registered_version(scenario: str) -> str | None:
-    """The registered id of the scenario that ``scenario`` names in another version (``AerialLoc/Small-v2`` for
+    """The registered id of the scenario that ``scenario`` names in another version (``AerialLoc/Small-v3`` for
     ``AerialLoc/Small-v0``); None when ``scenario`` is no versioned id of a registered name."""
     if not (scenario.startswith(f"{NAMESPACE}/") and "-v" in scenario):
         return None
@@ -355,7 +355,7 @@ def registered_version(scenario: str) -> str | None:
 
 
 def resolve(scenario: str) -> tuple[Path, dict]:
-    """Find a spec by full id (``AerialLoc/Small-v2``), short name (``Small``) or file stem (``small``)."""
+    """Find a spec by full id (``AerialLoc/Small-v3``), short name (``Small``) or file stem (``small``)."""
     table = specs()
     if scenario in table:
         return table[scenario]

@@ -844,7 +844,7 @@ class AerialLocVectorEnv(VectorEnv):
     ``start_method`` (multiprocessing's; default its default, as Gymnasium's async mode).
     """
 
-    def __init__(self, num_envs: int = 1, scenario: Any = "AerialLoc/Small-v2", render_mode: str | None = None, *,
+    def __init__(self, num_envs: int = 1, scenario: Any = "AerialLoc/Small-v3", render_mode: str | None = None, *,
                  processes: int | None = None, autoreset_mode: str | AutoresetMode = AutoresetMode.NEXT_STEP,
                  copy: bool = True, start_method: str | None = None, **overrides: Any) -> None:
         name = getattr(scenario, "id", scenario)

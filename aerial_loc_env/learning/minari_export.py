@@ -7,7 +7,7 @@ scenario's short name in kebab case and the scenario id's version, so a scenario
 id version) gives new datasets, never a silently different one under an old id. Then::
 
     import minari
-    dataset = minari.load_dataset("aerial-loc/small-mcl-ncc-v2")   # MINARI_DATASETS_PATH=<--out> if given
+    dataset = minari.load_dataset("aerial-loc/small-mcl-ncc-v3")   # MINARI_DATASETS_PATH=<--out> if given
     env = dataset.recover_environment()                           # gym.make of the recorded scenario
 
 Infos are recorded with one structure at every step (Minari stores them as arrays): the ground truth
@@ -61,7 +61,7 @@ def default_dataset_id(env_id: str, agent: str) -> str:
     """``aerial-loc/<scenario>-<agent>-v<N>`` for scenario ``AerialLoc/<Scenario>-v<N>`` and agent spec ``agent``."""
     m = re.fullmatch(r"[A-Za-z0-9_]+/(?P<name>[A-Za-z0-9_]+)-v(?P<version>\d+)", env_id)
     if not m:
-        raise ConfigError(f"dataset export: --env {env_id!r} is not a scenario id like 'AerialLoc/Small-v2' "
+        raise ConfigError(f"dataset export: --env {env_id!r} is not a scenario id like 'AerialLoc/Small-v3' "
                           "(`aerial-loc scenarios` lists them)")
     agent_name = re.sub(r"[^A-Za-z0-9-]+", "-", Path(agent).stem).strip("-").lower()
     return f"{DATASET_NAMESPACE}/{_kebab(m['name'])}-{agent_name}-v{m['version']}"
@@ -71,7 +71,7 @@ def check_dataset_id(dataset_id: str) -> str:
     """``dataset_id`` itself when Minari can name a dataset by it, with a version (``<namespace>/<name>-v<N>``)."""
     if not isinstance(dataset_id, str) or not _ID_RE.fullmatch(dataset_id):
         raise ConfigError(f"dataset export: --id {dataset_id!r} is not a versioned dataset id; write it as "
-                          f"'{DATASET_NAMESPACE}/<name>-v<version>' (e.g. '{DATASET_NAMESPACE}/small-mcl-ncc-v2': "
+                          f"'{DATASET_NAMESPACE}/<name>-v<version>' (e.g. '{DATASET_NAMESPACE}/small-mcl-ncc-v3': "
                           "letters, digits, '-' and '_', then -v and a number)")
     return dataset_id
 
@@ -212,7 +212,7 @@ def main(argv: list[str] | None = None) -> int:
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = ap.add_subparsers(dest="command", required=True)
     ex = sub.add_parser("export", help="fly episodes with an agent and write them as a Minari dataset")
-    ex.add_argument("--env", required=True, help="scenario id, e.g. AerialLoc/Small-v2")
+    ex.add_argument("--env", required=True, help="scenario id, e.g. AerialLoc/Small-v3")
     ex.add_argument("--agent", required=True, help="agent spec (agents/<name>.toml or a path), e.g. mcl-ncc")
     ex.add_argument("--episodes", type=int, required=True, help="how many episodes (seeds SEED .. SEED+N-1)")
     ex.add_argument("--seed", type=int, default=0, help="first episode seed (default 0)")

@@ -9,7 +9,7 @@ naming the spec file and table::
     model = "models/ppo-local-registration/model.zip"   # relative to the package (see agent.py)
     [train]
     algo = "PPO"                       # or "SAC"
-    scenario = "AerialLoc/Small-v2"
+    scenario = "AerialLoc/Small-v3"
     observation = "local_registration" # or "map_memorization"
     total_timesteps = 200000
     n_envs = 2
@@ -95,7 +95,7 @@ class Recipe:
     """One training run: what to train, on what, for how long, and how to evaluate it."""
 
     algo: str = field(default="PPO", metadata=rng(choices=ALGOS))
-    scenario: str = "AerialLoc/Small-v2"
+    scenario: str = "AerialLoc/Small-v3"
     scenario_overrides: dict = field(default_factory=dict)
     observation: str = field(default="local_registration", metadata=rng(choices=OBSERVATIONS))
     observation_params: ObservationParams = ObservationParams()

@@ -1,6 +1,6 @@
 """Learned-policy speed on one core: what bounds a training run's steps per second.
 
-- the local-registration training env (Small-v2, 64 px camera + database crop at the dead-reckoned pose),
+- the local-registration training env (Small-v3, 64 px camera + database crop at the dead-reckoned pose),
   one call = one whole episode (reset amortized), figures per step;
 - the PPO policy's (recipe defaults: correlation CNN) deterministic ``predict`` on one observation (the
   deployed agent's cost per step);
@@ -23,7 +23,7 @@ BATCH = 256
 def _episode_steps() -> int:
     from aerial_loc_env.env.scenarios import load_scenario
 
-    return load_scenario("AerialLoc/Small-v2").flight.steps
+    return load_scenario("AerialLoc/Small-v3").flight.steps
 
 
 def _wrapped_env():
@@ -33,7 +33,7 @@ def _wrapped_env():
     from aerial_loc_env.learning.observations import LocalRegistrationWrapper
     from aerial_loc_env.learning.recipes import ObservationParams
 
-    return LocalRegistrationWrapper(gym.make("AerialLoc/Small-v2"), ObservationParams(image_px=64))
+    return LocalRegistrationWrapper(gym.make("AerialLoc/Small-v3"), ObservationParams(image_px=64))
 
 
 def _episode_setup() -> Callable[[], object]:
@@ -93,7 +93,7 @@ def _update_setup() -> Callable[[], object]:
 
 
 BENCHMARKS = [
-    Benchmark(name="learning: local-registration env Small-v2 64 px (per step, resets amortized)",
+    Benchmark(name="learning: local-registration env Small-v3 64 px (per step, resets amortized)",
               setup=_episode_setup, unit="step", repeats=5, per_call_items=_episode_steps()),
     Benchmark(name="learning: PPO correlation-CNN predict, one 64 px pair", setup=_predict_setup, unit="step",
               repeats=50),

@@ -9,8 +9,8 @@ timing, as the env does at reset, so a frame is the baked path.
 
 - ``render ... cast shadows + noise (200 m)`` (target 2.0x): the nadir camera on the baked box;
 - ``... no shadows``: the same frames without shadows;
-- ``... (350 m, pyramid level 1)`` (target 2.0x): a coarser pyramid level, which the bake does not serve: the
-  per-frame occlusion warp and shading;
+- ``... (350 m, pyramid level 1)`` (target 2.0x): a coarser pyramid level, the box baked at that level on the
+  first frame (the setup's compiling render);
 - ``... perspective of the height model`` and ``... + gimbal tilt`` (target 3.0x): the perspective camera (the
   ray march, the per-pixel maps, the facades) sampling the baked box, untilted and tilted by a few mrad; the box
   is made from the footprints as that camera sees them and padded by two grid cells as the env pads it, so no

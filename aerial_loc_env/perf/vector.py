@@ -1,9 +1,9 @@
-"""Vectorized env throughput on ``AerialLoc/Small-v2``: one env alone, then N = 2 and 4 sub-envs in Gymnasium's
+"""Vectorized env throughput on ``AerialLoc/Small-v3``: one env alone, then N = 2 and 4 sub-envs in Gymnasium's
 ``sync`` and ``async`` modes and in the ``vector_entry_point`` mode (``env/vector.py``), each as steps per second
 by the wall clock (the work of the async and vector_entry_point modes runs in other processes) and as its rate over
 one env's (the target: the fastest at least 1.5x one env on 2 cores).
 
-The training rows time the shipped recipe's envs (``ppo-local-registration``: Small-v2 behind the local-registration
+The training rows time the shipped recipe's envs (``ppo-local-registration``: Small-v3 behind the local-registration
 observation, 64 px) through stable-baselines3's VecEnv API, one env alone and N = 4 in each of the recipes'
 vectorizations (``learning.recipes.VECTORIZATIONS``): what a training run's env steps cost.
 
@@ -25,9 +25,9 @@ import numpy as np
 
 from aerial_loc_env.perf import Benchmark
 
-SCENARIO = "AerialLoc/Small-v2"
-TICKS = 60          # lockstep steps per call (one Small-v2 episode)
-ONE_ENV = "vector: one env Small-v2 (per step)"
+SCENARIO = "AerialLoc/Small-v3"
+TICKS = 60          # lockstep steps per call (one Small-v3 episode)
+ONE_ENV = "vector: one env Small-v3 (per step)"
 
 
 def _one_env_setup() -> Callable[[], object]:
@@ -71,7 +71,7 @@ def _vector_setup(mode: str, num_envs: int) -> Callable[[], Callable[[], object]
 
 
 def _row(mode: str, num_envs: int) -> Benchmark:
-    return Benchmark(name=f"vector: {mode} N={num_envs} Small-v2 (per sub-env step)",
+    return Benchmark(name=f"vector: {mode} N={num_envs} Small-v3 (per sub-env step)",
                      setup=_vector_setup(mode, num_envs), unit="step", repeats=15,
                      per_call_items=TICKS * num_envs, clock="wall", baseline=ONE_ENV,
                      baseline_target=1.5 if mode == "vector_entry_point" else None)

@@ -14,8 +14,10 @@ Why it is built this way:
   episode's footprints stay in, the occlusion quantized into the alpha channel the RGBA warp carries anyway): a
   frame is then ONE warp of the pre-shaded map plus the photometry, instead of the map warp, a float occlusion
   warp and three shading passes. Shading before interpolation differs from shading after it only at shadow edges
-  (tests/sensors/test_render_bake.py derives the bound); cloud shadows drift and keep the per-frame path, and so do
-  frames the bake cannot serve (pyramid level > 0, a footprint leaving the box). Such a frame with a shadow grid
+  (tests/sensors/test_render_bake.py derives the bound). A frame warped from a coarser pyramid level takes the box
+  baked at that level (made on first use), so every level is shaded before its interpolation. Cloud shadows drift
+  and keep the per-frame path, and so do frames the bake cannot serve (a footprint leaving the box, a perspective
+  or tilted view at level > 0). Such a frame with a shadow grid
   warps the map level and the grid inside its finishing pass (``render_kernels.level_finish``, row by row: bit for
   bit the two ``warpAffine`` calls and the float occlusion's shading, without a warped RGBA frame or a float
   occlusion frame in memory); the float occlusion is warped only if a caller reads it. After the warp a baked frame
@@ -193,8 +195,10 @@ class BakedShadows:
     shading disappear. ``rgba`` is filled lazily in tiles of ``_BAKE_TILE_PX``, each the first time a footprint
     needs it: an episode shades the strip it flies over, not its whole bounding box, and the memory of tiles never
     touched is never committed (``np.empty``). A tile's bytes do not depend on when it is baked. Perspective and
-    tilted views sample it through their maps. Frames that cannot use it (pyramid level > 0, a footprint or a
-    view's reads leaving the box) render from ``grid`` and
+    tilted views sample it through their maps. Frames warped from a coarser pyramid level L (a flat, untilted view)
+    take the same box at that level (``levels[L]``, made on first use: the level's pixels shaded with the grid at
+    their centres), so that every level is shaded before it is interpolated. Frames that cannot use it (a footprint
+    or a view's reads leaving the box, a perspective or tilted view at level > 0) render from ``grid`` and
     ``shading_params`` as before. The shading is applied before the interpolation instead of after it: the same
     bytes away from shadow edges up to rounding, and within the bound tests/sensors/test_render_bake.py derives at the
     edges; the shadow mask is the warped alpha >= 128.
@@ -203,9 +207,11 @@ class BakedShadows:
     grid: Any                         # world.shadows.ShadowGrid: the source
     shading_params: Mapping[str, Any]
     rgba: np.ndarray                  # (h, w, 4) uint8: shaded RGB, alpha = round(255 occlusion), where baked
-    origin_px: tuple[int, int]        # (column, row) of rgba[0, 0] in the map (level 0)
+    origin_px: tuple[int, int]        # (column, row) of rgba[0, 0] in the map's pixels at ``level``
     baked_tiles: np.ndarray           # (rows, columns) bool: the tiles of rgba filled so far
     done_range: list[int] = field(default_factory=lambda: [0, 0, 0, 0])  # (ty0, ty1, tx0, tx1) a frame found baked
+    level: int = 0                    # the map pyramid level of ``rgba``'s pixels
+    levels: dict[int, BakedShadows] = field(default_factory=dict)   # the same box at coarser levels, by level
 
     def covers(self, bounds_px: tuple[float, float, float, float]) -> bool:
         """Whether map points within ``bounds_px`` (u0, v0, u1, v1) lie in the box with the bilinear kernel's
@@ -397,9 +403,26 @@ class CameraRenderer:
         return BakedShadows(grid, dict(shading_params or {}), np.empty((r1 - r0, c1 - c0, 4), np.uint8), (c0, r0),
                             np.zeros(tiles, dtype=bool))
 
+    def _baked_level(self, baked: BakedShadows, level: int) -> BakedShadows:
+        """The level-0 box ``baked`` at pyramid level ``level`` > 0: the level's pixels over the level-0 box, with
+        the bilinear kernel's margin, made on first use (no tile shaded yet)."""
+        got = baked.levels.get(level)
+        if got is None:
+            s = 1 << level
+            c0, r0 = baked.origin_px
+            h, w = baked.rgba.shape[:2]
+            lh, lw = self.map_level(level).shape[:2]
+            lc0, lr0 = max(0, c0 // s - 2), max(0, r0 // s - 2)
+            lc1, lr1 = min(lw, -(-(c0 + w) // s) + 2), min(lh, -(-(r0 + h) // s) + 2)
+            tiles = (-(-(lr1 - lr0) // _BAKE_TILE_PX), -(-(lc1 - lc0) // _BAKE_TILE_PX))
+            got = BakedShadows(baked.grid, baked.shading_params, np.empty((lr1 - lr0, lc1 - lc0, 4), np.uint8),
+                               (lc0, lr0), np.zeros(tiles, dtype=bool), level=level)
+            baked.levels[level] = got
+        return got
+
     def _bake_tiles(self, baked: BakedShadows, bounds_px: tuple[float, float, float, float]) -> None:
-        """Shade the tiles of ``baked`` that the bilinear warp over map points within ``bounds_px`` (u0, v0, u1, v1)
-        reads, if not yet."""
+        """Shade the tiles of ``baked`` that the bilinear warp over map points within ``bounds_px`` (u0, v0, u1, v1;
+        pixels of ``baked``'s level) reads, if not yet."""
         c0, r0 = baked.origin_px
         u0, v0, u1, v1 = bounds_px
         tx0 = max((math.floor(u0) - c0 - 1) // _BAKE_TILE_PX, 0)
@@ -417,16 +440,17 @@ class CameraRenderer:
 
         data, f = self._grid(baked.grid)
         lut = _shading_lut(baked.shading_params)
+        level_map = self.map_level(baked.level)
         h, w = baked.rgba.shape[:2]
         for ty, tx in zip(*np.nonzero(~done), strict=True):
             ty, tx = int(ty) + ty0, int(tx) + tx0
             y0, x0 = ty * _BAKE_TILE_PX, tx * _BAKE_TILE_PX
             y1, x1 = min(h, y0 + _BAKE_TILE_PX), min(w, x0 + _BAKE_TILE_PX)
             u0, v0 = c0 + x0, r0 + y0
-            occ = _upsample_tile(data, f, u0, v0, x1 - x0, y1 - y0)
+            occ = _upsample_tile(data, f, u0, v0, x1 - x0, y1 - y0, 1 << baked.level)
             # the RGBA map tile (alpha 255) shaded as 4 channels: shaded RGB, alpha = occ_q, in one pass written
             # straight into the box
-            shade(self._levels[0][v0:v0 + y1 - y0, u0:u0 + x1 - x0], occ, lut, out=baked.rgba[y0:y1, x0:x1])
+            shade(level_map[v0:v0 + y1 - y0, u0:u0 + x1 - x0], occ, lut, out=baked.rgba[y0:y1, x0:x1])
             baked.baked_tiles[ty, tx] = True
 
     # ------------------------------------------------------------------ geometry
@@ -652,7 +676,13 @@ class CameraRenderer:
         if baked is not None:
             occlusion, shading_params = baked.grid, baked.shading_params
             reads = self._view.reads_bounds_px(footprint)     # the bounds of the map points the frame reads
-            baked = baked if level == 0 and baked.covers(reads) else None
+            if level > 0 and (tilt is not None or self._view.dsm is not None):
+                baked = None        # views' maps are made at level 0
+            elif level != baked.level:  # a flat, untilted view warps the box baked at its level
+                baked = self._baked_level(baked, level) if baked.level == 0 else None
+            if baked is not None:
+                reads = tuple(r / (1 << level) for r in reads) if level else reads
+                baked = baked if baked.covers(reads) else None
         # a flat, untilted view needs no per-pixel maps (the affine warp is exact): skip their two float passes;
         # a view's maps come in the baked box's pixels when it serves the frame (no shift of the maps to sample it)
         plan = None if tilt is None and self._view.dsm is None else self._view.plan(
@@ -715,7 +745,7 @@ class CameraRenderer:
         box = baked.rgba.view(np.uint32).reshape(h, w)
         out: _BoxWarp | _ViewWarp
         if plan is None:
-            a = affine.copy()
+            a = affine / (1 << baked.level)     # frame pixel -> the level's pixel (exact: a power of two)
             a[0, 2] -= baked.origin_px[0]
             a[1, 2] -= baked.origin_px[1]
             out = _BoxWarp(box, a, camera.height_px, camera.width_px)
@@ -725,7 +755,7 @@ class CameraRenderer:
         mid = [] if pre_sensor is None else [pre_sensor]
         image, alpha, count = self._finish(out, _BAKED_ALPHA, None, rng, speed_mps, pose, mid)
         return Frame(image=image, shadow_mask=None, shadow_fraction=count / alpha.size, valid=status == "valid",
-                     status=status, pose=pose, pyramid_level=0, occlusion_q=alpha)
+                     status=status, pose=pose, pyramid_level=baked.level, occlusion_q=alpha)
 
     # ------------------------------------------------------------------ photometry
     def _finish(self, src: np.ndarray | _BoxWarp | _ViewWarp | _LevelWarp, occ: np.ndarray | None,
@@ -831,15 +861,17 @@ def _shading_lut(shading_params: Mapping[str, Any] | None) -> np.ndarray:
     return shading_lut(strength, **kwargs)
 
 
-def _upsample_tile(data: np.ndarray, f: int, u0: int, v0: int, w: int, h: int) -> np.ndarray:
-    """The occlusion grid ``data`` (``f`` map px per cell) bilinearly at the map pixels [u0, u0 + w) x [v0, v0 + h)
-    (map pixel u -> grid pixel (u + 0.5) / f - 0.5, as in the per-frame warp; the grid's edges replicated).
+def _upsample_tile(data: np.ndarray, f: int, u0: int, v0: int, w: int, h: int, scale: int = 1) -> np.ndarray:
+    """The occlusion grid ``data`` (``f`` map px per cell) bilinearly at the pixels [u0, u0 + w) x [v0, v0 + h) of a
+    map level ``scale`` level-0 pixels apart (its pixel x at level-0 pixel ``scale x``, as ``pyrDown`` and the
+    warps place it; level-0 pixel u -> grid pixel (u + 0.5) / f - 0.5, as in the per-frame warp; the grid's edges
+    replicated).
 
-    For f a power of two up to 32 the warp's 1/32 px coordinate quantization is exact and so is resize's
-    (u + 0.5) / f - 0.5: a ``cv2.resize`` of the grid block under the tile gives the same floats as the warp, and
-    is faster (tests/sensors/test_render_bake.py checks them bit for bit); other factors take the warp."""
-    if f & (f - 1) or f > 32:
-        a = np.array([[1.0 / f, 0.0, (u0 + 0.5) / f - 0.5], [0.0, 1.0 / f, (v0 + 0.5) / f - 0.5]])
+    For level 0 and f a power of two up to 32 the warp's 1/32 px coordinate quantization is exact and so is
+    resize's (u + 0.5) / f - 0.5: a ``cv2.resize`` of the grid block under the tile gives the same floats as the
+    warp, and is faster (tests/sensors/test_render_bake.py checks them bit for bit); the rest take the warp."""
+    if f & (f - 1) or f > 32 or scale != 1:
+        a = np.array([[scale / f, 0.0, (scale * u0 + 0.5) / f - 0.5], [0.0, scale / f, (scale * v0 + 0.5) / f - 0.5]])
         return cv2.warpAffine(data, a, (w, h), flags=_WARP_FLAGS, borderMode=cv2.BORDER_REPLICATE)
     gh, gw = data.shape
     # the grid cells the tile's bilinear taps read, one more on each side (resize replicates the block's edges,

@@ -25,7 +25,7 @@ from aerial_loc_env.sitl.missions import (
 from aerial_loc_env.sitl.process import DEFAULT_SITL_DIR, VEHICLES, find_sitl
 from aerial_loc_env.sitl.report import check_out_dir, summary, write_outputs
 
-DEFAULT_SCENARIOS = {"copter": "AerialLoc/Small-v2", "plane": "AerialLoc/PaperShadows-v2"}
+DEFAULT_SCENARIOS = {"copter": "AerialLoc/Small-v3", "plane": "AerialLoc/PaperShadows-v2"}
 
 
 def build_parser() -> argparse.ArgumentParser:

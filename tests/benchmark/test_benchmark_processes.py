@@ -19,7 +19,7 @@ from aerial_loc_env.benchmark.runner import run_grid
 from aerial_loc_env.benchmark.store import LOCK_FILE, TrialStore
 from aerial_loc_env.errors import ConfigError
 
-TINY = {"id": "AerialLoc/Small-v2", "overrides": {"flight.duration_s": 2.0}, "label": "tiny"}
+TINY = {"id": "AerialLoc/Small-v3", "overrides": {"flight.duration_s": 2.0}, "label": "tiny"}
 DR = {"name": "dead-reckoning", "label": "dr"}
 LINUX = sys.platform.startswith("linux")
 
@@ -29,10 +29,10 @@ def _grid(name: str = "tiny", seeds: int = 1, agents=(DR,)):
 
 
 def _experiment(path: Path, name: str, agent: str, seeds: int, duration_s: float = 2.0) -> Path:
-    """An experiment file: one agent on a short Small-v2 episode, no plots."""
+    """An experiment file: one agent on a short Small-v3 episode, no plots."""
     lines = [f'name = "{name}"', f"seeds = {{start = 0, count = {seeds}}}", "plots = []",
              "[[agents]]", f'name = "{agent}"',
-             "[[scenarios]]", 'id = "AerialLoc/Small-v2"', f'overrides = {{"flight.duration_s" = {duration_s}}}']
+             "[[scenarios]]", 'id = "AerialLoc/Small-v3"', f'overrides = {{"flight.duration_s" = {duration_s}}}']
     path.write_text("\n".join(lines) + "\n")
     return path
 

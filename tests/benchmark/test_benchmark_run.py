@@ -22,7 +22,7 @@ from aerial_loc_env.errors import ConfigError
 from aerial_loc_env.estimators.protocol import Agent, Estimate, prior_estimate
 
 # A tiny episode: the small city, 3 s at 4 Hz (13 frames), few particles.
-TINY = {"id": "AerialLoc/Small-v2", "overrides": {"flight.duration_s": 3.0}, "label": "tiny"}
+TINY = {"id": "AerialLoc/Small-v3", "overrides": {"flight.duration_s": 3.0}, "label": "tiny"}
 MCL = {"name": "mcl-shadow-aware", "params": {"n_particles": 150}, "label": "sa"}
 
 
@@ -54,7 +54,7 @@ sweep = {{"measurement_params.n_pairs" = [10, 40]}}
 name = "dead-reckoning"
 
 [[scenarios]]
-id = "AerialLoc/Small-v2"
+id = "AerialLoc/Small-v3"
 overrides = {{"flight.duration_s" = {duration_s}}}
 """)
     return path

@@ -27,5 +27,5 @@ def test_the_likelihood_pair_is_one_ground_with_and_without_shadows():
     for name in ("table9", "table9_realistic", "shadow_mismatch"):   # two conditions of one ground: as listed
         grid = load_grid(name)
         assert _with_and_without_shadows(grid) == list(grid.scenarios[:2]), name
-    one = make_grid("one", ["mcl-ssd"], ["AerialLoc/Small-v2"], seeds=1)
-    assert [s.id for s in _with_and_without_shadows(one)] == ["AerialLoc/Small-v2"] * 2
+    one = make_grid("one", ["mcl-ssd"], ["AerialLoc/Small-v3"], seeds=1)
+    assert [s.id for s in _with_and_without_shadows(one)] == ["AerialLoc/Small-v3"] * 2

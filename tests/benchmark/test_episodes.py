@@ -19,7 +19,7 @@ from aerial_loc_env.benchmark.store import write_summaries
 from aerial_loc_env.errors import ConfigError
 from aerial_loc_env.estimators.shadow_detection import ShadowDetector, mask_quality
 
-TINY = {"id": "AerialLoc/Small-v2", "overrides": {"flight.duration_s": 2.0}, "label": "tiny"}
+TINY = {"id": "AerialLoc/Small-v3", "overrides": {"flight.duration_s": 2.0}, "label": "tiny"}
 
 
 def _rows(detector_quality: bool) -> list[dict]:

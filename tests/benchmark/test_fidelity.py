@@ -93,19 +93,19 @@ def test_the_comparison_from_rows():
 
 @pytest.mark.slow
 def test_the_command_on_synthetic_pairs(tmp_path, capsys):
-    """Two pairs and Small-v2 at the pairs' geometry, three agents, short episodes: the table, both files, and a
+    """Two pairs and Small-v3 at the pairs' geometry, three agents, short episodes: the table, both files, and a
     re-run that only reads what is there."""
     from aerial_loc_env.cli import main
 
     for name, shift in (("one.png", (0.2, 0.1)), ("two.png", (-0.3, 0.0))):
         write_pair(tmp_path / "pairs", name, size_px=1024, shift_m=shift)
-    argv = ["fidelity", "--pairs-dir", str(tmp_path / "pairs"), "--sim", "AerialLoc/Small-v2", "--agents",
+    argv = ["fidelity", "--pairs-dir", str(tmp_path / "pairs"), "--sim", "AerialLoc/Small-v3", "--agents",
             "dead-reckoning,template-ncc,mcl-conventional", "--seeds", "2", "--sim-seeds", "2", "--out",
             str(tmp_path / "out"), "--workers", "1", "--set", "flight.duration_s=3", "--quiet"]
     assert main(argv) == 0
     text = capsys.readouterr().out
     assert "at 200 m, 60 s (fitted to 512 x 512 m), overrides {'flight.duration_s': 3}" in text
-    assert "| sim: Small-v2: median RMSE (converged) |" in text and "Kendall tau-b:" in text
+    assert "| sim: Small-v3: median RMSE (converged) |" in text and "Kendall tau-b:" in text
     assert "pairs/one.png: misregistration +0.3" in text
     data = json.loads((tmp_path / "out" / "fidelity.json").read_text())
     (result,) = data["results"]
@@ -146,9 +146,9 @@ def test_a_folder_of_pairs_is_one_scenario_per_pair_in_an_experiment(tmp_path):
     write_pair(tmp_path / "pairs", "one.png", size_px=1024)
     write_pair(tmp_path / "pairs", "two.png", size_px=800)
     grid = make_grid("p", ["dead-reckoning"], [{"pairs": str(tmp_path / "pairs"), "label": "synthetic"},
-                                               "AerialLoc/Small-v2"], seeds=1)
+                                               "AerialLoc/Small-v3"], seeds=1)
     entries = grid.scenarios
-    assert [e.display for e in entries] == ["synthetic: pairs/one.png", "synthetic: pairs/two.png", "Small-v2"]
+    assert [e.display for e in entries] == ["synthetic: pairs/one.png", "synthetic: pairs/two.png", "Small-v3"]
     assert entries[0].id == "AerialLoc/RealPair-v2" and entries[0].overrides["flight.altitude_m"] == 200.0
     assert entries[1].overrides["flight.altitude_m"] < 200.0           # a 400 m tile: its own fitted flight
     assert entries[1].overrides["map.path_b"].endswith("B/two.png")

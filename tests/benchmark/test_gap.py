@@ -244,13 +244,13 @@ def test_scenario_frame_and_database_align_at_the_true_pose():
     must say so (this checks the database window's geometry, margin included)."""
     ideal = {"exposure_std": 0.0, "white_balance_std": 0.0, "gamma_std": 0.0, "read_noise_dn": 0.0,
              "shot_noise_gain": 0.0, "vignetting": 0.0, "exposure_time_s": 0.0}
-    flat = gap.scenario_gap("AerialLoc/Small-v2", {"shadows.strength_range": [0.0, 0.0], "photometry": ideal},
+    flat = gap.scenario_gap("AerialLoc/Small-v3", {"shadows.strength_range": [0.0, 0.0], "photometry": ideal},
                             seeds=[0], stride=15)
     assert len(flat) == 5   # 61 frames, every 15th
     s = gap.summarize(flat)
     assert s["ncc"]["median"] > 0.97 and s["bit_agreement"]["median"] > 0.9
     assert s["template_within"]["mean"] == 1.0
-    shaded = gap.summarize(gap.scenario_gap("AerialLoc/Small-v2", seeds=[0], stride=15))
+    shaded = gap.summarize(gap.scenario_gap("AerialLoc/Small-v3", seeds=[0], stride=15))
     assert shaded["ncc"]["median"] < s["ncc"]["median"]
 
 
@@ -262,7 +262,7 @@ def test_map_bias_and_gimbal_error_are_scored_apart_from_appearance():
              "shot_noise_gain": 0.0, "vignetting": 0.0, "exposure_time_s": 0.0}
     over = {"shadows.strength_range": [0.0, 0.0], "photometry": ideal, "database.georef_bias_m": [3.0, -2.6],
             "gimbal.roll_pitch_std_deg": 1.0}
-    s = gap.summarize(gap.scenario_gap("AerialLoc/Small-v2", over, seeds=[0, 1], stride=15))
+    s = gap.summarize(gap.scenario_gap("AerialLoc/Small-v3", over, seeds=[0, 1], stride=15))
     assert s["template_within"]["mean"] == 1.0
     assert s["ncc"]["median"] > 0.95
 
@@ -281,12 +281,12 @@ def test_real_pairs_are_far_less_alike_than_the_paper_scenario():
 
 
 def test_realism_pictures_show_map_and_camera_side_by_side(tmp_path):
-    """One labelled picture per level: the map patch at the true pose beside the camera frame (Small-v2, with
+    """One labelled picture per level: the map patch at the true pose beside the camera frame (Small-v3, with
     the perspective camera for the relief level)."""
     from aerial_loc_env.pictures import write_realism_pictures
 
-    levels = [("plain", "plain", "AerialLoc/Small-v2", {}, "middle"),
-              ("relief", "relief", "AerialLoc/Small-v2", {"perspective": {"enabled": True}}, "relief")]
+    levels = [("plain", "plain", "AerialLoc/Small-v3", {}, "middle"),
+              ("relief", "relief", "AerialLoc/Small-v3", {"perspective": {"enabled": True}}, "relief")]
     written = write_realism_pictures(tmp_path, seed=0, levels=levels)
     assert [p.name for p in written] == ["gap_plain.png", "gap_relief.png"]
     for path in written:

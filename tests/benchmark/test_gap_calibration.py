@@ -75,10 +75,10 @@ def test_proportion_interval_solves_the_binomial_tails(k):
 
 
 def test_frames_per_seed_stops_each_episode():
-    windows = gap.scenario_gap("AerialLoc/Small-v2", seeds=[0, 1], stride=5, frames_per_seed=2)
+    windows = gap.scenario_gap("AerialLoc/Small-v3", seeds=[0, 1], stride=5, frames_per_seed=2)
     assert len(windows) == 4        # frames 0 and 5 of each seed, not the whole 61-frame episodes
     with pytest.raises(ConfigError, match="frames_per_seed"):
-        gap.scenario_gap("AerialLoc/Small-v2", frames_per_seed=0)
+        gap.scenario_gap("AerialLoc/Small-v3", frames_per_seed=0)
 
 
 # ------------------------------------------------------------------------------------------ the presets

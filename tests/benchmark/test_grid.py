@@ -19,8 +19,8 @@ from aerial_loc_env.errors import ConfigError
 
 
 def test_a_single_name_is_one_entry_not_its_letters() -> None:
-    g = make_grid("one", "dead-reckoning", "AerialLoc/Small-v2", seeds=1)
-    assert [a.name for a in g.agents] == ["dead-reckoning"] and [s.id for s in g.scenarios] == ["AerialLoc/Small-v2"]
+    g = make_grid("one", "dead-reckoning", "AerialLoc/Small-v3", seeds=1)
+    assert [a.name for a in g.agents] == ["dead-reckoning"] and [s.id for s in g.scenarios] == ["AerialLoc/Small-v3"]
     g = grid_from_dict({"agents": {"name": "mcl-ssd", "params": {"n_particles": 50}}, "scenarios": {"id": "S"},
                         "seeds": 1, "plots": "track", "paper": "table5"})
     assert [a.name for a in g.agents] == ["mcl-ssd"] and g.agents[0].params == {"n_particles": 50}
@@ -37,7 +37,7 @@ def test_a_value_that_is_no_list_is_refused_naming_the_key(key: str, value: obje
 
 
 def _grid(**kw) -> dict:
-    return {"name": "t", "agents": ["dead-reckoning"], "scenarios": ["AerialLoc/Small-v2"], "seeds": 1, **kw}
+    return {"name": "t", "agents": ["dead-reckoning"], "scenarios": ["AerialLoc/Small-v3"], "seeds": 1, **kw}
 
 
 def test_non_utf8_experiment_is_a_clear_error(tmp_path):

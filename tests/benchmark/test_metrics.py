@@ -38,11 +38,11 @@ def test_fix_rate_counts_absolute_fixes():
 
 @pytest.mark.slow
 def test_dead_reckoning_from_a_tight_prior_no_longer_converges_everywhere(tmp_path):
-    """A 5 m prior on Small-v2: with the fixed 10 m threshold dead reckoning 'converged' on most episodes
+    """A 5 m prior on Small-v3: with the fixed 10 m threshold dead reckoning 'converged' on most episodes
     without ever fixing; the scaled threshold (5 m) tells it apart, and the report states the threshold and
     the fix rates."""
     grid = make_grid("tight", ["dead-reckoning", "template-ncc"], [
-        {"id": "AerialLoc/Small-v2", "overrides": {"episode.prior_std_m": 5.0}}], seeds=4)
+        {"id": "AerialLoc/Small-v3", "overrides": {"episode.prior_std_m": 5.0}}], seeds=4)
     rows = run_grid(grid, str(tmp_path / "out"), workers=1, progress=False)
     dr = [r for r in rows if r["agent"] == "dead-reckoning"]
     assert len(dr) == 4 and all(r["converge_threshold_m"] == pytest.approx(5.0) for r in dr)

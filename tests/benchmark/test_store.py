@@ -12,7 +12,7 @@ from aerial_loc_env.benchmark.grid import make_grid
 from aerial_loc_env.benchmark.store import LOCK_FILE, MANIFEST_FILE, TRIALS_FILE, RunLock, TrialStore
 from aerial_loc_env.errors import ConfigError
 
-GRID = make_grid("tiny", ["dead-reckoning"], [{"id": "AerialLoc/Small-v2", "overrides": {"flight.duration_s": 2}}],
+GRID = make_grid("tiny", ["dead-reckoning"], [{"id": "AerialLoc/Small-v3", "overrides": {"flight.duration_s": 2}}],
                  seeds=1)
 
 

@@ -22,7 +22,7 @@ from aerial_loc_env.env import (
 )
 from aerial_loc_env.errors import AerialLocError, ConfigError
 
-SMALL = "AerialLoc/Small-v2"
+SMALL = "AerialLoc/Small-v3"
 SHORT = {"duration_s": 5.0}          # 20 steps: enough for every property, fast
 
 
@@ -328,7 +328,7 @@ def test_database_with_another_suns_shadows():
 
 
 def test_env_reset_refuses_a_boolean_seed():
-    env = gym.make("AerialLoc/Small-v2")
+    env = gym.make("AerialLoc/Small-v3")
     with pytest.raises((ConfigError, ValueError), match="seed"):
         env.reset(seed=True)
     env.close()

@@ -112,7 +112,7 @@ def test_sb3_multi_input_policy_accepts_the_observation(tmp_path):
     sb3 = pytest.importorskip("stable_baselines3")
     from stable_baselines3.common.logger import configure
 
-    env = gym.make("AerialLoc/Small-v2", duration_s=2.0)
+    env = gym.make("AerialLoc/Small-v3", duration_s=2.0)
     model = sb3.PPO("MultiInputPolicy", env, n_steps=8, batch_size=8, n_epochs=1, device="cpu", seed=0)
     model.set_logger(configure(str(tmp_path), []))   # SB3's default logger leaves an SB3-<date> folder in /tmp
     model.learn(8)                                   # one rollout and one update through the policy

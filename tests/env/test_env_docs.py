@@ -35,7 +35,7 @@ def test_the_sections_are_gymnasiums_in_order_and_none_is_empty():
 
 @pytest.fixture(scope="module")
 def env():
-    return AerialLocEnv("AerialLoc/Small-v2", flight={"duration_s": 2.0})
+    return AerialLocEnv("AerialLoc/Small-v3", flight={"duration_s": 2.0})
 
 
 def test_the_spaces_are_documented_as_built(env):

@@ -12,7 +12,7 @@ import pytest
 
 import aerial_loc_env  # noqa: F401  (registers the scenarios)
 
-SMALL = "AerialLoc/Small-v2"
+SMALL = "AerialLoc/Small-v3"
 SHORT = {"duration_s": 3.0}
 
 

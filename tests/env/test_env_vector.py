@@ -29,7 +29,7 @@ from aerial_loc_env.env import InvalidActionError
 from aerial_loc_env.env.vector import AerialLocVectorEnv, batch_infos
 from aerial_loc_env.errors import AerialLocError, ConfigError
 
-SID = "AerialLoc/Small-v2"
+SID = "AerialLoc/Small-v3"
 SHORT = {"duration_s": 2.0}   # 8 steps per episode: an episode boundary within a few steps
 STEPS = 19                    # two episode ends and their autoresets
 

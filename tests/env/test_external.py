@@ -13,7 +13,7 @@ gym = pytest.importorskip("gymnasium")
 from aerial_loc_env.env.external import ExternalFlight, ExternalPose  # noqa: E402
 from aerial_loc_env.errors import AerialLocError, MapError  # noqa: E402
 
-SCENARIO = "AerialLoc/Small-v2"    # 400 m city, 100 m altitude, 4 Hz camera, footprint 75 m x 50 m
+SCENARIO = "AerialLoc/Small-v3"    # 400 m city, 100 m altitude, 4 Hz camera, footprint 75 m x 50 m
 
 
 def _env():
@@ -49,7 +49,7 @@ def test_shadows_are_valid_wherever_the_vehicle_goes():
 
 def test_camera_rate_and_odometry_come_from_the_stream():
     flight = ExternalFlight(_env())
-    assert flight.period_s == pytest.approx(0.25)             # Small-v2: 4 Hz
+    assert flight.period_s == pytest.approx(0.25)             # Small-v3: 4 Hz
     speed, alt = 10.0, 100.0
     stream = [ExternalPose(100.0 + speed * t, 200.0, 0.0, alt, t) for t in np.arange(0.0, 5.0, 0.05)]  # 20 Hz
     frames = []

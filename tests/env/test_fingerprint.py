@@ -11,7 +11,7 @@ from aerial_loc_env.env import fingerprint as fp
 from aerial_loc_env.env import load_scenario
 from aerial_loc_env.world import city
 
-TINY = {"id": "AerialLoc/Small-v2", "overrides": {"flight.duration_s": 2.0}, "label": "tiny"}
+TINY = {"id": "AerialLoc/Small-v3", "overrides": {"flight.duration_s": 2.0}, "label": "tiny"}
 
 
 def _grid(**overrides):
@@ -26,7 +26,7 @@ def test_generator_versions_are_collected_from_the_modules():
 
 
 def test_fingerprint_follows_spec_and_generators_not_description():
-    sc = load_scenario("AerialLoc/Small-v2")
+    sc = load_scenario("AerialLoc/Small-v3")
     spec = sc.to_dict()
     base = fp.fingerprint(spec)
     assert fp.scenario_fingerprint(sc) == base
@@ -34,7 +34,7 @@ def test_fingerprint_follows_spec_and_generators_not_description():
     assert fp.fingerprint({**spec, "flight": {**spec["flight"], "altitude_m": 99.0}}) != base
     bumped = {**fp.generator_versions(), "world.city": city.GENERATOR_VERSION + 1}
     assert fp.fingerprint(spec, bumped) != base
-    resolved = resolve_scenario(ScenarioEntry("AerialLoc/Small-v2"))
+    resolved = resolve_scenario(ScenarioEntry("AerialLoc/Small-v3"))
     assert resolved["fingerprint"] == base and resolved["generators"] == fp.generator_versions()
 
 
@@ -68,12 +68,12 @@ def test_resumed_run_never_mixes_generations(tmp_path, monkeypatch):
 def test_v2_rows_never_share_keys_with_v1_rows_and_wind_is_in_the_key():
     """The v2 spec (the id, the [wind] section, the lateral odometry noise) fingerprints apart from the same setting
     as a v1 spec was resolved, and any wind field changes the key."""
-    spec = load_scenario("AerialLoc/Small-v2").to_dict()
+    spec = load_scenario("AerialLoc/Small-v3").to_dict()
     v1 = {k: v for k, v in spec.items() if k != "wind"}
     v1["id"] = "AerialLoc/Small-v1"
     v1["odometry"] = {k: v for k, v in spec["odometry"].items() if k != "lateral_std_mps"}
     versions = {k: v for k, v in fp.generator_versions().items() if k != "world.wind"}
     assert fp.fingerprint(v1, versions) != fp.fingerprint(spec)
     assert "world.wind" in fp.generator_versions()
-    windy = load_scenario("AerialLoc/Small-v2", {"wind.speed_range_mps": [2.0, 2.0]})
+    windy = load_scenario("AerialLoc/Small-v3", {"wind.speed_range_mps": [2.0, 2.0]})
     assert fp.scenario_fingerprint(windy) != fp.fingerprint(spec)

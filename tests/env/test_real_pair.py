@@ -84,7 +84,7 @@ def test_a_missing_image_a_misregistered_pair_and_an_epoch_are_refused(tmp_path,
     with pytest.raises(ConfigError, match=r"perspective\.enabled = true .* has no height model"):
         gym.make(SID, perspective={"enabled": True}, **synthetic)
     with pytest.raises(ConfigError, match=r"map\.path_a is only used with map\.kind = 'pair'"):
-        gym.make("AerialLoc/Small-v2", path_a=synthetic["path_a"])
+        gym.make("AerialLoc/Small-v3", path_a=synthetic["path_a"])
 
 
 @pytest.mark.parametrize("name", ["test_1.png", "test_4.png"])

@@ -35,7 +35,7 @@ def test_every_spec_file_is_registered_and_required_ids_exist():
     ids = [sid for sid in gym.registry if sid.startswith("AerialLoc/")]
     assert len(files) == len(specs()) == len(ids)
     for name in REQUIRED:
-        assert f"AerialLoc/{name}-v2" in ids
+        assert f"AerialLoc/{name}-v{3 if name == 'Small' else 2}" in ids
 
 
 @pytest.mark.parametrize("sid", [s for s in specs() if s not in ("AerialLoc/RealMap-v2", "AerialLoc/RealPair-v2")])
@@ -79,14 +79,14 @@ def test_three_override_forms_agree():
 ])
 def test_bad_overrides_are_clear_errors(overrides, match):
     with pytest.raises(ConfigError, match=match):
-        load_scenario("AerialLoc/Small-v2", overrides)
+        load_scenario("AerialLoc/Small-v3", overrides)
 
 
 def test_gym_make_validates_overrides():
     with pytest.raises(ConfigError, match="unknown key 'bogus'"):
-        gym.make("AerialLoc/Small-v2", bogus=1)
+        gym.make("AerialLoc/Small-v3", bogus=1)
     with pytest.raises(ConfigError, match="out of range"):
-        gym.make("AerialLoc/Small-v2", speed_mps=1e6)
+        gym.make("AerialLoc/Small-v3", speed_mps=1e6)
 
 
 def test_real_map_needs_an_existing_path(tmp_path):
@@ -97,7 +97,7 @@ def test_real_map_needs_an_existing_path(tmp_path):
 
 
 def test_unknown_scenario_lists_the_registered_ones():
-    with pytest.raises(ConfigError, match="AerialLoc/Small-v2"):
+    with pytest.raises(ConfigError, match="AerialLoc/Small-v3"):
         load_scenario("NoSuchScenario")
 
 
@@ -105,25 +105,26 @@ def test_split_overrides_and_spec_dict():
     assert split_overrides({"flight.altitude_m": 1.0, "camera": {"hfov_deg": 50.0}}) == {
         "flight": {"altitude_m": 1.0}, "camera": {"hfov_deg": 50.0}}
     d = scenario_spec_dict("Small", altitude_m=90.0)
-    assert d["id"] == "AerialLoc/Small-v2" and d["flight"]["altitude_m"] == 90.0
+    assert d["id"] == "AerialLoc/Small-v3" and d["flight"]["altitude_m"] == 90.0
 
 
 def test_cli_lists_ids(capsys):
     assert main([]) == 0
     out = capsys.readouterr().out
     for name in REQUIRED:
-        assert f"AerialLoc/{name}-v2" in out
+        assert f"AerialLoc/{name}-v{3 if name == 'Small' else 2}" in out
     assert main(["--show", "Small"]) == 0
     shown = tomllib.loads(capsys.readouterr().out)          # valid TOML, the full validated spec
     assert build_scenario(shown).sections == load_scenario("Small").sections
 
 
-@pytest.mark.parametrize("old", ["AerialLoc/Small-v0", "AerialLoc/Small-v1", "AerialLoc/PaperShadows-v1"])
-def test_an_older_version_of_an_id_names_the_registered_one(old):
+@pytest.mark.parametrize("old, new", [("AerialLoc/Small-v0", "AerialLoc/Small-v3"),
+                                      ("AerialLoc/Small-v1", "AerialLoc/Small-v3"),
+                                      ("AerialLoc/PaperShadows-v1", "AerialLoc/PaperShadows-v2")])
+def test_an_older_version_of_an_id_names_the_registered_one(old, new):
     """The ids went to v1 when their frames changed for the same seed, to v2 when the odometry gained the lateral
-    speed: asking for an older one says which id to use (from the spec loader and from Gymnasium itself), never an
-    unrelated 'unknown scenario'."""
-    new = old.rsplit("-v", 1)[0] + "-v2"
+    speed (Small on to v3 since): asking for an older one says which id to use (from the spec loader and from
+    Gymnasium itself), never an unrelated 'unknown scenario'."""
     with pytest.raises(ConfigError, match=rf"'{old}' is not registered.*'{new}'"):
         load_scenario(old)
     with pytest.warns(DeprecationWarning, match="out of date"), \
@@ -131,10 +132,10 @@ def test_an_older_version_of_an_id_names_the_registered_one(old):
         gym.make(old)
 
 
-@pytest.mark.parametrize("name", ["RealisticPaper", "SeasonChange", "Downtown", "Crosswind"])
+@pytest.mark.parametrize("name", ["RealisticPaper", "SeasonChange", "Downtown", "Crosswind", "Small"])
 def test_the_v2_of_an_id_now_v3_names_the_v3(name):
-    """The four realistic ids went to v3 when their worlds' last bits became the same on every CPU: their v2 names
-    the v3 (the spec loader, Gymnasium, ``registered_version``)."""
+    """The four realistic ids went to v3 when their worlds' last bits became the same on every CPU, Small when its
+    level-1 frames took the bake: their v2 names the v3 (the spec loader, Gymnasium, ``registered_version``)."""
     old, new = f"AerialLoc/{name}-v2", f"AerialLoc/{name}-v3"
     with pytest.raises(ConfigError, match=rf"'{old}' is not registered.*'{new}'"):
         load_scenario(old)
@@ -145,7 +146,7 @@ def test_the_v2_of_an_id_now_v3_names_the_v3(name):
 
 def test_registered_version_names_the_current_id_of_an_old_one():
     assert scenarios.registered_version("AerialLoc/RealMap-v1") == "AerialLoc/RealMap-v2"
-    assert scenarios.registered_version("AerialLoc/Small-v2") == "AerialLoc/Small-v2"
+    assert scenarios.registered_version("AerialLoc/Small-v3") == "AerialLoc/Small-v3"
     assert scenarios.registered_version("AerialLoc/Nowhere-v1") is None
     assert scenarios.registered_version("Small") is None
 
@@ -173,15 +174,15 @@ def test_one_broken_spec_does_not_take_the_others_down(tmp_path, monkeypatch, ca
     scenarios._scan.cache_clear()
     try:
         ids = scenarios.register_all()
-        assert "AerialLoc/Small-v2" in ids
-        assert scenarios.load_scenario("AerialLoc/Small-v2").flight.altitude_m == 100.0
+        assert "AerialLoc/Small-v3" in ids
+        assert scenarios.load_scenario("AerialLoc/Small-v3").flight.altitude_m == 100.0
         with pytest.raises(ConfigError, match=r"broken\.toml.*invalid TOML"):
             scenarios.load_scenario("broken")
         with pytest.raises(ConfigError, match=r"latin\.toml.*UTF-8"):
             scenarios.load_scenario("AerialLoc/Latin-v0")
         assert scenarios.main([]) == 0
         out = capsys.readouterr().out
-        assert "AerialLoc/Small-v2" in out and "broken.toml" in out and "latin.toml" in out
+        assert "AerialLoc/Small-v3" in out and "broken.toml" in out and "latin.toml" in out
     finally:
         scenarios._scan.cache_clear()
         for sid in ("AerialLoc/Latin-v0", "AerialLoc/Broken-v0"):
@@ -208,16 +209,16 @@ def test_a_section_given_one_value_names_its_fields_with_an_example(section, val
     """Every section given a single value gets the same message: it is a section, how to set one of its fields
     (one whose type fits the value, as a dict or a dotted key), and the list of its fields."""
     with pytest.raises(ConfigError) as err:
-        gym.make("AerialLoc/Small-v2", **{section: value})
+        gym.make("AerialLoc/Small-v3", **{section: value})
     text = str(err.value)
-    assert text.startswith(f"AerialLoc/Small-v2 overrides: {section} = {value!r}: '{section}' is a section of fields, "
+    assert text.startswith(f"AerialLoc/Small-v3 overrides: {section} = {value!r}: '{section}' is a section of fields, "
                            "not one value; set one of its fields, e.g. "), text
     assert example in text and f"Fields of [{section}]: " in text
 
 
 def test_haze_given_one_value_also_names_the_databases_haze_field():
     with pytest.raises(ConfigError, match=r"did you mean the field 'database\.haze'\?.*extinction_per_km"):
-        load_scenario("AerialLoc/Small-v2", {"haze": 0.5})
+        load_scenario("AerialLoc/Small-v3", {"haze": 0.5})
 
 
 def test_a_spec_file_with_a_section_as_one_value_shows_the_table_form():
@@ -227,10 +228,10 @@ def test_a_spec_file_with_a_section_as_one_value_shows_the_table_form():
 
 
 def test_an_altimeter_too_noisy_for_the_altitude_is_refused_at_gym_make_naming_its_field():
-    with pytest.raises(ConfigError, match=r"^AerialLoc/Small-v2: altimeter\.bias_std_m = 500 m is too large for "
+    with pytest.raises(ConfigError, match=r"^AerialLoc/Small-v3: altimeter\.bias_std_m = 500 m is too large for "
                                           r"flight\.altitude_m = 100 m.*in \[0, 16\.67\] m"):
-        gym.make("AerialLoc/Small-v2", **{"altimeter.bias_std_m": 500})
-    assert load_scenario("AerialLoc/Small-v2", {"altimeter.bias_std_m": 500, "altitude_m": 3000.0,
+        gym.make("AerialLoc/Small-v3", **{"altimeter.bias_std_m": 500})
+    assert load_scenario("AerialLoc/Small-v3", {"altimeter.bias_std_m": 500, "altitude_m": 3000.0,
                                                 "camera.hfov_deg": 1.0}).altimeter.bias_std_m == 500
 
 
@@ -249,7 +250,7 @@ class _World:
     ({"perspective.enabled": False}, None, False),                           # affine, no height model: fine
 ])
 def test_check_relief_refuses_buildings_the_perspective_camera_would_cut(overrides, tallest_m, refused):
-    sc = load_scenario("AerialLoc/Small-v2", overrides)
+    sc = load_scenario("AerialLoc/Small-v3", overrides)
     if refused:
         with pytest.raises(ConfigError, match=r"tallest building of the map is 95\.1 m, but flight\.altitude_m = 100 m"
                                               r".*flight\.altitude_m >= 101 m.*city\.max_building_height_m \(allowed "
@@ -266,10 +267,10 @@ def test_check_relief_refuses_buildings_the_perspective_camera_would_cut(overrid
 def test_check_relief_refuses_a_perspective_camera_without_a_height_model(overrides, tallest_m, said):
     """Without a height model the perspective camera is the affine one: refused, naming the fix (it used to be a
     silent no-op)."""
-    sc = load_scenario("AerialLoc/Small-v2", overrides)
+    sc = load_scenario("AerialLoc/Small-v3", overrides)
     world = _World(tallest_m)
     world.ground.name = "ground"
-    with pytest.raises(ConfigError, match=rf"^AerialLoc/Small-v2: perspective\.enabled = true .*{said}.*set "
+    with pytest.raises(ConfigError, match=rf"^AerialLoc/Small-v3: perspective\.enabled = true .*{said}.*set "
                                           r"perspective\.enabled = false"):
         scenarios.check_relief(sc, world)
 
@@ -286,7 +287,7 @@ def test_a_perspective_camera_over_a_map_file_without_dsm_is_refused_at_gym_make
 
 
 def test_a_perspective_camera_below_the_towers_is_refused_at_gym_make():
-    """Small-v2's city has 60 m buildings: a perspective camera at 60 m would see them cut at 57 m."""
-    with pytest.raises(ConfigError, match=r"^AerialLoc/Small-v2: the tallest building of the map is 60\.0 m, but "
+    """Small-v3's city has 60 m buildings: a perspective camera at 60 m would see them cut at 57 m."""
+    with pytest.raises(ConfigError, match=r"^AerialLoc/Small-v3: the tallest building of the map is 60\.0 m, but "
                                           r"flight\.altitude_m = 60 m: .*fly higher \(flight\.altitude_m >= 64 m\)"):
-        gym.make("AerialLoc/Small-v2", **{"perspective.enabled": True, "flight.altitude_m": 60.0})
+        gym.make("AerialLoc/Small-v3", **{"perspective.enabled": True, "flight.altitude_m": 60.0})

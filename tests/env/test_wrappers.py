@@ -12,7 +12,7 @@ from aerial_loc_env.env.wrappers import EpisodeErrorStats, MetresAction
 
 
 def test_metres_action_scores_the_given_position():
-    env = MetresAction(gym.make("AerialLoc/Small-v2", duration_s=2.0))
+    env = MetresAction(gym.make("AerialLoc/Small-v3", duration_s=2.0))
     _, info = env.reset(seed=0)
     truth = info["true_pose"]
     _, _, _, _, info = env.step(np.array([truth[0] + 3.0, truth[1] + 4.0], np.float32))
@@ -24,7 +24,7 @@ def test_metres_action_scores_the_given_position():
 
 
 def test_episode_error_stats():
-    env = EpisodeErrorStats(gym.make("AerialLoc/Small-v2", duration_s=2.0))
+    env = EpisodeErrorStats(gym.make("AerialLoc/Small-v3", duration_s=2.0))
     env.reset(seed=1)
     errors, done, rng = [], False, np.random.default_rng(0)
     while not done:

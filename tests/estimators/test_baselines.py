@@ -151,13 +151,13 @@ COMPARISON_SPECS = ["mcl-ssd", "mcl-ncc", "mcl-mi", "mcl-abbrief", "mcl-edges", 
 
 
 def test_every_comparison_agent_runs_on_the_small_scenario():
-    """Integration: the specs of this issue run in lockstep on AerialLoc/Small-v2 (64 x 64 observations)."""
+    """Integration: the specs of this issue run in lockstep on AerialLoc/Small-v3 (64 x 64 observations)."""
     gym = pytest.importorskip("gymnasium")
     import aerial_loc_env  # noqa: F401  (registers the scenarios)
     from aerial_loc_env.env import world_to_action
     from aerial_loc_env.estimators.registry import make_agent
 
-    env = gym.make("AerialLoc/Small-v2")
+    env = gym.make("AerialLoc/Small-v3")
     try:
         obs, info = env.reset(seed=0)
         briefing = env.unwrapped.briefing

@@ -30,7 +30,7 @@ FIXTURE = Path(__file__).resolve().parents[1] / "data" / "driver_benchmark_rows.
 AGENTS = [{"name": "mcl-shadow-aware", "params": {"n_particles": 150}, "label": "sa"},
           {"name": "dead-reckoning", "label": "dr"},
           {"name": "mcl-shadow-aware-oracle", "params": {"n_particles": 150}, "label": "oracle"}]
-TINY = {"id": "AerialLoc/Small-v2", "overrides": {"flight.duration_s": 3.0}, "label": "tiny"}
+TINY = {"id": "AerialLoc/Small-v3", "overrides": {"flight.duration_s": 3.0}, "label": "tiny"}
 SEEDS = [0, 1, 2]
 #: what the episode loop produces (the metrics derived from it, the timing, the key and the configs may change
 #: for other reasons: a new metric definition, a key recipe, new default fields)

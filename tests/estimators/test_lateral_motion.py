@@ -106,10 +106,10 @@ def _dr_drift_m(env: gym.Env, seed: int) -> float:
 
 
 def test_dead_reckoning_in_a_steady_wind_drifts_only_by_the_noise_and_without_the_lateral_term_by_the_wind():
-    """Small-v2 (20 m/s, 15 s) in 5 m/s of wind from the north: with the lateral speed the dead-reckoned error
+    """Small-v3 (20 m/s, 15 s) in 5 m/s of wind from the north: with the lateral speed the dead-reckoned error
     moves by the odometry noise alone (about 1 m over 60 steps); without it, by the crosswind over the flight."""
     wind = {"wind.speed_range_mps": [5.0, 5.0], "wind.from_deg_range": [0.0, 0.0]}
-    with_lateral = [_dr_drift_m(gym.make("AerialLoc/Small-v2", **wind), s) for s in (0, 1)]
-    without = [_dr_drift_m(_NoLateral(gym.make("AerialLoc/Small-v2", **wind)), s) for s in (0, 1)]
+    with_lateral = [_dr_drift_m(gym.make("AerialLoc/Small-v3", **wind), s) for s in (0, 1)]
+    without = [_dr_drift_m(_NoLateral(gym.make("AerialLoc/Small-v3", **wind)), s) for s in (0, 1)]
     assert max(with_lateral) < 4.0
     assert min(without) > 10.0

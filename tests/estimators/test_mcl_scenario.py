@@ -1,4 +1,4 @@
-"""A short end-to-end check on the env (AerialLoc/Small-v2: 400 m city, cast shadows, 15 m prior, 60 steps):
+"""A short end-to-end check on the env (AerialLoc/Small-v3: 400 m city, cast shadows, 15 m prior, 60 steps):
 every MCL variant beats dead reckoning on 3 seeds, run by the benchmark's episode runner with the shadow detector
 scored against the true masks. The paper-scenario comparison is an experiment (``aerial-loc bench table5``), not a
 CI test."""
@@ -26,7 +26,7 @@ def test_every_mcl_variant_beats_dead_reckoning_on_the_small_scenario() -> None:
     frames of this scenario with dark (sky-lit) shadows, equalizing the detected regions over-restores them
     and it can lock on a wrong mode (the paper's adverse effect, V.A); on the paper scenario it converges
     (``aerial-loc bench table5``)."""
-    grid = make_grid("mcl-small", AGENTS, ["AerialLoc/Small-v2"], seeds=3, detector_quality=True)
+    grid = make_grid("mcl-small", AGENTS, ["AerialLoc/Small-v3"], seeds=3, detector_quality=True)
     rows = [row for task in plan(grid, set()) for row in run_episode(task)[0]]
     by_agent = {name: [r for r in rows if r["agent"] == name] for name in AGENTS}
     assert all(len(rs) == 3 for rs in by_agent.values())

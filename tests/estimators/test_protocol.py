@@ -13,8 +13,8 @@ from aerial_loc_env.estimators.registry import make_agent
 
 @pytest.mark.parametrize("agent", ["template-ncc", "features-orb", "mcl-ssd"])
 def test_agent_fed_another_scenarios_frames_says_what_differs(agent):
-    a = gym.make("AerialLoc/Small-v2")
-    b = gym.make("AerialLoc/Small-v2", observation={"width_px": 48, "height_px": 32})
+    a = gym.make("AerialLoc/Small-v3")
+    b = gym.make("AerialLoc/Small-v3", observation={"width_px": 48, "height_px": 32})
     _, info = a.reset(seed=0)
     obs_b, _ = b.reset(seed=0)
     est = make_agent(agent, **({"n_particles": 50} if agent.startswith("mcl") else {}))

@@ -21,8 +21,8 @@ from aerial_loc_env.estimators.registry import make_agent  # noqa: E402
 
 @pytest.fixture(scope="module")
 def briefed():
-    """The shipped model reset with Small-v2's briefing, and that env's first observation."""
-    env = gym.make("AerialLoc/Small-v2")
+    """The shipped model reset with Small-v3's briefing, and that env's first observation."""
+    env = gym.make("AerialLoc/Small-v3")
     obs, _ = env.reset(seed=0)
     agent = make_agent("ppo-local-registration")
     agent.reset(env.unwrapped.briefing, seed=0)
@@ -31,7 +31,7 @@ def briefed():
 
 
 def _first_frame(**overrides):
-    env = gym.make("AerialLoc/Small-v2", **overrides)
+    env = gym.make("AerialLoc/Small-v3", **overrides)
     obs, _ = env.reset(seed=0)
     env.close()
     return obs
@@ -44,7 +44,7 @@ def test_frames_of_the_briefed_scenario_are_estimated(briefed) -> None:
 
 def test_frames_of_another_camera_are_refused(briefed) -> None:
     agent, _env, _obs = briefed
-    with pytest.raises(ConfigError, match=r"48 x 32 px but the briefing's camera \(AerialLoc/Small-v2\) is 64 x 64"):
+    with pytest.raises(ConfigError, match=r"48 x 32 px but the briefing's camera \(AerialLoc/Small-v3\) is 64 x 64"):
         agent.step(_first_frame(observation={"width_px": 48, "height_px": 32}))
 
 

@@ -35,7 +35,7 @@ class = "LearnedAgent"
 model = "{model}"
 [train]
 algo = "{algo}"
-scenario = "AerialLoc/Small-v2"
+scenario = "AerialLoc/Small-v3"
 scenario_overrides = {{"flight.duration_s" = 2.0}}
 observation = "{observation}"
 total_timesteps = {steps}
@@ -119,7 +119,7 @@ def test_shipped_recipes_are_valid() -> None:
 
 # ------------------------------------------------------------------------------------ observation design
 def test_zero_correction_is_dead_reckoning_and_corrections_are_in_the_vehicle_frame() -> None:
-    env = gym.make("AerialLoc/Small-v2", **SHORT)
+    env = gym.make("AerialLoc/Small-v3", **SHORT)
     obs, info = env.reset(seed=3)
     briefing = env.unwrapped.briefing
     core, dr = LocalRegistration(ObservationParams(image_px=32, max_correction_m=4.0)), DeadReckoningAgent()
@@ -145,7 +145,7 @@ def test_zero_correction_is_dead_reckoning_and_corrections_are_in_the_vehicle_fr
 
 
 def test_wrapper_reward_pays_the_error_reduction() -> None:
-    env = LocalRegistrationWrapper(gym.make("AerialLoc/Small-v2", **SHORT), ObservationParams(image_px=32),
+    env = LocalRegistrationWrapper(gym.make("AerialLoc/Small-v3", **SHORT), ObservationParams(image_px=32),
                                    RewardParams(kind="improvement", scale_m=2.0, error_weight=0.0))
     env.reset(seed=5)
     truth = env._truth.copy()
@@ -198,7 +198,7 @@ def test_training_writes_model_recipe_scenario_logs_and_checkpoints(tiny_model: 
         assert list((out / "logs").glob("events.out.tfevents.*"))
     meta = json.loads((out / "training.json").read_text())
     assert meta["recipe"]["observation"] == "local_registration"
-    assert meta["scenario"]["id"] == "AerialLoc/Small-v2"
+    assert meta["scenario"]["id"] == "AerialLoc/Small-v3"
     assert meta["scenario"]["flight"]["duration_s"] == 2.0
     rows = (out / "eval.csv").read_text().splitlines()
     assert rows[0].startswith("timesteps") and "dead_reckoning_rmse_m" in rows[0] and len(rows) >= 2
@@ -224,7 +224,7 @@ def test_existing_model_is_not_overwritten_and_resume_continues(tiny_model: Path
 def test_saved_agent_reloads_with_identical_deterministic_predictions(tiny_model: Path) -> None:
     from aerial_loc_env.learning import agent as agent_mod
 
-    env = gym.make("AerialLoc/Small-v2", **SHORT)
+    env = gym.make("AerialLoc/Small-v3", **SHORT)
 
     def episode() -> list[tuple[float, float]]:
         agent_mod._MODELS.clear()   # a fresh load from disk each time
@@ -252,7 +252,7 @@ def test_loaded_agent_runs_in_the_benchmark_harness(tiny_model: Path, tmp_path: 
 
     spec = tiny_model.parent.parent / "tiny.toml"
     grid = make_grid("learned", [str(spec), "dead-reckoning"],
-                     [{"id": "AerialLoc/Small-v2", "overrides": SHORT}], seeds=[10_000, 10_001])
+                     [{"id": "AerialLoc/Small-v3", "overrides": SHORT}], seeds=[10_000, 10_001])
     rows = run_grid(grid, str(tmp_path / "bench"), progress=False)
     assert len(rows) == 4
     assert not (tmp_path / "bench" / "failures.jsonl").exists() or \
@@ -271,7 +271,7 @@ def test_other_algorithms_and_designs_train(tmp_path: Path, algo: str, observati
                           hyper=hyper, image_px=40)
     res = train(recipe, tmp_path / "other", progress_bar=False)
     agent = make_agent(recipe)
-    env = gym.make("AerialLoc/Small-v2", **SHORT)
+    env = gym.make("AerialLoc/Small-v3", **SHORT)
     obs, _ = env.reset(seed=1)
     agent.reset(env.unwrapped.briefing)
     est = agent.step(obs)
@@ -318,7 +318,7 @@ def test_shipped_model_loads_anywhere_and_beats_dead_reckoning(tmp_path: Path,
     held-out seeds of its scenario walks the estimate in from the prior: its RMSE is below dead reckoning's,
     whose error is dominated by the 15 m prior offset the policy is trained to remove."""
     monkeypatch.chdir(tmp_path)
-    env = gym.make("AerialLoc/Small-v2")
+    env = gym.make("AerialLoc/Small-v3")
     sq, sq_dr = [], []
     for seed in (50_000, 50_001, 50_002):
         learned, dr = make_agent("ppo-local-registration"), make_agent("dead-reckoning")

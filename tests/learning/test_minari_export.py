@@ -13,13 +13,13 @@ import pytest
 from aerial_loc_env.errors import ConfigError
 from aerial_loc_env.learning.minari_export import INFO_KEYS, check_dataset_id, default_dataset_id, export_episodes, main
 
-SHORT = {"flight.duration_s": 3.0}     # Small-v2: 12 steps of 64 x 64 frames
+SHORT = {"flight.duration_s": 3.0}     # Small-v3: 12 steps of 64 x 64 frames
 
 
 @pytest.fixture(scope="module")
 def exported(tmp_path_factory):
     root = tmp_path_factory.mktemp("minari")
-    res = export_episodes("AerialLoc/Small-v2", "dead-reckoning", 2, root=root, seed=5, overrides=SHORT)
+    res = export_episodes("AerialLoc/Small-v3", "dead-reckoning", 2, root=root, seed=5, overrides=SHORT)
     return root, res
 
 
@@ -29,13 +29,13 @@ def _load(root, dataset_id, monkeypatch):
 
 
 def test_ids_are_versioned_like_env_ids():
-    assert default_dataset_id("AerialLoc/Small-v2", "mcl-ncc") == "aerial-loc/small-mcl-ncc-v2"
+    assert default_dataset_id("AerialLoc/Small-v3", "mcl-ncc") == "aerial-loc/small-mcl-ncc-v3"
     assert default_dataset_id("AerialLoc/RealisticPaper-v3", "agents/features-sift.toml") == \
         "aerial-loc/realistic-paper-features-sift-v3"
     assert check_dataset_id("aerial-loc/mine-v3") == "aerial-loc/mine-v3"
     with pytest.raises(ConfigError, match="not a versioned dataset id.*-v<version>"):
         check_dataset_id("aerial-loc/mine")
-    with pytest.raises(ConfigError, match="not a scenario id like 'AerialLoc/Small-v2'"):
+    with pytest.raises(ConfigError, match="not a scenario id like 'AerialLoc/Small-v3'"):
         default_dataset_id("Small", "mcl-ncc")
 
 
@@ -43,7 +43,7 @@ def test_export_round_trips_load_replay_same_observations(exported, monkeypatch)
     import gymnasium as gym
 
     root, res = exported
-    assert res.dataset_id == "aerial-loc/small-dead-reckoning-v2" and res.episodes == 2 and res.steps == 24
+    assert res.dataset_id == "aerial-loc/small-dead-reckoning-v3" and res.episodes == 2 and res.steps == 24
     dataset = _load(root, res.dataset_id, monkeypatch)
     assert dataset.total_episodes == 2 and dataset.total_steps == 24
     meta = json.loads(dataset.storage.metadata["aerial_loc"])
@@ -67,15 +67,15 @@ def test_export_round_trips_load_replay_same_observations(exported, monkeypatch)
         assert np.isnan(episode.infos["position_error_m"][0]) and np.all(episode.infos["position_error_m"][1:] > 0)
     env.close()
     # the scenario the user asked for, not a registry default
-    assert gym.spec("AerialLoc/Small-v2").kwargs.get("flight.duration_s") is None
+    assert gym.spec("AerialLoc/Small-v3").kwargs.get("flight.duration_s") is None
     assert dataset.env_spec.kwargs["flight.duration_s"] == 3.0
 
 
 def test_existing_dataset_is_refused_before_any_episode_and_kept(exported, monkeypatch):
     root, res = exported
     before = sorted((p.relative_to(root), p.stat().st_mtime_ns) for p in root.rglob("*"))
-    with pytest.raises(ConfigError, match="'aerial-loc/small-dead-reckoning-v2' already exists at .*never overwritten"):
-        export_episodes("AerialLoc/Small-v2", "dead-reckoning", 1, root=root, overrides=SHORT)
+    with pytest.raises(ConfigError, match="'aerial-loc/small-dead-reckoning-v3' already exists at .*never overwritten"):
+        export_episodes("AerialLoc/Small-v3", "dead-reckoning", 1, root=root, overrides=SHORT)
     assert sorted((p.relative_to(root), p.stat().st_mtime_ns) for p in root.rglob("*")) == before
     assert _load(root, res.dataset_id, monkeypatch).total_episodes == 2
 
@@ -83,20 +83,20 @@ def test_existing_dataset_is_refused_before_any_episode_and_kept(exported, monke
 def test_cli_export_and_its_errors(tmp_path, capsys):
     from aerial_loc_env.cli import main as cli
 
-    assert main(["export", "--env", "AerialLoc/Small-v2", "--agent", "dead-reckoning", "--episodes", "1",
+    assert main(["export", "--env", "AerialLoc/Small-v3", "--agent", "dead-reckoning", "--episodes", "1",
                  "--out", str(tmp_path), "--id", "aerial-loc/tiny-v2", "--set", "flight.duration_s=2"]) == 0
     out = capsys.readouterr().out
     assert "dataset aerial-loc/tiny-v2: 1 episodes, 8 steps" in out and f"MINARI_DATASETS_PATH={tmp_path}" in out
-    assert cli(["dataset", "export", "--env", "AerialLoc/Small-v2", "--agent", "dead-reckoning", "--episodes", "1",
+    assert cli(["dataset", "export", "--env", "AerialLoc/Small-v3", "--agent", "dead-reckoning", "--episodes", "1",
                 "--out", str(tmp_path), "--id", "aerial-loc/tiny-v2"]) == 2
     assert "aerial-loc/tiny-v2' already exists" in capsys.readouterr().err
-    assert cli(["dataset", "export", "--env", "AerialLoc/Small-v2", "--agent", "no-such-agent", "--episodes", "1",
+    assert cli(["dataset", "export", "--env", "AerialLoc/Small-v3", "--agent", "no-such-agent", "--episodes", "1",
                 "--out", str(tmp_path)]) == 2
     assert "unknown agent spec 'no-such-agent'" in capsys.readouterr().err
-    assert cli(["dataset", "export", "--env", "AerialLoc/Small-v2", "--agent", "dead-reckoning", "--episodes", "0",
+    assert cli(["dataset", "export", "--env", "AerialLoc/Small-v3", "--agent", "dead-reckoning", "--episodes", "0",
                 "--out", str(tmp_path)]) == 2
     assert "--episodes 0 must be a positive integer" in capsys.readouterr().err
-    assert not (tmp_path / "aerial-loc" / "small-dead-reckoning-v2").exists()
+    assert not (tmp_path / "aerial-loc" / "small-dead-reckoning-v3").exists()
 
 
 def test_without_minari_the_error_names_the_extra(monkeypatch, tmp_path):
@@ -106,5 +106,5 @@ def test_without_minari_the_error_names_the_extra(monkeypatch, tmp_path):
 
     monkeypatch.setitem(sys.modules, "minari", None)     # as if minari were not installed
     with pytest.raises(MissingExtraError, match=r"Minari dataset.*pip install 'aerial-loc-env\[data\]'"):
-        export_episodes("AerialLoc/Small-v2", "dead-reckoning", 1, root=tmp_path)
+        export_episodes("AerialLoc/Small-v3", "dead-reckoning", 1, root=tmp_path)
     assert not any(tmp_path.iterdir())

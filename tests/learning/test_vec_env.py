@@ -85,7 +85,7 @@ class = "LearnedAgent"
 [params]
 model = "{tmp_path / kind / 'model.zip'}"
 [train]
-scenario = "AerialLoc/Small-v2"
+scenario = "AerialLoc/Small-v3"
 scenario_overrides = {{"flight.duration_s" = 2.0}}
 total_timesteps = 64
 n_envs = 2

@@ -21,7 +21,7 @@ def test_scenario_agent_stream_lands_on_the_map(run_mavlink_cli):
     pytest.importorskip("aerial_loc_env.estimators.registry", reason="the agents are not available")
     from aerial_loc_env.env import world_to_action  # noqa: F401  (registers the scenarios)
 
-    env = gym.make("AerialLoc/Small-v2")
+    env = gym.make("AerialLoc/Small-v3")
     env.reset(seed=3)
     om = env.unwrapped.briefing.orthomap
     corners = np.array([om.world_to_latlon(x, y) for x in (0.0, om.width_m) for y in (0.0, om.height_m)])
@@ -29,7 +29,7 @@ def test_scenario_agent_stream_lands_on_the_map(run_mavlink_cli):
     env.close()
 
     rc, printed, msgs = run_mavlink_cli([
-        "--scenario", "AerialLoc/Small-v2", "--agent", "dead-reckoning", "--seed", "3", "--speed", "10",
+        "--scenario", "AerialLoc/Small-v3", "--agent", "dead-reckoning", "--seed", "3", "--speed", "10",
         "--message", "gps,odometry", "--ground-amsl-m", "400"])
     assert rc == 0
     assert printed.strip().splitlines()[-1].startswith("done:")
@@ -56,18 +56,18 @@ def test_follow_renders_at_the_simulators_truth_and_localizes():
     """A fake SITL streams SIM_STATE: on the ground at the map centre, then climbing and flying east, then down
     at 10 m. The bridge sends the take-off pad while the camera sees nothing, then the agent's estimates from
     frames rendered at the truth: the GPS_INPUT positions follow the true vehicle; below the agent's lowest
-    altitude (template-ncc on Small-v2: 20 m) GPS_INPUT reports no fix."""
+    altitude (template-ncc on Small-v3: 20 m) GPS_INPUT reports no fix."""
     pytest.importorskip("aerial_loc_env.estimators.registry", reason="the agents are not available")
     from aerial_loc_env.env import world_to_action  # noqa: F401  (registers the scenarios)
     from aerial_loc_env.mavlink.selfcheck import free_udp_port
 
-    env = gym.make("AerialLoc/Small-v2")
+    env = gym.make("AerialLoc/Small-v3")
     om = env.unwrapped.orthomap
     env.close()
     ground = 30.0
     port = free_udp_port()
     args = mav_cli.build_parser().parse_args([
-        "--scenario", "AerialLoc/Small-v2", "--agent", "template-ncc", "--follow", "--ground-amsl-m", str(ground),
+        "--scenario", "AerialLoc/Small-v3", "--agent", "template-ncc", "--follow", "--ground-amsl-m", str(ground),
         "--connect", f"udpin:127.0.0.1:{port}", "--duration-s", "11", "--quiet"])
     result = {}
     runner = threading.Thread(target=lambda: result.setdefault("rc", mav_cli.run(args, out=io.StringIO())))
@@ -126,10 +126,10 @@ def test_speed_zero_delivers_every_frame(run_mavlink_cli):
     """'--speed 0' (replay into a logger) must hand every frame's fix to the wire, not only the last one."""
     pytest.importorskip("aerial_loc_env.estimators.registry", reason="the agents are not available")
     rc, _, msgs = run_mavlink_cli([
-        "--scenario", "AerialLoc/Small-v2", "--agent", "dead-reckoning", "--seed", "1", "--speed", "0",
+        "--scenario", "AerialLoc/Small-v3", "--agent", "dead-reckoning", "--seed", "1", "--speed", "0",
         "--rate-hz", "200", "--ground-amsl-m", "30", "--quiet"])
     assert rc == 0
-    # Small-v2: 15 s at 4 Hz = 60 steps, 61 frames; each frame's fix carries its own GPS time
+    # Small-v3: 15 s at 4 Hz = 60 steps, 61 frames; each frame's fix carries its own GPS time
     times = {(m.time_week, m.time_week_ms) for m in msgs if m.get_type() == "GPS_INPUT"}
     positions = {(m.lat, m.lon) for m in msgs if m.get_type() == "GPS_INPUT"}
     assert len(positions) >= 61, (len(positions), len(times))
@@ -152,7 +152,7 @@ def test_set_overrides_the_flown_scenario_and_is_refused_with_demo():
     with --demo (no scenario) it is refused, and an unknown key names itself."""
     from aerial_loc_env.errors import ConfigError
 
-    run = mav_cli.ScenarioRun("AerialLoc/Small-v2", "dead-reckoning", 0, {"flight.rate_hz": 5})
+    run = mav_cli.ScenarioRun("AerialLoc/Small-v3", "dead-reckoning", 0, {"flight.rate_hz": 5})
     try:
         assert run.env.unwrapped.scenario.flight.rate_hz == 5.0
     finally:
@@ -161,4 +161,4 @@ def test_set_overrides_the_flown_scenario_and_is_refused_with_demo():
     with pytest.raises(ConfigError, match="--demo flies no scenario"):
         mav_cli.run(args, out=io.StringIO())
     with pytest.raises(ConfigError, match="no_such_field"):
-        mav_cli.ScenarioRun("AerialLoc/Small-v2", "dead-reckoning", 0, {"flight.no_such_field": 1})
+        mav_cli.ScenarioRun("AerialLoc/Small-v3", "dead-reckoning", 0, {"flight.no_such_field": 1})

@@ -294,7 +294,7 @@ def test_scenario_ground_height_is_never_silently_sea_level():
         pass
 
     with pytest.raises(ConfigError, match="--ground-amsl-m"):
-        ground_amsl_m(None, Map(), "AerialLoc/Small-v2")
+        ground_amsl_m(None, Map(), "AerialLoc/Small-v3")
     declared = Map()
     declared.ground_amsl_m = 37.5
     assert ground_amsl_m(None, declared, "x") == 37.5 and ground_amsl_m(584.0, declared, "x") == 584.0

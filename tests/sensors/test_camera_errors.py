@@ -19,7 +19,7 @@ M = 4000   # independent series for the statistics
 
 
 def episode(seed: int = 3, **overrides) -> tuple[list[dict], list[dict]]:
-    env = gym.make("AerialLoc/Small-v2", flight={"duration_s": 2.0}, **overrides)
+    env = gym.make("AerialLoc/Small-v3", flight={"duration_s": 2.0}, **overrides)
     obs, info = env.reset(seed=seed)
     observations, infos = [obs], [info]
     done = False
@@ -130,11 +130,11 @@ def test_haze_lowers_contrast_by_the_transmission_and_grows_with_altitude():
 
 def test_bad_camera_error_configs_are_clear_errors():
     with pytest.raises(ConfigError, match="roll_pitch_std_deg"):
-        gym.make("AerialLoc/Small-v2", gimbal={"roll_pitch_std_deg": -1.0})
+        gym.make("AerialLoc/Small-v3", gimbal={"roll_pitch_std_deg": -1.0})
     with pytest.raises(ConfigError, match="gain_range"):
-        gym.make("AerialLoc/Small-v2", exposure={"gain_range": [4.0, 0.5]})
+        gym.make("AerialLoc/Small-v3", exposure={"gain_range": [4.0, 0.5]})
     with pytest.raises(ConfigError, match="airlight_rgb"):
-        gym.make("AerialLoc/Small-v2", haze={"airlight_rgb": [300.0, 0.0, 0.0]})
+        gym.make("AerialLoc/Small-v3", haze={"airlight_rgb": [300.0, 0.0, 0.0]})
     assert GimbalConfig().draw_attitude(np.random.default_rng(0), 3, 0.25).shape == (3, 2)
 
 
@@ -144,7 +144,7 @@ ALL_ON = {"perspective": {"enabled": True}, "gimbal": {"roll_pitch_std_deg": 0.4
 
 
 def test_checkers_pass_with_every_camera_error_on():
-    check_env_silently("AerialLoc/Small-v2", **ALL_ON)
+    check_env_silently("AerialLoc/Small-v3", **ALL_ON)
 
 
 def test_every_camera_error_on_is_deterministic_and_pickles():
@@ -153,7 +153,7 @@ def test_every_camera_error_on_is_deterministic_and_pickles():
     a, ai = episode(**ALL_ON)
     b, bi = episode(**ALL_ON)
     assert same(a, b) and all(x["exposure_gain"] == y["exposure_gain"] for x, y in zip(ai, bi, strict=True))
-    env = gym.make("AerialLoc/Small-v2", **ALL_ON)
+    env = gym.make("AerialLoc/Small-v3", **ALL_ON)
     env.reset(seed=1)
     clone = pickle.loads(pickle.dumps(env.unwrapped))
     step = np.zeros(2, np.float32)

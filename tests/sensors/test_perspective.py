@@ -201,7 +201,7 @@ def test_env_perspective_is_deterministic_and_changes_only_the_frames():
     import aerial_loc_env  # noqa: F401
 
     def episode(**overrides) -> tuple[list[np.ndarray], list[np.ndarray]]:
-        env = gym.make("AerialLoc/Small-v2", flight={"duration_s": 2.0}, **overrides)
+        env = gym.make("AerialLoc/Small-v3", flight={"duration_s": 2.0}, **overrides)
         obs, info = env.reset(seed=11)
         frames, poses = [obs["image"]], [info["true_pose"]]
         done = False

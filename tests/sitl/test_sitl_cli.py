@@ -24,7 +24,7 @@ CASES = {
     "speedup 50": (["--speedup", "50"], r"--speedup 50.0: must be in [0.1, 20]"),
     "ground nan": (["--ground-amsl-m", "nan"], "--ground-amsl-m nan: must be a finite height in [-500, 9000] m AMSL"),
     "ground 1e9": (["--ground-amsl-m", "1e9"], "--ground-amsl-m 1000000000.0: must be a finite height in [-500"),
-    "old version": (["--scenario", "AerialLoc/Small-v0"], "this version of the package has 'AerialLoc/Small-v2'"),
+    "old version": (["--scenario", "AerialLoc/Small-v0"], "this version of the package has 'AerialLoc/Small-v3'"),
     "map file": (["--scenario", "AerialLoc/RealMap-v2"], "`aerial-loc sitl` takes no map file; it flies the "
                                                           "procedural-city scenarios: AerialLoc/"),
     "pair of files": (["--scenario", "AerialLoc/RealPair-v2"], "--scenario AerialLoc/RealPair-v2: flies over two "
@@ -32,7 +32,7 @@ CASES = {
     "old map file": (["--scenario", "AerialLoc/RealMap-v1"], "--scenario AerialLoc/RealMap-v1 (now "
                      "AerialLoc/RealMap-v2): flies over a map file given to gym.make (path=...), and `aerial-loc sitl` "
                      "takes no map file"),
-    "plane on a small map": (["--vehicle", "plane", "--scenario", "AerialLoc/Small-v2"],
+    "plane on a small map": (["--vehicle", "plane", "--scenario", "AerialLoc/Small-v3"],
                              "its map is 400 x 400 m, and the plane's flight"),
     "plane external-nav": (["--vehicle", "plane", "--mission", "external-nav"],
                            "--mission 'external-nav' for --vehicle plane: use one of gps-input, gnss-denial"),

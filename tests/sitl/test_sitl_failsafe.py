@@ -41,7 +41,7 @@ def test_vision_cut_points_and_bad_values():
 def test_vision_cut_beyond_the_mission_is_refused_before_sitl_starts(fake_sitl):
     pytest.importorskip("gymnasium")
     with pytest.raises(ConfigError, match="the copter's mission has items 1 to 4"):
-        fly_mission("AerialLoc/Small-v2", "template-ncc", ground_amsl_m=30.0, sitl_dir=fake_sitl,
+        fly_mission("AerialLoc/Small-v3", "template-ncc", ground_amsl_m=30.0, sitl_dir=fake_sitl,
                     vision_cut=(9, 20.0))
     assert not (fake_sitl / "runs").exists()
 

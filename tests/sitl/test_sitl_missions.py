@@ -38,7 +38,7 @@ def test_home_is_the_map_centre():
     gym = pytest.importorskip("gymnasium")
     import aerial_loc_env.env  # noqa: F401
 
-    env = gym.make("AerialLoc/Small-v2")
+    env = gym.make("AerialLoc/Small-v3")
     om = env.unwrapped.database
     lat, lon, alt, hdg = (float(v) for v in sitl_home(om, 30.0, 90.0).split(","))
     x, y = (float(np.ravel(v)[0]) for v in om.latlon_to_world(lat, lon))
@@ -57,7 +57,7 @@ def test_mission_parameters_follow_ardupilots_external_nav_recipe():
     assert gps["GPS1_TYPE"] == 14 and "VISO_TYPE" not in gps
     assert {m.message for m in MISSIONS.values()} == {"gps_input", "vision_position_estimate"}
     with pytest.raises(ConfigError, match="external-nav"):
-        fly_mission("AerialLoc/Small-v2", "template-ncc", ground_amsl_m=30.0, mission="optical-flow")
+        fly_mission("AerialLoc/Small-v3", "template-ncc", ground_amsl_m=30.0, mission="optical-flow")
     with pytest.raises(ConfigError, match="--mission 'external-nav' for --vehicle plane: use one of gps-input"):
         mission_spec("plane", "external-nav")
 
@@ -119,16 +119,16 @@ def test_scenario_is_checked_before_anything_starts():
     (RealMap: gym.make(id, path=...)), an old version of one too, says that sitl takes no map file and which ids
     it flies; short names resolve to the id."""
     pytest.importorskip("gymnasium")
-    assert check_scenario("small") == check_scenario("Small") == "AerialLoc/Small-v2"
+    assert check_scenario("small") == check_scenario("Small") == "AerialLoc/Small-v3"
     with pytest.raises(ConfigError, match="--scenario: scenario 'AerialLoc/Small-v0' is not registered: this "
-                                          "version of the package has 'AerialLoc/Small-v2'"):
+                                          "version of the package has 'AerialLoc/Small-v3'"):
         check_scenario("AerialLoc/Small-v0")
     with pytest.raises(ConfigError) as exc:
         check_scenario("AerialLoc/RealMap-v2")
     msg = str(exc.value)
     assert "`aerial-loc sitl` takes no map file; it flies the procedural-city scenarios: " in msg
     flies = msg.rsplit(": ", 1)[1].split(", ")
-    assert {"AerialLoc/Small-v2", "AerialLoc/PaperShadows-v2"} <= set(flies)
+    assert {"AerialLoc/Small-v3", "AerialLoc/PaperShadows-v2"} <= set(flies)
     assert not {"AerialLoc/RealMap-v2", "AerialLoc/RealPair-v2"} & set(flies)     # both fly over the user's files
     with pytest.raises(ConfigError, match=r"^--scenario AerialLoc/RealMap-v1 \(now AerialLoc/RealMap-v2\): flies over "
                                           r"a map file .*takes no map file"):      # not 'use RealMap-v2'
@@ -137,14 +137,14 @@ def test_scenario_is_checked_before_anything_starts():
 
 def test_map_too_small_for_the_flight_is_refused():
     """The plane's loop sits 300 m inside the map and its final runs 1 km north of home: a map without room for
-    them (Small-v2, 400 m) is refused before SITL starts, naming the size needed and a scenario that has it."""
+    them (Small-v3, 400 m) is refused before SITL starts, naming the size needed and a scenario that has it."""
     check_map_fits("AerialLoc/PaperShadows-v2", "plane", _FlatMap(1200.0, 1400.0), 80.0)
-    check_map_fits("AerialLoc/Small-v2", "copter", _FlatMap(400.0, 400.0), 80.0)
-    with pytest.raises(ConfigError, match=r"--scenario AerialLoc/Small-v2: its map is 400 x 400 m, and the plane's "
+    check_map_fits("AerialLoc/Small-v3", "copter", _FlatMap(400.0, 400.0), 80.0)
+    with pytest.raises(ConfigError, match=r"--scenario AerialLoc/Small-v3: its map is 400 x 400 m, and the plane's "
                                           r"flight .* needs at least 1000 x 1350 m; .*PaperShadows-v2"):
-        check_map_fits("AerialLoc/Small-v2", "plane", _FlatMap(400.0, 400.0), 80.0)
+        check_map_fits("AerialLoc/Small-v3", "plane", _FlatMap(400.0, 400.0), 80.0)
     with pytest.raises(ConfigError, match="copter's flight .*160 m leg east"):
-        check_map_fits("AerialLoc/Small-v2", "copter", _FlatMap(400.0, 400.0), 160.0)
+        check_map_fits("AerialLoc/Small-v3", "copter", _FlatMap(400.0, 400.0), 160.0)
 
 
 @pytest.mark.parametrize(("kwargs", "message"), [
@@ -154,15 +154,15 @@ def test_map_too_small_for_the_flight_is_refused():
     ({"ground_amsl_m": math.nan}, r"--ground-amsl-m nan: must be a finite height in \[-500, 9000\] m AMSL"),
     ({"ground_amsl_m": 1e9}, r"--ground-amsl-m 1000000000.0: must be a finite height in \[-500, 9000\]"),
     ({"wind": (40.0, 270.0)}, "--wind .*0..30 m/s"),
-    ({"scenario": "AerialLoc/Small-v0"}, "has 'AerialLoc/Small-v2'"),
+    ({"scenario": "AerialLoc/Small-v0"}, "has 'AerialLoc/Small-v3'"),
     ({"scenario": "AerialLoc/RealMap-v2"}, "takes no map file"),
-    ({"vehicle": "plane", "scenario": "AerialLoc/Small-v2"}, "needs at least 1000 x 1350 m"),
+    ({"vehicle": "plane", "scenario": "AerialLoc/Small-v3"}, "needs at least 1000 x 1350 m"),
 ])
 def test_fly_mission_refuses_bad_inputs_before_sitl_starts(fake_sitl, kwargs, message):
     """Each of these reached SITL or the bridge's thread before (a floating point exception, a thread traceback
     and a 120 s wait for the EKF, a DeprecatedEnv traceback): now a clear error, and SITL never runs."""
     pytest.importorskip("gymnasium")
-    args = {"scenario": "AerialLoc/Small-v2", "ground_amsl_m": 30.0, **kwargs}
+    args = {"scenario": "AerialLoc/Small-v3", "ground_amsl_m": 30.0, **kwargs}
     with pytest.raises(ConfigError, match=message):
         fly_mission(args.pop("scenario"), "template-ncc", sitl_dir=fake_sitl, **args)
     assert not (fake_sitl / "runs").exists()
@@ -176,7 +176,7 @@ def test_sitl_dying_during_the_mission_is_reported_at_once(fake_sitl):
     (fake_sitl / "arducopter").write_text("#!/bin/sh\nsleep 1.5\necho 'Floating point exception'\nexit 136\n")
     with pytest.raises(AerialLocError, match=r"SITL \(arducopter\) died: exit code 136; the end of its output:\n"
                                              r"Floating point exception"):
-        fly_mission("AerialLoc/Small-v2", "template-ncc", ground_amsl_m=30.0, sitl_dir=fake_sitl, timeout_s=3600.0)
+        fly_mission("AerialLoc/Small-v3", "template-ncc", ground_amsl_m=30.0, sitl_dir=fake_sitl, timeout_s=3600.0)
 
 
 @pytest.mark.timeout(120)
@@ -191,7 +191,7 @@ def test_bridge_failing_during_the_mission_is_reported_at_once(fake_sitl, monkey
 
     monkeypatch.setattr(mav_cli, "run", broken)
     with pytest.raises(AerialLocError, match="the bridge stopped: --connect: the link could not be opened"):
-        fly_mission("AerialLoc/Small-v2", "template-ncc", ground_amsl_m=30.0, sitl_dir=fake_sitl, timeout_s=3600.0)
+        fly_mission("AerialLoc/Small-v3", "template-ncc", ground_amsl_m=30.0, sitl_dir=fake_sitl, timeout_s=3600.0)
 
 
 def _kept_pace(s: dict, speedup: float) -> None:
@@ -212,7 +212,7 @@ def test_copter_mission_on_the_vision_fix(mission_sitl):
     at 10 m/s = 3.5 m, in SITL's seconds whatever the speedup): RMSE under 2 sigma + 3.5 m, max under
     5 sigma + 3.5 m."""
     sitl_dir = mission_sitl("arducopter")
-    r = fly_mission("AerialLoc/Small-v2", "template-ncc", ground_amsl_m=30.0, sitl_dir=sitl_dir,
+    r = fly_mission("AerialLoc/Small-v3", "template-ncc", ground_amsl_m=30.0, sitl_dir=sitl_dir,
                     speedup=COPTER_SPEEDUP)
     s = summary(r)
     print(s, [t for _, t in r["texts"]][-12:])
@@ -305,7 +305,7 @@ def test_copter_mission_on_external_nav(mission, long_mission):
     GPS_INPUT mission (the fix sigma 3 m: RMSE < 2 sigma + 3.5 m, max < 5 sigma + 3.5 m on the legs). About
     3.5 min each at real time: run in CI only with AERIAL_LOC_SITL_ALL=1 (keeps CI within its budget)."""
     sitl_dir = long_mission("arducopter", "3.5 min each")
-    r = fly_mission("AerialLoc/Small-v2", "template-ncc", ground_amsl_m=30.0, sitl_dir=sitl_dir, mission=mission)
+    r = fly_mission("AerialLoc/Small-v3", "template-ncc", ground_amsl_m=30.0, sitl_dir=sitl_dir, mission=mission)
     s = summary(r)
     print(s)
     texts = [t for _, t in r["texts"]]
