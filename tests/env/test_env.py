@@ -157,6 +157,18 @@ def test_shadows_darken_the_frame_where_the_mask_says():
     assert dark[~mask].mean() / lit[~mask].mean() > 0.9        # outside the mask: at most soft edges
 
 
+def test_frames_of_a_coarser_pyramid_level_are_the_box_baked_at_that_level():
+    """Small renders from pyramid level 1: each frame is one warp of the episode's box baked at that level (its
+    quantized occlusion carried in the warped alpha), never the level and the grid warped per frame."""
+    env = make()
+    env.reset(seed=2)
+    for _ in range(6):
+        env.step(np.zeros(2, np.float32))
+        assert env._frame.pyramid_level == 1 and env._frame.occlusion_q is not None
+    baked = env._baked
+    assert list(baked.levels) == [1] and baked.levels[1].baked_tiles.any() and not baked.baked_tiles.any()
+
+
 def test_prior_is_gaussian_around_the_truth_with_the_configured_std():
     env = make(duration_s=2.0)
     z = []
