@@ -22,7 +22,8 @@ from __future__ import annotations
 import math
 import mmap
 import sys
-from collections.abc import Callable
+import weakref
+from collections.abc import Callable, Hashable
 from dataclasses import dataclass
 from typing import Any
 
@@ -49,6 +50,32 @@ def map_size(orthomap: Any) -> str:
     """'W x H px (w x h km at g m/px)', for messages."""
     return (f"{orthomap.width_px} x {orthomap.height_px} px ({orthomap.width_m / 1000:.1f} x "
             f"{orthomap.height_m / 1000:.1f} km at {orthomap.gsd_x_m:.3g} m/px)")
+
+
+#: id(map layer) -> (weak reference to it, {key: (derived array(s), the other inputs they were made from)})
+_DERIVED: dict[int, tuple[weakref.ref, dict[Hashable, tuple[Any, tuple]]]] = {}
+
+
+def derived_once(layer: np.ndarray, key: Hashable, make: Callable[[], Any], inputs: tuple = ()) -> Any:
+    """``make()`` computed once per map layer ``layer`` (the database's RGB held whole) and ``key``, then shared:
+    what estimators derive from the map at reset (a gray level, luma words) is the same every episode and for every
+    agent on that map, and an agent that resets when a flight's first frame arrives must not spend that frame's
+    time converting the map again. ``inputs``: the other arrays ``make`` reads (e.g. the no-data layer), named by
+    ``id`` in ``key`` and held with the result (their ids stay theirs while cached). The entries go with the layer
+    (a weak reference); a layer that cannot be weakly referenced is not cached. Results must not be written to: mark
+    them read-only."""
+    lid = id(layer)
+    entry = _DERIVED.get(lid)
+    if entry is None or entry[0]() is not layer:
+        try:
+            ref = weakref.ref(layer, lambda _: _DERIVED.pop(lid, None))   # (gone before its id can be reused)
+        except TypeError:
+            return make()
+        entry = _DERIVED[lid] = (ref, {})
+    got = entry[1].get(key)
+    if got is None:
+        got = entry[1][key] = (make(), inputs)
+    return got[0]
 
 
 def refuse_global_search(orthomap: Any, agent: str, why: str) -> None:
@@ -353,7 +380,7 @@ def frame_has_nodata(frame: RasterMap) -> bool:
 
 
 __all__ = ["Box", "DatabaseWindow", "SparseLayer", "WindowPolicy", "WindowedRenderer", "database_renderer",
-           "lazy_zeros", "read_by_window", "refuse_global_search"]
+           "derived_once", "lazy_zeros", "read_by_window", "refuse_global_search"]
 
 
 # --- when to read a new window ------------------------------------------------------------------------------

@@ -33,7 +33,13 @@ import numpy as np
 
 from aerial_loc_env.config import rng
 from aerial_loc_env.errors import ConfigError
-from aerial_loc_env.estimators.database import DatabaseWindow, WindowPolicy, read_by_window, refuse_global_search
+from aerial_loc_env.estimators.database import (
+    DatabaseWindow,
+    WindowPolicy,
+    derived_once,
+    read_by_window,
+    refuse_global_search,
+)
 from aerial_loc_env.estimators.dead_reckoning import DeadReckoningAgent
 from aerial_loc_env.estimators.patches import to_gray
 from aerial_loc_env.estimators.protocol import Agent, Estimate, Observation, default_altitude_range_m, parse_observation
@@ -60,6 +66,19 @@ class WindowMatchingParams:
                                                                      "over a footprint flown (re-localize)"))
     fine_level: bool = False        # below the working level's lowest altitude, match on the map's own pixels
     #                                 while tracking (a map held whole, finer than the working level)
+
+
+def _working_level(m: Any, f: float, lw: int, lh: int) -> tuple[np.ndarray, np.ndarray | None]:
+    """The map's gray level at (lw, lh), ``f`` map pixels per level pixel (``cv2.INTER_AREA``; the gray image
+    itself at f = 1), and the level pixels touching no-data (None without any), read-only."""
+    gray = to_gray(np.asarray(m.rgb))
+    level = cv2.resize(gray, (lw, lh), interpolation=cv2.INTER_AREA) if f != 1 else gray
+    bad = None
+    if m.nodata is not None and np.any(m.nodata):
+        bad = cv2.resize(np.asarray(m.nodata, np.float32), (lw, lh), interpolation=cv2.INTER_AREA) > 0
+        bad.flags.writeable = False
+    level.flags.writeable = False
+    return level, bad
 
 
 class Fix(NamedTuple):
@@ -99,12 +118,9 @@ class WindowMatchingAgent(Agent):
                 refuse_global_search(m, type(self).__name__, f"global_search with a {briefing.prior.kind} prior")
             self._policy = WindowPolicy(m, lambda alt: self.footprint_half_diagonal_m(alt))
             self.level = np.zeros((lh, lw), np.float32)   # (replaced by the first window's)
-        else:
-            gray = to_gray(np.asarray(m.rgb))
-            self.level = cv2.resize(gray, (lw, lh), interpolation=cv2.INTER_AREA) if f != 1 else gray
-            if m.nodata is not None and np.any(m.nodata):
-                bad = cv2.resize(np.asarray(m.nodata, np.float32), (lw, lh), interpolation=cv2.INTER_AREA) > 0
-                self.level_nodata = bad
+        else:   # made once per map and working resolution (``derived_once``): resets that follow are cheap
+            self.level, self.level_nodata = derived_once(m.rgb, ("working level", f, id(m.nodata)),
+                                                         lambda: _working_level(m, f, lw, lh), (m.nodata,))
         sx, sy = m.width_px / lw, m.height_px / lh
         to_level = np.array([[1 / sx, 0, 0.5 / sx - 0.5], [0, 1 / sy, 0.5 / sy - 0.5], [0, 0, 1.0]])
         self.map_to_level = to_level                                # (3, 3) map pixel -> level pixel

@@ -14,6 +14,7 @@ from test_dense_models import ALT_M, briefing_standin, observation, render_frame
 from aerial_loc_env.config import build_config
 from aerial_loc_env.errors import ConfigError
 from aerial_loc_env.estimators.feature_matching import FeatureMatchingAgent, FeatureMatchingParams
+from aerial_loc_env.estimators.patches import to_gray
 from aerial_loc_env.estimators.template_matching import (
     TemplateMatchingAgent,
     TemplateMatchingParams,
@@ -122,6 +123,52 @@ def test_template_matching_window_outside_the_map_falls_back():
     agent.has_fix = True
     est = agent.step(observation(render_frame(m, *TRUTH, camera=WIDE), TRUTH[2]))
     assert est.status == "dead_reckoning" and "outside" in est.extras["reason"]
+
+
+def test_the_working_level_is_made_once_per_map_and_resolution():
+    """A reset on a map already converted takes its working level as made (read-only, the same array: an agent that
+    resets when a flight's first frame arrives spends no frame time on it); another resolution, another map layer
+    or a no-data layer added make their own, each equal to the conversion done afresh."""
+    m, briefing = _scene()
+    a, b = _agent("template-ncc"), _agent("template-ncc")
+    a.reset(briefing, seed=0)
+    b.reset(briefing, seed=1)
+    assert b.level is a.level and not a.level.flags.writeable and a.level_nodata is None
+    fresh = cv2.resize(to_gray(m.rgb), a.level.shape[::-1], interpolation=cv2.INTER_AREA)
+    np.testing.assert_array_equal(a.level, fresh)
+    coarser = TemplateMatchingAgent(build_config(TemplateMatchingParams, {"work_gsd_m": 1.0}))
+    coarser.reset(briefing, seed=0)
+    assert coarser.level.shape != a.level.shape
+    other = textured_map(600, seed=4, buildings=120)
+    other.nodata = np.zeros(other.rgb.shape[:2], bool)
+    other.nodata[:40] = True
+    c = _agent("template-ncc")
+    c.reset(briefing_standin(other, camera=WIDE, mean_xy_m=(150.0, 140.0), std_xy_m=10.0), seed=0)
+    assert c.level is not a.level and c.level_nodata is not None and c.level_nodata[0].all()
+    np.testing.assert_array_equal(c.level, fresh)       # the same pixels, made anew for the other layer
+
+
+def test_derived_once_goes_with_its_layer():
+    """``derived_once``: one ``make`` per layer and key, shared; the entries go when the layer does; a layer that
+    cannot be weakly referenced is not cached."""
+    import gc
+
+    from aerial_loc_env.estimators import database
+
+    calls = []
+    layer = np.zeros((4, 4), np.uint8)
+    first = database.derived_once(layer, "k", lambda: calls.append(1) or np.ones(2))
+    assert database.derived_once(layer, "k", lambda: calls.append(1) or np.ones(2)) is first and len(calls) == 1
+    database.derived_once(layer, "other", lambda: calls.append(1) or np.ones(2))
+    assert len(calls) == 2 and id(layer) in database._DERIVED
+    key = id(layer)
+    del layer
+    gc.collect()
+    assert key not in database._DERIVED
+    plain = [1, 2]
+    database.derived_once(plain, "k", lambda: calls.append(1))
+    database.derived_once(plain, "k", lambda: calls.append(1))
+    assert len(calls) == 4
 
 
 def test_parabola_offset_finds_the_vertex():

@@ -356,17 +356,17 @@ def _plane_loop(r: dict, s: dict) -> list[str]:
 def _plane_loop_and_landing(r: dict, s: dict) -> None:
     """What both plane missions must show: the loop on the established vision fix, the landing, touchdown.
 
-    The camera gives frames from the agent's lowest altitude (template-ncc on PaperShadows-v2: 10 m, its fine
-    level; a first fix only from the working level's 40 m); the take-off climbs on to 100 m and the first leg
-    climbs out to the loop's 200 m (about 40 s in all): the agent's acquisition from the scenario's 15 m prior
-    (seed 0 puts it 20.5 m off, and before a first fix a match within 3 prior sigmas is taken, false ones too:
-    its first estimates were up to 42-49 m off, and the EKF carried 13 m of that into the first leg) happens
-    there. The loop (from its first corner, at 200 m, to DO_LAND_START) is
-    tracking, and its bound is the copter's: the agent's fix sigma (3 m) plus the fix's age at cruise speed (0.25
-    s frame + 0.1 s tick at 22 m/s = 7.7 m): RMSE under 2 sigma + 7.7 m, max under 5 sigma + 7.7 m. (Until this
-    mission the camera started at 120 m after a 15 s climb with no fix, the acquisition fell into the legs, and
-    their max, 25-52 m against a bound of 3 prior sigmas + 7.7 m, was that start's error plus the EKF's drift
-    over the climb: not a tracking figure, and not bounded by the prior's sigma.)
+    The camera gives frames from the agent's lowest altitude (template-ncc on PaperShadows-v2: 10 m, its fine level; a
+    first fix only from the working level's 40 m); the take-off climbs on to 100 m and the first leg climbs out to the
+    loop's 200 m (about 40 s in all): the agent's acquisition from the scenario's 15 m prior (seed 0 puts it 20.5 m
+    off, and before a first fix a match within 3 prior sigmas is taken, false ones too; the first frame must come on
+    time: a reset that made the map's level again there once put it 2 s late and the estimator 50-100 m off,
+    docs/mavlink.md) happens there. The loop (from its first corner, at 200 m, to DO_LAND_START) is tracking, and its
+    bound is the copter's: the agent's fix sigma (3 m) plus the fix's age at cruise speed (0.25 s frame + 0.1 s tick
+    at 22 m/s = 7.7 m): RMSE under 2 sigma + 7.7 m, max under 5 sigma + 7.7 m. (Until this mission the camera started
+    at 120 m after a 15 s climb with no fix, the acquisition fell into the legs, and their max, 25-52 m against a
+    bound of 3 prior sigmas + 7.7 m, was that start's error plus the EKF's drift over the climb: not a tracking
+    figure, and not bounded by the prior's sigma.)
     Touchdown, after about 6 s of dead reckoning below the camera's range: the EKF's error within 3 times the
     horizontal accuracy it claims there (sqrt of its north + east position variances, XKV1: a consistent
     Gaussian error exceeds that with probability e^-9 = 0.01 % if circular, 0.27 % if all along one axis;

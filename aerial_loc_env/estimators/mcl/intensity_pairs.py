@@ -62,7 +62,6 @@ Points that fall outside the database or on no-data count as half an agreement (
 from __future__ import annotations
 
 import math
-import weakref
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
@@ -73,7 +72,7 @@ import numpy as np
 from aerial_loc_env import portable
 from aerial_loc_env.config import build_config, rng
 from aerial_loc_env.errors import ConfigError
-from aerial_loc_env.estimators.database import DatabaseWindow
+from aerial_loc_env.estimators.database import DatabaseWindow, derived_once
 from aerial_loc_env.estimators.mcl.estimate import yaw_cos_sin
 from aerial_loc_env.estimators.mcl.intensity_pairs_kernels import (
     bounded_pairs,
@@ -185,28 +184,14 @@ def similarity_from_counts(counts: np.ndarray, sums: np.ndarray, valid: np.ndarr
     return portable.matmul(f, pair_weights) / (total_w * c)
 
 
-#: id(rgb layer) -> (weak reference to it, the no-data layer it was read with, {channels: (words, nodata)})
-_DATABASE_CACHE: dict[int, tuple[weakref.ref, Any, dict[int, tuple[np.ndarray, np.ndarray | None]]]] = {}
-
-
 def _database_words(rgb: np.ndarray, nodata: np.ndarray | None,
                     channels: int) -> tuple[np.ndarray, np.ndarray | None]:
     """The database's luma bytes for c = 1 (None for c = 3: the kernel reads the RGB bytes of the map itself) and
     the flat no-data mask (None when there is none), read-only. Computed once per map layer and shared by every
-    model on it: the 12 agents of a Table 5 episode would otherwise convert the same map 12 times."""
-    key = id(rgb)
-    entry = _DATABASE_CACHE.get(key)
-    if entry is None or entry[0]() is not rgb or entry[1] is not nodata:
-        for k in [k for k, (ref, _, _) in _DATABASE_CACHE.items() if ref() is None]:
-            del _DATABASE_CACHE[k]               # layers that are gone
-        try:
-            ref = weakref.ref(rgb)
-        except TypeError:                        # not weak-referenceable: no caching
-            return _convert_database(rgb, nodata, channels)
-        entry = _DATABASE_CACHE[key] = (ref, nodata, {})
-    if channels not in entry[2]:
-        entry[2][channels] = _convert_database(rgb, nodata, channels)
-    return entry[2][channels]
+    model on it (``database.derived_once``): the 12 agents of a Table 5 episode would otherwise convert the same
+    map 12 times."""
+    return derived_once(rgb, ("intensity-pair words", channels, id(nodata)),
+                        lambda: _convert_database(rgb, nodata, channels), (nodata,))
 
 
 def _convert_database(rgb: np.ndarray, nodata: np.ndarray | None,
