@@ -672,20 +672,21 @@ class CameraRenderer:
         footprint = footprint_px(affine, camera, tilt)
         status = self._status(affine, level, camera, map_corners=footprint)
         self._check(pose, status, strict, camera)
+        # a flat, untilted view needs no per-pixel maps (the affine warp is exact): skip their two float passes
+        flat = tilt is None and self._view.dsm is None
         baked = occlusion if isinstance(occlusion, BakedShadows) else None
         if baked is not None:
             occlusion, shading_params = baked.grid, baked.shading_params
             reads = self._view.reads_bounds_px(footprint)     # the bounds of the map points the frame reads
-            if level > 0 and (tilt is not None or self._view.dsm is not None):
+            if level > 0 and not flat:
                 baked = None        # views' maps are made at level 0
-            elif level != baked.level:  # a flat, untilted view warps the box baked at its level
+            elif level != baked.level:  # a flat view warps the box baked at its level
                 baked = self._baked_level(baked, level) if baked.level == 0 else None
             if baked is not None:
                 reads = tuple(r / (1 << level) for r in reads) if level else reads
                 baked = baked if baked.covers(reads) else None
-        # a flat, untilted view needs no per-pixel maps (the affine warp is exact): skip their two float passes;
         # a view's maps come in the baked box's pixels when it serves the frame (no shift of the maps to sample it)
-        plan = None if tilt is None and self._view.dsm is None else self._view.plan(
+        plan = None if flat else self._view.plan(
             affine, pose.altitude_m, camera, tilt, (0, 0) if baked is None else baked.origin_px, footprint)
         if baked is not None:
             self._bake_tiles(baked, reads)
