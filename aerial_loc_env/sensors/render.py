@@ -44,6 +44,7 @@ from __future__ import annotations
 import functools
 import math
 import sys
+import weakref
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Literal
@@ -75,6 +76,8 @@ GENERATOR_VERSION = 1
 _WARP_FLAGS = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
 _RGBA_MAX_PX = 32_000_000  # maps up to this many pixels get an RGBA copy (faster warps; the default city: 27 Mpx)
 _BAKE_TILE_PX = 128  # BakedShadows fills its box in tiles this size, as footprints first reach them
+_BOX_POOL_BUFFERS = 4            # a renderer keeps at most this many freed boxes' buffers ...
+_BOX_POOL_MAX_BYTES = 256 << 20  # ... holding at most this many bytes (larger ones are freed as before)
 _NOISE_MARGIN_PX = 97  # the noise bank is this much larger than a frame in each direction (random offsets)
 _BLOCK_PX = 16  # no-data screening block (map pixels)
 _NOISE_BITS = 11  # the int16 noise bank holds round(z * 2**11), |z| <= 16
@@ -186,6 +189,48 @@ class Frame:
         return self._occlusion
 
 
+class _BoxPool:
+    """The memory of an episode's freed boxes (``BakedShadows.rgba``), kept for the renderer's next boxes.
+
+    A box is written once, a tile at a time, as the flight first reaches it, and a tile's rows lie in as many
+    memory pages (a box row is wider than a page): in fresh memory every tile faults in a page per row, which on a
+    virtual machine costs a frame that bakes tiles several times their shading. A box in a freed box's memory finds
+    the pages the last flights touched committed. The bytes it held do not matter: a frame reads baked tiles only.
+    At most ``_BOX_POOL_BUFFERS`` buffers and ``_BOX_POOL_MAX_BYTES`` bytes are kept; more are freed."""
+
+    def __init__(self) -> None:
+        self._free: list[np.ndarray] = []
+
+    def take(self, shape: tuple[int, int, int]) -> np.ndarray:
+        """A uint8 array of ``shape``: a view of the smallest free buffer that holds it, else new memory."""
+        need = shape[0] * shape[1] * shape[2]
+        fits = [i for i, buf in enumerate(self._free) if buf.size >= need]
+        if not fits:
+            # the kept buffers go back to the allocator first (fresh memory is theirs, recycled, rather than memory
+            # never touched, which a virtual machine's host may not have mapped yet); half again this box's size
+            # (address space: pages are committed where written), so that later episodes' boxes fit; its base is
+            # the flat buffer given back
+            self._free.clear()
+            return np.empty(need + need // 2, np.uint8)[:need].reshape(shape)
+        buf = self._free.pop(min(fits, key=lambda i: self._free[i].size))
+        return buf[:need].reshape(shape)
+
+    def give(self, array: np.ndarray) -> None:
+        """Take back the memory of ``array`` (a box no longer used), keeping the largest buffers within the limits."""
+        buf = array if array.base is None else array.base
+        if buf.ndim != 1 or buf.nbytes > _BOX_POOL_MAX_BYTES:
+            return
+        self._free.append(buf)
+        self._free.sort(key=lambda b: -b.size)
+        while len(self._free) > _BOX_POOL_BUFFERS or sum(b.nbytes for b in self._free) > _BOX_POOL_MAX_BYTES:
+            self._free.pop()
+
+    def box(self, baked: BakedShadows) -> BakedShadows:
+        """``baked``, its box's memory given back to the pool when it is no longer used."""
+        weakref.finalize(baked, self.give, baked.rgba).atexit = False
+        return baked
+
+
 @dataclass(frozen=True, eq=False)
 class BakedShadows:
     """An episode's cast shadows shaded into a box of the map (``CameraRenderer.bake``).
@@ -193,13 +238,14 @@ class BakedShadows:
     A frame whose footprint lies in the box is ONE warp of ``rgba``: the shaded RGB, with the occlusion quantized
     to uint8 in the alpha channel (the channel the renderer warps anyway), so the per-frame occlusion warp and
     shading disappear. ``rgba`` is filled lazily in tiles of ``_BAKE_TILE_PX``, each the first time a footprint
-    needs it: an episode shades the strip it flies over, not its whole bounding box, and the memory of tiles never
-    touched is never committed (``np.empty``). A tile's bytes do not depend on when it is baked. Perspective and
-    tilted views sample it through their maps. Frames warped from a coarser pyramid level L (a flat, untilted view)
-    take the same box at that level (``levels[L]``, made on first use: the level's pixels shaded with the grid at
-    their centres), so that every level is shaded before it is interpolated. Frames that cannot use it (a footprint
-    or a view's reads leaving the box, a perspective or tilted view at level > 0) render from ``grid`` and
-    ``shading_params`` as before. The shading is applied before the interpolation instead of after it: the same
+    needs it: an episode shades the strip it flies over, not its whole bounding box, and its memory is either fresh
+    (``np.empty``: tiles never touched are never committed) or a freed box's (``_BoxPool``: pages committed by
+    earlier episodes). A tile's bytes do not depend on when it is baked. Perspective and tilted views sample it
+    through their maps. Frames warped from a coarser pyramid level L (a flat, untilted view) take the same box at
+    that level (``levels[L]``, made on first use: the level's pixels shaded with the grid at their centres), so
+    that every level is shaded before it is interpolated. Frames that cannot use it (a footprint or a view's reads
+    leaving the box, a perspective or tilted view at level > 0) render from ``grid`` and ``shading_params`` as
+    before. The shading is applied before the interpolation instead of after it: the same
     bytes away from shadow edges up to rounding, and within the bound tests/sensors/test_render_bake.py derives at the
     edges; the shadow mask is the warped alpha >= 128.
     """
@@ -369,6 +415,7 @@ class CameraRenderer:
                                     _BLOCK_PX).max(axis=(1, 3))
             self._nodata_blocks = cv2.integral((blocks > 0).astype(np.uint8))
         self._noise_bank: np.ndarray | None = None
+        self._boxes = _BoxPool()     # freed boxes' memory for the next episodes' (``bake``)
         self._affine_terms_of: tuple[Any, Any, float, tuple[float, ...]] = (None, None, math.nan, ())
         self._sensor = _SensorParams.build(self.camera, self.photometry)
         self.reset(noise_seed if isinstance(noise_seed, np.random.Generator) else np.random.default_rng(noise_seed))
@@ -388,7 +435,8 @@ class CameraRenderer:
         Returns None where baking does not apply: maps warped as RGB (no alpha channel to carry the occlusion).
         Perspective and tilted views sample the box through their per-pixel maps (the shadows lie in map
         coordinates, on the surfaces the view sees). Memory: at most one RGBA copy of the box (the tiles flown
-        over), held by the returned object only."""
+        over), held by the returned object only; once it is freed, the renderer keeps that memory for its next
+        boxes (``_BoxPool``: its pages stay committed, so later episodes' tiles fault none in)."""
         from aerial_loc_env.world.shadows import ShadowGrid
 
         if not self._rgba or not isinstance(grid, ShadowGrid):
@@ -399,9 +447,16 @@ class CameraRenderer:
         if c1 <= c0 or r1 <= r0:
             raise ConfigError(f"CameraRenderer.bake: box_px = {box_px!r} holds no map pixel of the {w}x{h} map")
         self._grid(grid)                         # checks the grid against the map
-        tiles = (-(-(r1 - r0) // _BAKE_TILE_PX), -(-(c1 - c0) // _BAKE_TILE_PX))
-        return BakedShadows(grid, dict(shading_params or {}), np.empty((r1 - r0, c1 - c0, 4), np.uint8), (c0, r0),
-                            np.zeros(tiles, dtype=bool))
+        return self._new_box(grid, dict(shading_params or {}), (r1 - r0, c1 - c0), (c0, r0))
+
+    def _new_box(self, grid: Any, shading_params: Mapping[str, Any], size_px: tuple[int, int],
+                 origin_px: tuple[int, int], level: int = 0) -> BakedShadows:
+        """A box of ``size_px`` (rows, columns) at ``origin_px`` of pyramid level ``level``, no tile shaded yet, in a
+        freed box's memory where the renderer kept one (``_BoxPool``)."""
+        h, w = size_px
+        tiles = (-(-h // _BAKE_TILE_PX), -(-w // _BAKE_TILE_PX))
+        return self._boxes.box(BakedShadows(grid, shading_params, self._boxes.take((h, w, 4)), origin_px,
+                                            np.zeros(tiles, dtype=bool), level=level))
 
     def _baked_level(self, baked: BakedShadows, level: int) -> BakedShadows:
         """The level-0 box ``baked`` at pyramid level ``level`` > 0: the level's pixels over the level-0 box, with
@@ -414,9 +469,7 @@ class CameraRenderer:
             lh, lw = self.map_level(level).shape[:2]
             lc0, lr0 = max(0, c0 // s - 2), max(0, r0 // s - 2)
             lc1, lr1 = min(lw, -(-(c0 + w) // s) + 2), min(lh, -(-(r0 + h) // s) + 2)
-            tiles = (-(-(lr1 - lr0) // _BAKE_TILE_PX), -(-(lc1 - lc0) // _BAKE_TILE_PX))
-            got = BakedShadows(baked.grid, baked.shading_params, np.empty((lr1 - lr0, lc1 - lc0, 4), np.uint8),
-                               (lc0, lr0), np.zeros(tiles, dtype=bool), level=level)
+            got = self._new_box(baked.grid, baked.shading_params, (lr1 - lr0, lc1 - lc0), (lc0, lr0), level)
             baked.levels[level] = got
         return got
 

@@ -291,3 +291,64 @@ def test_tile_upsampling_equals_the_per_frame_warp_bit_for_bit(factor):
         a = np.array([[1.0 / factor, 0.0, (u0 + 0.5) / factor - 0.5], [0.0, 1.0 / factor, (v0 + 0.5) / factor - 0.5]])
         ref = cv2.warpAffine(data, a, (w, h), flags=flags, borderMode=cv2.BORDER_REPLICATE)
         np.testing.assert_array_equal(_upsample_tile(data, factor, u0, v0, w, h), ref)
+
+
+@pytest.mark.parametrize("relief", [False, True])
+def test_a_box_in_a_freed_box_memory_renders_the_same_frames(relief):
+    """A renderer keeps a freed box's memory for its next boxes (its pages already committed): the next box of the
+    same renderer lies in it, its frames (flat, tilted, perspective, and the box's level-1 copy) are a fresh box's
+    whatever bytes the old box left there (a frame reads only tiles it baked), and two live boxes never share
+    memory."""
+    orthomap, grid = _scene(hard=False)
+    if relief:
+        dsm = np.zeros((400, 400), np.float32)
+        dsm[150:200, 215:265] = 12.0
+        orthomap = SimpleNamespace(**vars(orthomap), dsm_m=dsm)
+    views = [(pose, (0.0, 0.0)) for pose in POSES + LEVEL_1_POSES] + [(pose, (0.01, -0.008)) for pose in POSES]
+
+    def frames(renderer, baked):
+        rng = np.random.default_rng(6)
+        return [renderer.render(pose, rng, baked, None, tilt_rad=tilt).image for pose, tilt in views]
+
+    def make():
+        return CameraRenderer(orthomap, CAMERA, Photometry(), noise_seed=5,
+                              perspective=PerspectiveConfig(enabled=True))
+
+    expected = frames(fresh := make(), fresh.bake(grid, SHADING, (40, 40, 360, 360)))
+    renderer = make()
+    old = renderer.bake(grid, SHADING, (0, 0, 400, 400))
+    frames(renderer, old)                                   # an episode: tiles (and a level-1 box) baked
+    boxes = [old, *old.levels.values()]
+    assert len(boxes) == (1 if relief else 2)               # perspective views above level 0: the per-frame path
+    memory = [box.rgba.base for box in boxes]
+    for k, box in enumerate(boxes):
+        box.rgba[...] = 0xA5 ^ k                            # what a freed box leaves is arbitrary
+    del old, boxes, box
+    baked = renderer.bake(grid, SHADING, (40, 40, 360, 360))
+    got = frames(renderer, baked)
+    for box, buf in zip([baked, *baked.levels.values()], memory, strict=True):
+        assert np.shares_memory(box.rgba, buf)
+    for a, b in zip(expected, got, strict=True):
+        np.testing.assert_array_equal(a, b)
+    other = renderer.bake(grid, SHADING, (40, 40, 360, 360))   # while ``baked`` lives: memory of its own
+    assert not any(np.shares_memory(other.rgba, box.rgba) for box in [baked, *baked.levels.values()])
+
+
+def test_the_box_pool_keeps_few_buffers_within_its_byte_limit(monkeypatch):
+    from aerial_loc_env.sensors import render
+
+    monkeypatch.setattr(render, "_BOX_POOL_MAX_BYTES", 12_000)
+    pool = render._BoxPool()
+    boxes = [pool.take((10, 10 * k, 4)) for k in range(1, 7)]   # 400 .. 2400 bytes, buffers half again as large
+    assert [box.base.size for box in boxes] == [600 * k for k in range(1, 7)]
+    for box in boxes:
+        pool.give(box)
+    assert sorted(buf.size for buf in pool._free) == [1800, 2400, 3000, 3600]   # the largest four, 10800 bytes
+    assert np.shares_memory(pool.take((10, 30, 4)), boxes[2])       # the smallest that holds it
+    monkeypatch.setattr(render, "_BOX_POOL_MAX_BYTES", 9_000)
+    pool.give(boxes[2])
+    assert sorted(buf.size for buf in pool._free) == [2400, 3000, 3600]        # within the byte limit
+    big = pool.take((40, 40, 4))                                    # none holds 6400 bytes: the kept ones freed
+    assert not pool._free and big.base.size == 9600
+    pool.give(big)                                                  # over the byte limit: never kept
+    assert not pool._free
