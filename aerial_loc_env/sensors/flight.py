@@ -110,6 +110,12 @@ def wrap_angle(a: np.ndarray | float) -> np.ndarray | float:
     return (np.asarray(a) + math.pi) % (2.0 * math.pi) - math.pi
 
 
+def _wrap(a: float) -> float:
+    """``wrap_angle`` of one Python float, without NumPy's per-call cost (the same IEEE operations: Python's float
+    ``%`` and NumPy's ``remainder`` both take ``fmod`` and add the divisor where the signs differ)."""
+    return (a + math.pi) % (2.0 * math.pi) - math.pi
+
+
 def footprint_radius_m(footprint_w_m: float, footprint_h_m: float) -> float:
     """Half-diagonal of a footprint: the clearance that keeps it inside whatever the yaw."""
     return 0.5 * math.hypot(footprint_w_m, footprint_h_m)
@@ -165,35 +171,33 @@ def _fly(config: FlightConfig, region: FlyableRegion, rng: np.random.Generator,
     # altitude jitter clipped at 3 sigma: the clearance is computed for altitude + 3 sigma (footprint size)
     alt = config.altitude_m + np.clip(rng.normal(0.0, config.altitude_noise_m, n),
                                       -3.0 * config.altitude_noise_m, 3.0 * config.altitude_noise_m)
-    xs, ys, yaws = np.empty(n), np.empty(n), np.empty(n)
-    speeds, rates, forwards, laterals = np.empty(n), np.empty(n), np.empty(n), np.empty(n)
+    # the step-by-step integration in Python floats (NumPy's float64 scalar arithmetic, the same IEEE operations,
+    # costs several times more per operation): inputs as lists, the poses appended
+    we_l, wn_l, speed_l, rate_l = we[:n].tolist(), wn[:n].tolist(), speed_noise.tolist(), rate_noise.tolist()
     x, y = float(start[0]), float(start[1])
-    xs[0], ys[0], yaws[0], speeds[0], rates[0] = x, y, yaw, air, 0.0
-    forwards[0], laterals[0] = _body_velocity(air, yaw, float(we[0]), float(wn[0]))
+    poses = [(x, y, yaw, air, 0.0, *_body_velocity(air, yaw, we_l[0], wn_l[0]))]
     reach = max(air * dt * 2.0, air / max(turn, 1e-9) * 0.5)
-    count = 1
     for i in range(1, n):
         if math.hypot(waypoint[0] - x, waypoint[1] - y) < reach:
             waypoint = _next_waypoint(region, rng, (x, y), config.min_leg_m, inset)
-        e_i, n_i = float(we[i]), float(wn[i])      # the wind over the step ending at pose i
+        e_i, n_i = we_l[i], wn_l[i]      # the wind over the step ending at pose i
         heading = crab_heading(math.atan2(waypoint[1] - y, waypoint[0] - x), e_i, n_i, air)
-        err = float(wrap_angle(heading - yaw))
+        err = _wrap(heading - yaw)
         cmd = max(-turn, min(turn, err / dt))
-        v = max(0.0, air + speed_noise[i])
-        w = cmd + rate_noise[i]
+        v = max(0.0, air + speed_l[i])
+        w = cmd + rate_l[i]
         half = yaw + 0.5 * w * dt
         # calm air adds 0.0: the same floats as the track without wind
         x, y = x + v * dt * math.cos(half) + e_i * dt, y + v * dt * math.sin(half) + n_i * dt
-        yaw = float(wrap_angle(yaw + w * dt))
-        if not region.contains(x, y):
+        yaw = _wrap(yaw + w * dt)
+        if not region.contains_point(x, y):
             break
-        xs[i], ys[i], yaws[i], speeds[i], rates[i] = x, y, yaw, v, w
-        forwards[i], laterals[i] = _body_velocity(v, half, e_i, n_i)
-        count = i + 1
-    m = count
-    return Track(t_s=np.arange(m) * dt, x_m=xs[:m].copy(), y_m=ys[:m].copy(), yaw_rad=yaws[:m].copy(),
-                 altitude_m=alt[:m].copy(), speed_mps=speeds[:m].copy(), yaw_rate_radps=rates[:m].copy(),
-                 forward_mps=forwards[:m].copy(), lateral_mps=laterals[:m].copy())
+        poses.append((x, y, yaw, v, w, *_body_velocity(v, half, e_i, n_i)))
+    m = len(poses)
+    xs, ys, yaws, speeds, rates, forwards, laterals = np.array(poses, dtype=np.float64).T
+    return Track(t_s=np.arange(m) * dt, x_m=xs.copy(), y_m=ys.copy(), yaw_rad=yaws.copy(),
+                 altitude_m=alt[:m].copy(), speed_mps=speeds.copy(), yaw_rate_radps=rates.copy(),
+                 forward_mps=forwards.copy(), lateral_mps=laterals.copy())
 
 
 def _body_velocity(airspeed_mps: float, heading_rad: float, wind_e_mps: float,

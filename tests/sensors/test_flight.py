@@ -14,6 +14,7 @@ from aerial_loc_env.sensors.flight import (
     MAX_CROSSWIND_SHARE,
     AltimeterConfig,
     FlightConfig,
+    _wrap,
     crab_heading,
     measure,
     sample_track,
@@ -208,3 +209,21 @@ def test_calm_air_leaves_the_track_as_it_was():
     again = sample_track(cfg, _paper_region(), np.random.default_rng(3), calm)
     for name in ("x_m", "y_m", "yaw_rad", "speed_mps", "forward_mps", "lateral_mps"):
         assert np.array_equal(getattr(track, name), getattr(again, name))
+
+
+def test_the_integrations_scalar_wrap_and_region_lookup_equal_the_vectorized_ones():
+    """``_fly`` integrates in Python floats: its angle wrap and point lookup give the NumPy functions' values bit for
+    bit, at random points, on cell edges, at the wrap's edges, outside the map and for NaN."""
+    rng = np.random.default_rng(3)
+    nodata = np.zeros((300, 400), bool)
+    nodata[100:140, 200:260] = True
+    region = FlyableRegion(400.0, 300.0, 20.0, nodata=nodata, cell_m=2.5)
+    xy = [*rng.uniform(-30.0, 430.0, (4000, 2)),
+          *[(2.5 * i, 2.5 * j) for i in range(-1, 162, 7) for j in range(-1, 122, 5)],
+          (0.0, 0.0), (-0.0, -0.0), (400.0, 150.0), (399.999999, 299.999999), (np.nan, 5.0), (5.0, np.inf)]
+    got = [region.contains_point(float(x), float(y)) for x, y in xy]
+    assert got == region.contains(*np.array(xy).T).tolist()
+    assert 0 < sum(got) < len(got)
+    angles = [*rng.uniform(-20.0, 20.0, 4000), 0.0, -0.0, math.pi, -math.pi, 3 * math.pi, -3 * math.pi, 1e9]
+    for a in angles:
+        assert _wrap(a) == float(wrap_angle(a)) and math.copysign(1.0, _wrap(a)) == math.copysign(1.0, wrap_angle(a))

@@ -53,6 +53,13 @@ class FlyableRegion:
         out[inside] = self.ok[i[inside], j[inside]]
         return out
 
+    def contains_point(self, x_m: float, y_m: float) -> bool:
+        """``contains`` for one point, in plain Python (a flight's step-by-step integration asks once per step)."""
+        fi, fj = y_m / self.cell_y_m, x_m / self.cell_x_m
+        if not (0.0 <= fi < self.ok.shape[0] and 0.0 <= fj < self.ok.shape[1]):    # (NaN: outside)
+            return False
+        return bool(self.ok[int(fi), int(fj)])
+
     def sample(self, rng: np.random.Generator, n: int = 1, inset_m: float = 0.0) -> np.ndarray:
         """``n`` uniform points (n, 2) of the region, or of its part at least ``inset_m`` further from the
         edge when that part is not empty."""
