@@ -519,6 +519,10 @@ class AerialLocEnv(gym.Env):
         if self._track is None:
             raise AerialLocError(f"{self.scenario.id}: call reset() before step()")
         a = np.asarray(action)
+        if a.shape == (2,) and a.dtype.char in "fd":    # the usual action, checked in plain Python (a step's
+            x, y = a.tolist()                           # NumPy calls on 2 values cost more than its frame's
+            if abs(x) <= 1.0 and abs(y) <= 1.0:         # Python): within [-1, 1] (not NaN), nothing to clip
+                return np.array((x, y))
         if not np.issubdtype(a.dtype, np.floating):
             raise InvalidActionError(f"{self.scenario.id}: action must be a float array (float32), got dtype "
                                      f"{a.dtype}; convert positions with aerial_loc_env.env.world_to_action")

@@ -20,6 +20,7 @@ episode without wind is the episode it was before wind existed.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field
 
@@ -120,8 +121,9 @@ class WindField:
     mean_speed_mps: float
     mean_from_deg: float
 
-    @property
+    @functools.cached_property
     def calm(self) -> bool:
+        """No wind at any frame (asked at every step: computed once)."""
         return not (np.any(self.east_mps) or np.any(self.north_mps))
 
     def at(self, i: int) -> tuple[float, float]:

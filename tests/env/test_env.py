@@ -235,6 +235,21 @@ def test_bad_actions_are_clear_errors(action, match):
         env.step(action)
 
 
+@pytest.mark.parametrize("action", [
+    np.array([0.25, -0.5], np.float32), np.array([1.0, -1.0]), np.array([1.0 + 5e-6, -1.0 - 5e-6]),
+    np.array([-1.000004, 0.3], np.float32), np.array([0.5, 0.5], np.float16), [0.1, 0.2], (-0.3, 1.0),
+])
+def test_actions_within_the_map_are_scored_as_their_clipped_metres(action):
+    """The usual action (2 float32 or float64 values in [-1, 1]) is checked in plain Python; every accepted
+    action, on that path or the general one (other dtypes, sequences, values up to 1e-5 beyond the map's edge),
+    scores the metres of the action clipped to [-1, 1]."""
+    env = make()
+    env.reset(seed=0)
+    _, _, _, _, info = env.step(action)
+    expected = action_to_world(env.unwrapped.orthomap, np.clip(np.asarray(action, np.float64), -1.0, 1.0))
+    np.testing.assert_array_equal(info["estimate_xy_m"], expected)
+
+
 def test_step_before_reset_and_reset_options_are_errors():
     env = make()
     with pytest.raises(AerialLocError, match="reset"):
