@@ -281,17 +281,19 @@ class _InfoRecords:
             layout.write(slot, info)
         except (OverflowError, ValueError, TypeError):     # a number its field cannot hold: sent whole
             return info
+        if not self.remote:      # the caller's own sub-envs: nothing travels, every object is handed over
+            return _Packed((ident, None, tuple((key, info[key]) for key in layout.object_keys)))
         sent = self._sent.setdefault(slot, {})
         objects = []
         for key in layout.object_keys:
             value = info[key]
-            if not (self.remote and key in sent and sent[key] is value):
+            if not (key in sent and sent[key] is value):
                 objects.append((key, value))
                 if _unchanging(value):
                     sent[key] = value
                 else:
                     sent.pop(key, None)
-        new = self.remote and ident not in self._announced
+        new = ident not in self._announced
         self._announced.add(ident)
         return _Packed((ident, layout.signature if new else None, tuple(objects)))
 
