@@ -192,11 +192,12 @@ class Frame:
 class _BoxPool:
     """The memory of an episode's freed boxes (``BakedShadows.rgba``), kept for the renderer's next boxes.
 
-    A box is written once, a tile at a time, as the flight first reaches it, and a tile's rows lie in as many
-    memory pages (a box row is wider than a page): in fresh memory every tile faults in a page per row, which on a
-    virtual machine costs a frame that bakes tiles several times their shading. A box in a freed box's memory finds
-    the pages the last flights touched committed. The bytes it held do not matter: a frame reads baked tiles only.
-    At most ``_BOX_POOL_BUFFERS`` buffers and ``_BOX_POOL_MAX_BYTES`` bytes are kept; more are freed."""
+    A box is written once, a tile at a time, as the flight first reaches it: in fresh memory the first write to
+    each page faults it in (a 4 KiB page per tile row, or a 2 MiB huge page where the kernel hands them out), which
+    on a virtual machine can cost the frame that bakes the tile many times its shading. A box in a freed box's
+    memory finds the pages the last flights touched committed. The bytes it held do not matter: a frame reads
+    baked tiles only. At most ``_BOX_POOL_BUFFERS`` buffers and ``_BOX_POOL_MAX_BYTES`` bytes are kept; more are
+    freed."""
 
     def __init__(self) -> None:
         self._free: list[np.ndarray] = []
@@ -204,7 +205,8 @@ class _BoxPool:
     def take(self, shape: tuple[int, int, int]) -> np.ndarray:
         """A uint8 array of ``shape``: a view of the smallest free buffer that holds it, else new memory."""
         need = shape[0] * shape[1] * shape[2]
-        fits = [i for i, buf in enumerate(self._free) if buf.size >= need]
+        # by identity, over a snapshot: a box collected by the cyclic GC during these lines gives its buffer back
+        fits = [buf for buf in tuple(self._free) if buf.size >= need]
         if not fits:
             # the kept buffers go back to the allocator first (fresh memory is theirs, recycled, rather than memory
             # never touched, which a virtual machine's host may not have mapped yet); half again this box's size
@@ -212,7 +214,8 @@ class _BoxPool:
             # the flat buffer given back
             self._free.clear()
             return np.empty(need + need // 2, np.uint8)[:need].reshape(shape)
-        buf = self._free.pop(min(fits, key=lambda i: self._free[i].size))
+        buf = min(fits, key=lambda b: b.size)
+        self._free[:] = [b for b in self._free if b is not buf]
         return buf[:need].reshape(shape)
 
     def give(self, array: np.ndarray) -> None:
