@@ -107,12 +107,13 @@ class Track:
 
 def wrap_angle(a: np.ndarray | float) -> np.ndarray | float:
     """Wrap radians to [-pi, pi)."""
-    return (np.asarray(a) + math.pi) % (2.0 * math.pi) - math.pi
+    return _wrap(np.asarray(a))
 
 
-def _wrap(a: float) -> float:
-    """``wrap_angle`` of one Python float, without NumPy's per-call cost (the same IEEE operations: Python's float
-    ``%`` and NumPy's ``remainder`` both take ``fmod`` and add the divisor where the signs differ)."""
+def _wrap(a: np.ndarray | float) -> np.ndarray | float:
+    """``wrap_angle``'s formula on ``a`` as it is: a Python float stays one (the track's step-by-step integration
+    avoids NumPy's per-call cost; Python's float ``%`` and NumPy's ``remainder`` both take ``fmod`` and add the
+    divisor where the signs differ, so the values are the same)."""
     return (a + math.pi) % (2.0 * math.pi) - math.pi
 
 
