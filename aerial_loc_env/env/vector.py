@@ -11,9 +11,10 @@ the calling process steps the last block itself while each worker steps its own,
 instead of waiting, and each worker gets one message per step for its whole block (not one per sub-env).
 Observations travel through shared memory, and so do a Box space's actions and the infos' numbers and numeric
 arrays (``_InfoRecords``: one record per sub-env, laid out by the info's keys and kinds; the objects in an info go
-in the message, and an unchanging one only when it changed); rewards, flags and the rest as one small pickle per
-worker and step. The caller batches the infos from the records (one copy per key), which is what brings the
-lockstep's fixed cost per step below a small scenario's step.
+in the message, and an unchanging one only when it changed), and the rewards and flags (``_Outcomes``): a steady
+step's answer is then the infos' layout ids alone; the rest goes as one small pickle per worker and step. The
+caller batches the infos from the records (one copy per key), which is what brings the lockstep's fixed cost per
+step below a small scenario's step.
 Sub-envs in one process share one ``World`` (``world.scene``); workers open the same map files (the procedural
 city's disk cache is memory-mapped, so its pages are shared), and each sub-env is built in its worker from the
 scenario id and overrides: nothing map-sized is pickled.
@@ -306,7 +307,10 @@ class _InfoRecords:
         """``_InRecord`` for a packed entry from process ``source``, else the entry (None, an info sent whole)."""
         if type(entry) is not _Packed:
             return entry
-        ident, signature, objects = entry
+        return self.resolve(source, slot, *entry)
+
+    def resolve(self, source: int, slot: int, ident: int, signature: tuple | None, objects: tuple) -> _InRecord:
+        """``unpack`` of a packed entry's parts (layout id, its signature where new, the objects sent)."""
         if source == _LOCAL:
             layout = self._by_id[ident]
         else:
@@ -352,15 +356,38 @@ class _InfoRecords:
                 for entry in entries]
 
 
+class _Outcomes(NamedTuple):
+    """The sub-envs' step outcomes in shared memory (one entry per sub-env): what ``step`` returns beside the
+    observation and the info, written by the process that steps the sub-env and read by the caller as arrays, so
+    that no message carries them. The dtypes are Gymnasium's batches (``SyncVectorEnv``'s rewards and flags)."""
+
+    rewards: np.ndarray          # float64
+    terminations: np.ndarray     # bool
+    truncations: np.ndarray      # bool
+
+    @classmethod
+    def of(cls, buffer: Any, num_envs: int) -> _Outcomes:
+        raw = np.frombuffer(buffer, dtype=np.uint8, count=num_envs * _OUTCOME_BYTES)
+        return cls(raw[:8 * num_envs].view(np.float64), raw[8 * num_envs:9 * num_envs].view(np.bool_),
+                   raw[9 * num_envs:].view(np.bool_))
+
+
+#: bytes of shared outcome per sub-env (``_Outcomes``: a float64 reward and two bool flags)
+_OUTCOME_BYTES = 10
+
+
 class _Slot:
     """What an op sees of its sub-env's place in the batch: calling it with an observation writes that into the
     shared batch (the ``put`` of the ops' signature), ``action()`` copies the sub-env's row of the shared actions
-    (the caller writes the next step's over it), ``pack(info)`` the info into the shared records (``_InfoRecords``)."""
+    (the caller writes the next step's over it), ``pack(info)`` the info into the shared records (``_InfoRecords``),
+    ``outcome(...)`` the step's reward and flags into the shared outcomes (``_Outcomes``)."""
 
-    __slots__ = ("index", "_leaves", "_actions", "_records")
+    __slots__ = ("index", "_leaves", "_actions", "_records", "_outcomes")
 
-    def __init__(self, index: int, leaves: list[tuple[tuple, Any]], actions: Any, records: _InfoRecords) -> None:
+    def __init__(self, index: int, leaves: list[tuple[tuple, Any]], actions: Any, records: _InfoRecords,
+                 outcomes: _Outcomes) -> None:
         self.index, self._leaves, self._actions, self._records = index, leaves, actions, records
+        self._outcomes = outcomes
 
     def __call__(self, obs: Any) -> None:
         _put(self._leaves, self.index, obs)
@@ -370,6 +397,12 @@ class _Slot:
 
     def pack(self, info: Any) -> Any:
         return self._records.pack(self.index, info)
+
+    def outcome(self, reward: Any, terminated: Any, truncated: Any) -> None:
+        i, out = self.index, self._outcomes
+        out.rewards[i] = reward
+        out.terminations[i] = terminated
+        out.truncations[i] = truncated
 
 
 def _op_reset(env: gym.Env, put: Callable[[Any], None], seed: int | None, options: dict | None) -> dict:
@@ -385,18 +418,32 @@ def _op_step(env: gym.Env, put: Callable[[Any], None], action: Any) -> tuple:
 
 
 def _op_reset_packed(env: gym.Env, slot: _Slot, seed: int | None, options: dict | None) -> Any:
-    """``reset``, its info in the shared records (``_InfoRecords.pack``)."""
+    """``reset``, its info in the shared records (``_InfoRecords.pack``), its outcome a next-step autoreset's (no
+    reward, neither flag)."""
     obs, info = env.reset(seed=seed, options=options)
     slot(obs)
+    slot.outcome(0.0, False, False)
     return slot.pack(info)
 
 
-def _op_step_packed(env: gym.Env, slot: _Slot, *action: Any) -> tuple:
-    """``step`` with the given action or (none given) the sub-env's row of the shared actions; its info in the
-    shared records."""
+def _op_step_packed(env: gym.Env, slot: _Slot, *action: Any) -> Any:
+    """``step`` with the given action or (none given) the sub-env's row of the shared actions; its reward and flags
+    in the shared outcomes, its info in the shared records."""
     obs, reward, terminated, truncated, info = env.step(action[0] if action else slot.action())
     slot(obs)
-    return reward, terminated, truncated, slot.pack(info)
+    slot.outcome(reward, terminated, truncated)
+    return slot.pack(info)
+
+
+def _layout_ids(results: list) -> tuple[int, ...] | None:
+    """The layout ids of a block's packed infos where that is all its answer holds (every result an info in the
+    records whose layout the caller knows and whose objects it holds): the short answer of a step; else None."""
+    ids = []
+    for res in results:
+        if type(res) is not _Packed or res[1] is not None or res[2]:
+            return None
+        ids.append(res[0])
+    return tuple(ids)
 
 
 def _op_step_same(env: gym.Env, put: Callable[[Any], None], action: Any) -> tuple:
@@ -542,7 +589,7 @@ class _Channel:
 
 
 def _worker(channel: _Channel, fns: CloudpickleWrapper, slots: list[int], shm: Any, num_envs: int,
-            forked: bool, action_shm: Any, info_buffer: Any) -> None:
+            forked: bool, action_shm: Any, info_buffer: Any, outcome_buffer: Any) -> None:
     """A worker process: build the block's sub-envs, then run each step's commands until told to stop."""
     parent = mp.parent_process()
     alive = parent.is_alive if parent is not None else (lambda: True)
@@ -557,7 +604,8 @@ def _worker(channel: _Channel, fns: CloudpickleWrapper, slots: list[int], shm: A
         leaves = _leaves(space, _views_of(space, shm, num_envs))
         actions = None if action_shm is None else _views_of(action_space, action_shm, num_envs)
         records = _InfoRecords(info_buffer, num_envs, remote=True)
-        places = [_Slot(i, leaves, actions, records) for i in slots]
+        outcomes = _Outcomes.of(outcome_buffer, num_envs)
+        places = [_Slot(i, leaves, actions, records, outcomes) for i in slots]
         channel.send(False, ("ok", (space, action_space)))
     except BaseException as exc:  # noqa: BLE001 - reported to the caller, which raises it
         channel.send(False, ("error", _RemoteError(exc, slots[len(envs)] if len(envs) < len(slots) else None)))
@@ -568,7 +616,9 @@ def _worker(channel: _Channel, fns: CloudpickleWrapper, slots: list[int], shm: A
             if commands is None:
                 break
             try:
-                channel.send(False, ("ok", _run_block(envs, places, commands)))
+                results = _run_block(envs, places, commands)
+                ids = _layout_ids(results)
+                channel.send(False, ("ok", results) if ids is None else ("ids", ids))
             except Exception as exc:  # noqa: BLE001 - reported to the caller, which raises it
                 records.forget()     # the caller gets none of this block's entries
                 channel.send(False, ("error", _RemoteError(exc, None)))
@@ -632,7 +682,10 @@ class EnvShards:
             _views_of(self.action_space, self._action_shm, self.num_envs)
         self._info_buffer = ctx.RawArray("B", self.num_envs * _INFO_RECORD_BYTES)
         self.info_records = _InfoRecords(self._info_buffer, self.num_envs, remote=False)
-        self._local = [_Slot(i, self._leaves, self.actions, self.info_records) for i in self.local_slots]
+        self._outcome_buffer = ctx.RawArray("B", self.num_envs * _OUTCOME_BYTES)
+        self.outcomes = _Outcomes.of(self._outcome_buffer, self.num_envs)
+        self._local = [_Slot(i, self._leaves, self.actions, self.info_records, self.outcomes)
+                       for i in self.local_slots]
         spin_s = _SPIN_S if processes <= usable_cores() else 0.0
         try:
             for slots in self._blocks:
@@ -640,7 +693,7 @@ class EnvShards:
                 fns = CloudpickleWrapper([env_fns[i] for i in slots])
                 proc = ctx.Process(target=_worker, args=(channel, fns, slots, self._shm, self.num_envs,
                                                          self.start_method == "fork", self._action_shm,
-                                                         self._info_buffer),
+                                                         self._info_buffer, self._outcome_buffer),
                                    daemon=True, name=f"aerial-loc vector worker {len(self._procs)}")
                 self._channels.append(channel)
                 proc.start()
@@ -713,6 +766,10 @@ class EnvShards:
             if status == "error":
                 remote_error = remote_error or (k, payload)
                 continue
+            if status == "ids":       # (a step's short answer: only the infos' layouts, ``_layout_ids``)
+                for i, ident in zip(slots, payload, strict=True):
+                    results[i] = self.info_records.resolve(k, i, ident, None, ())
+                continue
             for i, res in zip(slots, payload, strict=True):   # (every answer unpacked: the records stay in step)
                 results[i] = self._unpacked(k, i, commands[i][0], res)
         if remote_error is not None:
@@ -724,11 +781,8 @@ class EnvShards:
         return results
 
     def _unpacked(self, source: int, slot: int, op: str, result: Any) -> Any:
-        """A packed op's result with its info entry resolved (``_InfoRecords.unpack``); other results as they are."""
-        if op == "step_packed":
-            reward, terminated, truncated, entry = result
-            return reward, terminated, truncated, self.info_records.unpack(source, slot, entry)
-        if op == "reset_packed":
+        """A packed op's info entry resolved (``_InfoRecords.unpack``); other results as they are."""
+        if op == "step_packed" or op == "reset_packed":
             return self.info_records.unpack(source, slot, result)
         return result
 
@@ -941,19 +995,19 @@ class AerialLocVectorEnv(VectorEnv):
         else:
             commands = [("step_same", *row) for row in rows]
         results = self._shards.run(commands)
-        step_infos: list[Any] = []
-        finals: list[dict | None] = []
-        for i, res in enumerate(results):
-            if commands[i][0] == "reset_packed":
-                self._rewards[i], self._terminations[i], self._truncations[i] = 0.0, False, False
-                step_infos.append(res)
-            elif mode == AutoresetMode.SAME_STEP:
+        if mode == AutoresetMode.SAME_STEP:
+            step_infos: list[Any] = []
+            finals: list[dict | None] = []
+            for i, res in enumerate(results):
                 self._rewards[i], self._terminations[i], self._truncations[i], info, final = res
                 step_infos.append(info)
                 finals.append(final)
-            else:
-                self._rewards[i], self._terminations[i], self._truncations[i], info = res
-                step_infos.append(info)
+        else:     # (the packed ops: rewards and flags in the shared outcomes, a reset's none and False)
+            outcomes = self._shards.outcomes
+            self._rewards[:] = outcomes.rewards
+            self._terminations[:] = outcomes.terminations
+            self._truncations[:] = outcomes.truncations
+            step_infos, finals = results, []
         if any(f is not None for f in finals):   # Gymnasium's order: a sub-env's final info, then its info
             infos: dict[str, Any] = {}
             for i, info in enumerate(step_infos):

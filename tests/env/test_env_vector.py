@@ -243,6 +243,24 @@ def test_infos_through_the_shared_records_batch_as_gymnasium_does() -> None:
     sync.close()
 
 
+def test_a_steady_steps_answer_is_its_layout_ids_only() -> None:
+    """A worker answers a step with its infos' layout ids alone (rewards and flags are in the shared outcomes) once
+    the caller knows the layout and holds the objects; a new layout, an object to send or an info sent whole make it
+    the full answer again."""
+    from aerial_loc_env.env.vector import _INFO_RECORD_BYTES, _InfoRecords, _layout_ids
+
+    worker = _InfoRecords(bytearray(2 * _INFO_RECORD_BYTES), 2, remote=True)
+    frozen = Frozen(1.0)
+    info = {"t": 0.5, "o": frozen}
+    first = [worker.pack(0, info), worker.pack(1, dict(info))]
+    assert _layout_ids(first) is None                       # the layout's signature goes with the first answer
+    assert _layout_ids([worker.pack(0, info), worker.pack(1, dict(info))]) == (0, 0)
+    assert _layout_ids([worker.pack(0, {"t": 1.5, "o": Frozen(2.0)}), worker.pack(1, info)]) is None  # a new object
+    assert _layout_ids([worker.pack(0, {"t": 1.5, "o": [1]}), worker.pack(1, info)]) is None   # one that can change
+    assert _layout_ids([worker.pack(0, {"n": 2**70}), worker.pack(1, info)]) is None           # an info sent whole
+    assert _layout_ids([None, worker.pack(1, info)]) is None                                   # another op's result
+
+
 def test_actions_of_another_dtype_go_as_given_and_big_infos_whole() -> None:
     """Float64 actions reach the sub-envs unrounded (not through the float32 shared actions), integer actions are
     refused as a single env refuses them, and an info too big for a record (the shadow mask) arrives whole: all
