@@ -17,8 +17,10 @@ Memory-bound work still slows when other processes share the caches: take figure
 possible, and always note the load (printed at the start and end). Targets are ratios (``target_ratio``).
 
 Work spread over several processes (vectorized envs, ``perf/vector.py``) is timed by the wall clock
-(``clock="wall"``: its workers' CPU time is not this process's) and compared with a ``baseline`` row of the same
-run (rate / the baseline's rate, against ``baseline_target``); those rows need the other cores idle.
+(``clock="wall"``: its workers' CPU time is not this process's) and compared with a ``baseline`` benchmark (rate /
+the baseline's rate, against ``baseline_target``): one baseline call is timed after each call, as the floor is, and
+the figure is the median over the calls of the pair's rate ratio, so a baseline row timed in a quieter or busier
+moment of the run cannot make it. Those rows need the other cores idle.
 """
 
 from __future__ import annotations
@@ -48,7 +50,7 @@ class Benchmark:
     repeats: int = 30
     per_call_items: int = 1          # e.g. steps per call, to report per-item figures and rates
     clock: str = "cpu"               # "wall" where the work spreads over threads or processes (vectorized envs)
-    baseline: str | None = None      # a benchmark earlier in the run this one's rate is compared with
+    baseline: str | None = None      # the benchmark whose rate this one's is compared with (timed interleaved)
     baseline_target: float | None = None  # the least rate / the baseline's rate (e.g. 1.5: 50 % faster)
 
 
@@ -90,21 +92,28 @@ def _timed(fn: Callable[[], object]) -> tuple[float, float]:
     return time.process_time() - c0, time.perf_counter() - t0
 
 
-def measure(bench: Benchmark, floor_fn: Callable[[], object] | None = None) -> dict:
+def measure(bench: Benchmark, floor_fn: Callable[[], object] | None = None,
+            baseline: tuple[Callable[[], object], int] | None = None) -> dict:
     """Median (and p95) seconds per item of ``bench``; with ``floor_fn``, the floor timed interleaved with it and
     the median over the calls of (call / the floor calls right after it) (``ratio``), judged against
-    ``bench.target_ratio`` (``ok``)."""
+    ``bench.target_ratio`` (``ok``); with ``baseline`` (the baseline benchmark's function and its items per call),
+    one baseline call timed after each call by the same clock and the median over the calls of the baseline's time
+    per item / the call's (``vs_baseline``: the rate over the baseline's)."""
     fn = bench.setup()
     fn()  # warm-up
-    times, floors = [], []
+    col = 1 if bench.clock == "wall" else 0               # wall: other processes' CPU is not this one's
+    times, floors, paired = [], [], []
     for _ in range(bench.repeats):
         times.append(_timed(fn))
         if floor_fn is not None:
             for _ in range(_FLOOR_WARMUP_CALLS):
                 floor_fn()
             floors.append(float(np.median([_timed(floor_fn)[0] for _ in range(_FLOOR_CALLS_PER_CALL)])))
+        if baseline is not None:
+            base_fn, base_items = baseline
+            per_item = times[-1][col] / bench.per_call_items
+            paired.append(_timed(base_fn)[col] / base_items / max(per_item, 1e-12))
     arr = np.asarray(times) / bench.per_call_items       # (repeats, 2): CPU, wall
-    col = 1 if bench.clock == "wall" else 0               # wall: other processes' CPU is not this one's
     med = float(np.median(arr[:, col]))
     floor_s = float(np.median(floors)) if floors else None
     ratio = float(np.median(arr[:, col] / np.maximum(floors, 1e-9))) if floors else None
@@ -113,6 +122,7 @@ def measure(bench: Benchmark, floor_fn: Callable[[], object] | None = None) -> d
         "clock": bench.clock,
         "baseline": bench.baseline,
         "baseline_target": bench.baseline_target,
+        "vs_baseline": float(np.median(paired)) if paired else None,
         "median_s": med,
         "p95_s": float(np.percentile(arr[:, col], 95)),
         "wall_median_s": float(np.median(arr[:, 1])),

@@ -27,11 +27,23 @@ def collect() -> list[Benchmark]:
     return out
 
 
-def with_baseline(r: dict, earlier: list[dict]) -> dict:
-    """``r`` with ``vs_baseline``: its rate over its baseline's (a row of ``earlier``; None without one)."""
-    base = next((x for x in earlier if x["name"] == r.get("baseline")), None)
-    r["vs_baseline"] = base["median_s"] / r["median_s"] if base and r["median_s"] > 0 else None
-    return r
+class Baselines:
+    """The baseline benchmarks' functions, each set up once when a row first names it (``measure`` times one call
+    of it after each of the row's calls): ``get(name)`` -> (function, items per call), None for no baseline."""
+
+    def __init__(self, benches: list[Benchmark]) -> None:
+        self._benches = {b.name: b for b in benches}
+        self._fns: dict[str, tuple] = {}
+
+    def get(self, name: str | None) -> tuple | None:
+        if name is None:
+            return None
+        if name not in self._fns:
+            base = self._benches[name]
+            fn = base.setup()
+            fn()  # warm-up
+            self._fns[name] = (fn, base.per_call_items)
+        return self._fns[name]
 
 
 def _row(r: dict) -> str:
@@ -81,8 +93,9 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{'benchmark':66s} {'ratio':>9s} {'target':>10s} {'ok':>3s}  {'median CPU':>13s} {'p95 CPU':>13s} "
           f"{'median wall':>13s} {'rate (CPU)':>12s}")
     rows = []
+    baselines = Baselines(benches)
     for b in chosen:
-        r = with_baseline(measure(b, floor_fn), rows)
+        r = measure(b, floor_fn, baselines.get(b.baseline))
         rows.append(r)
         print(_row(r), flush=True)
     floors = [r["floor_s"] for r in rows if r["floor_s"]]

@@ -69,23 +69,49 @@ def test_ratio_pairs_each_call_with_the_floor_right_after_it(monkeypatch):
 
 
 def test_wall_clock_rows_and_their_rate_over_a_baseline(monkeypatch):
-    """Work spread over processes is timed by the wall clock (its CPU time is elsewhere) and compared with the
-    baseline row of the same run: rate / the baseline's rate, judged against baseline_target."""
-    from aerial_loc_env.perf.__main__ import _row, with_baseline
+    """Work spread over processes is timed by the wall clock (its CPU time is elsewhere) and compared with its
+    baseline, one baseline call timed after each call: rate / the baseline's rate, judged against baseline_target."""
+    from aerial_loc_env.perf.__main__ import Baselines, _row
 
-    monkeypatch.setattr(perf, "_timed", lambda fn: (fn(), (0.001, 0.004))[1])     # CPU 1 ms, wall 4 ms a call
-    one = measure(Benchmark("one", lambda: (lambda: None), repeats=3, per_call_items=2, clock="wall"))
-    assert one["median_s"] == pytest.approx(0.002) and one["clock"] == "wall"
-    monkeypatch.setattr(perf, "_timed", lambda fn: (fn(), (0.001, 0.005))[1])
-    rows = [with_baseline(one, [])]
+    def fake_timed(fn):
+        return (0.001, 0.004) if fn() == "one" else (0.001, 0.005)          # CPU 1 ms a call; wall 4 / 5 ms
+
+    monkeypatch.setattr(perf, "_timed", fake_timed)
+    one = Benchmark("one", lambda: (lambda: "one"), repeats=3, per_call_items=2, clock="wall")
+    baselines = Baselines([one])
+    assert baselines.get(None) is None
     for target, verdict in ((1.5, "yes"), (2.0, "NO")):
-        vec = measure(Benchmark("vec", lambda: (lambda: None), repeats=3, per_call_items=4, clock="wall",
-                                baseline="one", baseline_target=target))
-        r = with_baseline(vec, rows)
+        vec = Benchmark("vec", lambda: (lambda: "vec"), repeats=3, per_call_items=4, clock="wall", baseline="one",
+                        baseline_target=target)
+        r = measure(vec, None, baselines.get(vec.baseline))
+        assert r["median_s"] == pytest.approx(0.00125) and r["clock"] == "wall"
         assert r["vs_baseline"] == pytest.approx(0.002 / 0.00125)            # 1.6x the baseline's rate
         assert _row(r).endswith(f"(wall)  1.60x one (>= {target:g}x: {verdict})")
-    cpu = measure(Benchmark("cpu", lambda: (lambda: None), repeats=3))
-    assert cpu["median_s"] == pytest.approx(0.001) and with_baseline(cpu, rows)["vs_baseline"] is None
+    cpu = measure(Benchmark("cpu", lambda: (lambda: "cpu"), repeats=3))
+    assert cpu["median_s"] == pytest.approx(0.001) and cpu["vs_baseline"] is None
+
+
+def test_a_baseline_is_paired_call_by_call(monkeypatch):
+    """Load doubles midway through a row: its calls and the baseline calls right after them slow down alike, so the
+    paired figure stays 2x where a ratio of the two rows' medians (the baseline timed before the load) would not."""
+    slow = iter([False] * 2 + [True] * 3)       # the load arrives after the second call of the row
+
+    def fake_timed(fn):
+        kind = fn()
+        if kind == "vec":
+            load = 2.0 if next(slow) else 1.0
+            fake_timed.load = load
+            return 0.0, 0.004 * load             # 4 items: 1 ms an item
+        return 0.0, 0.004 * getattr(fake_timed, "load", 1.0)   # one: 2 items, 2 ms an item
+
+    monkeypatch.setattr(perf, "_timed", fake_timed)
+    one = Benchmark("one", lambda: (lambda: "one"), repeats=5, per_call_items=2, clock="wall")
+    vec = Benchmark("vec", lambda: (lambda: "vec"), repeats=5, per_call_items=4, clock="wall", baseline="one")
+    from aerial_loc_env.perf.__main__ import Baselines
+
+    r = measure(vec, None, Baselines([one]).get("one"))
+    assert r["vs_baseline"] == pytest.approx(2.0)
+    assert 0.002 / r["median_s"] == pytest.approx(1.0)   # the baseline's quiet median over the row's loaded one
 
 
 @pytest.mark.slow
