@@ -247,6 +247,50 @@ def prefetch(typingctx, arr, k):
     return sig, codegen
 
 
+def _borrowed_view(context, builder, ty: types.Array, value):
+    src = context.make_array(ty)(context, builder, value)
+    view = context.make_array(ty)(context, builder)
+    for field in ("nitems", "itemsize", "data", "shape", "strides"):
+        setattr(view, field, getattr(src, field))
+    view.meminfo = cgutils.get_null_value(view.meminfo.type)
+    view.parent = cgutils.get_null_value(view.parent.type)
+    return view._getvalue()
+
+
+@intrinsic
+def borrowed(typingctx, arr):
+    """A view of the array ``arr`` (or a tuple of such views of a tuple of arrays) that numba counts no references
+    to (no memory info): for arrays bound again and again in a kernel's loops, as inlined helpers bind their
+    arguments per call (numba counts a reference at each binding, an atomic add, and cannot drop the counts across
+    the helpers' loops). A view is valid while its array lives: an argument of the kernel, or a local kept to the
+    end by ``keep_alive``."""
+    if isinstance(arr, types.Array):
+        def codegen(context, builder, signature, args):
+            return _borrowed_view(context, builder, arr, args[0])
+
+        return arr(arr), codegen
+    if isinstance(arr, types.BaseTuple) and all(isinstance(t, types.Array) for t in arr.types):
+        def codegen_tuple(context, builder, signature, args):
+            views = [_borrowed_view(context, builder, t, builder.extract_value(args[0], i))
+                     for i, t in enumerate(arr.types)]
+            return context.make_tuple(builder, arr, views)
+
+        return arr(arr), codegen_tuple
+    return None
+
+
+@intrinsic
+def keep_alive(typingctx, value):
+    """Nothing, but a use of ``value`` here: numba frees a local at its last use, so a kernel ends with this on the
+    owners of its ``borrowed`` views."""
+    sig = types.void(value)
+
+    def codegen(context, builder, signature, args):
+        return context.get_dummy_value()
+
+    return sig, codegen
+
+
 def _host_has(*features: str) -> bool:
     """Whether numba compiles for this host (no ``NUMBA_CPU_NAME`` / ``NUMBA_CPU_FEATURES``: a portable cache
     compiles for a generic CPU) and the host's CPU has all these LLVM features (e.g. ``"+avx512vbmi"``)."""

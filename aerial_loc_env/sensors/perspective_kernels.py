@@ -43,10 +43,12 @@ import numpy as np
 from aerial_loc_env.jit import FAST_GATHER as _FAST_GATHER
 from aerial_loc_env.jit import GATHER_LANES as _GATHER_LANES
 from aerial_loc_env.jit import JIT as _JIT
+from aerial_loc_env.jit import borrowed as _borrowed
 from aerial_loc_env.jit import fma32 as _fma
 from aerial_loc_env.jit import fma64 as _fma64
 from aerial_loc_env.jit import gather_f32x16 as _gather_f32x16
 from aerial_loc_env.jit import index32 as _index32
+from aerial_loc_env.jit import keep_alive as _keep_alive
 from aerial_loc_env.jit import wide_vectors as _wide
 from aerial_loc_env.sensors.render_kernels import (
     OCC_ALPHA,
@@ -711,10 +713,16 @@ def _finish_kernel(tilted: bool, replicate: bool):
         _wide()
         h_px, w_px = alpha.shape
         hc, wc = z0.shape
-        scratch = _band_scratch(factor * w_px, wc)
-        band_x, band_y = np.empty((factor, w_px), np.float32), np.empty((factor, w_px), np.float32)
+        # the arrays the band and row helpers bind again per band and row, as views numba counts no references to
+        owned = (_band_scratch(factor * w_px, wc), np.empty((factor, w_px), np.float32),
+                 np.empty((factor, w_px), np.float32), _row_buffers(w_px))
+        scratch, band_x, band_y = _borrowed(owned[0]), _borrowed(owned[1]), _borrowed(owned[2])
+        fa, fb, idx, q00, q01, q10, q11, c00, c01, c10, c11, rgba, o, no_occ = _borrowed(owned[3])
+        box, facade, facing, gains, alpha, out, vig, bank, lut, sun = _borrowed(
+            (box, facade, facing, gains, alpha, out, vig, bank, lut, sun))
+        z0, relief, centre, tilt, flat, lin, consts, dsm, window = _borrowed(
+            (z0, relief, centre, tilt, flat, lin, consts, dsm, window))
         flat_box, bw, umax, vmax, stride = _box_layout(box)
-        fa, fb, idx, q00, q01, q10, q11, c00, c01, c10, c11, rgba, o, no_occ = _row_buffers(w_px)
         l0, l1, l2, tabs = _tone_tables(lut)
         w3 = 3 * w_px
         lit = not np.isnan(sun[0])
@@ -736,6 +744,7 @@ def _finish_kernel(tilted: bool, replicate: bool):
                                     tabs)
                 _sensor_row(o, out[w3 * y:w3 * (y + 1)], y, h_px, sensor, vig, bank, dy, dx3, sigma_mode, a32, b32,
                             a64, b64)
+        _keep_alive(owned)
         return count
 
     return view_finish

@@ -56,8 +56,10 @@ from aerial_loc_env.jit import JIT as _JIT
 from aerial_loc_env.jit import LUT_PIXELS as _LUT_PIXELS
 from aerial_loc_env.jit import bilinear_f32x8 as _bilinear_f32x8
 from aerial_loc_env.jit import bilinear_rgba8 as _bilinear_rgba8
+from aerial_loc_env.jit import borrowed as _borrowed
 from aerial_loc_env.jit import fma32 as _fma32
 from aerial_loc_env.jit import gather_pairs16 as _gather_pairs16
+from aerial_loc_env.jit import keep_alive as _keep_alive
 from aerial_loc_env.jit import lut_rgba16 as _lut_rgba16
 from aerial_loc_env.jit import mul255 as _mul255
 from aerial_loc_env.jit import prefetch as _prefetch
@@ -237,10 +239,12 @@ def finish(src, cn, occ_mode, occ, shade, lut, out, alpha, sensor, vig, bank, dy
     h_px = src.shape[0]
     w_px = src.shape[1] // cn
     w3 = 3 * w_px
+    owned = np.empty(w3, np.uint8)
+    # the arrays the row helpers bind again per row, as views numba counts no references to (``jit.borrowed``)
+    src, occ, shade, lut, out, alpha, vig, bank, o = _borrowed((src, occ, shade, lut, out, alpha, vig, bank, owned))
     l0, l1, l2, tabs = _tone_tables(lut)
     s0, s1, s2 = shade[0], shade[1], shade[2]
     lit_same = s0[0] == 255 and s1[0] == 255 and s2[0] == 255
-    o = np.empty(w3, np.uint8)
     count = 0
     for y in range(h_px):
         m = alpha[y] if occ_mode == OCC_ALPHA else alpha[0]
@@ -250,6 +254,7 @@ def finish(src, cn, occ_mode, occ, shade, lut, out, alpha, sensor, vig, bank, dy
         else:
             count += _scene_row(src[y], o, m, f, 3, w_px, occ_mode, l0, l1, l2, s0, s1, s2, lit_same, tabs)
         _sensor_row(o, out[w3 * y:w3 * (y + 1)], y, h_px, sensor, vig, bank, dy, dx3, sigma_mode, a32, b32, a64, b64)
+    _keep_alive(owned)
     return count
 
 
@@ -285,11 +290,13 @@ def warp_finish(box, m, lut, out, alpha, sensor, vig, bank, dy, dx3, sigma_mode,
     _wide_vectors()
     h_px, w_px = alpha.shape
     w3 = 3 * w_px
+    owned = (np.empty(w_px, np.float32), np.empty(w_px, np.float32), _row_buffers(w_px))
+    # the arrays the row helpers bind again per row, as views numba counts no references to (``jit.borrowed``)
+    box, m, lut, out, alpha, vig, bank = _borrowed((box, m, lut, out, alpha, vig, bank))
+    fu, fv = _borrowed(owned[0]), _borrowed(owned[1])
+    fa, fb, idx, q00, q01, q10, q11, c00, c01, c10, c11, rgba, o, no_occ = _borrowed(owned[2])
     flat, bw, _, _, _ = _box_layout(box)
     l0, l1, l2, tabs = _tone_tables(lut)
-    fu = np.empty(w_px, np.float32)
-    fv = np.empty(w_px, np.float32)
-    fa, fb, idx, q00, q01, q10, q11, c00, c01, c10, c11, rgba, o, no_occ = _row_buffers(w_px)
     ahead = np.int64(np.rint(8.0 * m[1, 1])) * bw + np.int64(np.rint(8.0 * m[0, 1]))   # 8 frame rows down
     count = 0
     for y in range(h_px):
@@ -297,6 +304,7 @@ def warp_finish(box, m, lut, out, alpha, sensor, vig, bank, dy, dx3, sigma_mode,
         _warp_row(box, flat, ahead, fu, fv, fa, fb, idx, rgba, q00, q01, q10, q11, c00, c01, c10, c11)
         count += _scene_row(rgba, o, alpha[y], no_occ, 4, w_px, OCC_ALPHA, l0, l1, l2, l0, l1, l2, False, tabs)
         _sensor_row(o, out[w3 * y:w3 * (y + 1)], y, h_px, sensor, vig, bank, dy, dx3, sigma_mode, a32, b32, a64, b64)
+    _keep_alive(owned)
     return count
 
 
@@ -354,27 +362,28 @@ def level_finish(box, m, grid, mg, shade, h_px, w_px, lut, out, sensor, vig, ban
     ``finish``; returns the number of shadowed pixels (occlusion >= 0.5)."""
     _wide_vectors()
     w3 = 3 * w_px
+    table8 = np.full(1024, 255, np.uint8)     # the shading gains of each level as one 32-bit pixel (memory order)
+    for q in range(256):
+        for c in range(3):
+            table8[4 * q + c] = shade[c, q]
+    f32 = np.float32
+    # fu, fv, gu, gv, ga, gb, occ; gidx; qrow (the quantized occlusion, and the tone pass's alpha row after it), the
+    # gains; the row buffers
+    owned = ((np.empty(w_px, f32), np.empty(w_px, f32), np.empty(w_px, f32), np.empty(w_px, f32),
+              np.empty(w_px, f32), np.empty(w_px, f32), np.empty(w_px, f32)), np.empty(w_px, np.uint32),
+             (np.empty(w_px, np.uint8), np.empty(4 * w_px, np.uint8)), table8, _row_buffers(w_px))
+    # the arrays the row helpers bind again per row, as views numba counts no references to (``jit.borrowed``)
+    box, m, grid, mg, lut, out, vig, bank = _borrowed((box, m, grid, mg, lut, out, vig, bank))
+    fu, fv, gu, gv, ga, gb, occ = _borrowed(owned[0])
+    gidx = _borrowed(owned[1])
+    qrow, gains = _borrowed(owned[2])
+    table = _borrowed(owned[3]).view(np.uint32)
+    fa, fb, idx, q00, q01, q10, q11, c00, c01, c10, c11, rgba, o, no_occ = _borrowed(owned[4])
     flat, bw, _, _, _ = _box_layout(box)
     gh, gw = grid.shape
     gflat = grid.reshape(gh * gw)
     gumax, gvmax, gstride = np.float32(gw - 1), np.float32(gh - 1), np.uint32(gw)
     l0, l1, l2, tabs = _tone_tables(lut)
-    table8 = np.full(1024, 255, np.uint8)     # the shading gains of each level as one 32-bit pixel (memory order)
-    for q in range(256):
-        for c in range(3):
-            table8[4 * q + c] = shade[c, q]
-    table = table8.view(np.uint32)
-    gains = np.empty(4 * w_px, np.uint8)
-    fu = np.empty(w_px, np.float32)
-    fv = np.empty(w_px, np.float32)
-    gu = np.empty(w_px, np.float32)
-    gv = np.empty(w_px, np.float32)
-    ga = np.empty(w_px, np.float32)
-    gb = np.empty(w_px, np.float32)
-    gidx = np.empty(w_px, np.uint32)
-    occ = np.empty(w_px, np.float32)
-    qrow = np.empty(w_px, np.uint8)     # the quantized occlusion (and the tone pass's alpha row after it)
-    fa, fb, idx, q00, q01, q10, q11, c00, c01, c10, c11, rgba, o, no_occ = _row_buffers(w_px)
     ahead = np.int64(np.rint(8.0 * m[1, 1])) * bw + np.int64(np.rint(8.0 * m[0, 1]))   # 8 frame rows down
     g_ahead = np.int64(np.rint(8.0 * mg[1, 1])) * gw + np.int64(np.rint(8.0 * mg[0, 1]))
     count = 0
@@ -393,6 +402,7 @@ def level_finish(box, m, grid, mg, shade, h_px, w_px, lut, out, sensor, vig, ban
         count += _shade_rgba_row(rgba, occ, qrow, gains, table)
         _scene_row(rgba, o, qrow, no_occ, 4, w_px, OCC_ALPHA, l0, l1, l2, l0, l1, l2, False, tabs)
         _sensor_row(o, out[w3 * y:w3 * (y + 1)], y, h_px, sensor, vig, bank, dy, dx3, sigma_mode, a32, b32, a64, b64)
+    _keep_alive(owned)
     return count
 
 
