@@ -263,7 +263,7 @@ def borrowed(typingctx, arr):
     to (no memory info): for arrays bound again and again in a kernel's loops, as inlined helpers bind their
     arguments per call (numba counts a reference at each binding, an atomic add, and cannot drop the counts across
     the helpers' loops). A view is valid while its array lives: an argument of the kernel, or a local kept to the
-    end by ``keep_alive``."""
+    end by ``keep_alive``; a kernel never returns one (Python would get memory that no one owns)."""
     if isinstance(arr, types.Array):
         def codegen(context, builder, signature, args):
             return _borrowed_view(context, builder, arr, args[0])

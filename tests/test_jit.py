@@ -112,3 +112,30 @@ def test_no_writable_cache_location_falls_back_to_a_temporary_folder(tmp_path):
     assert len(list(root.rglob("jit.mul255-*.nbi"))) == 1
     out, _ = _run(tmp_path, nowhere, numba_cache=False)
     assert out == [GOOD, "mul255 hits 1 misses 0"]
+
+
+def test_borrowed_views_share_their_arrays_memory_and_count_no_references():
+    """``borrowed``: views (of an array, or each array of a tuple) that read and write the array's own memory with its
+    shape and strides, valid while the owner lives (a local kept to the end by ``keep_alive``); anything else is a
+    typing error."""
+    import numba as nb
+
+    from aerial_loc_env.jit import borrowed, keep_alive
+
+    @nb.njit
+    def fill(a, b):
+        owned = np.arange(6.0).reshape(2, 3)
+        va, (vb, vo) = borrowed(a), borrowed((b, owned))
+        for i in range(va.shape[0]):
+            va[i] = 2 * i
+        vb[1] = vo[1, 2]                        # a row of a view is a view too
+        total = vo.sum() + vo[1].sum()
+        keep_alive(owned)
+        return total, vo.strides[0]
+
+    a, b = np.zeros(4), np.zeros((3, 2), np.int32)
+    total, stride = fill(a, b)
+    assert a.tolist() == [0.0, 2.0, 4.0, 6.0] and b.tolist() == [[0, 0], [5, 5], [0, 0]]
+    assert total == 15.0 + 12.0 and stride == 24
+    with pytest.raises(nb.core.errors.TypingError):
+        nb.njit(lambda x: borrowed(x))(3.0)
