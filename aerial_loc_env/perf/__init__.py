@@ -102,6 +102,7 @@ def measure(bench: Benchmark, floor_fn: Callable[[], object] | None = None,
     fn = bench.setup()
     fn()  # warm-up
     col = 1 if bench.clock == "wall" else 0               # wall: other processes' CPU is not this one's
+    base_fn, base_items = baseline if baseline is not None else (None, 1)
     times, floors, paired = [], [], []
     for _ in range(bench.repeats):
         times.append(_timed(fn))
@@ -109,8 +110,7 @@ def measure(bench: Benchmark, floor_fn: Callable[[], object] | None = None,
             for _ in range(_FLOOR_WARMUP_CALLS):
                 floor_fn()
             floors.append(float(np.median([_timed(floor_fn)[0] for _ in range(_FLOOR_CALLS_PER_CALL)])))
-        if baseline is not None:
-            base_fn, base_items = baseline
+        if base_fn is not None:
             per_item = times[-1][col] / bench.per_call_items
             paired.append(_timed(base_fn)[col] / base_items / max(per_item, 1e-12))
     arr = np.asarray(times) / bench.per_call_items       # (repeats, 2): CPU, wall
