@@ -139,3 +139,25 @@ def test_borrowed_views_share_their_arrays_memory_and_count_no_references():
     assert total == 15.0 + 12.0 and stride == 24
     with pytest.raises(nb.core.errors.TypingError):
         nb.njit(lambda x: borrowed(x))(3.0)
+
+
+def test_saturate_u8_clips_every_int32_in_a_vector_loop():
+    """``saturate_u8`` in a loop LLVM vectorizes (the form the sensor stage and the samples use, lowered to the packs'
+    own saturation) gives ``np.clip`` of every value: in range, just outside it, and at int32's ends, at every lane
+    position (a length that leaves a scalar tail)."""
+    import numba as nb
+
+    from aerial_loc_env.jit import saturate_u8
+
+    @nb.njit
+    def bytes_of(values, out):
+        for i in range(values.size):
+            out[i] = saturate_u8(values[i])
+
+    edges = np.array([-2 ** 31, -2 ** 31 + 1, -65536, -256, -255, -1, 0, 1, 127, 128, 254, 255, 256, 257, 65535, 65536,
+                      2 ** 31 - 1], np.int32)
+    drawn = np.random.default_rng(3).integers(-2 ** 31, 2 ** 31, 4099, dtype=np.int64).astype(np.int32)
+    values = np.concatenate([np.arange(-300, 600, dtype=np.int32), edges, edges[::-1], drawn])
+    out = np.empty(values.size, np.uint8)
+    bytes_of(values, out)
+    np.testing.assert_array_equal(out, np.clip(values, 0, 255).astype(np.uint8))

@@ -64,6 +64,7 @@ from aerial_loc_env.jit import lut_rgba16 as _lut_rgba16
 from aerial_loc_env.jit import mul255 as _mul255
 from aerial_loc_env.jit import prefetch as _prefetch
 from aerial_loc_env.jit import quantize as _quantize
+from aerial_loc_env.jit import saturate_u8 as _saturate_u8
 from aerial_loc_env.jit import wide_vectors as _wide_vectors
 
 #: ``occ_mode`` of ``finish``: where the shadows come from
@@ -109,8 +110,8 @@ def _noise(sig, z):
 @nb.njit(inline="always", **_JIT)
 def _noisy(lit, sig, z):
     """The output byte: the vignetted level ``lit`` plus ``_noise(sig, z)``, saturated to 0..255 (integral floats
-    far below 2**24: the sum is exact)."""
-    return np.uint8(np.int32(min(max(lit + _noise(sig, z), np.float32(0.0)), np.float32(255.0))))
+    far below 2**24: the sum is exact, and so is its conversion to int32, saturated by ``jit.saturate_u8``)."""
+    return _saturate_u8(np.int32(lit + _noise(sig, z)))
 
 
 @nb.njit(**_JIT)
@@ -207,7 +208,7 @@ def _sensor_row(o, d, y, h_px, sensor, vig, bank, dy, dx3, sigma_mode, a32, b32,
             _prefetch(later, x)
     if sigma_mode == NOISE_OFF:
         for x in range(w3):
-            d[x] = np.uint8(np.int32(_vignetted(np.float32(o[x]), v[x])))
+            d[x] = _saturate_u8(np.int32(_vignetted(np.float32(o[x]), v[x])))
     elif sigma_mode == SIGMA_F32:   # one loop per mode: no branch inside
         b = bank[y + dy, dx3:dx3 + w3]
         for x in range(w3):
@@ -601,7 +602,7 @@ def _blend_row(c00, c01, c10, c11, fa, fb, rgba, start):
             p10, p11 = np.float32(c10[j]), np.float32(c11[j])
             v0 = _fma32(a, p01 - p00, p00)
             v1 = _fma32(a, p11 - p10, p10)
-            rgba[j] = np.uint8(np.int32(np.rint(_fma32(b, v1 - v0, v0))))
+            rgba[j] = _saturate_u8(np.int32(np.rint(_fma32(b, v1 - v0, v0))))
 
 
 @nb.njit(inline="always", **_JIT)
