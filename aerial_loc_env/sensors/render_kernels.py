@@ -124,14 +124,23 @@ def sigma_levels(mode, a32, b32, a64, b64):
 
 
 @nb.njit(inline="always", **_JIT)
+def _count_at_least(values, threshold):
+    """How many of ``values`` are >= ``threshold``, summed as int32: numba widens an integer sum to int64, whose
+    lanes are half as many in a vector (a count below 2**31: a row's pixels)."""
+    count = np.int32(0)
+    for x in range(values.shape[0]):
+        count = np.int32(count + np.int32(values[x] >= threshold))
+    return count
+
+
+@nb.njit(inline="always", **_JIT)
 def _scene_row(s, o, m, f, cn, w_px, occ_mode, l0, l1, l2, s0, s1, s2, lit_same, tabs):
     """Stage 1 on one row into ``o`` (``cn`` a constant at each call site, so that the loops specialize); returns
     the shadowed pixels. ``lit_same``: the shading leaves occlusion level 0 unchanged (gain 255), so lit pixels
     skip it (the lookups are scalar code anyway: a branch there costs nothing and saves most of the work)."""
     count = 0
     if occ_mode == OCC_FLOAT:
-        for x in range(w_px):
-            count += np.int32(f[x] >= np.float32(0.5))
+        count = _count_at_least(f[:w_px], np.float32(0.5))
         for x in range(w_px):
             q = _quantize(f[x])
             a0, a1, a2 = np.int32(s[cn * x]), np.int32(s[cn * x + 1]), np.int32(s[cn * x + 2])
@@ -148,10 +157,12 @@ def _scene_row(s, o, m, f, cn, w_px, occ_mode, l0, l1, l2, s0, s1, s2, lit_same,
             start = w_px - w_px % _LUT_PIXELS
             for x in range(0, start, _LUT_PIXELS):
                 count += _lut_rgba16(s, x, tabs, o, m)
+        shadowed = np.int32(0)      # (an int32 sum, as in ``_count_at_least``)
         for x in range(start, w_px):    # (vectorized: the alphas apart from the lookups)
             a = s[cn * x + 3]
             m[x] = a
-            count += np.int32(a > 127)
+            shadowed = np.int32(shadowed + np.int32(a > 127))
+        count += shadowed
         if cn == 4 and _LITTLE_ENDIAN:  # a pixel one 32-bit load, its channels its bytes from the lowest
             px = s.view(np.uint32)
             for x in range(start, w_px):
@@ -423,9 +434,7 @@ def _shade_rgba_row(rgba, occ, qrow, gains, table):
     the blocks whose gains are all 255 (``mul255(v, 255) = v``: sunlit ground where the shading leaves level 0
     alone)."""
     w_px = occ.shape[0]
-    count = 0
-    for x in range(w_px):
-        count += np.int32(occ[x] >= np.float32(0.5))
+    count = _count_at_least(occ, np.float32(0.5))
     for x in range(w_px):
         qrow[x] = np.uint8(_quantize(occ[x]))
     g32 = gains.view(np.uint32)
@@ -546,7 +555,7 @@ def _weights_row(fu, fv, fa, fb, idx, stride, umax, vmax):
         fb[x] = v - np.float32(iv)
         idx[x] = np.uint32(iv) * stride + np.uint32(iu)
         inside = (u >= 0) & (v >= 0) & (u < umax) & (v < vmax)     # (false for NaN)
-        outside |= np.int32(not inside)
+        outside = np.int32(outside | np.int32(not inside))  # (carried as int32: see ``_count_at_least``)
     return outside
 
 
