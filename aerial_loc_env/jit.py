@@ -418,10 +418,13 @@ def bilinear_rgba8(typingctx, flat, idx, stride, fa, fb, out, x):
 
     Why: the same arithmetic as a loop over the pixels (``render_kernels._blend_row``), but each neighbour pair is
     one 64-bit load (two loads a pixel, not four, and no neighbour rows stored and read back) and the chain runs on
-    the 32 channels as one vector, each pixel's weights spread to its four channels by a shuffle. Written in LLVM's
-    target-independent vector operations: the target's widest registers do it (two 256-bit halves with AVX2, one
-    512-bit register with AVX-512, NEON's 128-bit ones), where a loop over the pixels needs AVX-512's byte
-    permutes to vectorize well; no instruction that some x86-64 lacks."""
+    the 32 channels as one vector, each pixel's weights spread to its four channels by a shuffle. Two pixels' pairs
+    share a 256-bit vector, one in the low half of each 128-bit lane, so that one in-lane byte shuffle with zeros
+    widens a pixel of each pair to its four channels as int32 (the bytes read as little-endian words, as on every
+    target numba has); eight pairs inserted into one vector took three times the shuffles with AVX2. Written in
+    LLVM's target-independent vector operations: the target's widest registers do it (two 256-bit halves with
+    AVX2, one 512-bit register with AVX-512, NEON's 128-bit ones), where a loop over the pixels needs AVX-512's
+    byte permutes to vectorize well; no instruction that some x86-64 lacks."""
     if not (isinstance(x, types.Integer) and isinstance(stride, types.Integer)
             and all(isinstance(a, types.Array) and a.ndim == 1 and a.layout == "C" for a in (flat, idx, fa, fb, out))
             and flat.dtype == types.uint32 and idx.dtype == types.uint32 and out.dtype == types.uint8
@@ -436,19 +439,37 @@ def bilinear_rgba8(typingctx, flat, idx, stride, fa, fb, out, x):
         i8, i32, i64, f32 = ir.IntType(8), ir.IntType(32), ir.IntType(64), ir.FloatType()
         xi = context.cast(builder, args[6], signature.args[6], types.intp)
         below = builder.zext(context.cast(builder, args[2], signature.args[2], types.uint32), i64)
-        pairs = [ir.Constant(ir.VectorType(i64, p), None), ir.Constant(ir.VectorType(i64, p), None)]
-        for i in range(p):      # the neighbour pairs: (p00, p01) and (p10, p11), one 64-bit load each
-            k = builder.zext(builder.load(builder.gep(idx_p, [builder.add(xi, ir.Constant(xi.type, i))])), i64)
-            for row, at in enumerate((k, builder.add(k, below))):
-                word = builder.load(builder.bitcast(builder.gep(flat_p, [at]), i64.as_pointer()), align=4)
-                pairs[row] = builder.insert_element(pairs[row], word, ir.Constant(i32, i))
-        vb8, vf = ir.VectorType(i8, 2 * n), ir.VectorType(f32, n)
-        # a pair's bytes in memory order (a bitcast is a store and a load): its first pixel is bytes 0..3
-        left = ir.Constant(ir.VectorType(i32, n), [8 * (j // 4) + j % 4 for j in range(n)])
-        right = ir.Constant(ir.VectorType(i32, n), [8 * (j // 4) + 4 + j % 4 for j in range(n)])
-        top, bottom = (builder.bitcast(pair, vb8) for pair in pairs)
-        p00, p01, p10, p11 = (builder.uitofp(builder.shuffle_vector(row, ir.Constant(vb8, None), lane), vf)
-                              for row, lane in ((top, left), (top, right), (bottom, left), (bottom, right)))
+        # the neighbour pairs (p00, p01) and (p10, p11), one 64-bit load each; two pixels' pairs a 256-bit vector
+        v4, vb32, vi8 = ir.VectorType(i64, 4), ir.VectorType(i8, 32), ir.VectorType(i32, 8)
+        zero32 = ir.Constant(vb32, [0] * 32)
+        halves = ([], [])
+        for q in range(p // 2):
+            words = ([], [])
+            for i in (2 * q, 2 * q + 1):
+                k = builder.zext(builder.load(builder.gep(idx_p, [builder.add(xi, ir.Constant(xi.type, i))])), i64)
+                for row, at in enumerate((k, builder.add(k, below))):
+                    words[row].append(builder.load(builder.bitcast(builder.gep(flat_p, [at]), i64.as_pointer()),
+                                                   align=4))
+            for row in (0, 1):
+                vec = ir.Constant(v4, None)
+                for lane, word in zip((0, 2), words[row], strict=True):
+                    vec = builder.insert_element(vec, word, ir.Constant(i32, lane))
+                halves[row].append(builder.bitcast(vec, vb32))
+        vf = ir.VectorType(f32, n)
+
+        def widened(row: int, second: bool):
+            """The first or second pixel of each pair of this row, its four channels as float32 (32 lanes)."""
+            lanes = [16 * (j // 4) + 4 * second + j % 4 for j in range(8)]
+            mask = ir.Constant(ir.VectorType(i32, 32), [lanes[d // 4] if d % 4 == 0 else 32 for d in range(32)])
+            parts = [builder.uitofp(builder.bitcast(builder.shuffle_vector(h, zero32, mask), vi8),
+                                    ir.VectorType(f32, 8)) for h in halves[row]]
+            while len(parts) > 1:
+                parts = [builder.shuffle_vector(parts[j], parts[j + 1], ir.Constant(
+                    ir.VectorType(i32, 2 * parts[j].type.count), list(range(2 * parts[j].type.count))))
+                    for j in range(0, len(parts), 2)]
+            return parts[0]
+
+        p00, p01, p10, p11 = widened(0, False), widened(0, True), widened(1, False), widened(1, True)
         wv, spread = ir.VectorType(f32, p), ir.Constant(ir.VectorType(i32, n), [j // 4 for j in range(n)])
         a, b = (builder.shuffle_vector(builder.load(builder.bitcast(builder.gep(w, [xi]), wv.as_pointer()), align=4),
                                        ir.Constant(wv, None), spread) for w in (fa_p, fb_p))
