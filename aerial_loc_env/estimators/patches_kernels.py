@@ -109,7 +109,7 @@ def scan(planes, e, cols, rows, active, nch, mode, ref, shift, ref_bins, bins, s
             idx[i] = np.uint32(_index32(iv, w, iu))
             out_i = np.int32((u < 0) | (v < 0) | (u >= umax) | (v >= vmax))
             off[i] = np.uint8(out_i)
-            outside |= out_i
+            outside = np.int32(outside | out_i)   # (carried as int32: an int64 one halves the vector width)
         if outside == 0 and active[n]:      # every point inside (the usual case): one pass per channel
             for ch in range(nch):
                 _sample(flat[ch], idx, below, fa, fb, out[ch], 0, npt)
