@@ -17,10 +17,13 @@
 Fast without AVX-512 (AVX2 x86-64, and other vector units): a loop LLVM vectorizes with AVX-512 can stay scalar or
 slow without it where it converts an int64 to float (the loop counter: convert it through int32), multiplies
 int64 lanes (numba widens int32 products: ``index32``, or unsigned 32 x 32 -> 64-bit products), loads under a
-condition (load unconditionally, then select), or stores back a selected value it loaded (``a[i] = max(a[i], t)``
-becomes a masked store, slow on AMD: write to another row). ``sysinfo.isa()`` says which code numba compiles for;
-``NUMBA_CPU_NAME=znver3 NUMBA_CPU_FEATURES=`` (an empty list: the named CPU's own features) compiles for an AVX2
-machine on any x86-64 host (``NUMBA_CPU_NAME`` alone keeps the host's features, AVX-512 included).
+condition (load unconditionally, then select), stores back a selected value it loaded (``a[i] = max(a[i], t)``
+becomes a masked store, slow on AMD: write to another row), carries a sum or flag that numba widened to int64
+(the whole loop then takes 64-bit lanes: cast it back to int32 each step), or casts a value to uint8 (every lane
+masked before the packs: ``saturate_u8`` uses the packs' own saturation). ``sysinfo.isa()`` says which code
+numba compiles for; ``NUMBA_CPU_NAME=znver3 NUMBA_CPU_FEATURES=`` (an empty list: the named CPU's own features)
+compiles for an AVX2 machine on any x86-64 host (``NUMBA_CPU_NAME`` alone keeps the host's features, AVX-512
+included).
 
 Every compiled module is named ``<module>_kernels.py`` and sits beside the module it serves.
 
