@@ -424,7 +424,7 @@ def bilinear_rgba8(typingctx, flat, idx, stride, fa, fb, out, x):
     the 32 channels as one vector, each pixel's weights spread to its four channels by a shuffle. Two pixels' pairs
     share a 256-bit vector, one in the low half of each 128-bit lane, so that one in-lane byte shuffle with zeros
     widens a pixel of each pair to its four channels as int32 (the bytes read as little-endian words, as on every
-    target numba has); eight pairs inserted into one vector took three times the shuffles with AVX2. Written in
+    target numba has), where all eight pairs in one vector took cross-lane shuffles to split. Written in
     LLVM's target-independent vector operations: the target's widest registers do it (two 256-bit halves with
     AVX2, one 512-bit register with AVX-512, NEON's 128-bit ones), where a loop over the pixels needs AVX-512's
     byte permutes to vectorize well; no instruction that some x86-64 lacks."""
@@ -443,7 +443,7 @@ def bilinear_rgba8(typingctx, flat, idx, stride, fa, fb, out, x):
         xi = context.cast(builder, args[6], signature.args[6], types.intp)
         below = builder.zext(context.cast(builder, args[2], signature.args[2], types.uint32), i64)
         # the neighbour pairs (p00, p01) and (p10, p11), one 64-bit load each; two pixels' pairs a 256-bit vector
-        v4, vb32, vi8 = ir.VectorType(i64, 4), ir.VectorType(i8, 32), ir.VectorType(i32, 8)
+        v4, vb32, v8i32 = ir.VectorType(i64, 4), ir.VectorType(i8, 32), ir.VectorType(i32, 8)
         zero32 = ir.Constant(vb32, [0] * 32)
         halves = ([], [])
         for q in range(p // 2):
@@ -464,7 +464,7 @@ def bilinear_rgba8(typingctx, flat, idx, stride, fa, fb, out, x):
             """The first or second pixel of each pair of this row, its four channels as float32 (32 lanes)."""
             lanes = [16 * (j // 4) + 4 * second + j % 4 for j in range(8)]
             mask = ir.Constant(ir.VectorType(i32, 32), [lanes[d // 4] if d % 4 == 0 else 32 for d in range(32)])
-            parts = [builder.uitofp(builder.bitcast(builder.shuffle_vector(h, zero32, mask), vi8),
+            parts = [builder.uitofp(builder.bitcast(builder.shuffle_vector(h, zero32, mask), v8i32),
                                     ir.VectorType(f32, 8)) for h in halves[row]]
             while len(parts) > 1:
                 parts = [builder.shuffle_vector(parts[j], parts[j + 1], ir.Constant(
@@ -651,7 +651,7 @@ def _lut_rgba16_jit(src, x, tabs, out, alpha):
 def saturate_u8(v):
     """The int32 ``v`` saturated to 0..255, as uint8. Why this form for a value already in range too: LLVM turns it
     into the vector packs' own saturation, where a bare cast masks every lane before the packs and a float clamp
-    adds a compare, a mask and a minimum (with AVX2 a quarter of the sensor stage's instructions)."""
+    adds a compare, a mask and a minimum per vector (docs/perf-log.md has the sensor stage's figures)."""
     return np.uint8(min(max(v, np.int32(0)), np.int32(255)))
 
 
