@@ -157,12 +157,9 @@ def _scene_row(s, o, m, f, cn, w_px, occ_mode, l0, l1, l2, s0, s1, s2, lit_same,
             start = w_px - w_px % _LUT_PIXELS
             for x in range(0, start, _LUT_PIXELS):
                 count += _lut_rgba16(s, x, tabs, o, m)
-        shadowed = np.int32(0)      # (an int32 sum, as in ``_count_at_least``)
         for x in range(start, w_px):    # (vectorized: the alphas apart from the lookups)
-            a = s[cn * x + 3]
-            m[x] = a
-            shadowed = np.int32(shadowed + np.int32(a > 127))
-        count += shadowed
+            m[x] = s[cn * x + 3]
+        count += _count_at_least(m[start:w_px], np.uint8(128))
         if cn == 4 and _LITTLE_ENDIAN:  # a pixel one 32-bit load, its channels its bytes from the lowest
             px = s.view(np.uint32)
             for x in range(start, w_px):
