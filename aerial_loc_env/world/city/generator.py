@@ -25,6 +25,7 @@ import numpy as np
 from aerial_loc_env.config import build_config, config_to_dict
 from aerial_loc_env.config import rng as crange
 from aerial_loc_env.errors import ConfigError
+from aerial_loc_env.pages import small_pages
 from aerial_loc_env.paths import cache_dir
 from aerial_loc_env.world.city.content import Filler, choose_use, paint_scene
 from aerial_loc_env.world.city.layout import build_layout
@@ -117,11 +118,17 @@ def _ground(rng: np.random.Generator, w_px: int, h_px: int, gsd_m: float) -> np.
 
 
 def generate_city(config: CityConfig | None = None) -> Orthomap:
-    """Draw the city described by ``config`` (uncached); every random draw comes from its seed."""
+    """Draw the city described by ``config`` (uncached); every random draw comes from its seed. Its many
+    full-map planes, each filled once, take normal memory pages (``pages.small_pages``)."""
     cfg = config if config is not None else CityConfig()
     if not isinstance(cfg, CityConfig):
         raise ConfigError(f"generate_city: expected a CityConfig, got {type(cfg).__name__}; build one with "
                        "aerial_loc_env.config.build_config(CityConfig, {...})")
+    with small_pages():
+        return _generate(cfg)
+
+
+def _generate(cfg: CityConfig) -> Orthomap:
     w_px, h_px = cfg.size_px
     seeds = np.random.SeedSequence([cfg.seed, 0xC17]).spawn(5)
     r_layout, r_content, r_roads, r_ground, r_texture = (np.random.default_rng(s) for s in seeds)

@@ -206,48 +206,71 @@ class Canvas:
         """Final image: base colour x (shade + per-material multi-scale noise) x large-scale light, blurred.
 
         All full-resolution work is saturating uint8 arithmetic in OpenCV; noise above 0.25 m scale is drawn
-        at coarse resolution and upsampled, so the cost is a few passes over the image.
+        at coarse resolution and upsampled, so the cost is a few passes over the image. The passes write into a
+        few scratch planes reused from pass to pass (OpenCV's ``dst``, in place where a pass reads its own
+        output): a fresh plane per pass costs more than the pass, every page of it faulted in and zeroed by the
+        kernel on first touch. The same bytes as fresh outputs.
         """
         h, w = self.height_px, self.width_px
         mat = self.material
         amps = [_lut(1), _lut(2), _lut(3)]
         offset = (amps[0].astype(np.int32) + amps[1] + amps[2]) // 2
-        mod = cv2.subtract(self.shade, cv2.LUT(mat, offset.astype(np.uint8)))
+        table, term = np.empty((h, w), np.uint8), np.empty((h, w), np.uint8)   # a pass's looked-up and new term
+        scratch = _Scratch()                                                   # the upsampled noise fields
+        mod = cv2.subtract(self.shade, cv2.LUT(mat, offset.astype(np.uint8), dst=table))
         scales_m = (None, 1.0, 6.0)
         for amp, scale_m in zip(amps, scales_m, strict=True):
             if scale_m is None:
                 noise = rng.integers(0, 256, (h, w), dtype=np.uint8)
             else:
-                noise = _upsampled_noise(rng, h, w, max(1, int(round(scale_m / self.gsd_m))))
-            mod = cv2.add(mod, cv2.multiply(noise, cv2.LUT(mat, amp), scale=1.0 / 255.0))
+                noise = _upsampled_noise(rng, h, w, max(1, int(round(scale_m / self.gsd_m))), scratch=scratch)
+            mod = cv2.add(mod, cv2.multiply(noise, cv2.LUT(mat, amp, dst=table), dst=term, scale=1.0 / 255.0),
+                          dst=mod)
         # stains: the top few percent of smooth noise at 1.5 m and at 5 m, darkening paved ground and roofs
         stain_amp = np.zeros(256, np.uint8)
         for m_, a_ in _STAIN_AMPLITUDE.items():
             stain_amp[int(m_)] = a_
         stain_amp[int(Material.MARKING)] = _MARKING_WEAR
-        amp = cv2.LUT(mat, stain_amp)
+        amp = cv2.LUT(mat, stain_amp, dst=table)
         for cell_m, cut in ((1.5, 196), (5.0, 186)):
-            blot = _upsampled_noise(rng, h, w, max(1, int(round(cell_m / self.gsd_m))))
-            blot = cv2.multiply(cv2.subtract(blot, cut), 255.0 / (255 - cut))
-            mod = cv2.subtract(mod, cv2.multiply(blot, amp, scale=1.0 / 255.0))
+            blot = _upsampled_noise(rng, h, w, max(1, int(round(cell_m / self.gsd_m))), scratch=scratch)
+            blot = cv2.multiply(cv2.subtract(blot, cut, dst=term), 255.0 / (255 - cut), dst=term)
+            mod = cv2.subtract(mod, cv2.multiply(blot, amp, dst=term, scale=1.0 / 255.0), dst=mod)
         # large-scale illumination / weathering field (about 60 m blobs, +-10 %)
-        light = _upsampled_noise(rng, h, w, max(1, int(round(60.0 / self.gsd_m))), lo=110, hi=146)
-        mod = cv2.multiply(mod, light, scale=1.0 / 128.0)
-        out = cv2.multiply(self.rgb, cv2.cvtColor(mod, cv2.COLOR_GRAY2RGB), scale=1.0 / NEUTRAL_SHADE)
-        grey = cv2.cvtColor(cv2.cvtColor(out, cv2.COLOR_RGB2GRAY), cv2.COLOR_GRAY2RGB)
-        out = cv2.addWeighted(out, WORLD_SATURATION, grey, 1.0 - WORLD_SATURATION, 0.0)
+        light = _upsampled_noise(rng, h, w, max(1, int(round(60.0 / self.gsd_m))), lo=110, hi=146, scratch=scratch)
+        mod = cv2.multiply(mod, light, dst=mod, scale=1.0 / 128.0)
+        spread = cv2.cvtColor(mod, cv2.COLOR_GRAY2RGB)
+        out = cv2.multiply(self.rgb, spread, scale=1.0 / NEUTRAL_SHADE)
+        grey = cv2.cvtColor(cv2.cvtColor(out, cv2.COLOR_RGB2GRAY, dst=term), cv2.COLOR_GRAY2RGB, dst=spread)
+        mixed = cv2.addWeighted(out, WORLD_SATURATION, grey, 1.0 - WORLD_SATURATION, 0.0, dst=spread)
         sigma_px = 0.12 / self.gsd_m          # optics blur: about 0.12 m, i.e. half a pixel at 0.25 m
         if sigma_px > 0.3:
-            out = cv2.GaussianBlur(out, (3, 3), sigma_px)
-        return out
+            return cv2.GaussianBlur(mixed, (3, 3), sigma_px, dst=out)
+        return mixed
+
+
+class _Scratch:
+    """A flat uint8 buffer lent out as planes of any shape (the largest asked for so far): one allocation for the
+    upsampled noise fields of ``textured_rgb``, each used before the next is drawn."""
+
+    def __init__(self) -> None:
+        self._flat = np.empty(0, np.uint8)
+
+    def plane(self, h: int, w: int) -> np.ndarray:
+        if self._flat.size < h * w:
+            self._flat = np.empty(h * w, np.uint8)
+        return self._flat[:h * w].reshape(h, w)
 
 
 def _upsampled_noise(rng: np.random.Generator, h: int, w: int, cell_px: int, lo: int = 0,
-                     hi: int = 255) -> np.ndarray:
-    """Smooth uint8 noise in [lo, hi] with features about ``cell_px`` pixels across (bicubic upsampling)."""
+                     hi: int = 255, scratch: _Scratch | None = None) -> np.ndarray:
+    """Smooth uint8 noise in [lo, hi] with features about ``cell_px`` pixels across (bicubic upsampling); in a
+    plane of ``scratch`` where given (valid until its next use)."""
     ch, cw = h // cell_px + 3, w // cell_px + 3
     coarse = rng.integers(lo, hi + 1, (ch, cw), dtype=np.uint8)
-    big = cv2.resize(coarse, ((cw - 1) * cell_px, (ch - 1) * cell_px), interpolation=cv2.INTER_CUBIC)
+    size = ((cw - 1) * cell_px, (ch - 1) * cell_px)
+    dst = None if scratch is None else scratch.plane(size[1], size[0])
+    big = cv2.resize(coarse, size, dst=dst, interpolation=cv2.INTER_CUBIC)
     oy = int(rng.integers(0, cell_px))
     ox = int(rng.integers(0, cell_px))
     return big[oy:oy + h, ox:ox + w]      # a strided view: OpenCV takes row-strided arrays as they are
