@@ -2,11 +2,12 @@
 
 NumPy asks Linux for transparent huge pages (2 MB) for every array of 4 MB or more (``madvise(MADV_HUGEPAGE)``).
 Where the kernel defragments on such a request (the THP ``defrag`` setting ``madvise``, the kernel's default, or
-``always``), a first touch of a fresh array can stall while the kernel compacts memory to free a whole
-2 MB block, and the longer a machine has run, the longer it stalls. Work that fills many short-lived large arrays
-once each (the procedural city: dozens of full-map planes) then spends more time in those faults than in its own
-arithmetic, while arrays read many times over (a renderer's map copy, a baked box) gain from huge pages' fewer TLB
-misses. ``small_pages`` turns NumPy's request off for the arrays made inside it, and only there.
+``always``), a first touch of a fresh array can stall while the kernel compacts memory to free a whole 2 MB
+block, and the longer a machine has run, the longer it stalls. Work that fills many short-lived large arrays once
+or a few times each (the procedural city and its epochs: dozens of full-map planes) then spends more time in those
+faults than in its own arithmetic, while arrays read many times over (a renderer's map copy, a baked box) gain
+from huge pages' fewer TLB misses. ``small_pages`` turns NumPy's request off for the arrays made inside it, and
+only there.
 """
 
 from __future__ import annotations

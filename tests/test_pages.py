@@ -1,5 +1,5 @@
 """``pages.small_pages``: NumPy's huge-page request off inside, the setting before the outermost entry restored
-after (nested, raised through, from several threads at once); the city generation runs inside it."""
+after (nested, raised through, from several threads at once); the city and its epochs are drawn inside it."""
 
 from __future__ import annotations
 
@@ -92,4 +92,22 @@ def test_the_city_is_drawn_in_small_pages(monkeypatch, initial):
     monkeypatch.setattr(generator, "_generate", spy)
     city = generator.generate_city(small_city_config(0, width_m=240.0, height_m=200.0))
     assert inside == [False] and city.rgb.shape[:2] == (800, 960)
+    assert _state() is initial
+
+
+def test_an_epoch_is_drawn_in_small_pages(monkeypatch, initial):
+    from aerial_loc_env.config import build_config
+    from aerial_loc_env.world.city import epochs, generator, small_city_config
+
+    inside: list[bool] = []
+    drawn = epochs._changed
+
+    def spy(*args):
+        inside.append(_state())
+        return drawn(*args)
+
+    monkeypatch.setattr(epochs, "_changed", spy)
+    city = generator.generate_city(small_city_config(0, width_m=240.0, height_m=200.0))
+    later = epochs.change_epoch(city, build_config(epochs.EpochConfig, {"grass_dryness": 0.5}, where="test"))
+    assert inside == [False] and later.rgb.shape == city.rgb.shape
     assert _state() is initial

@@ -28,6 +28,7 @@ import numpy as np
 from aerial_loc_env import portable
 from aerial_loc_env.config import config_to_dict, rng
 from aerial_loc_env.errors import ConfigError, MapError
+from aerial_loc_env.pages import small_pages
 from aerial_loc_env.world.city.paint import WORLD_SATURATION
 from aerial_loc_env.world.maps.cache import cached_bundle, spec_key
 from aerial_loc_env.world.maps.landcover import LandCover as LC
@@ -578,11 +579,17 @@ def _cars_new(L: _Layers, rng: np.random.Generator, rate: float) -> None:
 def change_epoch(orthomap: Orthomap, config: EpochConfig, seed: int = 0) -> Orthomap:
     """Epoch B of ``orthomap`` (epoch A) under ``config``, deterministic from ``(seed, config.seed)``.
 
-    Needs the classes and DSM layers; returns ``orthomap`` itself when every rate is 0.
+    Needs the classes and DSM layers; returns ``orthomap`` itself when every rate is 0. Its full-map planes, each
+    filled a few times, take normal memory pages (``pages.small_pages``).
     """
     cfg = config
     if cfg.is_identity:
         return orthomap
+    with small_pages():
+        return _changed(orthomap, cfg, seed)
+
+
+def _changed(orthomap: Orthomap, cfg: EpochConfig, seed: int) -> Orthomap:
     L = _Layers(orthomap)
     gens = dict(zip(KINDS, (np.random.default_rng(s) for s in
                             np.random.SeedSequence([int(seed), int(cfg.seed), 0xE90C]).spawn(len(KINDS))),
