@@ -32,12 +32,19 @@ kernel module does, installs it): a corrupt or truncated index or data file (num
 the garbage raises, on every call, until the files are deleted by hand) has that function's cache files removed
 and is compiled again with a ``CacheRebuiltWarning``; a cache that cannot be written costs a compile, never the
 call; and where neither ``NUMBA_CACHE_DIR``, the module's ``__pycache__`` nor numba's user cache folder can be
-written, the kernels are cached in ``paths.temporary_cache_dir("numba")`` with a ``CacheLocationWarning``.
+written, the kernels are cached in ``paths.temporary_cache_dir("numba")`` with a ``CacheLocationWarning``. A
+kernel made by a factory (a closure: ``perspective_kernels.view_finish`` over its band kernel, ``portable``'s
+elementwise loops over their scalar function) is found again by the next process: numba keys such a kernel's cache
+entry on a pickle of its closure, and a captured kernel pickles with an identity drawn anew in every process, so
+each process compiled it again and added one more entry; the key here describes the captured values by what they
+are (a kernel by its Python function's module, name, code and own closure; a number or a flag by its value).
 """
 
 from __future__ import annotations
 
+import hashlib
 import os
+import types as pytypes
 import warnings
 
 import numba as nb
@@ -136,6 +143,68 @@ def _save_overload(self, sig, data):
         return None
 
 
+_numba_index_key = caching.Cache._index_key
+_SCALARS = (bool, int, float, complex, str, bytes, type(None))
+
+
+def _code_digest(code: pytypes.CodeType) -> str:
+    """A digest of what a code object does (its bytecode, constants, names), the same in every process: not
+    ``marshal``'s bytes, which vary with the objects' reference counts, nor a frozenset's order, which varies with
+    string hashing."""
+    def const(c) -> str:
+        if isinstance(c, pytypes.CodeType):
+            return _code_digest(c)
+        if isinstance(c, frozenset):
+            return "frozenset(" + ",".join(sorted(const(v) for v in c)) + ")"
+        if isinstance(c, tuple):
+            return "(" + ",".join(const(v) for v in c) + ")"
+        return repr(c)
+
+    parts = (code.co_code.hex(), const(code.co_consts), repr(code.co_names), repr(code.co_varnames),
+             repr(code.co_freevars), repr(code.co_cellvars))
+    return hashlib.sha256("|".join(parts).encode()).hexdigest()
+
+
+def _described(value, depth: int = 0) -> str | None:
+    """A closure cell's value as text that is the same in every process for the same value: a kernel (numba
+    dispatcher) by its Python function, a function by its module, name, code (``_code_digest``) and own closure,
+    a builtin by its module and name, numbers, strings, flags and tuples of them by value; None for anything
+    else."""
+    if isinstance(value, _SCALARS):
+        return f"{type(value).__name__}:{value!r}"
+    if depth >= 8:
+        return None
+    if isinstance(value, tuple):
+        parts = [_described(v, depth + 1) for v in value]
+        return None if any(p is None for p in parts) else "(" + ",".join(parts) + ")"
+    func = getattr(value, "py_func", None)
+    if isinstance(func, pytypes.FunctionType):              # a numba dispatcher
+        inner = _described(func, depth + 1)
+        return None if inner is None else f"jit:{inner}"
+    if isinstance(value, pytypes.FunctionType):
+        cells = _described(tuple(c.cell_contents for c in value.__closure__ or ()), depth + 1)
+        if cells is None:
+            return None
+        return f"fn:{value.__module__}.{value.__qualname__}:{_code_digest(value.__code__)}:{cells}"
+    if isinstance(value, pytypes.BuiltinFunctionType):
+        return f"builtin:{value.__module__}.{value.__qualname__}"
+    return None
+
+
+def _index_key(self, sig, codegen):
+    """numba's cache index key; for the project's closures with the captured values described by ``_described``
+    instead of pickled (a pickled dispatcher carries an identity drawn anew in each process). Other functions, and
+    closures over anything it cannot describe, keep numba's key."""
+    func = getattr(self, "_py_func", None)
+    if _ours(self) and func is not None and func.__closure__ is not None:
+        cells = _described(tuple(c.cell_contents for c in func.__closure__))
+        if cells is not None:
+            digest = hashlib.sha256
+            return (sig, codegen.magic_tuple(),
+                    (digest(func.__code__.co_code).hexdigest(), digest(cells.encode()).hexdigest()))
+    return _numba_index_key(self, sig, codegen)
+
+
 class _TemporaryCacheLocator(caching._SourceFileBackedLocatorMixin, caching._CacheLocator):
     """numba's last resort for the project's kernels: ``paths.temporary_cache_dir("numba")``, where numba's own
     locations (``NUMBA_CACHE_DIR``, the module's ``__pycache__``, its user cache folder) cannot be written."""
@@ -174,6 +243,7 @@ def _install_cache_guard() -> None:
         return
     caching.FunctionCache.load_overload = _load_overload
     caching.FunctionCache.save_overload = _save_overload
+    caching.FunctionCache._index_key = _index_key
     caching.FunctionCache._aerial_loc_env_guard = True
     impl = caching.CompileResultCacheImpl
     impl._locator_classes = [*impl._locator_classes, _TemporaryCacheLocator]

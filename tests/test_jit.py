@@ -161,3 +161,49 @@ def test_saturate_u8_clips_every_int32_in_a_vector_loop():
     out = np.empty(values.size, np.uint8)
     bytes_of(values, out)
     np.testing.assert_array_equal(out, np.clip(values, 0, 255).astype(np.uint8))
+
+
+#: a factory's kernel: portable's elementwise loop closing over another kernel (numba would pickle that one with an
+#: identity drawn anew in every process)
+_CLOSURE_CALL = """
+import numpy as np
+from aerial_loc_env import portable_kernels as k
+out = np.empty(2)
+k.log(np.array([0.5, 2.0]), out)
+print("log", out.tolist(), "hits", sum(k.log.stats.cache_hits.values()), "misses",
+      sum(k.log.stats.cache_misses.values()))
+"""
+
+
+def test_a_kernel_closing_over_a_kernel_is_loaded_by_the_next_process(tmp_path):
+    """The second interpreter finds the first one's cache entry of a closure over a kernel (``jit._index_key``):
+    it loads it instead of compiling again, and no second entry is written."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith("NUMBA_")}
+    env["NUMBA_CACHE_DIR"] = str(tmp_path / "numba")
+    runs = [subprocess.run([sys.executable, "-c", _CLOSURE_CALL], env=env, cwd=REPO, capture_output=True, text=True,
+                           timeout=300) for _ in range(2)]
+    assert [r.returncode for r in runs] == [0, 0], runs[-1].stderr
+    first, second = (r.stdout.split() for r in runs)
+    assert first[-4:] == ["hits", "0", "misses", "1"]
+    assert second[-4:] == ["hits", "1", "misses", "0"]
+    assert first[:-4] == second[:-4]             # the same values from the loaded code
+    assert len(list((tmp_path / "numba").rglob("portable_kernels._elementwise*.nbc"))) == 1
+
+
+def test_closure_descriptions_are_the_same_in_every_process_and_tell_kernels_apart():
+    """``jit._described`` of the perspective frame kernels' closures: equal in two interpreters (no identity, no
+    reference count, no string hashing in them), and different for the four variants."""
+    code = textwrap.dedent("""
+        from aerial_loc_env import jit
+        from aerial_loc_env.sensors import perspective_kernels as pk
+        for key in sorted(pk.view_finish):
+            cells = tuple(c.cell_contents for c in pk.view_finish[key].py_func.__closure__)
+            print(key, jit._described(cells))
+    """)
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONHASHSEED"}
+    outs = [subprocess.run([sys.executable, "-c", code], env={**env, "PYTHONHASHSEED": seed}, cwd=REPO,
+                           capture_output=True, text=True, timeout=300) for seed in ("1", "2")]
+    assert [r.returncode for r in outs] == [0, 0], outs[-1].stderr
+    lines = outs[0].stdout.splitlines()
+    assert lines == outs[1].stdout.splitlines() and len(lines) == 4
+    assert "None" not in outs[0].stdout and len({line.split(") ", 1)[1] for line in lines}) == 4
