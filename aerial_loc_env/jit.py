@@ -197,11 +197,9 @@ def _index_key(self, sig, codegen):
     closures over anything it cannot describe, keep numba's key."""
     func = getattr(self, "_py_func", None)
     if _ours(self) and func is not None and func.__closure__ is not None:
-        cells = _described(tuple(c.cell_contents for c in func.__closure__))
-        if cells is not None:
-            digest = hashlib.sha256
-            return (sig, codegen.magic_tuple(),
-                    (digest(func.__code__.co_code).hexdigest(), digest(cells.encode()).hexdigest()))
+        described = _described(func)        # (its code and its cells)
+        if described is not None:
+            return sig, codegen.magic_tuple(), (hashlib.sha256(described.encode()).hexdigest(),)
     return _numba_index_key(self, sig, codegen)
 
 

@@ -263,14 +263,13 @@ class _Scratch:
 
 
 def _upsampled_noise(rng: np.random.Generator, h: int, w: int, cell_px: int, lo: int = 0,
-                     hi: int = 255, scratch: _Scratch | None = None) -> np.ndarray:
-    """Smooth uint8 noise in [lo, hi] with features about ``cell_px`` pixels across (bicubic upsampling); in a
-    plane of ``scratch`` where given (valid until its next use)."""
+                     hi: int = 255, *, scratch: _Scratch) -> np.ndarray:
+    """Smooth uint8 noise in [lo, hi] with features about ``cell_px`` pixels across (bicubic upsampling), in a
+    plane of ``scratch`` (valid until its next use)."""
     ch, cw = h // cell_px + 3, w // cell_px + 3
     coarse = rng.integers(lo, hi + 1, (ch, cw), dtype=np.uint8)
     size = ((cw - 1) * cell_px, (ch - 1) * cell_px)
-    dst = None if scratch is None else scratch.plane(size[1], size[0])
-    big = cv2.resize(coarse, size, dst=dst, interpolation=cv2.INTER_CUBIC)
+    big = cv2.resize(coarse, size, dst=scratch.plane(size[1], size[0]), interpolation=cv2.INTER_CUBIC)
     oy = int(rng.integers(0, cell_px))
     ox = int(rng.integers(0, cell_px))
     return big[oy:oy + h, ox:ox + w]      # a strided view: OpenCV takes row-strided arrays as they are
